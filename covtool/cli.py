@@ -1,0 +1,78 @@
+"""Command-line interface: parse arguments, call the library, write results."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from .errors import CovtoolError
+
+
+def _cmd_run(args) -> int:
+    from .io.writers import write_outputs
+    from .studies import run_study
+
+    t0 = time.perf_counter()
+    result = run_study(args.study, progress=not args.quiet)
+    out = Path(args.out) if args.out else Path("out") / Path(args.study).stem
+    files = write_outputs(result, out, figures=not args.no_figures)
+    dt = time.perf_counter() - t0
+    if not args.quiet:
+        print(result.summary.to_string(index=False))
+        print(f"\nwrote {len(files)} files to {out}/ in {dt:.1f} s")
+    return 0
+
+
+def _cmd_models(args) -> int:
+    from .model.library import list_models
+
+    df = list_models(args.dir)
+    print(df.to_string(index=False))
+    return 0
+
+
+def _cmd_show(args) -> int:
+    from .model.library import load_model_by_name
+
+    model = load_model_by_name(args.model, args.dir)
+    print(f"{model.name}: {model.n} states ({model.source})\n")
+    print(model.state_table().to_string(index=False))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="covtool", description=__doc__)
+    sub = p.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("run", help="run a study file and write its outputs")
+    r.add_argument("study", help="studies/*.toml")
+    r.add_argument("--out", help="output directory (default out/<study name>)")
+    r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    r.add_argument("--no-figures", action="store_true", help="skip PNG figures")
+    r.set_defaults(func=_cmd_run)
+    m = sub.add_parser("models", help="list the model library")
+    m.add_argument("--dir", default=None, help="model directory (default: models/)")
+    m.set_defaults(func=_cmd_models)
+    s = sub.add_parser("show", help="print a model's state table")
+    s.add_argument("model", help="model name or path to a .toml file")
+    s.add_argument("--dir", default=None, help="model directory (default: models/)")
+    s.set_defaults(func=_cmd_show)
+    return p
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``covtool`` command."""
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except CovtoolError as exc:
+        print(f"covtool: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("covtool: interrupted; earlier outputs are untouched", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

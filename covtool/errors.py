@@ -1,0 +1,54 @@
+"""Exceptions raised by covtool.
+
+Every error that can be caused by a user's file or argument is a subclass of
+:class:`CovtoolError` *and* of ``ValueError``, and its message names the file,
+the field and the problem, e.g.::
+
+    models/x.toml: state 'gyro_bias_z': sigma '0.018 deg/h/s' is not an angular rate
+"""
+
+from __future__ import annotations
+
+
+class CovtoolError(Exception):
+    """Base class of all covtool errors."""
+
+
+class InputError(CovtoolError, ValueError):
+    """A user-supplied file or argument is invalid.
+
+    Parameters
+    ----------
+    where : str
+        Location prefix, usually ``"<file>: <field>"``.
+    problem : str
+        What is wrong with it.
+    """
+
+    def __init__(self, where: str, problem: str):
+        self.where = where
+        self.problem = problem
+        super().__init__(f"{where}: {problem}" if where else problem)
+
+
+class UnitError(InputError):
+    """A quantity string has an unknown or dimensionally wrong unit."""
+
+
+class ModelFileError(InputError):
+    """A model file (``models/*.toml``) is invalid."""
+
+
+class StudyFileError(InputError):
+    """A study file (``studies/*.toml``) is invalid."""
+
+
+class TrajectoryError(InputError):
+    """A trajectory declaration or CSV file is invalid."""
+
+
+class NumericalError(CovtoolError, ArithmeticError):
+    """A covariance lost symmetry or positive semi-definiteness.
+
+    The message names the step (time and operation) where it happened.
+    """
