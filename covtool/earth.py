@@ -39,6 +39,12 @@ M_RATIO = OMEGA_IE**2 * A**2 * B / GM
 #: nominal Schuler frequency sqrt(g/R) at 45 deg latitude [rad/s] (for tests and docs)
 
 
+def _arr(x):
+    """Array of float or complex (complex-step differentiation passes through)."""
+    a = np.asarray(x)
+    return a if np.iscomplexobj(a) else a.astype(float)
+
+
 def radii(lat):
     """Meridian and transverse radii of curvature.
 
@@ -126,14 +132,14 @@ def gravity_derivatives(lat, h):
 
 def gravity_n(lat, h):
     """Normal gravity vector in NED, shape ``(..., 3)`` [m/s^2]."""
-    g = np.asarray(gravity(lat, h), dtype=float)
+    g = _arr(gravity(lat, h))
     z = np.zeros_like(g)
     return np.stack([z, z, g], axis=-1)
 
 
 def earth_rate_n(lat):
     """Earth rate ω_ie^n in NED, shape ``(..., 3)`` [rad/s]."""
-    lat = np.asarray(lat, dtype=float)
+    lat = _arr(lat)
     return np.stack([OMEGA_IE * np.cos(lat), np.zeros_like(lat), -OMEGA_IE * np.sin(lat)], axis=-1)
 
 
@@ -142,7 +148,7 @@ def transport_rate_n(lat, h, v_n):
 
     ``ω_en^n = [v_E/(R_N+h), -v_N/(R_M+h), -v_E tan L/(R_N+h)]``.
     """
-    v_n = np.asarray(v_n, dtype=float)
+    v_n = _arr(v_n)
     rm, rn = radii(lat)
     vn, ve = v_n[..., 0], v_n[..., 1]
     return np.stack([ve / (rn + h), -vn / (rm + h), -ve * np.tan(lat) / (rn + h)], axis=-1)
@@ -153,7 +159,7 @@ def position_rates(lat, h, v_n):
 
     ``L̇ = v_N/(R_M+h)``, ``l̇ = v_E/((R_N+h) cos L)``, ``ḣ = -v_D``.
     """
-    v_n = np.asarray(v_n, dtype=float)
+    v_n = _arr(v_n)
     rm, rn = radii(lat)
     return np.stack([v_n[..., 0] / (rm + h), v_n[..., 1] / ((rn + h) * np.cos(lat)), -v_n[..., 2]], axis=-1)
 

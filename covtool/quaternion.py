@@ -15,9 +15,15 @@ from __future__ import annotations
 import numpy as np
 
 
+def _arr(x):
+    """Array of float or complex (complex-step differentiation passes through)."""
+    a = np.asarray(x)
+    return a if np.iscomplexobj(a) else a.astype(float)
+
+
 def mul(p, q):
     """Hamilton product ``p ⊗ q``, shape ``(..., 4)``."""
-    p, q = np.asarray(p, float), np.asarray(q, float)
+    p, q = _arr(p), _arr(q)
     p0, p1, p2, p3 = np.moveaxis(p, -1, 0)
     q0, q1, q2, q3 = np.moveaxis(q, -1, 0)
     return np.stack([
@@ -30,13 +36,13 @@ def mul(p, q):
 
 def conj(q):
     """Quaternion conjugate."""
-    q = np.asarray(q, float)
+    q = _arr(q)
     return q * np.array([1.0, -1.0, -1.0, -1.0])
 
 
 def normalize(q):
     """Unit quaternion with non-negative scalar part."""
-    q = np.asarray(q, float)
+    q = _arr(q)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     return np.where(q[..., :1] < 0, -q, q)
 
@@ -47,7 +53,7 @@ def dcm(q):
     The quaternion is normalised first: seed 002 assumes the attitude
     algorithm normalises, so the quaternion's scale error does not enter (§2.1).
     """
-    q = np.asarray(q, float)
+    q = _arr(q)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     q0, q1, q2, q3 = np.moveaxis(q, -1, 0)
     return np.stack([
@@ -81,7 +87,7 @@ def to_euler(q):
 
 def from_rotvec(phi):
     """Quaternion of a rotation vector [rad], shape ``(..., 4)``."""
-    phi = np.asarray(phi, float)
+    phi = _arr(phi)
     ang = np.linalg.norm(phi, axis=-1, keepdims=True)
     half = 0.5 * ang
     # sin(x)/x with a series near zero
@@ -102,7 +108,7 @@ def to_rotvec(q):
 
 def omega_body(w):
     """Right-product matrix ``[ω_ib^b]`` of seed 002, eq (2): ``[ω] q = q ⊗ (0, ω)``."""
-    w = np.asarray(w, float)
+    w = _arr(w)
     x, y, z = np.moveaxis(w, -1, 0)
     o = np.zeros_like(x)
     return np.stack([
@@ -115,7 +121,7 @@ def omega_body(w):
 
 def omega_nav(w):
     """Left-product matrix ``[ω_in^n]`` of seed 002, eq (2): ``[ω] q = (0, ω) ⊗ q``."""
-    w = np.asarray(w, float)
+    w = _arr(w)
     n, e, d = np.moveaxis(w, -1, 0)
     o = np.zeros_like(n)
     return np.stack([
@@ -128,7 +134,7 @@ def omega_nav(w):
 
 def Q_matrix(q):
     """``Q(q)`` of seed 002, eq (2): ``q ⊗ (0, v) = Q(q) v``, shape ``(..., 4, 3)``."""
-    q = np.asarray(q, float)
+    q = _arr(q)
     q0, q1, q2, q3 = np.moveaxis(q, -1, 0)
     return np.stack([
         np.stack([-q1, -q2, -q3], -1),
@@ -140,7 +146,7 @@ def Q_matrix(q):
 
 def R_matrix(q):
     """``R(q)`` of seed 002, eq (2): ``(0, v) ⊗ q = R(q) v``, shape ``(..., 4, 3)``."""
-    q = np.asarray(q, float)
+    q = _arr(q)
     q0, q1, q2, q3 = np.moveaxis(q, -1, 0)
     return np.stack([
         np.stack([-q1, -q2, -q3], -1),
@@ -178,8 +184,8 @@ def dcm_times_vector_jacobian(q, f):
 
     and the normalisation adds the projection ``(I − q qᵀ)``.
     """
-    q = np.asarray(q, float)
-    f = np.asarray(f, float)
+    q = _arr(q)
+    f = _arr(f)
     q0 = q[..., 0]
     v = q[..., 1:]
     d0 = 2.0 * q0[..., None] * f + 2.0 * np.cross(v, f)
@@ -195,7 +201,7 @@ def dcm_times_vector_jacobian(q, f):
 
 def skew(v):
     """Cross-product matrix ``[v×]``, shape ``(..., 3, 3)``."""
-    v = np.asarray(v, float)
+    v = _arr(v)
     x, y, z = np.moveaxis(v, -1, 0)
     o = np.zeros_like(x)
     return np.stack([

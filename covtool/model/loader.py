@@ -1,0 +1,268 @@
+"""Read, validate and dump model files (``models/*.toml``).
+
+File format
+-----------
+::
+
+    [model]
+    name = "sdins58"
+    description = "..."
+
+    [[block]]                      # the 10 navigation states of seed 002 eq (14)
+    kind = "navigation"
+    position_sigma = ["0 rad", "0 rad", "0 m"]
+    velocity_sigma = "0.001 ft/s"          # one value means all three axes
+    quaternion_sigma = ["0", "0.73e-4 rad", "0.73e-4 rad", "1.45e-3 rad"]
+    angle_random_walk = "0.002 deg/sqrt(h)"
+    velocity_random_walk = "5 ug/sqrt(Hz)"
+    source = "seed 002, Table 2"
+
+    [[block]]
+    kind = "accel_bias"             # see covtool.model.blocks.BLOCK_KINDS
+    sigma = ["20 ug", "20 ug", "30 ug"]
+    process = "constant"            # constant | random_walk | markov | markov_distance
+    tau = "1 h"                     # markov: required
+    distance = "20 km"              # markov_distance: required
+    rw = "0.001 deg/h/sqrt(h)"      # random_walk: driving root-PSD
+    source = "seed 002, Table 2"
+
+    [[correlation]]
+    states = ["acc_bias_x", "acc_sf_x"]
+    rho = 0.3
+
+The display unit of each state is the unit written in its σ (``"20 ug"`` →
+``ug``), or ``unit = "..."`` if given.  Every error names the file, the state
+(or block) and the problem, and is a :class:`~covtool.errors.ModelFileError`.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import re
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from ..errors import ModelFileError, UnitError
+from ..io.config import as_list, check_keys, load_toml
+from ..units import DIMENSIONS, is_unit, parse_quantity
+from .blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
+from .spec import PROCESSES, Model, State
+
+_BLOCK_KEYS = {"kind", "name", "names", "sigma", "unit", "process", "tau", "distance", "rw", "source"}
+_NAV_KEYS = {"kind", "name", "position_sigma", "velocity_sigma", "quaternion_sigma",
+             "angle_random_walk", "velocity_random_walk", "source"}
+_TOP_KEYS = {"model", "block", "correlation"}
+_MODEL_KEYS = {"name", "description", "source"}
+
+DEFAULT_UNITS = {
+    "acceleration": "ug", "angular_rate": "deg/h", "dimensionless": "ppm", "angle": "arcsec",
+    "velocity": "m/s", "length": "m", "g_sensitivity": "deg/h/g", "g2_sensitivity": "deg/h/g**2",
+    "quaternion": "", "time": "s",
+}
+_NUM = re.compile(r"^\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*(.*)$")
+
+# dimension of the random-walk intensity (root-PSD) for a state dimension
+_RW_DIM = {"angular_rate": "rate_random_walk", "acceleration": "acceleration_random_walk",
+           "velocity": "velocity_random_walk", "angle": "angle_random_walk"}
+
+
+def _unit_of(text, dimension: str) -> str:
+    if isinstance(text, str):
+        m = _NUM.match(text)
+        if m and m.group(3).strip():
+            return m.group(3).strip()
+    return DEFAULT_UNITS.get(dimension, "")
+
+
+def _sigma(value, dim, where) -> float:
+    try:
+        x = parse_quantity(value, dim, where=where)
+    except UnitError as exc:
+        raise ModelFileError(exc.where, exc.problem) from None
+    if x < 0:
+        raise ModelFileError(where, f"{value!r} is negative; a standard deviation must be >= 0")
+    return x
+
+
+def _positive(value, dim, where) -> float:
+    try:
+        x = parse_quantity(value, dim, where=where)
+    except UnitError as exc:
+        raise ModelFileError(exc.where, exc.problem) from None
+    if not x > 0:
+        raise ModelFileError(where, f"{value!r} must be positive")
+    return x
+
+
+def _nav_states(b: dict, where: str) -> tuple[list[State], float, float]:
+    check_keys(b, _NAV_KEYS, where, ModelFileError)
+    src = b.get("source", "")
+    pos = as_list(b.get("position_sigma", 0.0), 3, f"{where}: position_sigma", ModelFileError)
+    vel = as_list(b.get("velocity_sigma", 0.0), 3, f"{where}: velocity_sigma", ModelFileError)
+    qs = as_list(b.get("quaternion_sigma", 0.0), 4, f"{where}: quaternion_sigma", ModelFileError)
+    values = pos + vel + qs
+    states = []
+    for k, (name, sym, dim, meaning, v) in enumerate(zip(NAV_STATES, NAV_SYMBOLS, NAV_DIMS, NAV_MEANING, values)):
+        w = f"{where.split(':')[0]}: state {name!r}: sigma"
+        sig = _sigma(v, dim, w)
+        states.append(State(name, sym, b.get("name", "nav"), "navigation", meaning, dim,
+                            _unit_of(v, dim) if dim != "quaternion" else _unit_of(v, dim),
+                            sig, "navigation", source=src))
+    arw = _sigma(b.get("angle_random_walk", 0.0), "angle_random_walk", f"{where}: angle_random_walk")
+    vrw = _sigma(b.get("velocity_random_walk", 0.0), "velocity_random_walk", f"{where}: velocity_random_walk")
+    return states, arw, vrw
+
+
+def _block_states(b: dict, where: str, file: str) -> list[State]:
+    check_keys(b, _BLOCK_KEYS, where, ModelFileError)
+    kind = b["kind"]
+    bk = BLOCK_KINDS[kind]
+    prefix = b.get("name", bk.prefix)
+    if not isinstance(prefix, str) or not prefix.isidentifier():
+        raise ModelFileError(f"{where}: name", f"{prefix!r} is not a valid block name")
+    n = bk.n
+    names = b.get("names")
+    if names is None:
+        names = [f"{prefix}_{s}" for s in bk.suffixes]
+    else:
+        names = as_list(names, n, f"{where}: names", ModelFileError)
+    process = b.get("process", "constant")
+    if process not in PROCESSES:
+        raise ModelFileError(f"{where}: process", f"unknown process {process!r} (one of: {', '.join(PROCESSES)})")
+    if process not in bk.processes:
+        raise ModelFileError(f"{where}: process", f"{process!r} is not allowed for kind {kind!r} "
+                             f"(allowed: {', '.join(bk.processes)})")
+    sig = as_list(b.get("sigma", 0.0), n, f"{where}: sigma", ModelFileError)
+    units = as_list(b["unit"], n, f"{where}: unit", ModelFileError) if "unit" in b else [None] * n
+    taus = as_list(b["tau"], n, f"{where}: tau", ModelFileError) if "tau" in b else [None] * n
+    dists = as_list(b["distance"], n, f"{where}: distance", ModelFileError) if "distance" in b else [None] * n
+    rws = as_list(b.get("rw", 0.0), n, f"{where}: rw", ModelFileError)
+    out = []
+    for k in range(n):
+        name, dim = names[k], bk.dims[k]
+        sw = f"{file}: state {name!r}"
+        sigma = _sigma(sig[k], dim, f"{sw}: sigma")
+        unit = units[k] if units[k] is not None else _unit_of(sig[k], dim)
+        if units[k] is not None and not is_unit(unit, dim):
+            raise ModelFileError(f"{sw}: unit", f"{unit!r} is not a unit of {dim.replace('_', ' ')}")
+        tau = dist = None
+        rw = 0.0
+        if process == "markov":
+            if taus[k] is None:
+                raise ModelFileError(sw, "process 'markov' needs a correlation time 'tau'")
+            tau = _positive(taus[k], "time", f"{sw}: tau")
+        elif process == "markov_distance":
+            if dists[k] is None:
+                raise ModelFileError(sw, "process 'markov_distance' needs a correlation 'distance'")
+            dist = _positive(dists[k], "length", f"{sw}: distance")
+        elif process == "random_walk":
+            rw = _sigma(rws[k], _RW_DIM.get(dim, dim), f"{sw}: rw")
+        axis = bk.suffixes[k]
+        meaning = bk.meaning.format(axis=axis)
+        out.append(State(name, bk.symbols[k], prefix, kind, meaning, dim, unit, sigma, process,
+                         tau=tau, distance=dist, rw=rw, source=b.get("source", "")))
+    return out
+
+
+def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
+    """Validate a model declaration and build a :class:`Model`.
+
+    Raises
+    ------
+    ModelFileError
+        With the file, the state or block, and the problem.
+    """
+    file = str(path)
+    check_keys(decl, _TOP_KEYS, file, ModelFileError)
+    meta = decl.get("model", {})
+    check_keys(meta, _MODEL_KEYS, f"{file}: [model]", ModelFileError)
+    if "name" not in meta:
+        raise ModelFileError(f"{file}: [model]", "missing required key 'name'")
+    blocks = decl.get("block", [])
+    if not isinstance(blocks, list) or not blocks:
+        raise ModelFileError(file, "no [[block]] declared")
+    states: list[State] = []
+    arw = vrw = 0.0
+    seen_nav = False
+    for i, b in enumerate(blocks):
+        if not isinstance(b, dict):
+            raise ModelFileError(f"{file}: block {i + 1}", "expected a table")
+        kind = b.get("kind")
+        where = f"{file}: block {i + 1} ({b.get('name', kind)})"
+        if kind is None:
+            raise ModelFileError(where, "missing required key 'kind'")
+        if kind == "navigation":
+            if seen_nav:
+                raise ModelFileError(where, "a model has exactly one navigation block")
+            seen_nav = True
+            nav, arw, vrw = _nav_states(b, where)
+            states = nav + states
+        elif kind in BLOCK_KINDS:
+            states.extend(_block_states(b, where, file))
+        else:
+            raise ModelFileError(f"{where}: kind", f"unknown block kind {kind!r} "
+                                 f"(one of: navigation, {', '.join(sorted(BLOCK_KINDS))})")
+    if not seen_nav:
+        raise ModelFileError(file, "missing the navigation block (kind = \"navigation\")")
+    seen = {}
+    for s in states:
+        if s.name in seen:
+            raise ModelFileError(f"{file}: state {s.name!r}", "duplicate state name")
+        seen[s.name] = s
+    corr = []
+    for i, c in enumerate(decl.get("correlation", [])):
+        where = f"{file}: correlation {i + 1}"
+        check_keys(c, {"states", "rho"}, where, ModelFileError)
+        pair = c.get("states")
+        if not isinstance(pair, list) or len(pair) != 2:
+            raise ModelFileError(f"{where}: states", "expected a list of two state names")
+        for nm in pair:
+            if nm not in seen:
+                raise ModelFileError(f"{where}: states", f"unknown state {nm!r}")
+        rho = c.get("rho")
+        if not isinstance(rho, (int, float)) or isinstance(rho, bool) or not -1.0 <= rho <= 1.0:
+            raise ModelFileError(f"{where}: rho", f"{rho!r} is not a correlation coefficient in [-1, 1]")
+        corr.append((pair[0], pair[1], float(rho)))
+    digest = hashlib.sha256(tomli_w.dumps(decl).encode()).hexdigest()
+    model = Model(meta["name"], meta.get("description", ""), file, tuple(states), tuple(corr),
+                  arw=arw, vrw=vrw, decl=copy.deepcopy(decl), sha256=digest)
+    _check_psd(model, file)
+    return model
+
+
+def _check_psd(model: Model, file: str) -> None:
+    P = model.initial_covariance()
+    sig = np.sqrt(np.diag(P))
+    scale = np.where(sig > 0, sig, 1.0)
+    R = P / scale[:, None] / scale[None, :]
+    w, V = np.linalg.eigh(R)
+    if w.min() < -1e-10:
+        v = V[:, np.argmin(w)]
+        culprits = [model.names[i] for i in np.argsort(-np.abs(v))[:3] if abs(v[i]) > 1e-3]
+        raise ModelFileError(f"{file}: correlation",
+                             f"initial covariance is not positive semi-definite (eigenvalue {w.min():.3g} "
+                             f"of the correlation matrix; involves {', '.join(culprits)})")
+
+
+def load_model(path) -> Model:
+    """Load and validate a model file."""
+    decl = load_toml(path, ModelFileError)
+    return model_from_dict(decl, path=str(path))
+
+
+def dump_model(model: Model) -> str:
+    """Serialise a model back to TOML (the declaration, datasheet units kept)."""
+    return tomli_w.dumps(model.decl)
+
+
+def save_model(model: Model, path) -> None:
+    """Write a model file atomically."""
+    from ..io.atomic import write_text
+
+    write_text(path, dump_model(model))
+
+
+__all__ = ["load_model", "model_from_dict", "dump_model", "save_model", "DEFAULT_UNITS", "AXES", "DIMENSIONS"]
