@@ -93,7 +93,7 @@ SEGMENT_KINDS = {
     "decelerate": ("kind", "to_speed", "duration", "acceleration", "transition"),
     "cruise": ("kind", "duration"),
     "turn": ("kind", "rate", "angle", "duration", "transition"),
-    "grade": ("kind", "grade", "angle", "duration", "transition"),
+    "grade": ("kind", "grade", "angle", "duration", "transition", "level_off"),
 }
 
 #: default transition times [s]
@@ -491,18 +491,18 @@ class _Builder:
             self._add(dt_, yaw_rate=r)
         self.psi = psi_end
 
-    def grade(self, angle, duration, *, transition=5.0, where="grade"):
+    def grade(self, angle, duration, *, transition=5.0, level_off=True, where="grade"):
         _positive(duration, f"{where}: duration")
         _positive(transition, f"{where}: transition")
         if not abs(angle) < 0.5 * np.pi:
             raise TrajectoryError(where, f"grade angle {np.degrees(angle):g} deg is not within ±90 deg")
         if self.s == 0.0:
             raise TrajectoryError(where, "grade at zero speed; accelerate first")
-        Tr = min(transition, 0.5 * duration)
-        th0 = self.theta
-        self._add(Tr, pitch=(th0, angle))
-        self._add(duration - 2.0 * Tr, pitch=(angle, angle))
-        self._add(Tr, pitch=(angle, th0))
+        Tr = min(transition, 0.5 * duration if level_off else duration)
+        self._add(Tr, pitch=(self.theta, angle))
+        self._add(duration - (2.0 if level_off else 1.0) * Tr, pitch=(angle, angle))
+        if level_off:
+            self._add(Tr, pitch=(angle, 0.0))
 
     def build(self, *, dt, name, where):
         if not self.pieces:
@@ -839,8 +839,11 @@ def from_segments(segments, initial, *, dt=1.0, name="", where="trajectory") -> 
     * ``turn``: two of ``rate``, ``angle``, ``duration`` (right positive);
       the yaw rate ramps take ``transition`` (default 3 s).
     * ``grade``: ``grade`` (rise/run, e.g. ``"5 %"``) or ``angle``; the
-      pitch rises over ``transition`` (default 5 s), holds, and returns to
-      level within ``duration``.  Vertical velocity is ``−s sin θ``.
+      pitch moves from its current value to the grade angle over
+      ``transition`` (default 5 s), holds, and returns to level within
+      ``duration``; with ``level_off = false`` it stays on the grade, so
+      later segments (a turn: a helical ramp) run on it.  Vertical velocity
+      is ``−s sin θ``.
     """
     _check_keys(initial, _INITIAL_KEYS, f"{where}: initial")
     init = {}
@@ -863,7 +866,11 @@ def from_segments(segments, initial, *, dt=1.0, name="", where="trajectory") -> 
                                   f"{', '.join(sorted(SEGMENT_KINDS))})")
         w = f"{w} ({kind})"
         _check_keys(seg, SEGMENT_KINDS[kind], w)
-        v = {k: _q(x, _SEGMENT_DIMS[k], f"{w}: {k}") for k, x in seg.items() if k != "kind"}
+        v = {k: _q(x, _SEGMENT_DIMS[k], f"{w}: {k}") for k, x in seg.items() if k in _SEGMENT_DIMS}
+        if "level_off" in seg:
+            if not isinstance(seg["level_off"], bool):
+                raise TrajectoryError(f"{w}: level_off", f"{seg['level_off']!r} is not true or false")
+            v["level_off"] = seg["level_off"]
         if kind in ("stand", "cruise"):
             if "duration" not in v:
                 raise TrajectoryError(w, "missing required key 'duration'")
@@ -883,7 +890,8 @@ def from_segments(segments, initial, *, dt=1.0, name="", where="trajectory") -> 
             if "duration" not in v:
                 raise TrajectoryError(w, "missing required key 'duration'")
             angle = math.atan(v["grade"]) if "grade" in v else v["angle"]
-            b.grade(angle, v["duration"], transition=v.get("transition", _TRANSITION[kind]), where=w)
+            b.grade(angle, v["duration"], transition=v.get("transition", _TRANSITION[kind]),
+                    level_off=v.get("level_off", True), where=w)
     return b.build(dt=dt, name=name, where=where)
 
 

@@ -1,0 +1,510 @@
+"""Tests of covtool.trajectory: kinematics, inverse mechanization, I/O.
+
+The oracle is the navigation equations themselves: the trajectory's own
+position, velocity and attitude, differentiated numerically, must satisfy
+them with the produced specific force and body rate.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy.integrate import quad
+
+from covtool import earth
+from covtool import quaternion as quat
+from covtool.errors import TrajectoryError
+from covtool.trajectory import (
+    CSV_COLUMNS,
+    Trajectory,
+    from_segments,
+    land_vehicle,
+    load_trajectory_csv,
+    save_trajectory_csv,
+    static,
+    trajectory_from_config,
+)
+
+KMH = 1.0 / 3.6
+INITIAL = {"lat": "36.37 deg", "lon": "127.36 deg", "h": "60 m", "heading": "0 deg"}
+
+
+@pytest.fixture(scope="module")
+def lv():
+    return land_vehicle(dt=1.0)
+
+
+#: a helical ramp: turns, speed changes and a tilted stand on a grade, so
+#: that every Euler-rate term (including the roll-rate term -psi' sin theta)
+#: is exercised
+HELIX = [
+    {"kind": "accelerate", "to_speed": "36 km/h", "duration": "15 s"},
+    {"kind": "grade", "grade": "6 %", "duration": "10 s", "level_off": False},
+    {"kind": "turn", "rate": "10 deg/s", "angle": "360 deg"},
+    {"kind": "accelerate", "to_speed": "54 km/h", "acceleration": "0.1 g", "transition": "2 s"},
+    {"kind": "turn", "angle": "-90 deg", "duration": "20 s"},
+    {"kind": "decelerate", "to_speed": "0 m/s", "duration": "12 s"},
+    {"kind": "stand", "duration": "10 s"},
+    {"kind": "accelerate", "to_speed": "5 m/s", "duration": "8 s"},
+    {"kind": "grade", "angle": "-2 deg", "duration": "20 s"},
+    {"kind": "cruise", "duration": "5 s"},
+]
+
+
+@pytest.fixture(scope="module")
+def helix():
+    return from_segments(HELIX, INITIAL, dt=0.5, name="helix")
+
+
+def _breakpoints(traj):
+    # White-box: the piece boundaries of the generating profile, where the
+    # third derivative of position jumps by design.
+    src = traj._source
+    return np.append(src.starts, src.span[1])
+
+
+def _five_point(traj, t, h, get):
+    s = [get(traj.sample(t + k * h)) for k in (-2, -1, 1, 2)]
+    return (s[0] - 8.0 * s[1] + 8.0 * s[2] - s[3]) / (12.0 * h)
+
+
+# --------------------------------------------------------------------------
+# physics
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["lv", "helix"])
+def test_navigation_equations_hold(name, request):
+    """Position, velocity and quaternion rates match the nav equations.
+
+    Fourth-order central differences with h = 0.02 s at ~900 times that
+    stay 0.05 s clear of the profile's piece boundaries.  Truncation and
+    round-off are ~1e-7 m/s, ~4e-9 m/s^2 and ~1e-10 1/s; leaving out the
+    Coriolis term would give ~2e-3 m/s^2, the transport rate ~3e-5 m/s^2,
+    the Earth rate in w_ib ~4e-5 1/s.
+    """
+    lv = request.getfixturevalue(name)
+    h = 0.02
+    rng = np.random.default_rng(7)
+    spacing = lv.duration / 900
+    t = np.sort(np.linspace(1.0, lv.t[-1] - 1.0, 900) + rng.uniform(-0.4, 0.4, 900) * spacing)
+    br = _breakpoints(lv)
+    t = t[np.min(np.abs(t[:, None] - br[None, :]), axis=1) > 2.5 * h]
+    assert t.size > 700
+    c = lv.sample(t)
+
+    # position: T&W eq (3.79)-(3.81); residual expressed in [m/s]
+    dp = np.column_stack([_five_point(lv, t, h, lambda s: s.lat),
+                          _five_point(lv, t, h, lambda s: s.lon),
+                          _five_point(lv, t, h, lambda s: s.h)])
+    e = dp - earth.position_rates(c.lat, c.h, c.v_n)
+    rm, rn = earth.radii(c.lat)
+    e_m = np.column_stack([e[:, 0] * (rm + c.h), e[:, 1] * (rn + c.h) * np.cos(c.lat), e[:, 2]])
+    assert np.abs(e_m).max() < 1e-6  # [m/s], 1e-7 of the cruise speed
+
+    # velocity: seed 002 eq (4) unperturbed, T&W eq (3.71)
+    f_n = np.einsum("kij,kj->ki", quat.dcm(c.q_nb), c.f_b)
+    e_v = _five_point(lv, t, h, lambda s: s.v_n) - earth.velocity_rate(c.lat, c.h, c.v_n, f_n)
+    assert np.abs(e_v).max() < 1e-7  # [m/s^2], 1e-8 g
+
+    # attitude: q' = 1/2 q (x) w_ib^b - 1/2 w_in^n (x) q (seed 002 eq (1) unperturbed)
+    w_in = earth.earth_rate_n(c.lat) + earth.transport_rate_n(c.lat, c.h, c.v_n)
+    z = np.zeros((t.size, 1))
+    qdot = 0.5 * quat.mul(c.q_nb, np.hstack([z, c.w_ib_b])) - 0.5 * quat.mul(np.hstack([z, w_in]), c.q_nb)
+    e_q = _five_point(lv, t, h, lambda s: s.q_nb) - qdot
+    assert np.abs(e_q).max() < 1e-9  # [1/s], 1e-8 of the peak turn rate
+
+
+@pytest.mark.parametrize("name", ["lv", "helix"])
+def test_imu_outputs_continuous_at_breakpoints(name, request):
+    """Smooth transitions: f_b and w_ib_b do not jump between pieces.
+
+    Across 2e-6 s the change is bounded by jerk (< 1 m/s^3) and yaw
+    acceleration (< 0.1 rad/s^2); a step in acceleration or yaw rate would
+    jump by ~0.8 m/s^2 or ~0.09 rad/s.
+    """
+    lv = request.getfixturevalue(name)
+    br = _breakpoints(lv)[1:-1]
+    a, b = lv.sample(br - 1e-6), lv.sample(br + 1e-6)
+    assert np.abs(a.f_b - b.f_b).max() < 1e-5
+    assert np.abs(a.w_ib_b - b.w_ib_b).max() < 1e-6
+    assert np.abs(a.v_n - b.v_n).max() < 1e-5
+
+
+def test_static_vehicle_senses_gravity_and_earth_rate():
+    lat, h, yaw = math.radians(45.0), 100.0, math.radians(30.0)
+    tr = static(600.0, lat=lat, lon=0.3, h=h, heading=yaw, dt=10.0)
+    c_nb = quat.dcm(quat.from_euler(0.0, 0.0, yaw)).T
+    g = earth.gravity(lat, h)
+    np.testing.assert_allclose(tr.f_b, np.broadcast_to(c_nb @ [0.0, 0.0, -g], tr.f_b.shape), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(tr.w_ib_b, np.broadcast_to(c_nb @ earth.earth_rate_n(lat), tr.w_ib_b.shape),
+                               rtol=0, atol=1e-16)
+    assert np.all(tr.v_n == 0) and np.all(tr.distance == 0)
+    assert np.all(tr.lat == lat) and np.all(tr.h == h)
+    assert tr.stationary == ((0.0, 600.0),)
+    assert tr.stationary_mask(tr.t).all()
+
+
+# --------------------------------------------------------------------------
+# the built-in land vehicle
+# --------------------------------------------------------------------------
+
+
+def test_land_vehicle_statistics(lv):
+    assert lv.t[0] == 0.0 and lv.t[-1] == 1800.0 and np.allclose(np.diff(lv.t), 1.0)
+    assert lv.name == "land_vehicle"
+    assert lv.distance[-1] == pytest.approx(15000.0, rel=0.10)
+    stopped = sum(b - a for a, b in lv.stationary)
+    assert lv.distance[-1] / (lv.duration - stopped) == pytest.approx(43.0 * KMH, rel=0.10)
+    assert len(lv.stationary) == 6
+    for k, (a, b) in enumerate(lv.stationary, start=1):
+        assert a <= 300.0 * k <= b
+        assert b - a == pytest.approx(90.0)
+    speed = np.linalg.norm(lv.v_n, axis=1)
+    mask = lv.stationary_mask(lv.t)
+    assert np.all(speed[mask] == 0.0)
+    assert speed[0] == 0.0 and speed[-1] == 0.0
+    assert np.all(speed[1:][~mask[1:]] > 0.0)  # moving between t = 0 and the first stop
+    # turns both ways, all four headings visited, hills up and down
+    w_nb = lv.w_ib_b - np.einsum("kji,kj->ki", quat.dcm(lv.q_nb),
+                                 earth.earth_rate_n(lv.lat) + earth.transport_rate_n(lv.lat, lv.h, lv.v_n))
+    assert w_nb[:, 2].max() > math.radians(4.9) and w_nb[:, 2].min() < -math.radians(4.9)
+    yaw = np.degrees(lv.euler()[:, 2]) % 360.0
+    for heading in (0.0, 90.0, 180.0, 270.0):
+        assert np.any(np.abs((yaw - heading + 180.0) % 360.0 - 180.0) < 1.0)
+    pitch = lv.euler()[:, 1]
+    assert pitch.max() == pytest.approx(math.atan(0.04), rel=1e-9)
+    assert pitch.min() == pytest.approx(-math.atan(0.04), rel=1e-9)
+    assert lv.h.max() - lv.h.min() > 20.0
+
+
+def test_land_vehicle_parameters():
+    tr = land_vehicle(stop_duration=60.0, cycles=3, period=600.0, distance=12000.0, dt=2.0)
+    assert tr.duration == 1800.0
+    assert tr.stationary == ((540.0, 600.0), (1140.0, 1200.0), (1740.0, 1800.0))
+    assert tr.distance[-1] == pytest.approx(12000.0, rel=1e-12)
+    with pytest.raises(TrajectoryError, match="land_vehicle: the drive of 10 s per cycle is too short"):
+        land_vehicle(stop_duration=290.0)
+    with pytest.raises(TrajectoryError, match="land_vehicle: cycles: 2.5 is not a positive integer"):
+        land_vehicle(cycles=2.5)
+    with pytest.raises(TrajectoryError, match="land_vehicle: distance: must be positive"):
+        land_vehicle(distance=-1.0)
+
+
+def test_sample_is_exact_not_interpolated(lv):
+    fine = land_vehicle(dt=0.25)
+    t = fine.t[1::4][:800]  # off the 1 s grid
+    s = lv.sample(t)
+    for key in ("lat", "lon", "h", "v_n", "q_nb", "f_b", "w_ib_b", "distance"):
+        np.testing.assert_allclose(getattr(s, key), getattr(fine, key)[1::4][:800], rtol=0, atol=1e-12,
+                                   err_msg=key)
+    # a linear interpolation of the 1 s grid would be off by ~1e-2 m/s^2 in a turn
+    assert s.sample(1800.0).t[0] == 1800.0
+    assert s.stationary == ((210.0, 300.0), (510.0, 600.0))
+
+
+def test_sample_rejects_bad_times(lv):
+    with pytest.raises(TrajectoryError, match=r"land_vehicle.*outside the span \[0, 1800\] s"):
+        lv.sample([1800.5])
+    with pytest.raises(TrajectoryError, match="strictly increasing"):
+        lv.sample([5.0, 4.0])
+    with pytest.raises(TrajectoryError, match="finite"):
+        lv.sample([np.nan])
+
+
+def test_trajectory_is_immutable_and_validated(lv):
+    with pytest.raises(ValueError):
+        lv.v_n[0, 0] = 1.0
+    with pytest.raises(TrajectoryError, match="t must be strictly increasing"):
+        Trajectory(t=[0, 0], lat=[0, 0], lon=[0, 0], h=[0, 0], v_n=np.zeros((2, 3)),
+                   q_nb=np.tile([1.0, 0, 0, 0], (2, 1)), f_b=np.zeros((2, 3)), w_ib_b=np.zeros((2, 3)),
+                   distance=[0, 0])
+    with pytest.raises(TrajectoryError, match=r"v_n has shape \(2, 2\), expected \(2, 3\)"):
+        Trajectory(t=[0, 1], lat=[0, 0], lon=[0, 0], h=[0, 0], v_n=np.zeros((2, 2)),
+                   q_nb=np.tile([1.0, 0, 0, 0], (2, 1)), f_b=np.zeros((2, 3)), w_ib_b=np.zeros((2, 3)),
+                   distance=[0, 0])
+    with pytest.raises(TrajectoryError, match="has t0 > t1"):
+        Trajectory(t=[0, 1], lat=[0, 0], lon=[0, 0], h=[0, 0], v_n=np.zeros((2, 3)),
+                   q_nb=np.tile([1.0, 0, 0, 0], (2, 1)), f_b=np.zeros((2, 3)), w_ib_b=np.zeros((2, 3)),
+                   distance=[0, 0], stationary=((1.0, 0.0),))
+
+
+def test_dataframe_columns(lv):
+    df = lv.to_dataframe()
+    assert list(df.columns) == list(CSV_COLUMNS) + ["distance [m]", "stationary"]
+    assert df["lat [deg]"].iloc[0] == pytest.approx(36.37)
+    assert df["stationary"].sum() == 6 * 91
+
+
+# --------------------------------------------------------------------------
+# segments
+# --------------------------------------------------------------------------
+
+
+def test_segment_semantics():
+    segs = [
+        {"kind": "stand", "duration": "90 s"},
+        {"kind": "accelerate", "to_speed": "54 km/h", "duration": "20 s"},
+        {"kind": "cruise", "duration": "60 s"},
+        {"kind": "turn", "rate": "3 deg/s", "angle": "90 deg"},
+        {"kind": "grade", "grade": "5 %", "duration": "40 s", "transition": "5 s"},
+        {"kind": "turn", "rate": "-3 deg/s", "duration": "20 s", "transition": "2 s"},
+        {"kind": "turn", "angle": "-45 deg", "duration": "20 s"},
+        {"kind": "grade", "angle": "-3 deg", "duration": "30 s"},
+        {"kind": "decelerate", "to_speed": "0 km/h", "acceleration": "0.1 g"},
+        {"kind": "stand", "duration": "30 s"},
+    ]
+    tr = from_segments(segs, INITIAL, dt=0.5, name="x")
+    # rate + angle: 90/3 = 30 s plus one 3 s transition
+    t_turn = 90.0 + 20.0 + 60.0
+    assert np.degrees(tr.sample(t_turn + 33.0).euler()[0, 2]) == pytest.approx(90.0, abs=1e-9)
+    assert np.degrees(tr.sample(t_turn + 16.5).w_ib_b[0, 2]) == pytest.approx(3.0, abs=0.01)
+    # grade: pitch = atan(5 %), climb ~ s sin(theta) (40 - 5) s
+    eul = tr.sample(t_turn + 33.0 + 20.0).euler()[0]
+    assert eul[1] == pytest.approx(math.atan(0.05), rel=1e-12)
+    h0, h1 = tr.sample([t_turn + 33.0, t_turn + 73.0]).h
+    th = math.atan(0.05)
+    ramp, _ = quad(lambda u: math.sin(th * 0.5 * (1.0 - math.cos(math.pi * u))), 0.0, 1.0, epsabs=1e-14)
+    assert h1 - h0 == pytest.approx(15.0 * (30.0 * math.sin(th) + 2.0 * 5.0 * ramp), rel=1e-10)
+    # the rate+duration and angle+duration turns: 90 - 3*(20-2) - 45 = -9 deg
+    assert np.degrees(tr.euler()[-1, 2]) == pytest.approx(-9.0, abs=1e-9)
+    # deceleration at 0.1 g plateau: 15/(0.1 g) + 3 s
+    t_stop = tr.stationary[1][0]
+    assert tr.stationary[0] == (0.0, 90.0)
+    assert tr.stationary[1][1] - t_stop == pytest.approx(30.0)
+    assert tr.duration == pytest.approx(t_stop + 30.0)
+    t_dec = t_stop - (15.0 / (0.1 * 9.80665) + 3.0)
+    acc = np.linalg.norm(np.gradient(tr.sample(np.linspace(t_dec, t_stop, 2001)).v_n, axis=0), axis=1)
+    assert acc.max() / ((t_stop - t_dec) / 2000) == pytest.approx(0.1 * 9.80665, rel=1e-4)
+    assert tr.distance[-1] > 0 and np.all(np.diff(tr.distance) >= 0)
+
+
+def test_helix_stays_on_grade(helix):
+    """``level_off = false`` keeps the pitch through turns and a stand."""
+    th = math.atan(0.06)
+    t_end_climb = 15.0 + 10.0 + 39.0 + (5.0 / (0.1 * 9.80665) + 2.0) + 20.0 + 12.0 + 10.0 + 8.0
+    assert helix.duration == pytest.approx(t_end_climb + 20.0 + 5.0, rel=1e-12)
+    on_grade = (helix.t >= 25.0) & (helix.t <= t_end_climb)
+    np.testing.assert_allclose(helix.euler()[on_grade, 1], th, rtol=1e-12)
+    assert np.degrees(helix.euler()[:, 1].min()) == pytest.approx(-2.0, rel=1e-12)
+    assert helix.euler()[-1, 1] == 0.0
+    assert np.degrees(helix.euler()[-1, 2]) == pytest.approx(-90.0, abs=1e-9)
+    # parked on the ramp: the accelerometers see tilted gravity
+    (a, b), = helix.stationary
+    assert b - a == pytest.approx(10.0)
+    st = helix.sample([a + 5.0])
+    g_b = quat.dcm(st.q_nb[0]).T @ earth.gravity_n(st.lat[0], st.h[0])
+    np.testing.assert_allclose(st.f_b[0], -g_b, atol=1e-12)
+    assert st.f_b[0, 0] == pytest.approx(earth.gravity(st.lat[0], st.h[0]) * math.sin(th), rel=1e-12)
+
+
+def test_initial_speed_and_heading():
+    tr = from_segments([{"kind": "cruise", "duration": "10 s"}],
+                       {**INITIAL, "heading": "90 deg", "speed": "10 m/s"}, dt=1.0)
+    np.testing.assert_allclose(tr.v_n[-1], [0.0, 10.0, 0.0], atol=1e-12)
+    assert tr.distance[-1] == pytest.approx(100.0)
+    assert tr.stationary == ()
+
+
+# --------------------------------------------------------------------------
+# configuration
+# --------------------------------------------------------------------------
+
+
+def test_config_sources(tmp_path, lv):
+    tr = trajectory_from_config({"builtin": "land_vehicle"}, where="s.toml", base_dir=None, dt=1.0)
+    np.testing.assert_array_equal(tr.f_b, lv.f_b)
+    tr = trajectory_from_config({"builtin": "land_vehicle", "stop_duration": "1 min", "name": "lv60"},
+                                where="s.toml", base_dir=None, dt=5.0)
+    assert tr.name == "lv60" and tr.stationary[0] == (240.0, 300.0)
+    st = trajectory_from_config({"builtin": "static", "duration": "30 min", "lat": "45 deg", "lon": "0 deg",
+                                 "h": "0 m", "heading": "10 deg"}, where="s.toml", base_dir=None, dt=10.0)
+    assert st.stationary == ((0.0, 1800.0),) and st.n == 181
+    seg = trajectory_from_config({"segment": [{"kind": "stand", "duration": "90 s"}], "initial": INITIAL},
+                                 where="s.toml", base_dir=None, dt=1.0)
+    assert seg.duration == 90.0
+    save_trajectory_csv(lv, tmp_path / "route.csv")
+    csv = trajectory_from_config({"csv": "route.csv"}, where="s.toml", base_dir=tmp_path, dt=1.0)
+    np.testing.assert_array_equal(csv.t, lv.t)
+    assert csv.name == "route"
+
+
+SEG = [{"kind": "stand", "duration": "90 s"}]
+
+
+@pytest.mark.parametrize("cfg, match", [
+    ({"builtin": "land_vehicle", "stops": 3}, r"s\.toml: builtin 'land_vehicle': unknown key 'stops'"),
+    ({"builtin": "flight"}, r"s\.toml: builtin: unknown builtin 'flight'"),
+    ({"builtin": "land_vehicle", "csv": "x.csv"}, "give exactly one of 'builtin', 'segment' and 'csv'"),
+    ({}, r"give exactly one of .* \(got none\)"),
+    ({"builtin": "land_vehicle", "stop_duration": "90 m"}, "stop_duration: '90 m' is not a time"),
+    ({"builtin": "land_vehicle", "stop_duration": "-90 s"}, "stop_duration: must be positive"),
+    ({"builtin": "land_vehicle", "cycles": "6"}, "cycles: '6' is not a positive integer"),
+    ({"builtin": "land_vehicle", "lat": "90 deg"}, "lat: 90 deg is not within"),
+    ({"builtin": "land_vehicle", "speed": "9 furlongs"}, "unknown key 'speed'"),
+    ({"builtin": "static", "lat": "45 deg", "lon": "0 deg"}, "static': missing required key 'h'"),
+    ({"builtin": "static", "duration": "-1 min", "lat": "45 deg", "lon": "0 deg", "h": "0 m"},
+     "static': duration: must be positive"),
+    ({"segment": SEG}, "missing required key 'initial'"),
+    ({"segment": SEG, "initial": {"lat": "45 deg", "lon": "0 deg"}}, "initial: missing required key 'h'"),
+    ({"segment": SEG, "initial": {**INITIAL, "alt": "3 m"}}, "initial: unknown key 'alt'"),
+    ({"segment": SEG, "initial": {**INITIAL, "lat": "45 m"}}, "initial: lat: '45 m' is not an angle"),
+    ({"segment": [], "initial": INITIAL}, "segment: expected a non-empty list"),
+    ({"segment": [{"kind": "hover", "duration": "1 s"}], "initial": INITIAL},
+     r"segment\[0\]: unknown segment kind 'hover'"),
+    ({"segment": ["stand"], "initial": INITIAL}, r"segment\[0\]: expected a table"),
+    ({"segment": [{"kind": "stand", "duration": "-5 s"}], "initial": INITIAL},
+     r"segment\[0\] \(stand\): duration: must be positive"),
+    ({"segment": [{"kind": "stand"}], "initial": INITIAL}, "missing required key 'duration'"),
+    ({"segment": [{"kind": "stand", "duration": "5 s", "speed": "1 m/s"}], "initial": INITIAL},
+     r"segment\[0\] \(stand\): unknown key 'speed'"),
+    ({"segment": [{"kind": "stand", "duration": "5 furlongs"}], "initial": INITIAL},
+     r"segment\[0\] \(stand\): duration: '5 furlongs'"),
+    ({"segment": [{"kind": "cruise", "duration": "5 s"}], "initial": INITIAL},
+     "cruise at zero speed"),
+    ({"segment": [{"kind": "accelerate", "to_speed": "5 m/s", "duration": "5 s"},
+                  {"kind": "stand", "duration": "5 s"}], "initial": INITIAL},
+     r"segment\[1\] \(stand\): the vehicle is moving \(5 m/s\)"),
+    ({"segment": [{"kind": "accelerate", "to_speed": "5 m/s"}], "initial": INITIAL},
+     "exactly one of 'duration' and 'acceleration'"),
+    ({"segment": [{"kind": "accelerate", "to_speed": "5 m/s", "duration": "5 s", "acceleration": "1 m/s^2"}],
+      "initial": INITIAL}, "exactly one of 'duration' and 'acceleration'"),
+    ({"segment": [{"kind": "accelerate", "duration": "5 s"}], "initial": INITIAL},
+     "missing required key 'to_speed'"),
+    ({"segment": [{"kind": "accelerate", "to_speed": "-5 m/s", "duration": "5 s"}], "initial": INITIAL},
+     "to_speed: -5 m/s must not be negative"),
+    ({"segment": [{"kind": "accelerate", "to_speed": "0 m/s", "duration": "5 s"}], "initial": INITIAL},
+     "to_speed: equals the current speed"),
+    ({"segment": [{"kind": "decelerate", "to_speed": "5 m/s", "duration": "5 s"}], "initial": INITIAL},
+     r"segment\[0\] \(decelerate\): to_speed: 5 m/s is not below the current speed"),
+    ({"segment": [{"kind": "accelerate", "to_speed": "5 m/s", "acceleration": "-1 m/s^2"}],
+      "initial": INITIAL}, "acceleration: must be positive"),
+    ({"segment": [{"kind": "turn", "rate": "3 deg/s", "angle": "90 deg", "duration": "30 s"}],
+      "initial": INITIAL}, "give exactly two of 'rate', 'angle' and 'duration'"),
+    ({"segment": [{"kind": "turn", "rate": "3 deg/s", "angle": "-90 deg"}], "initial": INITIAL},
+     "opposite signs"),
+    ({"segment": [{"kind": "turn", "rate": "0 deg/s", "duration": "9 s"}], "initial": INITIAL},
+     "rate: must not be zero"),
+    ({"segment": [{"kind": "turn", "rate": "3 deg", "duration": "9 s"}], "initial": INITIAL},
+     "rate: '3 deg' is not an angular rate"),
+    ({"segment": [{"kind": "turn", "angle": "90 deg", "duration": "9 s", "transition": "0 s"}],
+      "initial": INITIAL}, "transition: must be positive"),
+    ({"segment": [{"kind": "grade", "grade": "5 %", "duration": "9 s"}], "initial": INITIAL},
+     "grade at zero speed"),
+    ({"segment": [{"kind": "grade", "grade": "5 %", "angle": "3 deg", "duration": "9 s"}],
+      "initial": INITIAL}, "give exactly one of 'grade' and 'angle'"),
+    ({"segment": [{"kind": "grade", "angle": "3 deg"}], "initial": {**INITIAL, "speed": "1 m/s"}},
+     "missing required key 'duration'"),
+    ({"segment": [{"kind": "grade", "angle": "3 deg", "duration": "9 s", "level_off": "no"}],
+      "initial": {**INITIAL, "speed": "1 m/s"}}, "level_off: 'no' is not true or false"),
+    ({"segment": [{"kind": "grade", "angle": "95 deg", "duration": "9 s"}],
+      "initial": {**INITIAL, "speed": "1 m/s"}}, "not within ±90 deg"),
+    ({"segment": SEG, "initial": INITIAL, "dt": "1 s"}, "unknown key 'dt'"),
+    ({"csv": 3}, "csv: 3 is not a file name"),
+    ({"csv": "missing.csv"}, r"s\.toml: .*missing\.csv: file not found"),
+    ({"builtin": "land_vehicle", "name": 3}, "name: 3 is not a string"),
+])
+def test_config_errors(cfg, match, tmp_path):
+    with pytest.raises(TrajectoryError, match=match):
+        trajectory_from_config(cfg, where="s.toml", base_dir=tmp_path, dt=1.0)
+
+
+def test_config_error_not_a_table():
+    with pytest.raises(TrajectoryError, match="s.toml: expected a table, got list"):
+        trajectory_from_config([], where="s.toml", base_dir=None, dt=1.0)
+
+
+# --------------------------------------------------------------------------
+# CSV
+# --------------------------------------------------------------------------
+
+
+def test_csv_round_trip(tmp_path, lv):
+    path = tmp_path / "lv.csv"
+    save_trajectory_csv(lv, path)
+    back = load_trajectory_csv(path)
+    np.testing.assert_array_equal(back.t, lv.t)
+    # deg <-> rad and the quaternion renormalisation cost at most an ulp or two
+    for key in ("lat", "lon"):
+        np.testing.assert_allclose(getattr(back, key), getattr(lv, key), rtol=1e-15, atol=0, err_msg=key)
+    np.testing.assert_allclose(back.q_nb, lv.q_nb, rtol=0, atol=3e-16)
+    for key in ("h", "v_n", "f_b", "w_ib_b", "distance"):
+        np.testing.assert_array_equal(getattr(back, key), getattr(lv, key), err_msg=key)
+    assert back.stationary == lv.stationary
+    assert back.name == "lv"
+
+
+def test_csv_sample_interpolates(tmp_path, lv):
+    path = tmp_path / "lv.csv"
+    save_trajectory_csv(lv, path)
+    back = load_trajectory_csv(path)
+    t = np.arange(0.5, 1800.0, 1.0)
+    s, exact = back.sample(t), lv.sample(t)
+    np.testing.assert_allclose(s.v_n, 0.5 * (lv.v_n[:-1] + lv.v_n[1:]), rtol=0, atol=1e-12)
+    # slerp is exact at constant rate; in the yaw-rate ramps (peak yaw
+    # acceleration 5 deg/s * pi/(2*3 s)) the midpoint angle error is
+    # psi'' dt^2/8, i.e. psi'' dt^2/16 in the quaternion
+    bound = math.radians(5.0) * math.pi / 6.0 / 16.0
+    err = np.abs(s.q_nb - exact.q_nb).max()
+    assert 0.5 * bound < err < 1.05 * bound
+    np.testing.assert_allclose(np.linalg.norm(s.q_nb, axis=1), 1.0, atol=1e-15)
+    assert back.sample(back.t).stationary == lv.stationary
+    with pytest.raises(TrajectoryError, match="outside the span"):
+        back.sample([-1.0])
+
+
+def test_csv_infers_stationary_and_distance(tmp_path, lv):
+    path = tmp_path / "bare.csv"
+    lv.to_dataframe()[list(CSV_COLUMNS)].to_csv(path, index=False, float_format="%.17g")
+    back = load_trajectory_csv(path)
+    assert back.stationary == lv.stationary
+    assert back.distance[-1] == pytest.approx(lv.distance[-1], rel=1e-3)
+
+
+def test_csv_fixes_quaternion_sign(tmp_path, lv):
+    df = lv.to_dataframe()
+    df.loc[100, ["q0", "q1", "q2", "q3"]] *= -1.0
+    path = tmp_path / "flip.csv"
+    df.to_csv(path, index=False, float_format="%.17g")
+    np.testing.assert_allclose(load_trajectory_csv(path).q_nb, lv.q_nb, atol=1e-15)
+
+
+def _write_bad(tmp_path, lv, edit):
+    df = lv.sample(lv.t[:10]).to_dataframe().astype(object)
+    df = edit(df)
+    path = tmp_path / "bad.csv"
+    df.to_csv(path, index=False)
+    return path
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda df: df.drop(columns=["v_E [m/s]"]), r"bad\.csv: missing column 'v_E \[m/s\]'"),
+    (lambda df: df.rename(columns={"h [m]": "h [ft]"}), r"missing column 'h \[m\]'"),
+    (lambda df: df.assign(extra=1.0), r"bad\.csv: unknown column 'extra'"),
+    (lambda df: df.assign(**{"h [m]": ["60"] * 4 + ["abc"] + ["60"] * 5}),
+     r"bad\.csv: column 'h \[m\]': row 5: 'abc' is not a number"),
+    (lambda df: df.assign(**{"f_x [m/s^2]": [0.0] * 7 + [""] + [0.0] * 2}),
+     r"column 'f_x \[m/s\^2\]': row 8: is empty"),
+    (lambda df: df.assign(**{"q2": [0.0] * 2 + ["nan"] + [0.0] * 7}), r"column 'q2': row 3: 'nan' is not finite"),
+    (lambda df: df.assign(**{"t [s]": [0, 1, 2, 3, 3, 5, 6, 7, 8, 9]}),
+     r"column 't \[s\]': row 5: time 3 s is not after the previous row's 3 s"),
+    (lambda df: df.assign(**{"t [s]": [0, 1, 2, 3, 4, 5, 6, 7, 8, 1]}), r"row 10: time 1 s is not after"),
+    (lambda df: df.assign(q0=[1.0] * 5 + [0.9] + [1.0] * 4), r"columns 'q0'..'q3': row 6: \|q\| = 0\.9"),
+    (lambda df: df.assign(stationary=[1] * 9 + [2]), r"column 'stationary': row 10: 2 is not 0 or 1"),
+    (lambda df: df.assign(**{"lat [deg]": [90.0] * 10}), r"column 'lat \[deg\]': row 1: 90 deg is not within"),
+    (lambda df: df.iloc[:1], "needs at least 2 data rows, found 1"),
+])
+def test_csv_errors(tmp_path, lv, edit, match):
+    path = _write_bad(tmp_path, lv, edit)
+    with pytest.raises(TrajectoryError, match=match):
+        load_trajectory_csv(path)
+
+
+def test_csv_missing_or_empty_file(tmp_path):
+    with pytest.raises(TrajectoryError, match=r"nope\.csv: file not found"):
+        load_trajectory_csv(tmp_path / "nope.csv")
+    (tmp_path / "empty.csv").write_text("")
+    with pytest.raises(TrajectoryError, match=r"empty\.csv: not a readable CSV file"):
+        load_trajectory_csv(tmp_path / "empty.csv")
