@@ -1,4 +1,4 @@
-"""Reference trajectories: declared profiles and inverse mechanization.
+"""Reference trajectories and their inverse mechanization.
 
 A :class:`Trajectory` is the true motion of the vehicle about which the error
 model is linearised: geodetic position, NED velocity, attitude quaternion and
@@ -33,14 +33,16 @@ by piece (pieces end wherever a higher derivative jumps) with DOP853 at
 declared profile evaluates the generating kinematics, not an interpolation
 of the time grid.
 
-Inverse mechanization (Titterton & Weston eq (3.71) and (3.52) solved for the
-sensor outputs)::
+Inverse mechanization: the unperturbed velocity equation (seed 002, eq (4);
+Titterton & Weston §3.7) and the attitude-rate relation behind seed 002,
+eq (1), solved for the sensor outputs::
 
     f^n     = v̇^n + (2 ω_ie^n + ω_en^n) × v^n − g^n
     f^b     = C_n^b f^n
     ω_ib^b  = ω_nb^b + C_n^b (ω_ie^n + ω_en^n)
 
-with ``ω_nb^b`` from the Euler-angle rates (Titterton & Weston eq (3.56)).
+with ``ω_nb^b = [φ̇ − ψ̇ sin θ, θ̇ cos φ + ψ̇ sin φ cos θ, −θ̇ sin φ + ψ̇ cos φ cos θ]``
+from the 3-2-1 Euler-angle rates.
 
 The quaternion is kept *continuous* in time (the heading is not wrapped), so
 its sign may be negative; ``q`` and ``−q`` are the same attitude but the
@@ -305,8 +307,9 @@ def inverse_mechanization(lat, h, v_n, dv_n, q_nb, w_nb_b):
 
     Notes
     -----
-    The velocity equation (Titterton & Weston eq (3.71)) and the attitude
-    rate relation (eq (3.52)) solved for the sensor outputs::
+    The unperturbed velocity equation (seed 002, eq (4); Titterton &
+    Weston §3.7) and ``ω_ib^b = ω_nb^b + ω_in^b`` (the rates of seed 002,
+    eq (1)) solved for the sensor outputs::
 
         f^n = v̇^n + (2 ω_ie^n + ω_en^n) × v^n − g^n,   f^b = C_n^b f^n
         ω_ib^b = ω_nb^b + C_n^b (ω_ie^n + ω_en^n)
@@ -322,7 +325,7 @@ def inverse_mechanization(lat, h, v_n, dv_n, q_nb, w_nb_b):
 
 
 def _body_rate_from_euler(roll, pitch, droll, dpitch, dyaw):
-    """ω_nb^b from 3-2-1 Euler angles and rates (T&W eq (3.56) inverted)."""
+    """ω_nb^b from 3-2-1 Euler angles and their rates [rad/s]."""
     sr, cr = np.sin(roll), np.cos(roll)
     sp, cp = np.sin(pitch), np.cos(pitch)
     return np.stack([
@@ -339,7 +342,7 @@ def _body_rate_from_euler(roll, pitch, droll, dpitch, dyaw):
 
 @dataclass(frozen=True)
 class _Ramp:
-    """Raised-cosine transition ``x(τ) = a + (b − a) S(τ/T)`` on [0, T]."""
+    """Raised-cosine step ``x(τ) = a + (b − a) S(τ/T)`` on [0, T]."""
 
     a: float
     b: float
@@ -393,7 +396,7 @@ class _Builder:
     def __init__(self, lat, lon, h, heading, speed=0.0, where="trajectory"):
         _check_position(lat, h, where)
         if speed < 0:
-            raise TrajectoryError(f"{where}: initial speed", f"{speed:g} m/s must not be negative")
+            raise TrajectoryError(f"{where}: speed", f"{speed:g} m/s must not be negative")
         self.lat0, self.lon0, self.h0 = float(lat), float(lon), float(h)
         self.t = 0.0
         self.s = float(speed)
@@ -418,7 +421,7 @@ class _Builder:
         self.t += T
 
     def _trapezoid(self, change, T, Tr):
-        """Add ramp-hold-ramp pieces of a derivative; return the peak rate."""
+        """Split ``change`` over ``T`` into ramp-hold-ramp rate parts."""
         Tr = min(Tr, 0.5 * T)
         peak = change / (T - Tr)
         return peak, [(Tr, (0.0, peak)), (T - 2.0 * Tr, (peak, peak)), (Tr, (peak, 0.0))]
@@ -525,7 +528,7 @@ def _check_position(lat, h, where):
 
 
 class _Profile:
-    """Analytic kinematics of a list of pieces, with integrated position."""
+    """Analytic kinematics of pieces, with integrated position."""
 
     def __init__(self, pieces, lat0, lon0, h0):
         self.pieces = list(pieces)
@@ -546,7 +549,7 @@ class _Profile:
             pos = pos + sol.y[:, -1]
 
     def kinematics(self, t):
-        """Speed, heading, pitch, their rates, distance and position at ``t``."""
+        """Speed, heading, pitch, their rates, distance and position."""
         t = np.asarray(t, dtype=float)
         idx = np.clip(np.searchsorted(self.starts, t, side="right") - 1, 0, len(self.pieces) - 1)
         out = {k: np.empty(t.shape) for k in ("s", "ds", "psi", "dpsi", "theta", "dtheta", "d",

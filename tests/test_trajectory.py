@@ -1,4 +1,4 @@
-"""Tests of covtool.trajectory: kinematics, inverse mechanization, I/O.
+"""Tests of covtool.trajectory: kinematics, mechanization, I/O.
 
 The oracle is the navigation equations themselves: the trajectory's own
 position, velocity and attitude, differentiated numerically, must satisfy
@@ -95,7 +95,7 @@ def test_navigation_equations_hold(name, request):
     assert t.size > 700
     c = lv.sample(t)
 
-    # position: T&W eq (3.79)-(3.81); residual expressed in [m/s]
+    # position: earth.position_rates (L', l', h'); residual expressed in [m/s]
     dp = np.column_stack([_five_point(lv, t, h, lambda s: s.lat),
                           _five_point(lv, t, h, lambda s: s.lon),
                           _five_point(lv, t, h, lambda s: s.h)])
@@ -104,7 +104,7 @@ def test_navigation_equations_hold(name, request):
     e_m = np.column_stack([e[:, 0] * (rm + c.h), e[:, 1] * (rn + c.h) * np.cos(c.lat), e[:, 2]])
     assert np.abs(e_m).max() < 1e-6  # [m/s], 1e-7 of the cruise speed
 
-    # velocity: seed 002 eq (4) unperturbed, T&W eq (3.71)
+    # velocity: seed 002 eq (4) unperturbed
     f_n = np.einsum("kij,kj->ki", quat.dcm(c.q_nb), c.f_b)
     e_v = _five_point(lv, t, h, lambda s: s.v_n) - earth.velocity_rate(c.lat, c.h, c.v_n, f_n)
     assert np.abs(e_v).max() < 1e-7  # [m/s^2], 1e-8 g
@@ -351,6 +351,8 @@ SEG = [{"kind": "stand", "duration": "90 s"}]
     ({"segment": SEG, "initial": {"lat": "45 deg", "lon": "0 deg"}}, "initial: missing required key 'h'"),
     ({"segment": SEG, "initial": {**INITIAL, "alt": "3 m"}}, "initial: unknown key 'alt'"),
     ({"segment": SEG, "initial": {**INITIAL, "lat": "45 m"}}, "initial: lat: '45 m' is not an angle"),
+    ({"segment": SEG, "initial": {**INITIAL, "speed": "-1 m/s"}}, "initial: speed: -1 m/s must not be negative"),
+    ({"segment": SEG, "initial": {**INITIAL, "h": "200 km"}}, r"initial: h: 200000 m is outside"),
     ({"segment": [], "initial": INITIAL}, "segment: expected a non-empty list"),
     ({"segment": [{"kind": "hover", "duration": "1 s"}], "initial": INITIAL},
      r"segment\[0\]: unknown segment kind 'hover'"),
