@@ -36,7 +36,7 @@ __all__ = [
     "regime_thresholds",
     "amplitude_closed_form",
     "pulse_train",
-    "periodic_amplitude",
+    "periodic_extrema",
     "filter_signal",
     "moving_average_decimate",
 ]
@@ -439,30 +439,40 @@ def filter_signal(system, x) -> np.ndarray:
     return signal.lfilter(num, den, np.asarray(x, dtype=float))
 
 
-def periodic_amplitude(system, period: int, *, settle: int | None = None) -> tuple[float, float]:
+def periodic_extrema(system, period: int, *, factor: int = 1, settle: int | None = None) -> tuple[float, float]:
     """Max and min of a filtered unit pulse train, time domain.
 
     Parameters
     ----------
     system : control.TransferFunction or SecondOrderFilter
-        Discrete SISO system.
+        Discrete SISO system at the pulse-train rate.
     period : int
         Pulse period. [samples]
+    factor : int
+        If > 1, the output is block-averaged over ``factor`` samples and
+        downsampled (:func:`moving_average_decimate`) before the extrema
+        are taken -- the navigation-rate output of seed 000, Fig 4.
     settle : int, optional
-        Samples simulated before the measured period; default enough for
+        Samples simulated before the measured window; default enough for
         the slowest pole to decay by ``1e-12``.
 
     Returns
     -------
     (float, float)
-        Maximum and minimum over one period in steady state.
+        Maximum and minimum in steady state, over one full period of the
+        (decimated) output, ``lcm(period, factor)`` samples.
     """
     tf = system.tf if isinstance(system, SecondOrderFilter) else system
+    if period < 1 or factor < 1:
+        raise ValueError(f"period and factor must be >= 1, got {period!r}, {factor!r}")
     if settle is None:
         r = float(np.max(np.abs(tf.poles())))
         settle = int(math.ceil(math.log(1e-12) / math.log(r))) if r > 0 else 10
-    n_per = int(math.ceil(settle / period)) + 1
-    y = filter_signal(tf, pulse_train((n_per + 1) * period, period))[-period:]
+    window = period * factor // math.gcd(period, factor)
+    n_total = (int(math.ceil(settle / window)) + 1) * window
+    y = filter_signal(tf, pulse_train(n_total, period))[-window:]
+    if factor > 1:
+        y = moving_average_decimate(y, factor)
     return float(y.max()), float(y.min())
 
 

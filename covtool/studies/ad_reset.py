@@ -1,0 +1,688 @@
+"""AD-reset scale-error study: reproduce seed 000, eq (1)-(27).
+
+Reads an ``ad_reset`` study declaration, derives the parameters the paper
+leaves implicit, and computes:
+
+* Fig 2 -- filtered error extrema at small input (isolated pulses);
+* Fig 3 -- the zero and extremum points ``Z(N_a, k)``, ``D(N_a, k)``;
+* Fig 4 / Table 1 -- filtered error at large input, sensor and
+  navigation rate;
+* Fig 5 / Tables 2-3 -- leveling-alignment tilt error, with and without
+  the accelerometer pre-filter;
+* Bode data of each filter.
+
+Paper values from ``[reference]`` are only compared against, never used in
+a computation.  The runner computes; :mod:`covtool.io.writers` writes.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import __version__
+from ..board import adreset, alignment as align
+from ..board import output_filter as of
+from ..errors import StudyFileError
+from ..io.config import check_keys, quantity, require
+from ..results import StudyResult
+from ..units import from_si
+
+KIND = "ad_reset"
+
+_SECTIONS = {"study", "board", "output_filter", "navigation", "alignment", "sweeps", "reference"}
+_ROUNDINGS = ("floor", "round", "ceil")
+
+
+# --------------------------------------------------------------------------- parsing
+
+
+def _number(value, where: str, *, positive=False, finite=True) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise StudyFileError(where, f"{value!r} is not a number")
+    x = float(value)
+    if finite and not math.isfinite(x):
+        raise StudyFileError(where, f"{value!r} is not finite")
+    if positive and not x > 0:
+        raise StudyFileError(where, f"{value!r} must be positive")
+    return x
+
+
+def _range(value, dim: str, where: str) -> tuple[float, float]:
+    if not isinstance(value, list) or len(value) != 2:
+        raise StudyFileError(where, f"expected [low, high], got {value!r}")
+    lo, hi = (quantity(v, dim, where, StudyFileError, positive=True) for v in value)
+    if not lo < hi:
+        raise StudyFileError(where, f"low {value[0]!r} must be below high {value[1]!r}")
+    return lo, hi
+
+
+def _reference_table(d: dict, where: str, dim: str, n_cols: int) -> dict:
+    check_keys(d, {"accelerations", "amplitude", "unit", "note"}, where, StudyFileError)
+    accs = require(d, "accelerations", where, StudyFileError)
+    if not isinstance(accs, list) or not accs:
+        raise StudyFileError(f"{where} accelerations", "expected a non-empty list")
+    acc = [quantity(a, "acceleration", f"{where} accelerations", StudyFileError, positive=True) for a in accs]
+    unit = require(d, "unit", where, StudyFileError)
+    scale = quantity(f"1 {unit}", dim, f"{where} unit", StudyFileError, positive=True)
+    amp = require(d, "amplitude", where, StudyFileError)
+    if (not isinstance(amp, list) or len(amp) != len(acc)
+            or any(not isinstance(r, list) or len(r) != n_cols for r in amp)):
+        raise StudyFileError(f"{where} amplitude",
+                             f"expected {len(acc)} rows of {n_cols} values (one per error ratio)")
+    vals = np.array([[_number(v, f"{where} amplitude", positive=True) for v in r] for r in amp])
+    return {"acc": np.array(acc), "acc_text": [str(a) for a in accs], "amp": vals * scale, "unit": unit}
+
+
+def parse(decl: dict, path: Path | None) -> dict:
+    """Validate an ``ad_reset`` declaration; return SI parameters.
+
+    Parameters
+    ----------
+    decl : dict
+        The TOML declaration.
+    path : Path or None
+        Study file (for messages).
+
+    Returns
+    -------
+    dict
+        Parameters in SI units.
+
+    Raises
+    ------
+    StudyFileError
+        Naming the file, section and key at fault.
+    """
+    f = str(path) if path else "<study>"
+    check_keys(decl, _SECTIONS, f, StudyFileError)
+    p: dict = {}
+
+    w = f"{f}: [study]"
+    study = require(decl, "study", f, StudyFileError)
+    check_keys(study, {"kind", "name", "title", "description"}, w, StudyFileError)
+    p["name"] = str(require(study, "name", w, StudyFileError))
+    p["title"] = str(study.get("title", p["name"]))
+
+    w = f"{f}: [board]"
+    board = require(decl, "board", f, StudyFileError)
+    check_keys(board, {"sample_rate", "n_t", "error_ratios", "n_e_stated", "v_bound",
+                       "reset_period_reference", "scale_factor", "period_rounding"}, w, StudyFileError)
+    p["fs"] = quantity(require(board, "sample_rate", w, StudyFileError), "frequency", f"{w} sample_rate",
+                       StudyFileError, positive=True)
+    p["n_t"] = _number(require(board, "n_t", w, StudyFileError), f"{w} n_t", positive=True)
+    ratios = require(board, "error_ratios", w, StudyFileError)
+    if not isinstance(ratios, list) or not ratios:
+        raise StudyFileError(f"{w} error_ratios", "expected a non-empty list of ratios, e.g. [0.02, 0.05]")
+    p["ratios"] = [_number(r, f"{w} error_ratios") for r in ratios]
+    for r in p["ratios"]:
+        if not -0.5 < r < 0.5 or r == 0:
+            raise StudyFileError(f"{w} error_ratios", f"{r!r} must be non-zero and within (-0.5, 0.5)")
+    p["n_e_stated"] = _number(board.get("n_e_stated", p["ratios"][0] * p["n_t"]), f"{w} n_e_stated")
+    p["v_bound"] = _number(board.get("v_bound", p["n_t"]), f"{w} v_bound", positive=True)
+    if not p["v_bound"] > p["n_t"] / 2:
+        raise StudyFileError(f"{w} v_bound", f"must exceed n_t/2 = {p['n_t'] / 2:g} counts")
+    has_sf, has_ref = "scale_factor" in board, "reset_period_reference" in board
+    if has_sf == has_ref:
+        raise StudyFileError(w, "give exactly one of 'scale_factor' (velocity per reset pulse) "
+                                "or 'reset_period_reference' (input at which N_a = 2 pi/omega_n)")
+    if has_sf:
+        p["sf_given"] = quantity(board["scale_factor"], "velocity", f"{w} scale_factor", StudyFileError,
+                                 positive=True)
+    else:
+        p["a_ref"] = quantity(board["reset_period_reference"], "acceleration", f"{w} reset_period_reference",
+                              StudyFileError, positive=True)
+    p["rounding"] = board.get("period_rounding", "floor")
+    if p["rounding"] not in _ROUNDINGS:
+        raise StudyFileError(f"{w} period_rounding", f"{p['rounding']!r} is not one of {', '.join(_ROUNDINGS)}")
+
+    w = f"{f}: [output_filter]"
+    flt = require(decl, "output_filter", f, StudyFileError)
+    check_keys(flt, {"cutoff", "damping"}, w, StudyFileError)
+    p["fc"] = quantity(require(flt, "cutoff", w, StudyFileError), "frequency", f"{w} cutoff", StudyFileError,
+                       positive=True)
+    p["damping"] = _number(flt.get("damping", 1 / math.sqrt(2)), f"{w} damping", positive=True)
+    if not p["fc"] < p["fs"] / 2:
+        raise StudyFileError(f"{w} cutoff", "must be below half the board sample rate")
+
+    w = f"{f}: [navigation]"
+    nav = require(decl, "navigation", f, StudyFileError)
+    check_keys(nav, {"rate", "decimation"}, w, StudyFileError)
+    p["f_nav"] = quantity(require(nav, "rate", w, StudyFileError), "frequency", f"{w} rate", StudyFileError,
+                          positive=True)
+    ratio = p["fs"] / p["f_nav"]
+    if abs(ratio - round(ratio)) > 1e-9 or round(ratio) < 1:
+        raise StudyFileError(f"{w} rate", f"must divide the board rate ({p['fs']:g} Hz) into whole samples")
+    p["decim"] = int(round(ratio))
+    dec = nav.get("decimation", "moving_average")
+    if dec != "moving_average":
+        raise StudyFileError(f"{w} decimation", f"{dec!r} is not supported (only 'moving_average')")
+
+    w = f"{f}: [alignment]"
+    al = require(decl, "alignment", f, StudyFileError)
+    check_keys(al, {"gravity", "coarse", "fine", "prefilter"}, w, StudyFileError)
+    p["g"] = quantity(al.get("gravity", "1 g"), "acceleration", f"{w} gravity", StudyFileError, positive=True)
+    for key in ("coarse", "fine"):
+        ww = f"{f}: [alignment.{key}]"
+        gains = require(al, key, w, StudyFileError)
+        check_keys(gains, {"k", "kb_g"}, ww, StudyFileError)
+        p[key] = {"k": _number(require(gains, "k", ww, StudyFileError), f"{ww} k", positive=True),
+                  "kb_g": _number(require(gains, "kb_g", ww, StudyFileError), f"{ww} kb_g", positive=True)}
+    ww = f"{f}: [alignment.prefilter]"
+    pre = require(al, "prefilter", w, StudyFileError)
+    check_keys(pre, {"cutoff", "order"}, ww, StudyFileError)
+    p["pre_fc"] = quantity(require(pre, "cutoff", ww, StudyFileError), "frequency", f"{ww} cutoff",
+                           StudyFileError, positive=True)
+    p["pre_order"] = pre.get("order", 1)
+    if p["pre_order"] not in (1, 2):
+        raise StudyFileError(f"{ww} order", f"{p['pre_order']!r} must be 1 or 2")
+    if not p["pre_fc"] < p["f_nav"] / 2:
+        raise StudyFileError(f"{ww} cutoff", "must be below half the navigation rate")
+
+    w = f"{f}: [sweeps]"
+    sw = require(decl, "sweeps", f, StudyFileError)
+    check_keys(sw, {"fig2", "fig3", "fig4", "fig5", "points"}, w, StudyFileError)
+    p["fig2"] = _range(require(sw, "fig2", w, StudyFileError), "acceleration", f"{w} fig2")
+    p["fig4"] = _range(require(sw, "fig4", w, StudyFileError), "acceleration", f"{w} fig4")
+    p["fig5"] = _range(require(sw, "fig5", w, StudyFileError), "acceleration", f"{w} fig5")
+    fig3 = require(sw, "fig3", w, StudyFileError)
+    if not isinstance(fig3, list) or len(fig3) != 2 or not all(isinstance(v, (int, float)) for v in fig3) \
+            or not 2 <= fig3[0] < fig3[1]:
+        raise StudyFileError(f"{w} fig3", f"expected [low, high] pulse periods in samples, low >= 2, got {fig3!r}")
+    p["fig3"] = (float(fig3[0]), float(fig3[1]))
+    pts = sw.get("points", 60)
+    if isinstance(pts, bool) or not isinstance(pts, int) or not 5 <= pts <= 2000:
+        raise StudyFileError(f"{w} points", f"{pts!r} must be an integer in [5, 2000]")
+    p["points"] = pts
+
+    w = f"{f}: [reference]"
+    ref = decl.get("reference", {})
+    check_keys(ref, {"fig2", "table1", "table2", "table3"}, w, StudyFileError)
+    n_r = len(p["ratios"])
+    p["ref"] = {}
+    if "fig2" in ref:
+        ww = f"{f}: [reference.fig2]"
+        check_keys(ref["fig2"], {"amplitude", "unit", "note"}, ww, StudyFileError)
+        amp = require(ref["fig2"], "amplitude", ww, StudyFileError)
+        if not isinstance(amp, list) or len(amp) != n_r:
+            raise StudyFileError(f"{ww} amplitude", f"expected {n_r} values (one per error ratio)")
+        scale = quantity(f"1 {require(ref['fig2'], 'unit', ww, StudyFileError)}", "acceleration",
+                         f"{ww} unit", StudyFileError, positive=True)
+        p["ref"]["fig2"] = np.array([_number(a, f"{ww} amplitude", positive=True) for a in amp]) * scale
+    for key, dim in (("table1", "acceleration"), ("table2", "angle"), ("table3", "angle")):
+        if key in ref:
+            p["ref"][key] = _reference_table(ref[key], f"{f}: [reference.{key}]", dim, n_r)
+    return p
+
+
+# --------------------------------------------------------------------------- numerics
+
+
+def derive(p: dict) -> dict:
+    """Derive the parameters the paper leaves implicit.
+
+    Returns
+    -------
+    dict
+        ``filt`` (eq (11) filter), ``sf`` [m/s], ``thresholds``
+        (eq (19)), ``dt``, ``dt_nav`` [s], per-ratio ``n_e`` [counts],
+        ``S`` [m/s^2] and pulse area [m/s].
+    """
+    d: dict = {}
+    d["dt"] = 1.0 / p["fs"]
+    d["dt_nav"] = 1.0 / p["f_nav"]
+    d["filt"] = of.butterworth_filter(p["fc"], p["fs"], damping=p["damping"])
+    if "sf_given" in p:
+        d["sf"] = p["sf_given"]
+    else:
+        d["sf"] = adreset.scale_factor_from_reset_period(p["a_ref"], d["filt"].ringing_period, d["dt"])
+    d["thresholds"] = of.regime_thresholds(d["filt"])
+    d["n_e"] = [r * p["n_t"] for r in p["ratios"]]
+    d["S"] = [adreset.pulse_height(d["sf"], p["n_t"], ne, d["dt"]) for ne in d["n_e"]]
+    d["area"] = [s * d["dt"] for s in d["S"]]
+    return d
+
+
+def _scaled_extrema(unit_max: float, unit_min: float, s: float, const: float) -> tuple[float, float]:
+    """Extrema of ``const + s * y`` from the extrema of ``y``."""
+    hi, lo = (s * unit_max, s * unit_min) if s >= 0 else (s * unit_min, s * unit_max)
+    return const + hi, const + lo
+
+
+def _period(p: dict, d: dict, acc: float) -> int:
+    return adreset.reset_period_samples(acc, d["sf"], d["dt"], p["rounding"])
+
+
+def _effective_accel(p: dict, d: dict, acc: float) -> float:
+    """Input whose reset period is exactly the whole-sample period used.
+
+    Rounding ``N_a`` to whole samples changes the mean of the pulse train,
+    ``S / N_a``; taking the constant term of eq (10) at this input keeps the
+    mean acceleration error zero, as the bounded velocity error of eq (8)
+    requires.
+    """
+    return math.copysign(d["sf"] / (_period(p, d, acc) * d["dt"]), acc)
+
+
+def output_error(p: dict, d: dict, acc: float, *, factor: int = 1) -> tuple[float, float]:
+    """Unit-pulse extrema of the filtered pulse train at input ``acc``."""
+    return of.periodic_extrema(d["filt"], _period(p, d, acc), factor=factor)
+
+
+def board_simulation_amplitude(p: dict, d: dict, acc: float, n_e: float, seconds: float = 2.0) -> float:
+    """Peak-to-peak filtered error from the sample-by-sample board.
+
+    The board fires resets at the real, non-periodic instants (spacing
+    alternating between ``floor(N_a)`` and ``ceil(N_a)``).
+    """
+    n = int(round(seconds * p["fs"]))
+    rec = adreset.simulate_board(np.full(n, acc), dt=d["dt"], sf=d["sf"], n_t=p["n_t"], n_e=n_e,
+                                 v_bound=p["v_bound"])
+    y = of.filter_signal(d["filt"], rec.d_vel_error / d["dt"])[n // 2:]
+    return float(y.max() - y.min())
+
+
+def alignment_error(p: dict, d: dict, acc: float, gains: dict, *, prefiltered: bool,
+                    n_e: float) -> tuple[float, float]:
+    """Steady-state tilt extrema [rad] of the leveling loop at ``acc``."""
+    loop = align.leveling_tf_discrete(gains["k"], gains["kb_g"] / p["g"], p["g"], d["dt_nav"])
+    pre = align.prefilter(p["pre_fc"], d["dt_nav"], p["pre_order"]) if prefiltered else None
+    period = _period(p, d, acc)
+    m = p["decim"]
+    radii = [float(np.max(np.abs(loop.poles())))]
+    if pre is not None:
+        radii.append(float(np.max(np.abs(pre.poles()))))
+    settle = int(math.ceil(math.log(1e-12) / math.log(max(radii))))
+    window = period // math.gcd(period, m)  # navigation samples in one full period of the pattern
+    n_nav = settle + window
+    acc_nav = align.navigation_rate_error(_effective_accel(p, d, acc), n_nav, m, sf=d["sf"], n_t=p["n_t"], n_e=n_e,
+                                          dt_sensor=d["dt"], period=period)
+    return align.alignment_extrema(acc_nav, loop, pre, settle=settle)
+
+
+def _pct(a, b):
+    return 100.0 * (np.asarray(a, dtype=float) / np.asarray(b, dtype=float) - 1.0)
+
+
+def _ratio_label(r: float) -> str:
+    return f"{100 * r:g}%"
+
+
+# --------------------------------------------------------------------------- tables
+
+
+def _fig2(p, d, tables, figs, charts, summary):
+    filt = d["filt"]
+    accs = np.linspace(*p["fig2"], p["points"])
+    rows = []
+    for a in accs:
+        hi, lo = output_error(p, d, a)
+        row = {"input acceleration [m/s^2]": a, "reset period [samples]": adreset.reset_period(a, d["sf"], d["dt"])}
+        for r, s, ne in zip(p["ratios"], d["S"], d["n_e"]):
+            const = float(adreset.constant_error(_effective_accel(p, d, a), p["n_t"], ne))
+            mx, mn = _scaled_extrema(hi, lo, s, const)
+            row[f"max {_ratio_label(r)} [m/s^2]"] = mx
+            row[f"min {_ratio_label(r)} [m/s^2]"] = mn
+        rows.append(row)
+    tables["fig2"] = pd.DataFrame(rows)
+
+    iso_cf = of.isolated_amplitude(filt, method="closed_form")
+    iso_ex = of.isolated_amplitude(filt, method="exact")
+    cases = [(r, ne, s) for r, ne, s in zip(p["ratios"], d["n_e"], d["S"])]
+    ne0 = p["n_e_stated"]
+    cases.append((ne0 / p["n_t"], ne0, adreset.pulse_height(d["sf"], p["n_t"], ne0, d["dt"])))
+    amp_rows = []
+    ref = p["ref"].get("fig2")
+    for i, (r, ne, s) in enumerate(cases):
+        td = abs(s) * iso_ex
+        row = {"N_e ratio [%]": 100 * r, "N_e [counts]": ne,
+               "paper [m/s^2]": float(ref[i]) if ref is not None and i < len(p["ratios"]) else np.nan,
+               "covtool time domain [m/s^2]": td,
+               "closed form eq 13-14 [m/s^2]": abs(s) * iso_cf}
+        row["diff [%]"] = float(_pct(td, row["paper [m/s^2]"]))
+        amp_rows.append(row)
+        if not np.isnan(row["paper [m/s^2]"]):
+            summary.append(("Fig 2 small-input amplitude", f"N_e = {100 * r:g}% N_t", row["paper [m/s^2]"], td,
+                            "m/s^2"))
+    tables["fig2_amplitude"] = pd.DataFrame(amp_rows)
+    ycols = [c for c in tables["fig2"].columns if c.startswith(("max", "min"))]
+    charts.append({"sheet": "fig2", "x": "input acceleration [m/s^2]", "y": ycols, "anchor": "K2",
+                   "title": "Fig 2: filtered error extrema, N_a > 2 pi/omega_n",
+                   "x_title": "input acceleration [m/s^2]", "y_title": "acceleration error [m/s^2]"})
+
+    def fig2():
+        return _plot_extrema(tables["fig2"], "input acceleration [m/s^2]", p["ratios"], "m/s^2",
+                             "Fig 2: acceleration error extrema, N_a > 2\u03c0/\u03c9_n",
+                             "acceleration error [m/s$^2$]")
+    figs["fig2"] = fig2
+
+
+def _fig3(p, d, tables, figs, charts):
+    filt = d["filt"]
+    n_a = np.linspace(*p["fig3"], 4 * p["points"])
+    df = pd.DataFrame({
+        "N_a [samples]": n_a,
+        "Z(N_a,0) [samples]": [of.zero_point(filt, x, 0) for x in n_a],
+        "Z(N_a,1) [samples]": [of.zero_point(filt, x, 1) for x in n_a],
+        "D(N_a,0) [samples]": [of.extremum_point(filt, x, 0) for x in n_a],
+        "D(N_a,1) [samples]": [of.extremum_point(filt, x, 1) for x in n_a],
+        "N_a - 1 [samples]": n_a - 1,
+    })
+    tables["fig3"] = df
+    charts.append({"sheet": "fig3", "x": "N_a [samples]", "y": list(df.columns[1:]), "anchor": "I2",
+                   "title": "Fig 3: Z(N_a,k) and D(N_a,k)", "x_title": "N_a [samples]",
+                   "y_title": "n [samples]"})
+    t = d["thresholds"]
+
+    def fig3():
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 4.5))
+        for c, ls in zip(df.columns[1:], ("-", "-", "--", "--", ":")):
+            ax.plot(df["N_a [samples]"], df[c], ls, label=c.replace(" [samples]", ""))
+        for name, v in t.items():
+            ax.axvline(v, color="grey", lw=0.6)
+            ax.text(v, ax.get_ylim()[1], f" {name}", va="top", fontsize=8)
+        ax.set_xlabel("pulse period $N_a$ [samples]")
+        ax.set_ylabel("n [samples]")
+        ax.set_title("Fig 3: zero and extremum points of e[n] (eq 17-18)")
+        ax.legend(fontsize=8)
+        ax.grid(alpha=0.3)
+        return fig
+    figs["fig3"] = fig3
+
+
+def _table1_fig4(p, d, tables, figs, charts, summary, progress):
+    from tqdm import tqdm
+
+    filt, t = d["filt"], d["thresholds"]
+    ref = p["ref"].get("table1")
+    if ref is not None:
+        rows = []
+        for i, a in enumerate(ref["acc"]):
+            n_real = adreset.reset_period(a, d["sf"], d["dt"])
+            n_int = _period(p, d, a)
+            hi, lo = output_error(p, d, a)
+            hin, lon = output_error(p, d, a, factor=p["decim"])
+            cf = of.amplitude_closed_form(filt, n_int, t)
+            ex = of.periodic_error(filt, n_int, np.arange(n_int), approx=False)
+            for j, (r, ne, s) in enumerate(zip(p["ratios"], d["n_e"], d["S"])):
+                cov = abs(s) * (hi - lo)
+                paper = float(ref["amp"][i, j])
+                board = board_simulation_amplitude(p, d, a, ne)
+                rows.append({
+                    "input acceleration [m/s^2]": a, "N_e ratio [%]": 100 * r,
+                    "N_a = SF/(a dT) [samples]": n_real, "N_a used [samples]": n_int,
+                    "paper [m/s^2]": paper, "covtool [m/s^2]": cov, "diff [%]": float(_pct(cov, paper)),
+                    "closed form eq 16/20 [m/s^2]": abs(s) * cf,
+                    "closed form diff [%]": float(_pct(abs(s) * cf, paper)),
+                    "exact sum eq 12/15 [m/s^2]": abs(s) * float(ex.max() - ex.min()),
+                    "board simulation [m/s^2]": board, "board simulation diff [%]": float(_pct(board, paper)),
+                    "navigation rate [m/s^2]": abs(s) * (hin - lon),
+                })
+        df = pd.DataFrame(rows)
+        tables["table1"] = df
+        diff = df["diff [%]"].abs()
+        summary.append(("Table 1 entries within 2 %", f"of {len(df)}", np.nan, float((diff <= 2).sum()), "count"))
+        summary.append(("Table 1 worst |diff|", "", np.nan, float(diff.max()), "%"))
+
+    accs = np.linspace(*p["fig4"], 2 * p["points"])
+    rows = []
+    for a in tqdm(accs, desc="fig 4", disable=not progress, leave=False):
+        hi, lo = output_error(p, d, a)
+        hin, lon = output_error(p, d, a, factor=p["decim"])
+        row = {"input acceleration [m/s^2]": a, "N_a used [samples]": _period(p, d, a)}
+        for r, s, ne in zip(p["ratios"], d["S"], d["n_e"]):
+            c = float(adreset.constant_error(_effective_accel(p, d, a), p["n_t"], ne))
+            row[f"max {_ratio_label(r)} [m/s^2]"], row[f"min {_ratio_label(r)} [m/s^2]"] = \
+                _scaled_extrema(hi, lo, s, c)
+            row[f"max {_ratio_label(r)} nav [m/s^2]"], row[f"min {_ratio_label(r)} nav [m/s^2]"] = \
+                _scaled_extrema(hin, lon, s, c)
+        rows.append(row)
+    tables["fig4"] = pd.DataFrame(rows)
+    ycols = [c for c in tables["fig4"].columns if c.startswith(("max", "min"))]
+    charts.append({"sheet": "fig4", "x": "input acceleration [m/s^2]", "y": ycols, "anchor": "R2",
+                   "title": "Fig 4: filtered error extrema, N_a < 2 pi/omega_n (nav = navigation rate)",
+                   "x_title": "input acceleration [m/s^2]", "y_title": "acceleration error [m/s^2]"})
+
+    def fig4():
+        return _plot_extrema(tables["fig4"], "input acceleration [m/s^2]", p["ratios"], "m/s^2",
+                             "Fig 4: acceleration error extrema (solid: 2400 Hz, dotted: navigation rate)",
+                             "acceleration error [m/s$^2$]", nav=True)
+    figs["fig4"] = fig4
+
+
+def _tables23_fig5(p, d, tables, figs, charts, summary, progress):
+    from tqdm import tqdm
+
+    gains = p["coarse"]
+    as_ = from_si(1.0, "arcsec")
+    peak = align.impulse_peak_continuous(gains["k"], gains["kb_g"] / p["g"], p["g"])
+    unfiltered = {}
+    for key, pre in (("table2", False), ("table3", True)):
+        ref = p["ref"].get(key)
+        if ref is None:
+            continue
+        rows = []
+        for i, a in enumerate(ref["acc"]):
+            for j, (r, ne, area) in enumerate(zip(p["ratios"], d["n_e"], d["area"])):
+                hi, lo = alignment_error(p, d, a, gains, prefiltered=pre, n_e=ne)
+                cov = (hi - lo) * as_
+                paper = float(ref["amp"][i, j]) * as_
+                row = {"input acceleration [mg]": a / (1e-3 * p["g"]), "N_e ratio [%]": 100 * r,
+                       "reset period [s]": adreset.reset_period(a, d["sf"], d["dt"]) * d["dt"],
+                       "paper [arcsec]": paper, "covtool [arcsec]": cov, "diff [%]": float(_pct(cov, paper))}
+                if pre:
+                    base = unfiltered[(i, j)]
+                    row["paper ratio to Table 2 [%]"] = 100 * paper / base[0]
+                    row["covtool ratio to Table 2 [%]"] = 100 * cov / base[1]
+                else:
+                    row["isolated-pulse closed form [arcsec]"] = abs(area) * peak * as_
+                    unfiltered[(i, j)] = (paper, cov)
+                rows.append(row)
+        df = pd.DataFrame(rows)
+        tables[key] = df
+        label = "Table 2 (no pre-filter)" if key == "table2" else "Table 3 (pre-filter)"
+        summary.append((f"{label} worst |diff|", "", np.nan, float(df["diff [%]"].abs().max()), "%"))
+        if pre:
+            for mg in (1, 5):
+                sel = df[np.isclose(df["input acceleration [mg]"], mg)]
+                if len(sel):
+                    summary.append((f"Table 3 / Table 2 at {mg} mg", "mean over ratios",
+                                    float(sel["paper ratio to Table 2 [%]"].mean()),
+                                    float(sel["covtool ratio to Table 2 [%]"].mean()), "%"))
+
+    accs = np.linspace(*p["fig5"], p["points"])
+    rows = []
+    for a in tqdm(accs, desc="fig 5", disable=not progress, leave=False):
+        row = {"input acceleration [mg]": a / (1e-3 * p["g"])}
+        for pre, tag in ((False, ""), (True, " pre-filter")):
+            # the tilt error is linear in the pulse height; compute for the first ratio and scale
+            hi, lo = alignment_error(p, d, a, gains, prefiltered=pre, n_e=d["n_e"][0])
+            for r, ne in zip(p["ratios"], d["n_e"]):
+                k = (ne / (p["n_t"] + ne)) / (d["n_e"][0] / (p["n_t"] + d["n_e"][0]))
+                mx, mn = (k * hi, k * lo) if k >= 0 else (k * lo, k * hi)
+                row[f"max {_ratio_label(r)}{tag} [arcsec]"] = mx * as_
+                row[f"min {_ratio_label(r)}{tag} [arcsec]"] = mn * as_
+        rows.append(row)
+    tables["fig5"] = pd.DataFrame(rows)
+    ycols = [c for c in tables["fig5"].columns if c.startswith(("max", "min"))]
+    charts.append({"sheet": "fig5", "x": "input acceleration [mg]", "y": ycols, "anchor": "O2",
+                   "title": "Fig 5: coarse leveling tilt error extrema", "x_title": "input acceleration [mg]",
+                   "y_title": "tilt error [arcsec]"})
+
+    def fig5():
+        return _plot_extrema(tables["fig5"], "input acceleration [mg]", p["ratios"], "arcsec",
+                             "Fig 5: coarse leveling tilt error (solid: no pre-filter, dotted: pre-filter)",
+                             "tilt error [arcsec]", tag=" pre-filter")
+    figs["fig5"] = fig5
+
+    # fine alignment: gains about 4x lower (no paper values)
+    fine = p["fine"]
+    rows = []
+    ref2 = p["ref"].get("table2")
+    for a in (ref2["acc"] if ref2 is not None else np.linspace(*p["fig5"], 5)):
+        row = {"input acceleration [mg]": a / (1e-3 * p["g"])}
+        for r, ne in zip(p["ratios"], d["n_e"]):
+            hi, lo = alignment_error(p, d, a, fine, prefiltered=False, n_e=ne)
+            row[f"fine {_ratio_label(r)} [arcsec]"] = (hi - lo) * as_
+            hi, lo = alignment_error(p, d, a, p["coarse"], prefiltered=False, n_e=ne)
+            row[f"coarse {_ratio_label(r)} [arcsec]"] = (hi - lo) * as_
+        rows.append(row)
+    tables["alignment_fine"] = pd.DataFrame(rows)
+
+
+def _bode(p, d, tables, figs, charts):
+    import control
+
+    c = p["coarse"]
+    loop_c = align.leveling_tf(c["k"], c["kb_g"] / p["g"], p["g"])
+    loop_d = align.leveling_tf_discrete(c["k"], c["kb_g"] / p["g"], p["g"], d["dt_nav"])
+    pre = align.prefilter(p["pre_fc"], d["dt_nav"], p["pre_order"])
+    specs = {
+        "bode_output_filter": [("H(z) eq 11", d["filt"].tf, np.geomspace(0.1, p["fs"] / 2 * 0.999, 300))],
+        "bode_alignment": [("H2(s) eq 26", loop_c, np.geomspace(1e-3, p["f_nav"] / 2 * 0.999, 300)),
+                           ("H2(z) eq 27", loop_d, np.geomspace(1e-3, p["f_nav"] / 2 * 0.999, 300))],
+        "bode_prefilter": [("pre-filter", pre, np.geomspace(1e-3, p["f_nav"] / 2 * 0.999, 300))],
+    }
+    for name, systems in specs.items():
+        freq = systems[0][2]
+        df = pd.DataFrame({"frequency [Hz]": freq})
+        for label, sys, f in systems:
+            resp = control.frequency_response(sys, 2 * np.pi * f)
+            h = np.asarray(resp.complex).ravel()
+            df[f"{label} magnitude [dB]"] = 20 * np.log10(np.abs(h))
+            df[f"{label} phase [deg]"] = np.degrees(np.unwrap(np.angle(h)))
+        tables[name] = df
+        charts.append({"sheet": name, "x": "frequency [Hz]", "log_x": True, "anchor": "H2",
+                       "y": [col for col in df.columns if "magnitude" in col],
+                       "title": f"Bode magnitude: {', '.join(s[0] for s in systems)}",
+                       "x_title": "frequency [Hz]", "y_title": "magnitude [dB]"})
+
+        def make(df=df, name=name):
+            import matplotlib.pyplot as plt
+
+            fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
+            for col in df.columns[1:]:
+                (a1 if "magnitude" in col else a2).semilogx(df["frequency [Hz]"], df[col],
+                                                             label=col.split(" magnitude")[0].split(" phase")[0])
+            a1.set_ylabel("magnitude [dB]")
+            a2.set_ylabel("phase [deg]")
+            a2.set_xlabel("frequency [Hz]")
+            a1.set_title(name.replace("_", " "))
+            a1.legend(fontsize=8)
+            for a in (a1, a2):
+                a.grid(which="both", alpha=0.3)
+            return fig
+        figs[name] = make
+
+
+def _plot_extrema(df, xcol, ratios, unit, title, ylabel, nav=False, tag=None):
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for r, col in zip(ratios, colors):
+        lab = _ratio_label(r)
+        for kind in ("max", "min"):
+            ax.plot(df[xcol], df[f"{kind} {lab} [{unit}]"], "-", color=col,
+                    label=f"N_e = {lab} N_t" if kind == "max" else None)
+            if nav:
+                ax.plot(df[xcol], df[f"{kind} {lab} nav [{unit}]"], ":", color=col)
+            if tag:
+                ax.plot(df[xcol], df[f"{kind} {lab}{tag} [{unit}]"], ":", color=col)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel(xcol.replace("m/s^2", "m/s$^2$"))
+    ax.set_ylabel(ylabel)
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return fig
+
+
+def _derived_table(p, d) -> pd.DataFrame:
+    filt, t = d["filt"], d["thresholds"]
+    c = p["coarse"]
+    c1, c2, dd = align.tustin_coefficients(c["k"], c["kb_g"] / p["g"], p["g"], d["dt_nav"])
+    bound = adreset.velocity_error_bound(d["sf"], p["n_t"], d["n_e"][0], v_bound=p["v_bound"])
+    sigma = adreset.velocity_error_sigma(d["sf"], p["n_t"], d["n_e"][0], v_bound=p["v_bound"])
+    sf_src = ("given" if "sf_given" in p else
+              f"SF = a* (2 pi/omega_n) dT with a* = {p.get('a_ref', float('nan')):g} m/s^2: "
+              "reset period equals the ringing period 2 pi/omega_n at a*")
+    rows = [
+        ("SF (velocity per reset pulse)", d["sf"], "m/s", sf_src),
+        ("b (eq 11)", filt.b, "-", "Butterworth, bilinear with pre-warping at the cutoff"),
+        ("zeta (eq 11 pole radius)", filt.zeta, "-", "sqrt(a2) of the designed filter"),
+        ("omega_n (eq 11 pole angle)", filt.omega_n, "rad/sample", "acos(-a1 / (2 zeta))"),
+        ("2 pi / omega_n", filt.ringing_period, "samples", "second zero of eq 13"),
+        ("input where N_a = 2 pi/omega_n", d["sf"] / (filt.ringing_period * d["dt"]), "m/s^2", "SF / (N dT)"),
+        ("D0", t["D0"], "samples", "D(N_a,0) = N_a - 1 (eq 18-19)"),
+        ("Z1", t["Z1"], "samples", "Z(N_a,1) = N_a - 1 (eq 17-19)"),
+        ("D1", t["D1"], "samples", "D(N_a,1) = N_a - 1 (eq 18-19)"),
+        ("pi / omega_n", math.pi / filt.omega_n, "samples", "eq 19"),
+        ("navigation decimation", p["decim"], "samples", "board rate / navigation rate, moving average"),
+        ("k^b (coarse)", c["kb_g"] / p["g"], "1/m", "kb_g / g"),
+        ("c1 (eq 27, coarse)", c1, "-", "(2 - k^b g dT^2/2) / D"),
+        ("c2 (eq 27, coarse)", c2, "-", "(1 - k dT/2 + k^b g dT^2/4) / D"),
+        ("d (eq 27, coarse)", dd, "s^2", "(dT^2/4) / D"),
+        ("loop natural frequency (coarse)", math.sqrt(c["kb_g"]), "rad/s", "sqrt(k^b g)"),
+        ("loop damping (coarse)", c["k"] / (2 * math.sqrt(c["kb_g"])), "-", "k / (2 sqrt(k^b g))"),
+        (f"velocity-error bound, N_e = {_ratio_label(p['ratios'][0])}", bound, "m/s", "eq 7-8, exact"),
+        (f"velocity-error 1-sigma, N_e = {_ratio_label(p['ratios'][0])}", sigma, "m/s", "bound / sqrt(3)"),
+        ("sawtooth time constant at 1 g", adreset.suggested_time_constant(d["sf"], p["g"]), "s", "SF / (6 g)"),
+    ]
+    for r, ne, s, area in zip(p["ratios"], d["n_e"], d["S"], d["area"]):
+        rows.append((f"N_e at {_ratio_label(r)}", ne, "counts", "ratio * N_t"))
+        rows.append((f"S at {_ratio_label(r)} (eq 10)", s, "m/s^2", "SF N_e / (N_hat dT)"))
+    return pd.DataFrame(rows, columns=["parameter", "value", "unit", "derivation"])
+
+
+# --------------------------------------------------------------------------- entry point
+
+
+def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> StudyResult:
+    """Run an ``ad_reset`` study.
+
+    Parameters
+    ----------
+    decl : dict
+        Study declaration (see ``studies/ad_reset_scale_error.toml``).
+    path : Path, optional
+        Study file, for messages and provenance.
+    progress : bool
+        Show progress bars for the sweeps.
+
+    Returns
+    -------
+    StudyResult
+        Tables ``summary``, ``derived_parameters``, ``fig2``,
+        ``fig2_amplitude``, ``fig3``, ``table1``, ``fig4``, ``table2``,
+        ``table3``, ``fig5``, ``alignment_fine`` and Bode data; figures
+        ``fig2`` .. ``fig5`` and the Bode plots.
+    """
+    t0 = time.perf_counter()
+    p = parse(decl, path)
+    d = derive(p)
+    tables: dict[str, pd.DataFrame] = {}
+    figs: dict = {}
+    charts: list = []
+    summary: list = [("SF (derived)", "", np.nan, d["sf"], "m/s")]
+    _fig2(p, d, tables, figs, charts, summary)
+    _fig3(p, d, tables, figs, charts)
+    _table1_fig4(p, d, tables, figs, charts, summary, progress)
+    _tables23_fig5(p, d, tables, figs, charts, summary, progress)
+    _bode(p, d, tables, figs, charts)
+    sm = pd.DataFrame(summary, columns=["quantity", "case", "paper", "covtool", "unit"])
+    sm["diff [%]"] = _pct(sm["covtool"], sm["paper"])
+    out = {"summary": sm, "derived_parameters": _derived_table(p, d)}
+    out.update(tables)
+    return StudyResult(
+        name=p["name"], kind=KIND, tables=out, figures=figs, resolved=decl, charts=charts,
+        provenance={"covtool_version": __version__, "runtime_s": round(time.perf_counter() - t0, 3),
+                    "study_file": str(path) if path else "<dict>"},
+        data={"params": p, "derived": d},
+    )
