@@ -328,8 +328,9 @@ def _fig2(p, d, tables, figs, charts, summary):
             row[f"max {_ratio_label(r)} [m/s^2]"] = mx
             row[f"min {_ratio_label(r)} [m/s^2]"] = mn
         rows.append(row)
-    tables["fig2"] = pd.DataFrame(rows)
-
+    _register_extrema("fig2", pd.DataFrame(rows), "input acceleration [m/s^2]", "m/s^2",
+                      "Fig 2: filtered error extrema, N_a > 2 pi/omega_n", p, tables, figs, charts,
+                      ylabel="acceleration error", anchor="K2")
     iso_cf = of.isolated_amplitude(filt, method="closed_form")
     iso_ex = of.isolated_amplitude(filt, method="exact")
     cases = [(r, ne, s) for r, ne, s in zip(p["ratios"], d["n_e"], d["S"])]
@@ -349,16 +350,6 @@ def _fig2(p, d, tables, figs, charts, summary):
             summary.append(("Fig 2 small-input amplitude", f"N_e = {100 * r:g}% N_t", row["paper [m/s^2]"], td,
                             "m/s^2"))
     tables["fig2_amplitude"] = pd.DataFrame(amp_rows)
-    ycols = [c for c in tables["fig2"].columns if c.startswith(("max", "min"))]
-    charts.append({"sheet": "fig2", "x": "input acceleration [m/s^2]", "y": ycols, "anchor": "K2",
-                   "title": "Fig 2: filtered error extrema, N_a > 2 pi/omega_n",
-                   "x_title": "input acceleration [m/s^2]", "y_title": "acceleration error [m/s^2]"})
-
-    def fig2():
-        return _plot_extrema(tables["fig2"], "input acceleration [m/s^2]", p["ratios"], "m/s^2",
-                             "Fig 2: acceleration error extrema, N_a > 2\u03c0/\u03c9_n",
-                             "acceleration error [m/s$^2$]")
-    figs["fig2"] = fig2
 
 
 def _fig3(p, d, tables, figs, charts):
@@ -443,17 +434,9 @@ def _table1_fig4(p, d, tables, figs, charts, summary, progress):
             row[f"max {_ratio_label(r)} nav [m/s^2]"], row[f"min {_ratio_label(r)} nav [m/s^2]"] = \
                 _scaled_extrema(hin, lon, s, c)
         rows.append(row)
-    tables["fig4"] = pd.DataFrame(rows)
-    ycols = [c for c in tables["fig4"].columns if c.startswith(("max", "min"))]
-    charts.append({"sheet": "fig4", "x": "input acceleration [m/s^2]", "y": ycols, "anchor": "R2",
-                   "title": "Fig 4: filtered error extrema, N_a < 2 pi/omega_n (nav = navigation rate)",
-                   "x_title": "input acceleration [m/s^2]", "y_title": "acceleration error [m/s^2]"})
-
-    def fig4():
-        return _plot_extrema(tables["fig4"], "input acceleration [m/s^2]", p["ratios"], "m/s^2",
-                             "Fig 4: acceleration error extrema (solid: 2400 Hz, dotted: navigation rate)",
-                             "acceleration error [m/s$^2$]", nav=True)
-    figs["fig4"] = fig4
+    _register_extrema("fig4", pd.DataFrame(rows), "input acceleration [m/s^2]", "m/s^2",
+                      "Fig 4: filtered error extrema, N_a < 2 pi/omega_n (dotted/nav: navigation rate)",
+                      p, tables, figs, charts, ylabel="acceleration error", anchor="R2", nav=True)
 
 
 def _tables23_fig5(p, d, tables, figs, charts, summary, progress):
@@ -509,17 +492,9 @@ def _tables23_fig5(p, d, tables, figs, charts, summary, progress):
                 row[f"max {_ratio_label(r)}{tag} [arcsec]"] = mx * as_
                 row[f"min {_ratio_label(r)}{tag} [arcsec]"] = mn * as_
         rows.append(row)
-    tables["fig5"] = pd.DataFrame(rows)
-    ycols = [c for c in tables["fig5"].columns if c.startswith(("max", "min"))]
-    charts.append({"sheet": "fig5", "x": "input acceleration [mg]", "y": ycols, "anchor": "O2",
-                   "title": "Fig 5: coarse leveling tilt error extrema", "x_title": "input acceleration [mg]",
-                   "y_title": "tilt error [arcsec]"})
-
-    def fig5():
-        return _plot_extrema(tables["fig5"], "input acceleration [mg]", p["ratios"], "arcsec",
-                             "Fig 5: coarse leveling tilt error (solid: no pre-filter, dotted: pre-filter)",
-                             "tilt error [arcsec]", tag=" pre-filter")
-    figs["fig5"] = fig5
+    _register_extrema("fig5", pd.DataFrame(rows), "input acceleration [mg]", "arcsec",
+                      "Fig 5: coarse leveling tilt error (dotted: with pre-filter)", p, tables, figs, charts,
+                      ylabel="tilt error", anchor="O2", tag=" pre-filter")
 
     # fine alignment: gains about 4x lower (no paper values)
     fine = p["fine"]
@@ -581,6 +556,16 @@ def _bode(p, d, tables, figs, charts):
         figs[name] = make
 
 
+def _register_extrema(name, df, xcol, unit, title, p, tables, figs, charts, *, ylabel, anchor, nav=False,
+                      tag=None):
+    """Store an extrema sweep as a table, a native chart and a PNG figure."""
+    tables[name] = df
+    ycols = [c for c in df.columns if c.startswith(("max", "min"))]
+    charts.append({"sheet": name, "x": xcol, "y": ycols, "anchor": anchor, "title": title,
+                   "x_title": xcol, "y_title": f"{ylabel} [{unit}]"})
+    figs[name] = lambda: _plot_extrema(df, xcol, p["ratios"], unit, title, ylabel, nav=nav, tag=tag)
+
+
 def _plot_extrema(df, xcol, ratios, unit, title, ylabel, nav=False, tag=None):
     import matplotlib.pyplot as plt
 
@@ -597,7 +582,7 @@ def _plot_extrema(df, xcol, ratios, unit, title, ylabel, nav=False, tag=None):
                 ax.plot(df[xcol], df[f"{kind} {lab}{tag} [{unit}]"], ":", color=col)
     ax.axhline(0, color="k", lw=0.5)
     ax.set_xlabel(xcol.replace("m/s^2", "m/s$^2$"))
-    ax.set_ylabel(ylabel)
+    ax.set_ylabel(f"{ylabel} [{unit}]".replace("m/s^2", "m/s$^2$"))
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
