@@ -172,3 +172,21 @@ def test_other_errors_are_raised():
         adreset.velocity_error_sigma(SF, N_T, 20.0, distribution="normal")
     with pytest.raises(ValueError, match="accel must be a positive"):
         adreset.scale_factor_from_reset_period(0.0, 169.6, DT)
+
+
+def test_uniform_error_is_three_quarters_random_constant():
+    """Random input sign and reset phase: the ensemble autocorrelation of eq (8)
+    is 3/4 (the band's mean) + 1/4 of the sawtooth's, never below 5/8."""
+    rng = np.random.default_rng(5)
+    m = 400_000
+    sign = rng.choice([-1.0, 1.0], m)
+    phase = rng.uniform(0, 1, m)
+
+    def vel(lag):  # lag as a fraction of the reset period T_R
+        return adreset.velocity_error(sign * N_T * np.mod(phase + lag, 1.0), SF, N_T, 21.33)
+
+    v0 = vel(0.0)
+    var = np.mean(v0**2)
+    assert math.sqrt(var) == pytest.approx(adreset.velocity_error_sigma(SF, N_T, 21.33), rel=5e-3)
+    for lag, expected in ((0.5, 0.75 - 0.125), (0.25, 0.75 + 0.25 * (1 - 1.5 + 0.375)), (1.0, 1.0)):
+        assert np.mean(v0 * vel(lag)) / var == pytest.approx(expected, abs=5e-3)

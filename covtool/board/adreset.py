@@ -547,6 +547,10 @@ def velocity_error_sigma(sf: float, n_t: float, n_e: float, *, v_bound: float | 
     :func:`velocity_error_bound`).  Between resets the AD value ramps
     linearly through a band of ``N_t`` counts; with an unknown phase it is
     uniform over that band, so the velocity error of eq (8) is uniform.
+    With ``'uniform'``, 3/4 of the variance is the band's mean (a random
+    constant while the specific force keeps its sign) and 1/4 the
+    sawtooth (see :func:`suggested_time_constant`).  ``n_e`` may be the
+    1-sigma of the N error: ``B`` is linear in ``|N_e|``.
     """
     bound = velocity_error_bound(sf, n_t, n_e, v_bound=v_bound)
     if distribution == "uniform":
@@ -557,7 +561,7 @@ def velocity_error_sigma(sf: float, n_t: float, n_e: float, *, v_bound: float | 
 
 
 def suggested_time_constant(sf: float, specific_force: float, *, tau_max: float = math.inf) -> float:
-    """Gauss-Markov time constant of the AD-reset velocity error.
+    """Time constant of the sawtooth part of the AD-reset error.
 
     Parameters
     ----------
@@ -566,8 +570,9 @@ def suggested_time_constant(sf: float, specific_force: float, *, tau_max: float 
     specific_force : float
         Nominal specific force along the accelerometer axis. [m/s^2]
     tau_max : float
-        Cap for near-zero specific force, where the error is a random
-        constant in practice (e.g. the study duration). [s]
+        Cap for near-zero specific force, where the sawtooth stalls and the
+        error is a random constant in practice (e.g. the study duration).
+        [s]
 
     Returns
     -------
@@ -576,13 +581,17 @@ def suggested_time_constant(sf: float, specific_force: float, *, tau_max: float 
 
     Notes
     -----
-    The error of seed 000, eq (8) is a sawtooth of period
-    ``T_R = SF / |f|`` (one reset pulse).  A sawtooth with uniformly
-    distributed phase has the autocorrelation
+    The error of seed 000, eq (8) is ``-SF N_e AD_k / N_t^2``; while the
+    specific force keeps its sign, ``AD_k`` is its mean (``+-N_t/2``) plus
+    a sawtooth of period ``T_R = SF / |f|`` (one reset pulse).  The mean
+    part is a random constant carrying 3/4 of the variance of
+    :func:`velocity_error_sigma`; the sawtooth carries 1/4.  A sawtooth
+    with uniformly distributed phase has the autocorrelation
     ``R(tau) = sigma^2 (1 - 6|tau|/T_R + 6 tau^2/T_R^2)`` on
-    ``|tau| <= T_R``; a first-order Markov process with the same variance
-    and the same initial slope ``-6 sigma^2 / T_R`` has
-    ``tau = T_R / 6``.
+    ``|tau| <= T_R``; the first-order Markov process with the same variance
+    and initial slope ``-6 sigma^2 / T_R`` has ``tau = T_R / 6``.  This is
+    the time constant of that sawtooth part only (about 1 ms at 1 g,
+    1 s at 1 mg with SF = 0.064 m/s).
     """
     sf = _check_positive("sf", sf)
     f = abs(float(specific_force))
