@@ -1,4 +1,6 @@
-"""Tests of covtool.board.adreset: the board simulator against eq (1)-(10).
+"""Tests of covtool.board.adreset: simulator vs eq (1)-(10).
+
+The board simulator is checked against eq (1)-(10).
 
 Oracles: the board's true velocity increments integrate the input exactly;
 the simulator's errors equal the analytic expressions of seed 000, eq (6),
@@ -175,8 +177,11 @@ def test_other_errors_are_raised():
 
 
 def test_uniform_error_is_three_quarters_random_constant():
-    """Random input sign and reset phase: the ensemble autocorrelation of eq (8)
-    is 3/4 (the band's mean) + 1/4 of the sawtooth's, never below 5/8."""
+    """Eq (8) error is 3/4 random constant, 1/4 sawtooth.
+
+    Random input sign and reset phase: the ensemble autocorrelation is 3/4
+    (the band's mean) + 1/4 of the sawtooth's, never below 5/8.
+    """
     rng = np.random.default_rng(5)
     m = 400_000
     sign = rng.choice([-1.0, 1.0], m)

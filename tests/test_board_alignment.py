@@ -104,7 +104,7 @@ def test_navigation_rate_error_preserves_pulse_area():
 
 
 def test_isolated_pulse_tilt_amplitude():
-    """At 1 mg the pulses are 6.5 s apart: the tilt is A times the impulse peak."""
+    """At 1 mg (pulses 6.5 s apart) the tilt is A times the peak."""
     fs, m, dt_nav = 2400.0, 24, 0.01
     sf = 0.9 / fs * 169.6280987
     n_t, n_e = 1066.5, 21.33

@@ -1,4 +1,6 @@
-"""Tests of the ad_reset study: seed 000 acceptance and study-file checks.
+"""Tests of the ad_reset study: acceptance and study-file checks.
+
+Seed 000 acceptance criteria and study-file validation.
 
 The paper's values come from the study file's [reference] tables; the
 tolerances are those of the issue (Fig 2 3 %, Table 1 12/15 within 2 % and
@@ -156,8 +158,11 @@ def test_given_scale_factor(decl):
 
 
 def test_board_simulation_column_explains_rounding(result):
-    """A real board alternates floor/ceil periods; its sub-harmonic beat makes the
-    filtered error larger than the paper's, most at 15-20 m/s^2."""
+    """A real board's irregular resets enlarge the filtered error.
+
+    It alternates floor/ceil periods; the sub-harmonic lines make the
+    filtered error larger than the paper's, most at 15-20 m/s^2.
+    """
     df = result.tables["table1"]
     excess = df["board simulation [m/s^2]"] / df["covtool [m/s^2]"]
     assert np.all(excess >= 0.999)

@@ -1,4 +1,4 @@
-"""Second-order IIR output filter and the filtered reset-pulse error.
+"""Second-order IIR output filter and the filtered pulse error.
 
 The body-acceleration output and the alignment both pass the board's
 acceleration error through a second-order IIR filter (seed 000, eq (11)).

@@ -258,7 +258,7 @@ def _period(p: dict, d: dict, acc: float) -> int:
 
 
 def _effective_accel(p: dict, d: dict, acc: float) -> float:
-    """Input whose reset period is exactly the whole-sample period used.
+    """Input whose reset period is the whole-sample period used.
 
     Rounding ``N_a`` to whole samples changes the mean of the pulse train,
     ``S / N_a``; taking the constant term of eq (10) at this input keeps the
@@ -558,7 +558,7 @@ def _bode(p, d, tables, figs, charts):
 
 def _register_extrema(name, df, xcol, unit, title, p, tables, figs, charts, *, ylabel, anchor, nav=False,
                       tag=None):
-    """Store an extrema sweep as a table, a native chart and a PNG figure."""
+    """Store an extrema sweep as a table, a chart and a PNG figure."""
     tables[name] = df
     ycols = [c for c in df.columns if c.startswith(("max", "min"))]
     charts.append({"sheet": name, "x": xcol, "y": ycols, "anchor": anchor, "title": title,
