@@ -37,7 +37,7 @@ def _cmd_show(args) -> int:
     from .model.library import load_model_by_name
 
     model = load_model_by_name(args.model, args.dir)
-    print(f"{model.name}: {model.n} states ({model.source})\n")
+    print(f"{model.name}: {model.n} states, {model.description} [{model.path}]\n")
     print(model.state_table().to_string(index=False))
     return 0
 
