@@ -66,8 +66,9 @@ def taylor(F: np.ndarray, Qc: np.ndarray, dt, order: int | None = None) -> tuple
     F, Qc : ndarray, shape (N, n, n)
     dt : float or ndarray, shape (N,)
     order : int, optional
-        Number of terms ``n`` of eq (6b) (``i = 0 … n−1``).  Default: enough
-        for a 1e-14 truncation bound.
+        Number of terms ``n`` of eq (6b) (``i = 0 … n−1``).  Default: add
+        terms until the next term of both series is below 1e-16 (relative),
+        at most 40.
 
     Returns
     -------
@@ -87,18 +88,23 @@ def taylor(F: np.ndarray, Qc: np.ndarray, dt, order: int | None = None) -> tuple
     F = np.asarray(F, float)
     N, n, _ = F.shape
     dt = np.broadcast_to(np.asarray(dt, float), (N,))[:, None, None]
-    if order is None:
-        order = taylor_terms_needed(F, dt)
+    adaptive = order is None
+    max_order = 40 if adaptive else order
     Phi = np.broadcast_to(np.eye(n), F.shape).copy()
     term = Phi.copy()
-    Qd = np.zeros_like(F)
     C = np.asarray(Qc, float).copy()
-    for i in range(1, order):
+    Qd = np.zeros_like(F)
+    qscale = np.max(np.abs(C)) or 1.0
+    coef = dt.copy()                                   # Δt^i / i!
+    for i in range(1, max_order):
         term = term @ F * (dt / i)
         Phi += term
-        Qd += C * (dt**i / math.factorial(i))
+        Qd += C * coef
         FC = F @ C
         C = FC + np.swapaxes(FC, 1, 2)
+        coef = coef * dt / (i + 1)
+        if adaptive and np.max(np.abs(term)) < 1e-16 and np.max(np.abs(C * coef)) < 1e-16 * qscale:
+            break
     return Phi, Qd
 
 

@@ -132,7 +132,7 @@ class NoiseSource:
 
     def qc(self) -> np.ndarray:
         """Contribution to ``Q_c``, shape ``(N, n, n)``."""
-        return np.einsum("tik,tk,tjk->tij", self.G, self.psd, self.G)
+        return (self.G * self.psd[:, None, :]) @ np.swapaxes(self.G, 1, 2)
 
 
 @dataclass
@@ -146,10 +146,16 @@ class ErrorDynamics:
     @property
     def Qc(self) -> np.ndarray:
         """Continuous process-noise PSD matrix ``G W Gᵀ``, shape ``(N, n, n)``."""
-        out = np.zeros_like(self.F)
-        for src in self.noise:
-            out += src.qc()
-        return out
+        if getattr(self, "_qc", None) is None:
+            out = np.zeros_like(self.F)
+            for src in self.noise:
+                nz = np.flatnonzero(np.any(src.G != 0, axis=(0, 2)))
+                if nz.size == 0:
+                    continue
+                G = src.G[:, nz, :]
+                out[:, nz[:, None], nz[None, :]] += (G * src.psd[:, None, :]) @ np.swapaxes(G, 1, 2)
+            self._qc = out
+        return self._qc
 
 
 def transport_rate_partials(lat, h, v_n):

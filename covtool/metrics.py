@@ -47,7 +47,8 @@ def cep(P2: np.ndarray) -> np.ndarray:
     -----
     With principal σ₁ ≥ σ₂, ``P(|x| ≤ r) = ∫_{−π/2}^{π/2} (r cos θ/σ₁) φ(r sin θ/σ₁)
     erf(r cos θ / (√2 σ₂)) dθ`` (substituting ``x₁ = r sin θ``), evaluated by
-    96-point Gauss–Legendre and solved for 0.5 by bisection.  Limits:
+    96-point Gauss–Legendre and solved for 0.5 by safeguarded Newton
+    iteration (bisection whenever a Newton step leaves the bracket).  Limits:
     ``√(2 ln 2) σ = 1.1774 σ`` (circular), ``0.6745 σ₁`` (σ₂ → 0).  The common
     rule ``0.589(σ₁+σ₂)`` is within 3 % only for σ₂/σ₁ > 0.3.
     """
@@ -62,15 +63,36 @@ def cep(P2: np.ndarray) -> np.ndarray:
         return out
     a, b = s1[pos], s2[pos]
     b = np.maximum(b, a * 1e-9)
-    lo = 0.5 * PE_FACTOR * a
-    hi = 1.2 * np.sqrt(2 * np.log(2)) * np.hypot(a, b)
-    for _ in range(60):
-        mid = 0.5 * (lo + hi)
-        below = _circle_probability(mid, a, b) < 0.5
-        lo = np.where(below, mid, lo)
-        hi = np.where(below, hi, mid)
-    out[pos] = 0.5 * (lo + hi)
+    lo = 0.9 * PE_FACTOR * a
+    hi = 1.01 * np.sqrt(2 * np.log(2)) * np.hypot(a, b)
+    r = np.clip(0.589 * (a + b), lo, hi)
+    for _ in range(30):
+        f = _circle_probability(r, a, b) - 0.5
+        lo = np.where(f < 0, r, lo)
+        hi = np.where(f < 0, hi, r)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = f / _circle_density(r, a, b)
+        r_new = r - step
+        bad = ~((r_new > lo) & (r_new < hi))
+        r_new = np.where(bad, 0.5 * (lo + hi), r_new)
+        done = np.abs(r_new - r) <= 1e-13 * r
+        r = r_new
+        if np.all(done):
+            break
+    out[pos] = r
     return out
+
+
+def _circle_density(r, s1, s2):
+    """d/dr P(|x| ≤ r): the normal density integrated around the circle of radius r."""
+    th = np.pi * (_GL_X + 1.0)                            # θ ∈ (0, 2π)
+    r_ = np.asarray(r)[..., None]
+    x1 = r_ * np.cos(th)
+    x2 = r_ * np.sin(th)
+    s1_ = np.asarray(s1)[..., None]
+    s2_ = np.asarray(s2)[..., None]
+    p = np.exp(-0.5 * ((x1 / s1_) ** 2 + (x2 / s2_) ** 2)) / (2 * np.pi * s1_ * s2_)
+    return np.pi * r * np.sum(_GL_W * p, axis=-1)
 
 
 def cep_approx(P2: np.ndarray) -> np.ndarray:

@@ -130,3 +130,20 @@ def test_cli_show_unknown_model_is_a_clear_error(capsys, monkeypatch):
     monkeypatch.chdir(ROOT)
     assert main(["show", "sdins99"]) == 2
     assert "sdins99: no such model" in capsys.readouterr().err
+
+
+def test_ad_reset_states_take_sigma_from_board_parameters(decl):
+    """The AD-reset velocity-error σ is B/√3 with B = SF |N_e| / N̂ (seed 000, eq (7)-(8))."""
+    m = model_from_dict(decl)
+    sf, n_t, n_e = 0.063611, 1066.5, 0.02 * 1066.5
+    bound = sf * n_e / (n_t + n_e)
+    assert m.states[m.index["acc_ad_x"]].sigma == pytest.approx(bound / np.sqrt(3), rel=1e-6)
+    d = copy.deepcopy(decl)
+    blk = _block(d, "ad_reset_velocity")
+    blk["board"] = {"sf": "0.063611 m/s", "n_t": 1066.5}
+    with pytest.raises(ModelFileError, match=r"board: missing required key 'n_e_ratio'"):
+        model_from_dict(d, path="x.toml")
+    blk["board"] = {"sf": "0.063611 m/s", "n_t": 1066.5, "n_e_ratio": 0.02}
+    blk["sigma"] = "1 mm/s"
+    with pytest.raises(ModelFileError, match=r"give either 'sigma' or 'board', not both"):
+        model_from_dict(d, path="x.toml")

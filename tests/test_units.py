@@ -22,6 +22,7 @@ HAND = {
     "m": (1.0, "length"),
     "ft/s": (0.3048, "velocity"),
     "mm/s": (1e-3, "velocity"),
+    "m/s": (1.0, "velocity"),
     "ug": (1e-6 * G, "acceleration"),
     "mGal": (1e-5, "acceleration"),
     "deg/h": (DEG / 3600, "angular_rate"),

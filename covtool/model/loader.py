@@ -51,7 +51,8 @@ from ..units import DIMENSIONS, is_unit, parse_quantity
 from .blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
 from .spec import PROCESSES, Model, State
 
-_BLOCK_KEYS = {"kind", "name", "names", "sigma", "unit", "process", "tau", "distance", "rw", "source"}
+_BLOCK_KEYS = {"kind", "name", "names", "sigma", "unit", "process", "tau", "distance", "rw", "source", "board"}
+_BOARD_KEYS = {"sf", "n_t", "n_e_ratio"}
 _NAV_KEYS = {"kind", "name", "position_sigma", "velocity_sigma", "quaternion_sigma",
              "angle_random_walk", "velocity_random_walk", "source"}
 _TOP_KEYS = {"model", "block", "correlation"}
@@ -135,6 +136,12 @@ def _block_states(b: dict, where: str, file: str) -> list[State]:
     if process not in bk.processes:
         raise ModelFileError(f"{where}: process", f"{process!r} is not allowed for kind {kind!r} "
                              f"(allowed: {', '.join(bk.processes)})")
+    if "board" in b:
+        if kind != "ad_reset_velocity":
+            raise ModelFileError(f"{where}: board", f"'board' parameters apply only to kind 'ad_reset_velocity'")
+        if "sigma" in b:
+            raise ModelFileError(f"{where}: board", "give either 'sigma' or 'board', not both")
+        b = {**b, "sigma": [_board_sigma(b["board"], f"{where}: board")] * n}
     sig = as_list(b.get("sigma", 0.0), n, f"{where}: sigma", ModelFileError)
     units = as_list(b["unit"], n, f"{where}: unit", ModelFileError) if "unit" in b else [None] * n
     taus = as_list(b["tau"], n, f"{where}: tau", ModelFileError) if "tau" in b else [None] * n
@@ -165,6 +172,30 @@ def _block_states(b: dict, where: str, file: str) -> list[State]:
         out.append(State(name, bk.symbols[k], prefix, kind, meaning, dim, unit, sigma, process,
                          tau=tau, distance=dist, rw=rw, source=b.get("source", "")))
     return out
+
+
+def _board_sigma(board: dict, where: str) -> str:
+    """AD-reset velocity-error 1σ from board parameters (seed 000, eq (7)-(8)).
+
+    ``board = {sf = "0.0636 m/s", n_t = 1066.5, n_e_ratio = 0.02}``: the
+    velocity worth of one reset pulse, the true AD counts per pulse and the
+    relative error of the counts the software assumes.  The bound
+    ``B = SF |N_e| / N̂`` of eq (7)-(8) with a uniformly distributed reset
+    phase gives ``σ = B/√3`` (:func:`covtool.board.adreset.velocity_error_sigma`).
+    """
+    from ..board.adreset import velocity_error_sigma
+
+    check_keys(board, _BOARD_KEYS, where, ModelFileError)
+    for k in _BOARD_KEYS:
+        if k not in board:
+            raise ModelFileError(where, f"missing required key {k!r}")
+    sf = _positive(board["sf"], "velocity", f"{where}: sf")
+    n_t, ratio = board["n_t"], board["n_e_ratio"]
+    for k, v in (("n_t", n_t), ("n_e_ratio", ratio)):
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not v > 0:
+            raise ModelFileError(f"{where}: {k}", f"{v!r} must be a positive number")
+    sigma = velocity_error_sigma(sf, float(n_t), float(ratio) * float(n_t))
+    return f"{sigma * 1e3!r} mm/s"
 
 
 def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
