@@ -37,6 +37,10 @@ def _cmd_show(args) -> int:
     from .model.library import load_model_by_name
 
     model = load_model_by_name(args.model, args.dir)
+    if args.markdown:
+        from .model.library import markdown_table
+        print(markdown_table(model), end="")
+        return 0
     print(f"{model.name}: {model.n} states, {model.description} [{model.path}]\n")
     print(model.state_table().to_string(index=False))
     return 0
@@ -57,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("show", help="print a model's state table")
     s.add_argument("model", help="model name or path to a .toml file")
     s.add_argument("--dir", default=None, help="model directory (default: models/)")
+    s.add_argument("--markdown", action="store_true", help="print the table as Markdown (docs/)")
     s.set_defaults(func=_cmd_show)
     return p
 

@@ -147,3 +147,10 @@ def test_ad_reset_states_take_sigma_from_board_parameters(decl):
     blk["sigma"] = "1 mm/s"
     with pytest.raises(ModelFileError, match=r"give either 'sigma' or 'board', not both"):
         model_from_dict(d, path="x.toml")
+
+
+def test_truth_model_doc_is_in_step_with_the_model_file():
+    """docs/truth_model.md carries the generated state table of the current model file."""
+    from covtool.model.library import markdown_table
+    doc = (ROOT / "docs" / "truth_model.md").read_text()
+    assert markdown_table(load_model(SDINS)) in doc, "regenerate: covtool show sdins58 --markdown"

@@ -60,3 +60,19 @@ def list_models(directory=None) -> pd.DataFrame:
         except ModelFileError as exc:
             rows.append({"model": p.stem, "states": 0, "description": f"INVALID: {exc}", "file": str(p)})
     return pd.DataFrame(rows)
+
+
+def markdown_table(model) -> str:
+    """The state table of ``model`` as a Markdown table (for docs/)."""
+    df = model.state_table()
+    lines = ["| # | state | symbol | meaning | 1σ | unit | process | τ / distance | source |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for i, r in df.iterrows():
+        corr = ""
+        if r["tau [s]"] == r["tau [s]"]:
+            corr = f"τ = {r['tau [s]']:g} s"
+        elif r["corr. distance [m]"] == r["corr. distance [m]"]:
+            corr = f"d = {r['corr. distance [m]'] / 1000:g} km"
+        lines.append(f"| {i + 1} | `{r['state']}` | {r['symbol']} | {r['meaning']} | {r['sigma']:.4g} | "
+                     f"{r['unit'] or '–'} | {r['process']} | {corr or '–'} | {r['source']} |")
+    return "\n".join(lines) + "\n"

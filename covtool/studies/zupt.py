@@ -199,6 +199,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             for z in zupt_marks:
                 ax.axvline(z / 60, color="0.7", lw=0.6, ls=":")
             ax.set_yscale("log")
+            ax.set_ylim(bottom=1.0)
             ax.set_xlabel("time [min]")
             ax.set_ylabel("horizontal CEP [ft]" if kind == "horizontal" else "altitude PE [ft]")
             ax.set_title(("Fig 6: horizontal position error" if kind == "horizontal" else
