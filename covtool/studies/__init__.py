@@ -18,6 +18,11 @@ RUNNERS = {
     "pure_ins": "covtool.studies.nav_covariance",
     "zupt_filter_order": "covtool.studies.zupt",
     "ad_reset": "covtool.studies.ad_reset",
+    "zupt_sensitivity": "covtool.studies.sensitivity",
+    "error_budget": "covtool.studies.budget",
+    "trade_grid": "covtool.studies.trade",
+    "monte_carlo": "covtool.studies.monte_carlo",
+    "dual_imu": "covtool.studies.dual_imu",
 }
 
 
