@@ -28,6 +28,7 @@ Study file::
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -98,52 +99,115 @@ def _filters_file(cfg, where, base_dir) -> Path:
     return p
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
-    """Run the filter-order trade; see the module docstring."""
+@dataclass
+class ZuptSetup:
+    """Everything a ZUPT study shares between its cases (truth system, schedule, filters).
+
+    Built by :func:`setup`; used by the filter-order, sensitivity, budget and
+    trade-grid studies.  Filter models and their discretisation are built on
+    demand and cached (:meth:`filter_model`).
+    """
+
+    hdr: dict
+    where: str
+    t: np.ndarray
+    nodes: object
+    truth: object
+    ctx: object
+    dyn: object
+    Phi: np.ndarray
+    Qd: np.ndarray
+    P0: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    update_steps: np.ndarray
+    zupt_interval: float
+    zupt_sigma: float
+    specs: dict
+    cases: list
+    mean_speed: float | None
+    filter_file: Path
+    every: float
+    report_times: list
+    _dyn_cache: dict = field(default_factory=dict)
+    _filters: dict = field(default_factory=dict)
+
+    def filter_model(self, name: str):
+        """``(FilterModel, Φ_f, Q_f)`` of a declared filter, cached."""
+        if name not in self._filters:
+            spec = self.specs[name]
+            key = dyn_key(spec.options)
+            if key not in self._dyn_cache:
+                self._dyn_cache[key] = self.dyn if key == dyn_key(None) else error_dynamics(
+                    self.truth, self.ctx, spec.options)
+            fm = build_filter(spec, self.truth, self.ctx, zupt_interval=self.zupt_interval,
+                              q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
+                              mean_speed=self.mean_speed, dt_steps=np.diff(self.t))
+            Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(self.t), spec.discretization, spec.taylor_order)
+            self._filters[name] = (fm, Phi_f, Qd_f)
+        return self._filters[name]
+
+    def filter_R(self, name: str) -> np.ndarray:
+        """The measurement noise the filter assumes (its ``zupt_sigma`` or the study's)."""
+        zs = self.specs[name].zupt_sigma
+        return np.eye(3) * (zs if zs is not None else self.zupt_sigma) ** 2
+
+
+def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=()) -> ZuptSetup:
+    """Validate a ZUPT study declaration and build the shared truth system."""
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
-    check_keys(decl, {"study", "trajectory", "truth", "filters", "zupt", "output"}, where, StudyFileError)
+    check_keys(decl, {"study", "trajectory", "truth", "filters", "zupt", "output", *extra_sections}, where,
+               StudyFileError)
     hdr = study_header(decl, where)
     every, rtimes = output_options(decl, where, hdr["duration"])
     fcfg = decl.get("filters", {})
     check_keys(fcfg, {"file", "cases", "pure_ins"}, f"{where}: [filters]", StudyFileError)
-    t_start = time.perf_counter()
     traj = load_trajectory(decl, where, base_dir, hdr["dt"])
+    if traj.t[-1] < hdr["duration"] - 1e-9:
+        raise StudyFileError(f"{where}: [study] duration",
+                             f"{hdr['duration']:g} s is longer than the trajectory ({traj.t[-1]:g} s)")
     truth = load_truth(decl, where, base_dir)
     t = time_grid(hdr["duration"], hdr["dt"])
     upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
     ffile = _filters_file(fcfg, where, base_dir)
     specs = load_filters(ffile, truth)
     cases = fcfg.get("cases", list(specs))
+    if not isinstance(cases, list):
+        raise StudyFileError(f"{where}: [filters] cases", "expected a list of filter names")
     for c in cases:
         if c not in specs:
             raise StudyFileError(f"{where}: [filters] cases", f"unknown filter {c!r} (declared in {ffile}: "
                                  f"{', '.join(specs)})")
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
     nodes = traj.sample(t)
-    q0 = nodes.q_nb[0]
-    P0 = truth.initial_covariance(q0)
+    P0 = truth.initial_covariance(nodes.q_nb[0])
     moving = np.diff(t)[np.linalg.norm(ctx.v_n, axis=1) > 0.1].sum()
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
     H = zupt_matrices(truth.names)
     R = np.eye(3) * zsig**2
+    return ZuptSetup(hdr, where, t, nodes, truth, ctx, dyn, Phi, Qd, P0, H, R, upd, dt_s, zsig, specs, cases,
+                     mean_speed, ffile, every, rtimes)
 
+
+def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+    """Run the filter-order trade; see the module docstring."""
+    t_start = time.perf_counter()
+    S = setup(decl, path=path, progress=progress)
+    hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth
+    Phi, Qd, P0, H, R, upd = S.Phi, S.Qd, S.P0, S.H, S.R, S.update_steps
+    cases, every, rtimes, ffile = S.cases, S.every, S.report_times, S.filter_file
+    dt_s, zsig, mean_speed = S.zupt_interval, S.zupt_sigma, S.mean_speed
+    fcfg = decl.get("filters", {})
     metrics, runs, fmodels, claimed = {}, {}, {}, {}
     if fcfg.get("pure_ins", True):
         metrics["pure_ins"] = nav_metrics(propagate(Phi, Qd, P0), nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
-    dyn_cache = {dyn_key(None): dyn}
     with progress_bar(len(cases), "filters", progress) as bar:
         for c in cases:
-            spec = specs[c]
-            key = dyn_key(spec.options)
-            if key not in dyn_cache:
-                dyn_cache[key] = error_dynamics(truth, ctx, spec.options)
-            fm = build_filter(spec, truth, ctx, zupt_interval=dt_s, q0=q0, truth_dynamics=dyn_cache[key],
-                              mean_speed=mean_speed, dt_steps=np.diff(t))
-            Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(t), spec.discretization, spec.taylor_order)
+            spec = S.specs[c]
+            fm, Phi_f, Qd_f = S.filter_model(c)
             Hf = zupt_matrices(fm.names)
-            Rf = np.eye(3) * (spec.zupt_sigma if spec.zupt_sigma is not None else zsig) ** 2
-            run_ = propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, fm.P0, H, Hf, fm.D, R, upd, Rf=Rf,
+            run_ = propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, fm.P0, H, Hf, fm.D, R, upd, Rf=S.filter_R(c),
                                          form=spec.update, label=f"filter {c}", times=t)
             runs[c], fmodels[c] = run_, fm
             metrics[c] = nav_metrics(run_.P_truth, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)

@@ -1,0 +1,762 @@
+"""Strapdown mechanization: the nonlinear reference of the linear model.
+
+Quaternion/NED strapdown navigation driven by IMU increments (``Δθ``,
+``Δv``), with the 4-sample + 1-previous coning and sculling compensation of
+seed 001 (eq (1)–(4), Figs 9–10).  It is vectorised over an ensemble: every
+array carries a leading run axis ``M``, so one :func:`step` advances all
+Monte-Carlo runs at once.
+
+Conventions are those of :mod:`covtool` (SI, NED, ``q`` scalar first and
+body→NED) and of the linear error model (:mod:`covtool.dynamics`): error =
+computed − true, position errors ``(δL, δl, δh)``, velocity ``δv^n`` and the
+additive quaternion error ``δq = q̂ − q`` (seed 002, eq (1)), in the state
+order of seed 002, eq (14) (:data:`NAV_STATES`).
+
+Algorithm (one navigation interval ``T = t_m − t_{m−1}``)
+--------------------------------------------------------
+The interval holds ``n`` IMU samples ``Δθ_1 … Δθ_n``, ``Δv_1 … Δv_n``
+(sample ``0`` is the last sample of the previous interval).
+
+*Body increments* (seed 001 eq (1)–(4); Savage 1998 Parts 1–2;
+Ignagni 1996)::
+
+    α = Σ Δθ_i,   υ = Σ Δv_i
+    φ = α + Σ_{i=0}^{n−1} k_{n−i} (Δθ_i × Δθ_n)                      (coning)
+    Δv_b = υ + c1 α×υ + c2 α×(α×υ)                        (rotation, exact for
+           + Σ_{i=0}^{n−1} k_{n−i} (Δθ_i × Δv_n + Δv_i × Δθ_n)   constant rates)
+                                                                     (sculling)
+
+with ``c1 = (1−cos a)/a² ≈ ½``, ``c2 = (a − sin a)/a³ ≈ ⅙``, ``a = |α|``.
+The lag coefficients ``k_L`` (``L = n − i`` samples apart) are those of
+:func:`coning_coefficients`; for ``n = 4`` they are seed 001's
+``(656, 262, 168, −1)/315``.  The sculling terms use the same coefficients
+(Roscoe 2001, the coning/sculling equivalency, seed 001 ref [7]).
+
+*Navigation frame* (second order, predictor–corrector at the mid-interval)::
+
+    ζ = (ω_ie^n + ω_en^n)(t_{m−½}) T
+    q_m = exp(−ζ/2) ⊗ q_{m−1} ⊗ exp(φ/2)                        (normalised)
+    v_m = v_{m−1} + (I − ½[ζ×]) C_b^n(t_{m−1}) Δv_b
+                 + [g^n − (2ω_ie^n + ω_en^n) × v^n](t_{m−½}) T
+    (L, l, h)_m = (L, l, h)_{m−1} + T · position_rates(t_{m−½}),  v_{m−½} = ½(v_{m−1}+v_m)
+
+The mid-interval position and velocity come from a predictor pass with the
+start-of-interval rates, so the step is self-starting and a filter may
+correct the state between steps (:func:`correct`, seed 002 eq (10)).
+
+Two IMUs at different rates (seed 001 §2.3, Figs 7–10)
+------------------------------------------------------
+Both navigation solutions run on the *main* interval: the main IMU's
+sample period (``n = 1``, the 1-sample + 1-previous algorithm, coefficient
+1/12) or a multiple of it.  A second IMU at ``r`` times the main rate
+delivers ``r`` samples per interval and runs the ``r``-sample algorithm
+(the KIMU of seed 001: ``r = 4``, eq (2) and (4)).  :func:`group_samples`
+assigns each sample to the main interval in which its period ends and
+refuses a grouping with missing or extra samples rather than dropping data
+(the paper's circular queue guarantees none are lost).
+
+References
+----------
+P. G. Savage, "Strapdown inertial navigation integration algorithm design,
+Part 1: Attitude algorithms; Part 2: Velocity and position algorithms",
+J. Guid. Control Dyn. 21(1)–(2), 1998 (seed 001 ref [6]).
+M. B. Ignagni, "Efficient class of optimized coning compensation
+algorithms", J. Guid. Control Dyn. 19(2), 1996.
+K. M. Roscoe, "Equivalency between strapdown inertial navigation coning and
+sculling integrals/algorithms", J. Guid. Control Dyn. 24(2), 2001.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from fractions import Fraction
+from functools import lru_cache
+from typing import Callable, Iterable
+
+import numpy as np
+
+from . import earth
+from . import quaternion as quat
+
+__all__ = [
+    "NAV_STATES", "NavState", "NavHistory", "coning_coefficients", "coning_residual",
+    "body_increments", "step", "run", "correct", "nav_errors", "truth_state", "group_samples",
+]
+
+#: error-state order of the navigation block (seed 002, eq (14))
+NAV_STATES = ("dL", "dl", "dh", "dvN", "dvE", "dvD", "dq0", "dq1", "dq2", "dq3")
+
+#: largest number of samples per interval with derived coefficients
+MAX_SAMPLES = 6
+
+
+# --------------------------------------------------------------------------
+# coning / sculling coefficients
+# --------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=None)
+def coning_coefficients(n: int) -> tuple[Fraction, ...]:
+    """Coefficients of the n-sample + 1-previous coning algorithm.
+
+    Parameters
+    ----------
+    n : int
+        Samples per navigation interval (1 … :data:`MAX_SAMPLES`).
+
+    Returns
+    -------
+    tuple of Fraction, length n
+        ``k_1 … k_n``: the weight of ``Δθ_i × Δθ_n`` for samples ``L = n − i``
+        apart (``i = 0`` is the previous interval's last sample).  ``n = 1``:
+        ``(1/12,)``; ``n = 4``: ``(656, 262, 168, −1)/315``, seed 001 eq (2).
+
+    Notes
+    -----
+    Under classical coning (rates ``aΩ cos Ωt``, ``bΩ sin Ωt`` on two axes)
+    the cross product of two sample increments ``L`` samples apart is, along
+    the cone axis, ``ab·2(1 − cos λ) sin Lλ`` with ``λ = Ωh`` (Ignagni 1996);
+    the exact coning term ``½∫α×ω dt`` over ``T = nh`` is
+    ``ab·½(nλ − sin nλ)``.  Expanding both in odd powers of λ,
+    ``2(1 − cos λ) sin Lλ = Σ_j (−1)^j λ^{2j+1}/(2j+1)! [2L^{2j+1} −
+    (L+1)^{2j+1} − (L−1)^{2j+1}]``, and matching the powers ``λ³ … λ^{2n+1}``
+    gives n linear equations for ``k_1 … k_n``; they are solved exactly in
+    rational arithmetic.  The residual error is then ``O(λ^{2n+3})`` per
+    interval (:func:`coning_residual`).
+    """
+    if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or not 1 <= n <= MAX_SAMPLES:
+        raise ValueError(f"samples per interval must be an integer in 1..{MAX_SAMPLES}, got {n!r}")
+    n = int(n)
+    rows = []
+    for j in range(1, n + 1):
+        p = 2 * j + 1
+        row = [Fraction(2 * L**p - (L + 1) ** p - (L - 1) ** p) for L in range(1, n + 1)]
+        rows.append(row + [Fraction(-(n**p), 2)])
+    # Gauss-Jordan elimination in exact arithmetic
+    for c in range(n):
+        piv = next(r for r in range(c, n) if rows[r][c] != 0)
+        rows[c], rows[piv] = rows[piv], rows[c]
+        for r in range(n):
+            if r != c and rows[r][c] != 0:
+                f = rows[r][c] / rows[c][c]
+                rows[r] = [x - f * y for x, y in zip(rows[r], rows[c])]
+    return tuple(rows[c][n] / rows[c][c] for c in range(n))
+
+
+def coning_residual(n: int, lam, *, compensated: bool = True):
+    """Residual coning error per interval under classical coning.
+
+    Parameters
+    ----------
+    n : int
+        Samples per interval.
+    lam : float or ndarray
+        ``λ = Ω h``: coning frequency times the sample period. [rad]
+    compensated : bool
+        False gives the error of ``φ = α`` (no coning term).
+
+    Returns
+    -------
+    float or ndarray
+        ``ε(λ) = ½(nλ − sin nλ) − 2(1 − cos λ) Σ_L k_L sin Lλ``: the exact
+        coning term minus the algorithm's, per unit ``ab`` (``sin²β`` for a
+        cone of half-angle β).  The algorithm's attitude error along the cone
+        axis grows at ``−ab ε(λ)/T``.  The same function, times ``θ₀A/Ω``,
+        is the sculling residual under in-phase angular (θ₀) and linear (A)
+        oscillation (Roscoe 2001).
+    """
+    lam = np.asarray(lam, dtype=float)
+    exact = 0.5 * (n * lam - np.sin(n * lam))
+    if not compensated:
+        return exact
+    k = [float(c) for c in coning_coefficients(n)]
+    alg = 2.0 * (1.0 - np.cos(lam)) * sum(kL * np.sin((L + 1) * lam) for L, kL in enumerate(k))
+    return exact - alg
+
+
+@lru_cache(maxsize=None)
+def _weights(n: int) -> np.ndarray:
+    """Weights of samples ``0 … n−1`` (0 = previous) against sample n."""
+    k = coning_coefficients(n)
+    return np.array([float(k[n - 1 - i]) for i in range(n)])
+
+
+# --------------------------------------------------------------------------
+# state
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NavState:
+    """Navigation state of M runs at one time.
+
+    Attributes
+    ----------
+    t : float
+        Time. [s]
+    lat, lon : ndarray, shape (M,)
+        Geodetic latitude and longitude. [rad]
+    h : ndarray, shape (M,)
+        Height above the ellipsoid. [m]
+    v_n : ndarray, shape (M, 3)
+        NED velocity. [m/s]
+    q : ndarray, shape (M, 4)
+        Attitude quaternion body→NED, scalar first (kept unit-norm, sign
+        not forced, so it stays continuous).
+    dtheta_prev, dv_prev : ndarray, shape (M, 3)
+        Last IMU sample of the previous interval (the "1-previous" of seed
+        001 eq (2), (4)). [rad], [m/s]
+    """
+
+    t: float
+    lat: np.ndarray
+    lon: np.ndarray
+    h: np.ndarray
+    v_n: np.ndarray
+    q: np.ndarray
+    dtheta_prev: np.ndarray
+    dv_prev: np.ndarray
+
+    @property
+    def n_runs(self) -> int:
+        """Number of runs M."""
+        return self.lat.shape[0]
+
+    @classmethod
+    def from_trajectory(cls, traj, t0=None, *, n_runs: int = 1, errors=None,
+                        mounting=None, previous=None) -> "NavState":
+        """Initial state from a trajectory, optionally with initial errors.
+
+        Parameters
+        ----------
+        traj : covtool.trajectory.Trajectory
+            True motion.
+        t0 : float, optional
+            Start time (default: the trajectory start). [s]
+        n_runs : int
+            Number of runs M (ignored if ``errors`` has a run axis).
+        errors : ndarray, shape (M, 10) or (10,), optional
+            Initial errors in the order of :data:`NAV_STATES` (computed −
+            true; e.g. ``x0[:, :10]`` sampled from a model's P0).  The
+            quaternion is renormalised after adding ``δq``.
+        mounting : array_like, shape (4,), optional
+            Quaternion ``q_bs`` of the IMU (sensor) frame relative to the
+            vehicle body; the state is then the sensor frame's attitude
+            ``q_nb ⊗ q_bs``.
+        previous : tuple of ndarray, optional
+            ``(Δθ, Δv)`` of the sample before ``t0``, shape (3,) or (M, 3);
+            zeros if omitted (exact at rest, negligible otherwise).
+
+        Returns
+        -------
+        NavState
+        """
+        t0 = float(traj.t[0]) if t0 is None else float(t0)
+        s = truth_state(traj, [t0], mounting=mounting)
+        if errors is not None:
+            errors = np.atleast_2d(np.asarray(errors, dtype=float))
+            if errors.shape[-1] != 10:
+                raise ValueError(f"errors must have 10 columns ({', '.join(NAV_STATES)}), "
+                                 f"got shape {errors.shape}")
+            n_runs = errors.shape[0]
+        M = int(n_runs)
+        lat = np.repeat(s.lat, M)
+        lon = np.repeat(s.lon, M)
+        h = np.repeat(s.h, M)
+        v = np.repeat(s.v_n, M, axis=0)
+        q = np.repeat(s.q, M, axis=0)
+        if errors is not None:
+            lat = lat + errors[:, 0]
+            lon = lon + errors[:, 1]
+            h = h + errors[:, 2]
+            v = v + errors[:, 3:6]
+            q = q + errors[:, 6:10]
+            q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+        if previous is None:
+            dth_p = np.zeros((M, 3))
+            dv_p = np.zeros((M, 3))
+        else:
+            dth_p = np.broadcast_to(np.asarray(previous[0], float), (M, 3)).copy()
+            dv_p = np.broadcast_to(np.asarray(previous[1], float), (M, 3)).copy()
+        return cls(t0, lat, lon, h, v, q, dth_p, dv_p)
+
+    def replace(self, **changes) -> "NavState":
+        """Copy with fields changed."""
+        return dataclasses.replace(self, **changes)
+
+    def as_vector(self) -> np.ndarray:
+        """``[L, l, h, v_N, v_E, v_D, q0, q1, q2, q3]``, shape (M, 10)."""
+        return np.column_stack([self.lat, self.lon, self.h, self.v_n, self.q])
+
+
+def truth_state(traj, t, *, mounting=None) -> NavState:
+    """True navigation state at times ``t`` (one "run" per time).
+
+    Parameters
+    ----------
+    traj : covtool.trajectory.Trajectory
+    t : array_like, shape (S,)
+        Strictly increasing times. [s]
+    mounting : array_like, shape (4,), optional
+        ``q_bs`` of the IMU frame (see :meth:`NavState.from_trajectory`).
+
+    Returns
+    -------
+    NavState
+        Arrays of leading length S; ``t`` is the first time.
+    """
+    s = traj.sample(np.atleast_1d(np.asarray(t, dtype=float)))
+    q = np.array(s.q_nb)
+    if mounting is not None:
+        q = quat.mul(q, np.asarray(mounting, dtype=float))
+    S = s.t.size
+    return NavState(float(s.t[0]), np.array(s.lat), np.array(s.lon), np.array(s.h), np.array(s.v_n), q,
+                    np.zeros((S, 3)), np.zeros((S, 3)))
+
+
+# --------------------------------------------------------------------------
+# the algorithm
+# --------------------------------------------------------------------------
+
+
+def _cross(a, b):
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
+def body_increments(dtheta, dv, dtheta_prev, dv_prev):
+    """Compensated rotation vector and body velocity increment.
+
+    Parameters
+    ----------
+    dtheta, dv : ndarray, shape (M, n, 3)
+        The n IMU samples of the interval. [rad], [m/s]
+    dtheta_prev, dv_prev : ndarray, shape (M, 3)
+        The previous interval's last sample.
+
+    Returns
+    -------
+    phi : ndarray, shape (M, 3)
+        Rotation vector of the body frame over the interval (seed 001
+        eq (1)–(2)). [rad]
+    dv_b : ndarray, shape (M, 3)
+        Specific-force velocity increment in the body frame at the start of
+        the interval, with rotation and sculling compensation (seed 001
+        eq (3)–(4)). [m/s]
+
+    Notes
+    -----
+    ``Σ_i k_{n−i} (a_i × b_n) = (Σ_i k_{n−i} a_i) × b_n``, so each term of
+    eq (2) and (4) costs one weighted sum and one cross product.
+    """
+    n = dtheta.shape[-2]
+    w = _weights(n)
+    last_th = dtheta[..., -1, :]
+    last_dv = dv[..., -1, :]
+    A = w[0] * dtheta_prev
+    B = w[0] * dv_prev
+    if n > 1:
+        A = A + np.einsum("i,...ik->...k", w[1:], dtheta[..., :-1, :])
+        B = B + np.einsum("i,...ik->...k", w[1:], dv[..., :-1, :])
+    alpha = dtheta.sum(axis=-2)
+    ups = dv.sum(axis=-2)
+    phi = alpha + _cross(A, last_th)
+    a2 = np.einsum("...k,...k->...", alpha, alpha)
+    small = a2 < 1e-6
+    a = np.sqrt(a2)
+    safe = np.where(small, 1.0, a)
+    c1 = np.where(small, 0.5 - a2 / 24.0 + a2 * a2 / 720.0, (1.0 - np.cos(a)) / safe**2)
+    c2 = np.where(small, 1.0 / 6.0 - a2 / 120.0 + a2 * a2 / 5040.0, (a - np.sin(a)) / safe**3)
+    axu = _cross(alpha, ups)
+    dv_b = (ups + c1[..., None] * axu + c2[..., None] * _cross(alpha, axu)
+            + _cross(A, last_dv) + _cross(B, last_th))
+    return phi, dv_b
+
+
+def _rotvec_quat(phi):
+    """Quaternion of rotation vectors, shape (M, 4) (series near zero)."""
+    a2 = np.einsum("...k,...k->...", phi, phi)
+    small = a2 < 1e-8
+    a = np.sqrt(a2)
+    c = np.cos(0.5 * a)
+    s = np.where(small, 0.5 - a2 / 48.0, np.sin(0.5 * a) / np.where(small, 1.0, a))
+    out = np.empty(phi.shape[:-1] + (4,))
+    out[..., 0] = c
+    out[..., 1:] = s[..., None] * phi
+    return out
+
+
+def _nav_core(x, qb, u, T):
+    """One navigation-frame update on component arrays (module notes).
+
+    ``x = (L, l, h, v_N, v_E, v_D, q0, q1, q2, q3)``, ``qb`` the components
+    of ``exp(φ/2)`` and ``u`` those of ``Δv_b``; each an array of shape (M,).
+    Written out component by component because the run loop is dominated
+    by per-call overhead on small arrays.
+    """
+    lat, lon, h, vn, ve, vd, q0, q1, q2, q3 = x
+    b0, b1, b2, b3 = qb
+    ux, uy, uz = u
+    W, E2, A = earth.OMEGA_IE, earth.E2, earth.A
+    # Δv_b rotated to NED at t_{m-1}: C u = u + q0 t + qv × t, t = 2 qv × u
+    tx = 2.0 * (q2 * uz - q3 * uy)
+    ty = 2.0 * (q3 * ux - q1 * uz)
+    tz = 2.0 * (q1 * uy - q2 * ux)
+    nx = ux + q0 * tx + (q2 * tz - q3 * ty)
+    ny = uy + q0 * ty + (q3 * tx - q1 * tz)
+    nz = uz + q0 * tz + (q1 * ty - q2 * tx)
+
+    def rates_at(la, hh):
+        sl, cl = np.sin(la), np.cos(la)
+        s2 = sl * sl
+        w = 1.0 - E2 * s2
+        sw = np.sqrt(w)
+        rnh = A / sw + hh
+        rmh = A * (1.0 - E2) / (w * sw) + hh
+        g0 = earth.GAMMA_E * (1.0 + earth.K_SOMIGLIANA * s2) / sw
+        g = g0 * (1.0 - 2.0 * hh / A * (1.0 + earth.F + earth.M_RATIO - 2.0 * earth.F * s2)
+                  + 3.0 * hh * hh / (A * A))
+        return sl, cl, rnh, rmh, g
+
+    def velocity(sl, cl, rnh, rmh, g, wn_, we_, wd_):
+        # ω_in from the transport-rate velocity (w*_), Coriolis with the same v
+        t_ = sl / cl
+        zn = (W * cl + we_ / rnh) * T
+        ze = (-wn_ / rmh) * T
+        zd = (-W * sl - we_ * t_ / rnh) * T
+        cn, ce, cd = zn + W * cl * T, ze, zd - W * sl * T
+        v1n = vn + nx - 0.5 * (ze * nz - zd * ny) - (ce * wd_ - cd * we_)
+        v1e = ve + ny - 0.5 * (zd * nx - zn * nz) - (cd * wn_ - cn * wd_)
+        v1d = vd + nz - 0.5 * (zn * ny - ze * nx) - (cn * we_ - ce * wn_) + g * T
+        return v1n, v1e, v1d, zn, ze, zd
+
+    # predictor with the start-of-interval rates
+    sl, cl, rnh, rmh, g = rates_at(lat, h)
+    v1n, v1e, v1d, _, _, _ = velocity(sl, cl, rnh, rmh, g, vn, ve, vd)
+    lat_m = lat + 0.25 * T * (vn + v1n) / rmh
+    h_m = h - 0.25 * T * (vd + v1d)
+    # corrector with the mid-interval rates
+    sl, cl, rnh, rmh, g = rates_at(lat_m, h_m)
+    v1n, v1e, v1d, zn, ze, zd = velocity(sl, cl, rnh, rmh, g,
+                                         0.5 * (vn + v1n), 0.5 * (ve + v1e), 0.5 * (vd + v1d))
+    lat1 = lat + 0.5 * T * (vn + v1n) / rmh
+    lon1 = lon + 0.5 * T * (ve + v1e) / (rnh * cl)
+    h1 = h - 0.5 * T * (vd + v1d)
+    # attitude: p = q ⊗ exp(φ/2), then exp(−ζ/2) ⊗ p (|ζ| ~ 1e-6: two-term series)
+    p0 = q0 * b0 - q1 * b1 - q2 * b2 - q3 * b3
+    p1 = q0 * b1 + q1 * b0 + q2 * b3 - q3 * b2
+    p2 = q0 * b2 - q1 * b3 + q2 * b0 + q3 * b1
+    p3 = q0 * b3 + q1 * b2 - q2 * b1 + q3 * b0
+    r0 = 1.0 - (zn * zn + ze * ze + zd * zd) / 8.0
+    rn_, re_, rd_ = -0.5 * zn, -0.5 * ze, -0.5 * zd
+    s0 = r0 * p0 - rn_ * p1 - re_ * p2 - rd_ * p3
+    s1 = r0 * p1 + rn_ * p0 + re_ * p3 - rd_ * p2
+    s2 = r0 * p2 - rn_ * p3 + re_ * p0 + rd_ * p1
+    s3 = r0 * p3 + rn_ * p2 - re_ * p1 + rd_ * p0
+    k = 1.0 / np.sqrt(s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3)
+    return (lat1, lon1, h1, v1n, v1e, v1d, s0 * k, s1 * k, s2 * k, s3 * k)
+
+
+def _unpack(state: NavState):
+    return (state.lat, state.lon, state.h, *state.v_n.T, *state.q.T)
+
+
+def _pack(t, x, dtheta_prev, dv_prev) -> NavState:
+    return NavState(t, x[0], x[1], x[2], np.column_stack(x[3:6]), np.column_stack(x[6:10]),
+                    dtheta_prev, dv_prev)
+
+
+def _check_increments(state: NavState, dtheta, dv):
+    dtheta = np.asarray(dtheta, dtype=float)
+    dv = np.asarray(dv, dtype=float)
+    if dtheta.shape != dv.shape:
+        raise ValueError(f"dtheta and dv shapes differ: {dtheta.shape} vs {dv.shape}")
+    if dtheta.ndim not in (2, 3) or dtheta.shape[-1] != 3:
+        raise ValueError(f"increments must have shape (n, 3) or (M, n, 3), got {dtheta.shape}")
+    if dtheta.ndim == 3 and dtheta.shape[0] not in (1, state.n_runs):
+        raise ValueError(f"increments have {dtheta.shape[0]} runs, the state has {state.n_runs}")
+    n = dtheta.shape[-2]
+    if not 1 <= n <= MAX_SAMPLES:
+        raise ValueError(f"samples per interval must be in 1..{MAX_SAMPLES}, got {n}")
+    M = state.n_runs
+    if dtheta.ndim == 2 or dtheta.shape[0] != M:
+        dtheta = np.broadcast_to(dtheta, (M,) + dtheta.shape[-2:])
+        dv = np.broadcast_to(dv, (M,) + dv.shape[-2:])
+    return dtheta, dv
+
+
+def step(state: NavState, dtheta, dv, dt: float) -> NavState:
+    """Advance every run by one navigation interval.
+
+    Parameters
+    ----------
+    state : NavState
+        State at ``t_{m−1}`` (M runs).
+    dtheta, dv : array_like, shape (n, 3) or (M, n, 3)
+        The n IMU samples of the interval, oldest first (``n = 4`` for the
+        KIMU of seed 001; without a run axis they are shared by all runs).
+        [rad], [m/s]
+    dt : float
+        Interval length T. [s]
+
+    Returns
+    -------
+    NavState
+        State at ``t_m = t_{m−1} + T``.
+
+    Notes
+    -----
+    See the module notes; the body increments are :func:`body_increments`.
+    """
+    dtheta, dv = _check_increments(state, dtheta, dv)
+    phi, dv_b = body_increments(dtheta, dv, state.dtheta_prev, state.dv_prev)
+    x = _nav_core(_unpack(state), _rotvec_quat(phi).T, dv_b.T, float(dt))
+    return _pack(state.t + float(dt), x, np.array(dtheta[:, -1, :]), np.array(dv[:, -1, :]))
+
+
+def correct(state: NavState, dx) -> NavState:
+    """Feed estimated errors back into the navigation state.
+
+    Parameters
+    ----------
+    state : NavState
+    dx : array_like, shape (M, 10) or (10,)
+        Estimated errors (computed − true) in the order of :data:`NAV_STATES`.
+
+    Returns
+    -------
+    NavState
+        ``x ← x − x̂`` for position, velocity and quaternion (seed 002,
+        eq (10)); the quaternion is renormalised.
+    """
+    dx = np.asarray(dx, dtype=float)
+    if dx.shape[-1] != 10 or dx.ndim > 2:
+        raise ValueError(f"dx must have shape (10,) or (M, 10), got {dx.shape}")
+    dx = np.broadcast_to(dx, (state.n_runs, 10))
+    q = state.q - dx[:, 6:10]
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    return state.replace(lat=state.lat - dx[:, 0], lon=state.lon - dx[:, 1], h=state.h - dx[:, 2],
+                         v_n=state.v_n - dx[:, 3:6], q=q)
+
+
+def nav_errors(state: NavState, truth: NavState) -> np.ndarray:
+    """Navigation errors (computed − true), shape (M, 10).
+
+    Parameters
+    ----------
+    state : NavState
+        Computed state of M runs.
+    truth : NavState
+        True state (one run broadcast, or M).
+
+    Returns
+    -------
+    ndarray, shape (M, 10)
+        ``[δL, δl, δh, δv_N, δv_E, δv_D, δq0…δq3]`` in the order of
+        :data:`NAV_STATES`.  ``δl`` is wrapped to ±π; ``q̂`` takes the sign
+        of the true quaternion before ``δq = q̂ − q`` is formed.
+    """
+    q = state.q
+    qt = np.broadcast_to(truth.q, q.shape)
+    sign = np.where(np.sum(q * qt, axis=-1) < 0, -1.0, 1.0)[:, None]
+    dl = np.angle(np.exp(1j * (state.lon - truth.lon)))
+    return np.column_stack([state.lat - truth.lat, dl, state.h - truth.h,
+                            state.v_n - truth.v_n, sign * q - qt])
+
+
+# --------------------------------------------------------------------------
+# whole records
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class NavHistory:
+    """Navigation solution of M runs at S output times.
+
+    Attributes
+    ----------
+    t : ndarray, shape (S,)
+        Output times. [s]
+    lat, lon, h : ndarray, shape (S, M)
+        [rad], [rad], [m]
+    v_n : ndarray, shape (S, M, 3)
+        [m/s]
+    q : ndarray, shape (S, M, 4)
+        Attitude quaternion body→NED.
+    """
+
+    t: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    h: np.ndarray
+    v_n: np.ndarray
+    q: np.ndarray
+
+    def state(self, i: int) -> NavState:
+        """The state at output index ``i`` (previous samples zero)."""
+        M = self.lat.shape[1]
+        return NavState(float(self.t[i]), self.lat[i], self.lon[i], self.h[i], self.v_n[i], self.q[i],
+                        np.zeros((M, 3)), np.zeros((M, 3)))
+
+    def errors(self, truth) -> np.ndarray:
+        """Errors (computed − true) at every output time, shape (S, M, 10).
+
+        Parameters
+        ----------
+        truth : Trajectory or object with ``truth(t) -> NavState``
+            A :class:`covtool.trajectory.Trajectory` (body frame) or an
+            IMU simulator (its own frame: mounting and vibration included).
+        """
+        if hasattr(truth, "truth"):
+            tr = truth.truth(self.t)
+        else:
+            tr = truth_state(truth, self.t)
+        out = np.empty(self.lat.shape + (10,))
+        M = self.lat.shape[1]
+        for i in range(self.t.size):
+            if tr.lat.ndim == 2:  # per-run truth
+                ti = NavState(float(self.t[i]), tr.lat[i], tr.lon[i], tr.h[i], tr.v_n[i], tr.q[i],
+                              np.zeros((M, 3)), np.zeros((M, 3)))
+            else:
+                ti = NavState(float(self.t[i]), tr.lat[i:i + 1], tr.lon[i:i + 1], tr.h[i:i + 1],
+                              tr.v_n[i:i + 1], tr.q[i:i + 1], np.zeros((1, 3)), np.zeros((1, 3)))
+            out[i] = nav_errors(self.state(i), ti)
+        return out
+
+
+def group_samples(t_samples, t_main, where: str = "IMU") -> np.ndarray:
+    """Assign IMU samples to main navigation intervals.
+
+    Parameters
+    ----------
+    t_samples : array_like, shape (K,)
+        End time of each IMU sample period, increasing. [s]
+    t_main : array_like, shape (S+1,)
+        Main interval boundaries ``t_0 < t_1 < … < t_S``. [s]
+    where : str
+        Name used in error messages.
+
+    Returns
+    -------
+    ndarray of int, shape (S, n)
+        Sample indices of each interval, oldest first.
+
+    Raises
+    ------
+    ValueError
+        If the intervals do not all hold the same number of samples (a gap,
+        a duplicate or a rate that is not an integer multiple), naming the
+        first offending interval; samples outside ``(t_0, t_S]`` are refused
+        too.  Nothing is dropped silently.
+
+    Notes
+    -----
+    A sample belongs to interval m if its period ends in ``(t_{m−1}, t_m]``
+    (with a tolerance of 1e-6 of the sample period), which is how seed 001
+    synchronises the KIMU to the main IMU (Fig 7).
+    """
+    ts = np.asarray(t_samples, dtype=float)
+    tm = np.asarray(t_main, dtype=float)
+    if ts.ndim != 1 or tm.ndim != 1 or tm.size < 2:
+        raise ValueError(f"{where}: sample times and interval boundaries must be 1-D (at least 2 boundaries)")
+    tol = 1e-6 * (np.min(np.diff(ts)) if ts.size > 1 else np.min(np.diff(tm)))
+    idx = np.searchsorted(tm, ts - tol, side="left")
+    out_of = (idx < 1) | (idx > tm.size - 1)
+    if out_of.any():
+        k = int(np.argmax(out_of))
+        raise ValueError(f"{where}: sample {k} (t = {ts[k]:.9g} s) lies outside the main intervals "
+                         f"({tm[0]:.9g}, {tm[-1]:.9g}] s")
+    counts = np.bincount(idx - 1, minlength=tm.size - 1)
+    n = counts[0]
+    bad = counts != n
+    if bad.any() or n == 0:
+        m = int(np.argmax(bad)) if bad.any() else 0
+        raise ValueError(f"{where}: main interval {m} ({tm[m]:.9g}, {tm[m + 1]:.9g}] s holds {counts[m]} "
+                         f"samples, expected {n or 'at least 1'} (gap, duplicate or non-integer rate ratio)")
+    order = np.argsort(idx, kind="stable")
+    return order.reshape(tm.size - 1, n)
+
+
+def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
+        callback: Callable | None = None) -> NavHistory:
+    """Run the strapdown algorithm over a whole IMU record.
+
+    Parameters
+    ----------
+    state : NavState
+        Initial state (M runs) at the start of the record.
+    imu : ImuRecord, ImuSimulator or iterable of ImuRecord
+        Increments (:class:`covtool.imu.ImuRecord`: ``t0``, sample period
+        ``dt``, ``dtheta`` and ``dv`` of shape (K, 3) or (M, K, 3)); a
+        simulator or an iterable yields consecutive records (chunks).
+    samples_per_step : int
+        IMU samples per navigation interval n (each record's K must be a
+        multiple of n).
+    every : int
+        Keep every ``every``-th navigation step in the history (the initial
+        and the final state are always kept).
+    callback : callable, optional
+        ``callback(state) -> NavState or None`` after every step, e.g. to
+        apply filter feedback with :func:`correct`; a returned state
+        replaces the current one.
+
+    Returns
+    -------
+    NavHistory
+    """
+    n = int(samples_per_step)
+    if not 1 <= n <= MAX_SAMPLES:
+        raise ValueError(f"samples_per_step must be in 1..{MAX_SAMPLES}, got {samples_per_step!r}")
+    if every < 1:
+        raise ValueError(f"every must be a positive integer, got {every!r}")
+    records: Iterable = [imu] if hasattr(imu, "dtheta") else (imu.records() if hasattr(imu, "records") else imu)
+    M = state.n_runs
+    keep = [state]
+    k = 0
+    last_kept = 0
+    for rec in records:
+        K = rec.dtheta.shape[-2]
+        if K % n:
+            raise ValueError(f"an IMU record of {K} samples is not a multiple of {n} samples per step")
+        T = n * rec.dt
+        if abs(rec.t0 - state.t) > 1e-6 * rec.dt:
+            raise ValueError(f"IMU record starts at {rec.t0:.9g} s but the state is at {state.t:.9g} s")
+        if rec.dtheta.ndim == 3 and rec.dtheta.shape[0] not in (1, M):
+            raise ValueError(f"IMU record has {rec.dtheta.shape[0]} runs, the state has {M}")
+        S = K // n
+        dth = np.broadcast_to(rec.dtheta, (M, K, 3)).reshape(M, S, n, 3)
+        dvv = np.broadcast_to(rec.dv, (M, K, 3)).reshape(M, S, n, 3)
+        # the body increments depend on the IMU data only: all steps at once
+        prev_th = np.concatenate([state.dtheta_prev[:, None], dth[:, :-1, -1]], axis=1)
+        prev_dv = np.concatenate([state.dv_prev[:, None], dvv[:, :-1, -1]], axis=1)
+        phi, dv_b = body_increments(dth, dvv, prev_th, prev_dv)
+        qb = np.moveaxis(_rotvec_quat(phi), -1, 0)      # (4, M, S)
+        ub = np.moveaxis(dv_b, -1, 0)                   # (3, M, S)
+        x = _unpack(state)
+        t0 = state.t
+        for j in range(S):
+            x = _nav_core(x, qb[:, :, j], ub[:, :, j], T)
+            k += 1
+            if callback is not None or k % every == 0 or j == S - 1:
+                state = _pack(t0 + (j + 1) * T, x, np.array(dth[:, j, -1]), np.array(dvv[:, j, -1]))
+                if callback is not None:
+                    new = callback(state)
+                    if new is not None:
+                        state = new
+                        x = _unpack(state)
+                if k % every == 0:
+                    keep.append(state)
+                    last_kept = k
+    if last_kept != k:
+        keep.append(state)
+    return NavHistory(
+        t=np.array([s.t for s in keep]),
+        lat=np.stack([s.lat for s in keep]), lon=np.stack([s.lon for s in keep]),
+        h=np.stack([s.h for s in keep]), v_n=np.stack([s.v_n for s in keep]),
+        q=np.stack([s.q for s in keep]))
