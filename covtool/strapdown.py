@@ -730,11 +730,16 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
         if rec.dtheta.ndim == 3 and rec.dtheta.shape[0] not in (1, M):
             raise ValueError(f"IMU record has {rec.dtheta.shape[0]} runs, the state has {M}")
         S = K // n
-        dth = np.broadcast_to(rec.dtheta, (M, K, 3)).reshape(M, S, n, 3)
-        dvv = np.broadcast_to(rec.dv, (M, K, 3)).reshape(M, S, n, 3)
+        # shared increments (no run axis) are compensated once for all runs
+        shared = ((rec.dtheta.ndim == 2 or rec.dtheta.shape[0] == 1)
+                  and np.all(state.dtheta_prev == state.dtheta_prev[:1])
+                  and np.all(state.dv_prev == state.dv_prev[:1]))
+        Mr = 1 if shared else M
+        dth = np.broadcast_to(rec.dtheta, (Mr, K, 3)).reshape(Mr, S, n, 3)
+        dvv = np.broadcast_to(rec.dv, (Mr, K, 3)).reshape(Mr, S, n, 3)
         # the body increments depend on the IMU data only: all steps at once
-        prev_th = np.concatenate([state.dtheta_prev[:, None], dth[:, :-1, -1]], axis=1)
-        prev_dv = np.concatenate([state.dv_prev[:, None], dvv[:, :-1, -1]], axis=1)
+        prev_th = np.concatenate([state.dtheta_prev[:Mr, None], dth[:, :-1, -1]], axis=1)
+        prev_dv = np.concatenate([state.dv_prev[:Mr, None], dvv[:, :-1, -1]], axis=1)
         phi, dv_b = body_increments(dth, dvv, prev_th, prev_dv)
         qb = np.moveaxis(_rotvec_quat(phi), -1, 0)      # (4, M, S)
         ub = np.moveaxis(dv_b, -1, 0)                   # (3, M, S)
@@ -744,7 +749,8 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
             x = _nav_core(x, qb[:, :, j], ub[:, :, j], T)
             k += 1
             if callback is not None or k % every == 0 or j == S - 1:
-                state = _pack(t0 + (j + 1) * T, x, np.array(dth[:, j, -1]), np.array(dvv[:, j, -1]))
+                state = _pack(t0 + (j + 1) * T, x, np.broadcast_to(dth[:, j, -1], (M, 3)).copy(),
+                              np.broadcast_to(dvv[:, j, -1], (M, 3)).copy())
                 if callback is not None:
                     new = callback(state)
                     if new is not None:
