@@ -110,10 +110,11 @@ def test_schuler_period_from_eigenvalues(model, name):
     The oscillatory eigenvalues of the static F are ±iΩ (Earth-rate loop) and
     two Schuler pairs ±iω₁, ±iω₂.  With Foucault coupling ω₁,₂ =
     sqrt(ω_s² + (Ω sin L)²) ∓ Ω sin L, so ω_s = sqrt(ω̄² − (Ω sin L)²) with
-    ω̄ the mean; at the equator ω₁,₂ are the north and east channels
-    themselves.  Measured: equator 84.28 and 84.37 min (ω₁ = ω_N to 1e-9;
-    ω₂ is 0.23 % above ω_E through the 2Ω coupling of δv_E with the vertical
-    channel), 45°N 84.41 min, splitting = Ω sin L to 1e-4.
+    ω̄ the mean; at the equator ω₁ < ω₂ are the east and north channels
+    themselves.  Measured: equator 84.372 min (ω₁, 0.23 % above ω_E through
+    the 2Ω coupling of δv_E with the vertical channel; −0.03 %) and
+    84.283 min (ω₂ = ω_N to 1e-9; −0.14 %), mean-based 84.328 min
+    (−0.09 %); 45°N 84.406 min (+0.01 %), splitting = Ω sin L to 1e-4.
     """
     lat = LATITUDES[name]
     ctx = Context.from_trajectory(static(10.0, lat=lat, lon=0.0, h=0.0).sample([5.0]))
@@ -155,7 +156,7 @@ def test_schuler_period_from_covariance(model, name, n_extrema):
     (t_k = k T/2).  At the equator the response is exactly decoupled;
     at 45°N Foucault rotation moves energy to east after the first period,
     so only the first peak and zero are used.  Measured: 84.283 min (equator,
-    = 2π/ω_N to 1e-5), 84.32 min (45°N).
+    −0.14 %, = 2π/ω_N to 1e-6), 84.320 min (45°N, −0.09 %).
     """
     lat = LATITUDES[name]
     dt = 5.0
