@@ -39,6 +39,10 @@ HAND = {
     "Hz": (1.0, "frequency"),
     "ft": (0.3048, "length"),
     "mg": (1e-3 * G, "acceleration"),
+    "g": (G, "acceleration"),
+    "mrad": (1e-3, "angle"),
+    "deg/s": (DEG, "angular_rate"),
+    "m/s/sqrt(h)": (1.0 / 60.0, "velocity_random_walk"),
 }
 _Q = re.compile(r"^\s*([-+]?\d*\.?\d+(?:[eE][-+]?\d+)?)\s+([A-Za-zµμ][A-Za-zµμ/*()0-9.^]*)\s*$")
 
