@@ -28,6 +28,8 @@ land-vehicle route.  Comparison norms:
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import math
 
 import numpy as np
@@ -39,6 +41,8 @@ from covtool.dynamics import Context, error_dynamics
 from covtool.model.loader import load_model
 from covtool.trajectory import land_vehicle
 
+SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
+
 AGREE = 1e-10
 #: time steps of the error-versus-step table [s]
 STEPS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
@@ -47,7 +51,7 @@ STEPS = (0.125, 0.25, 0.5, 1.0, 2.0, 4.0)
 @pytest.fixture(scope="module")
 def dyn():
     """F, Q_c of the 58-state model at 40 points of the route (turns, hills, stops)."""
-    model = load_model("models/sdins58.toml")
+    model = load_model(SDINS58)
     route = land_vehicle(dt=1.0)
     ctx = Context.from_trajectory(route.sample(np.linspace(5.0, 1795.0, 40)))
     d = error_dynamics(model, ctx)

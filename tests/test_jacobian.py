@@ -35,6 +35,8 @@ scale of 3e-6) stay well above the floor.  Central differences:
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -42,6 +44,8 @@ import nonlinear_reference as nr
 from covtool.dynamics import Context, NavOptions, error_dynamics
 from covtool.model.loader import load_model
 from covtool.trajectory import land_vehicle
+
+SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
 
 TOL_COMPLEX = 1e-5
 TOL_CENTRAL = 1e-4
@@ -53,7 +57,7 @@ CD_NAV_STEPS = [1e-5, 1e-5, 10.0, 1e-2, 1e-2, 1e-2, 1e-5, 1e-5, 1e-5, 1e-5]
 
 @pytest.fixture(scope="module")
 def model():
-    return load_model("models/sdins58.toml")
+    return load_model(SDINS58)
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +125,7 @@ def test_check_points_cover_the_route(complex_step, route):
     assert len(set(np.round(np.degrees(s.euler()[:, 2]) / 90.0) % 4)) == 4  # all four headings
 
 
-@pytest.mark.parametrize("block", [b for b in load_model("models/sdins58.toml").block_names()])
+@pytest.mark.parametrize("block", [b for b in load_model(SDINS58).block_names()])
 def test_complex_step_jacobian_per_block(complex_step, model, block):
     """Columns of each block: analytic F = complex-step J to 1e-5 (relative, floor 1e-9).
 

@@ -27,6 +27,8 @@ Compared at 30 min (errors = computed − true):
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -36,6 +38,8 @@ from covtool import quaternion as quat
 from covtool.model.loader import load_model
 from covtool.studies.common import time_grid, truth_system
 from covtool.trajectory import land_vehicle
+
+SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
 
 DURATION = 1800.0
 RK4_DT = 0.2
@@ -67,7 +71,7 @@ LARGE = {"initial azimuth x50": ("dq3", 50.0)}
 
 @pytest.fixture(scope="module")
 def model():
-    return load_model("models/sdins58.toml")
+    return load_model(SDINS58)
 
 
 @pytest.fixture(scope="module")

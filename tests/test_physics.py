@@ -32,6 +32,8 @@ are shown to stay inside the 2 % tolerance: each test runs at L = 0° and
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -40,8 +42,10 @@ from covtool.covariance import propagate
 from covtool.discretize import van_loan
 from covtool.dynamics import Context, error_dynamics
 from covtool.model.loader import load_model
-from covtool.studies.common import time_grid, truth_system
+from covtool.studies.common import time_grid
 from covtool.trajectory import static
+
+SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
 
 #: nominal Schuler period and its tolerance [min], issue 2 item 3
 SCHULER_MIN = 84.4
@@ -55,7 +59,7 @@ LATITUDES = {"equator": 0.0, "45N": np.radians(45.0)}
 
 @pytest.fixture(scope="module")
 def model():
-    return load_model("models/sdins58.toml")
+    return load_model(SDINS58)
 
 
 def _radii(lat, h=0.0):
@@ -70,18 +74,28 @@ def _schuler_axes(lat, h=0.0):
     return np.sqrt(g / rm), np.sqrt(g / rn)
 
 
+def _static_system(model, lat, duration, dt):
+    """Φ, Q_d of every step of a standstill (Van Loan).
+
+    F is constant at standstill (checked), so one Van Loan step serves the
+    whole grid; Φ does not depend on which source is on (F has no σ in it),
+    so one discretisation serves every single-source covariance run.
+    """
+    traj = static(duration, lat=lat, lon=np.radians(127.0), h=0.0, heading=0.0, dt=dt)
+    t = time_grid(duration, dt)
+    dyn = error_dynamics(model.only([]), Context.from_trajectory(traj.sample([0.0, 0.5 * duration, duration])))
+    assert np.array_equal(dyn.F[0], dyn.F[1]) and np.array_equal(dyn.F[0], dyn.F[2])
+    Phi, Qd = van_loan(dyn.F[:1], dyn.Qc[:1], dt)
+    assert np.all(Qd == 0.0)
+    Phi, Qd = (np.broadcast_to(a, (t.size - 1,) + a.shape[1:]) for a in (Phi, Qd))
+    return traj, t, Phi, Qd
+
+
 @pytest.fixture(scope="module", params=list(LATITUDES))
 def static_run(request, model):
-    """Φ along 30 min of standstill (Van Loan, 1 s) at one latitude.
-
-    Φ does not depend on which source is on (F has no σ in it), so one
-    discretisation serves every single-source covariance run.
-    """
+    """30 min of standstill (Van Loan, 1 s) at one latitude; σ of any single source."""
     lat = LATITUDES[request.param]
-    traj = static(DURATION, lat=lat, lon=np.radians(127.0), h=0.0, heading=0.0, dt=DT)
-    t = time_grid(DURATION, DT)
-    _, _, Phi, Qd = truth_system(model.only([]), traj, t, "van_loan")
-    assert np.all(Qd == 0.0)
+    traj, t, Phi, Qd = _static_system(model, lat, DURATION, DT)
 
     def sigma(source):
         m1 = model.only([source])
@@ -149,8 +163,7 @@ def _extrema(s, t):
 def test_schuler_period_from_covariance(model, name, n_extrema):
     """Schuler period from a propagated covariance: 84.4 min ± 0.5 %.
 
-    3 h of standstill, north accelerometer bias only (Van Loan, 5 s; F is
-    constant at standstill, so one Φ serves every step):
+    3 h of standstill, north accelerometer bias only (Van Loan, 5 s):
     σ_N = b/ω²(1 − cos ωt) peaks at T/2, 3T/2 and returns to zero at T, 2T
     (the zeros of dσ_N/dt).  T is fitted to the extremum times
     (t_k = k T/2).  At the equator the response is exactly decoupled;
@@ -160,12 +173,7 @@ def test_schuler_period_from_covariance(model, name, n_extrema):
     """
     lat = LATITUDES[name]
     dt = 5.0
-    traj = static(3 * 3600.0, lat=lat, lon=0.0, h=0.0, dt=dt)
-    t = time_grid(3 * 3600.0, dt)
-    dyn = error_dynamics(model.only([]), Context.from_trajectory(traj.sample([0.0, 3 * 3600.0])))
-    assert np.array_equal(dyn.F[0], dyn.F[1])
-    Phi, Qd = van_loan(dyn.F[:1], dyn.Qc[:1], dt)
-    Phi, Qd = (np.broadcast_to(a, (t.size - 1,) + a.shape[1:]) for a in (Phi, Qd))
+    traj, t, Phi, Qd = _static_system(model, lat, 3 * 3600.0, dt)
     P = propagate(Phi, Qd, model.only(["acc_bias_x"]).initial_covariance(traj.q_nb[0]))
     ext = _extrema(np.sqrt(P[:, 0, 0]), t)
     assert ext.size >= n_extrema
