@@ -1,0 +1,325 @@
+"""Error budget study: which sources make the navigation error (seed 002, Fig 4).
+
+The truth covariance of each case is split exactly into contributions of its
+sources (:mod:`covtool.budget`): initial errors by block (navigation split
+into position, velocity, tilt, azimuth), process noises, and the ZUPT noise,
+all under the gains of the case's nominal filter run.  A pure INS case
+(``"pure_ins"``) has no gains; its budget is the one seed 002 used to choose
+the sensor states of its 22-state filter.
+
+Study file::
+
+    [study]
+    kind = "error_budget"
+    duration = "30 min"
+    dt = "1 s"
+
+    [trajectory]
+    builtin = "land_vehicle"
+
+    [truth]
+    model = "sdins58"            # only = [...] and [truth.override.*] as elsewhere
+
+    [filters]
+    cases = ["pure_ins", "A", "B1", "D"]   # "pure_ins" = no aiding; default: pure_ins + every filter
+    # file = "../models/filters/zupt_filters.toml"
+
+    [zupt]                       # as in zupt_filter_order
+    interval = "5 min"
+
+    [budget]
+    resolution = "block"         # or "state": one source per state / per noise source
+    top = 8                      # sources drawn in the stacked figures (the rest is "other")
+
+    [output]
+    history_every = "30 s"
+    report_times = ["10 min", "30 min"]
+
+Reported per navigation error: horizontal (σ_N² + σ_E², the squared RMS
+radial error), altitude (σ_D²) and azimuth (σ_ψ²); shares of variance and
+the 1σ-equivalent ``√(variance)`` in ft or arcmin.  Every case records how
+closely the contributions sum to the total run (provenance and summary).
+"""
+
+from __future__ import annotations
+
+import copy
+import time
+
+import numpy as np
+import pandas as pd
+
+from ..budget import (ERRORS, MEASUREMENT, RESOLUTIONS, compose_noise, budget_sources, nav_variances,
+                      relative_residual, run_budget)
+from ..engine import System, events, run_batch
+from ..errors import StudyFileError
+from ..filters import zupt_matrices
+from ..io.config import check_keys
+from ..metrics import cep, ned_position_covariance
+from ..results import StudyResult
+from .common import ARCMIN, FT, progress_bar
+from .zupt import setup
+
+PURE = "pure_ins"
+#: paper unit of each error: (SI per unit, label)
+PAPER_UNITS = {"horizontal": (FT, "ft"), "altitude": (FT, "ft"), "azimuth": (ARCMIN, "arcmin")}
+_LABEL = {"horizontal": "horizontal RMS (drms)", "altitude": "altitude 1sigma", "azimuth": "azimuth 1sigma"}
+_ERROR_TITLES = {"horizontal": "horizontal position (σ_N² + σ_E²)", "altitude": "altitude (σ_D²)",
+                 "azimuth": "azimuth (σ_ψ²)"}
+
+
+def budget_options(decl: dict, where: str) -> dict:
+    """Validate ``[budget]``: ``resolution`` and ``top``.
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key, unknown resolution, or ``top`` not a positive integer.
+    """
+    cfg = decl.get("budget", {})
+    w = f"{where}: [budget]"
+    check_keys(cfg, {"resolution", "top"}, w, StudyFileError)
+    res = cfg.get("resolution", "block")
+    if res not in RESOLUTIONS:
+        raise StudyFileError(f"{w} resolution", f"{res!r} is not one of: {', '.join(RESOLUTIONS)}")
+    top = cfg.get("top", 8)
+    if isinstance(top, bool) or not isinstance(top, int) or top < 1:
+        raise StudyFileError(f"{w} top", f"{top!r} is not a positive integer")
+    return {"resolution": res, "top": top}
+
+
+def budget_cases(decl: dict, where: str) -> tuple[list | None, bool]:
+    """The requested cases: ``(filter cases or None for all, pure INS wanted)``.
+
+    Raises
+    ------
+    StudyFileError
+        ``pure_ins = ...`` in ``[filters]`` (list it in ``cases`` instead),
+        ``cases`` not a non-empty list of names, or a case listed twice.
+    """
+    fcfg = decl.get("filters", {})
+    w = f"{where}: [filters]"
+    if not isinstance(fcfg, dict):
+        raise StudyFileError(w, f"expected a table, got {type(fcfg).__name__}")
+    if "pure_ins" in fcfg:
+        raise StudyFileError(f"{w} pure_ins", "an error budget lists the pure INS as a case: "
+                             "cases = [\"pure_ins\", ...]")
+    if "cases" not in fcfg:
+        return None, True
+    cases = fcfg["cases"]
+    if not isinstance(cases, list) or not cases or not all(isinstance(c, str) for c in cases):
+        raise StudyFileError(f"{w} cases", "expected a non-empty list of case names (filters or \"pure_ins\")")
+    seen = set()
+    for c in cases:
+        if c in seen:
+            raise StudyFileError(f"{w} cases", f"case {c!r} is listed twice")
+        seen.add(c)
+    return [c for c in cases if c != PURE], PURE in cases
+
+
+def record_steps(t: np.ndarray, every: float, report_times) -> np.ndarray:
+    """Grid indices of the history records: every ``every`` s, the report times and the end."""
+    k = np.round(t / every)
+    on = np.flatnonzero(np.isclose(t, k * every))
+    rep = [int(np.argmin(np.abs(t - tr))) for tr in report_times]
+    return np.unique(np.r_[on, rep, t.size - 1]).astype(int)
+
+
+def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+    """Run an error-budget study; see the module docstring."""
+    t_start = time.perf_counter()
+    where = str(path) if path else "<study>"
+    opts = budget_options(decl, where)
+    fcases, want_pure = budget_cases(decl, where)
+    decl_z = copy.deepcopy(decl)
+    if fcases is not None:
+        decl_z.setdefault("filters", {})["cases"] = fcases
+    S = setup(decl_z, path=path, progress=progress, extra_sections=("budget",))
+    cases = ([PURE] if want_pure else []) + list(S.cases)
+    truth_model, t, nodes = S.truth, S.t, S.nodes
+    N = t.size - 1
+    rec = record_steps(t, S.every, S.report_times)
+    ev = events(N, S.update_steps, rec)
+    truth = System.from_steps(S.Phi, S.Qd, ev)
+    sources, factors = budget_sources(truth_model, S.dyn.noise, nodes.q_nb[0], S.R, resolution=opts["resolution"])
+    Qn = compose_noise(S.Phi, S.dyn.F, factors, np.diff(t), ev)
+    q_check = _composed_noise_check(Qn, truth.Q)
+    lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
+
+    runs, var, nominal, residuals = {}, {}, {}, {}
+    with progress_bar(len(cases), "budget cases", progress) as bar:
+        for c in cases:
+            if c == PURE:
+                src = [s for s in sources if s.kind != MEASUREMENT]
+                n = truth_model.n
+                nom = run_batch(truth, S.P0[None], S.H, S.R, np.eye(n), [], rec, gains=np.zeros((1, 0, n, 3)))
+                br = run_budget(truth, src, Qn, S.P0, S.H, S.R, None, None, [], rec)
+            else:
+                fm, Phi_f, Qd_f = S.filter_model(c)
+                filt = System.from_steps(Phi_f, Qd_f, ev)
+                nom = run_batch(truth, S.P0[None], S.H, S.R, fm.D, S.update_steps, rec, filt=filt,
+                                Pf0=fm.P0[None], Hf=zupt_matrices(fm.names), Rf=S.filter_R(c)[None],
+                                form=S.specs[c].update)
+                br = run_budget(truth, sources, Qn, S.P0, S.H, S.R, fm.D, nom.gains, S.update_steps, rec)
+            runs[c] = br
+            nominal[c] = nom.P_truth[0]
+            var[c] = nav_variances(br.P, lat, h, q)
+            residuals[c] = _residuals(br, nominal[c], lat, h, q)
+            bar.update(1)
+    elapsed = time.perf_counter() - t_start
+
+    tables = _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h)
+    tables["sources"] = _source_table(sources, factors)
+    provenance = {"truth_model": truth_model.name, "truth_model_file": truth_model.path,
+                  "truth_model_sha256": truth_model.sha256, "filter_file": str(S.filter_file),
+                  "resolution": opts["resolution"], "sources": len(sources), "zupt_updates": int(len(S.update_steps)),
+                  "per-source Q_d sum vs study Q_d (composed, max relative)": f"{q_check:.3g}",
+                  "compute_seconds": f"{elapsed:.2f}"}
+    for c in cases:
+        provenance[f"{c}: sum-to-total residual (same Q_d)"] = f"{residuals[c]['same']:.3g}"
+        provenance[f"{c}: sum vs nominal run residual"] = f"{residuals[c]['nominal']:.3g}"
+    order = {s.name: i for i, s in enumerate(sources)}
+    figures = {f"budget_{c}": _stack_figure(c, t[rec], var[c], runs[c].sources, order, opts["top"],
+                                            [] if c == PURE else S.update_steps, t)
+               for c in cases}
+    return StudyResult(
+        name=S.hdr["name"], kind="error_budget", tables=tables, figures=figures,
+        resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]},
+                  "budget": {**decl.get("budget", {}), **opts}},
+        provenance=provenance,
+        data={"t": t, "record_steps": rec, "runs": runs, "variances": var, "nominal": nominal,
+              "residuals": residuals, "sources": sources, "factors": factors, "trajectory": nodes,
+              "truth": truth_model, "setup": S},
+    )
+
+
+def _composed_noise_check(Qn: np.ndarray, Q_ref: np.ndarray) -> float:
+    """Largest ``|Σ_j Q_j − Q|_ik / √(Q_ii Q_kk)`` over the event intervals."""
+    if len(Qn) == 0:
+        return float(np.abs(Q_ref).max())
+    S = Qn.sum(axis=0)
+    d = np.sqrt(np.clip(np.einsum("kii->ki", Q_ref), 0, None))
+    den = d[:, :, None] * d[:, None, :]
+    m = den > 0
+    return float((np.abs(S - Q_ref)[m] / den[m]).max())
+
+
+def _residuals(br, P_nom, lat, h, q) -> dict:
+    """Sum-to-total residuals: against the same-Q_d total and the nominal run."""
+    P_sum = br.P.sum(axis=0)
+    out = {"same": relative_residual(P_sum, br.P_total, q), "nominal": relative_residual(P_sum, P_nom, q)}
+    vs = nav_variances(P_sum, lat, h, q)
+    vt = nav_variances(br.P_total, lat, h, q)
+    vn = nav_variances(P_nom, lat, h, q)
+    for e in ERRORS:
+        pos = vt[e] > 0
+        out[f"{e} same"] = float(np.max(np.abs(vs[e] - vt[e])[pos] / vt[e][pos])) if pos.any() else 0.0
+        pos = vn[e] > 0
+        out[f"{e} nominal"] = float(np.max(np.abs(vs[e] - vn[e])[pos] / vn[e][pos])) if pos.any() else 0.0
+    return out
+
+
+def _states_text(states) -> str:
+    if len(states) <= 4:
+        return ", ".join(states)
+    return f"{states[0]} … {states[-1]} ({len(states)})"
+
+
+def _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h) -> dict:
+    rep = [int(np.argmin(np.abs(t[rec] - tr))) for tr in S.report_times]
+    summary, ranked, shares = [], {e: [] for e in ERRORS}, {}
+    for c in cases:
+        srcs = runs[c].sources
+        vn = nav_variances(nominal[c], lat, h, S.nodes.q_nb[rec])
+        Pn = ned_position_covariance(nominal[c][:, :3, :3], lat, h)
+        cep_nom = cep(Pn[:, :2, :2])
+        for r in rep:
+            row = {"case": c, "t [min]": t[rec[r]] / 60.0,
+                   "CEP (nominal run) [ft]": cep_nom[r] / FT}
+            for e in ERRORS:
+                si, unit = PAPER_UNITS[e]
+                v = var[c][e][:, r]
+                total = v.sum()
+                order = np.argsort(-v, kind="stable")
+                row[f"{_LABEL[e]} [{unit}]"] = np.sqrt(max(total, 0.0)) / si
+                row[f"{_LABEL[e]}, nominal run [{unit}]"] = np.sqrt(max(vn[e][r], 0.0)) / si
+                top = [f"{srcs[i].name} {100 * v[i] / total:.1f} %" for i in order[:3]] if total > 0 else []
+                row[f"{e} top sources"] = "; ".join(top)
+                cum = 0.0
+                for rank, i in enumerate(order, start=1):
+                    share = 100.0 * v[i] / total if total > 0 else np.nan
+                    cum += share
+                    ranked[e].append({
+                        "case": c, "t [min]": t[rec[r]] / 60.0, "rank": rank, "source": srcs[i].name,
+                        "kind": srcs[i].kind, "states": _states_text(srcs[i].states),
+                        f"variance [{unit}^2]": v[i] / si**2, "share [%]": share, "cumulative [%]": cum,
+                        f"1sigma-equivalent [{unit}]": np.sign(v[i]) * np.sqrt(abs(v[i])) / si})
+                if r == rep[-1]:
+                    col = f"{c} {e} [%]"
+                    shares[col] = {s.name: 100.0 * v[i] / total if total > 0 else np.nan
+                                   for i, s in enumerate(srcs)}
+            row["sum-to-total residual (same Q_d)"] = residuals[c]["same"]
+            row["sum vs nominal run residual"] = residuals[c]["nominal"]
+            summary.append(row)
+    out = {"summary": pd.DataFrame(summary)}
+    for e in ERRORS:
+        out[f"budget_{e}"] = pd.DataFrame(ranked[e])
+    sh = pd.DataFrame(shares)
+    sh.index.name = "source"
+    out["shares"] = sh.reset_index()
+    for e in ERRORS:
+        si, unit = PAPER_UNITS[e]
+        frames = []
+        for c in cases:
+            cols = {"case": c, "t [min]": t[rec] / 60.0}
+            v = var[c][e]
+            cols[f"total [{unit}^2]"] = v.sum(axis=0) / si**2
+            for i, s in enumerate(runs[c].sources):
+                cols[f"{s.name} [{unit}^2]"] = v[i] / si**2
+            frames.append(pd.DataFrame(cols))
+        out[f"history_{e}"] = pd.concat(frames, ignore_index=True)
+    return out
+
+
+def _source_table(sources, factors) -> pd.DataFrame:
+    rows = []
+    for s in sources:
+        rows.append({"source": s.name, "kind": s.kind, "states": ", ".join(s.states),
+                     "noise columns": factors[s.noise].G.shape[2] if s.noise is not None else 0})
+    return pd.DataFrame(rows)
+
+
+def _stack_figure(case, t_rec, var, sources, order, top, upd, t):
+    """Stacked-area variance contributions (top sources + other) per error."""
+    def make():
+        import matplotlib.pyplot as plt
+
+        cmap = plt.get_cmap("tab20")
+        fig, axs = plt.subplots(3, 1, figsize=(10, 11), sharex=True)
+        tm = t_rec / 60.0
+        marks = np.unique(np.round(t[upd] / 60.0)) if len(upd) else []
+        for ax, e in zip(axs, ERRORS):
+            si, unit = PAPER_UNITS[e]
+            v = var[e] / si**2
+            final = v[:, -1]
+            idx = [i for i in np.argsort(-final, kind="stable")[:top] if final[i] > 0]
+            rest = [i for i in range(len(sources)) if i not in idx]
+            ys = [np.clip(v[i], 0, None) for i in idx]
+            labels = [sources[i].name for i in idx]
+            colors = [cmap(order[sources[i].name] % 20) for i in idx]
+            if rest:
+                ys.append(np.clip(v[rest].sum(axis=0), 0, None))
+                labels.append(f"other ({len(rest)})")
+                colors.append("0.75")
+            ax.stackplot(tm, *ys, labels=labels, colors=colors, alpha=0.9)
+            for z in marks:
+                ax.axvline(z, color="0.4", lw=0.5, ls=":")
+            ax.set_ylabel(f"variance [{unit}²]")
+            ax.set_title(f"{case}: {_ERROR_TITLES[e]}")
+            ax.grid(True, alpha=0.3)
+            ax.legend(loc="upper left", fontsize=7, ncol=2)
+        axs[-1].set_xlabel("time [min]")
+        fig.suptitle(f"Error budget, {case} (variance contributions; dotted: ZUPT updates)")
+        fig.tight_layout()
+        return fig
+    return make
