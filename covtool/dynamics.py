@@ -172,7 +172,6 @@ def transport_rate_partials(lat, h, v_n):
     rmh, rnh = rm + h, rn + h
     vn, ve = v_n[:, 0], v_n[:, 1]
     t = np.tan(lat)
-    z = np.zeros_like(lat)
     dL = np.stack([-ve * drn / rnh**2, vn * drm / rmh**2,
                    -ve * (1.0 / np.cos(lat) ** 2 / rnh - t * drn / rnh**2)], -1)
     dh = np.stack([-ve / rnh**2, vn / rmh**2, ve * t / rnh**2], -1)
@@ -180,7 +179,6 @@ def transport_rate_partials(lat, h, v_n):
     dv[:, 0, 1] = 1.0 / rnh
     dv[:, 1, 0] = -1.0 / rmh
     dv[:, 2, 1] = -t / rnh
-    del z
     return dL, dh, dv
 
 

@@ -36,7 +36,6 @@ GAMMA_E = 9.7803253359
 K_SOMIGLIANA = 0.00193185265241
 #: m = omega^2 a^2 b / GM [-]
 M_RATIO = OMEGA_IE**2 * A**2 * B / GM
-#: nominal Schuler frequency sqrt(g/R) at 45 deg latitude [rad/s] (for tests and docs)
 
 
 def _arr(x):
