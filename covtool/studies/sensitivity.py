@@ -264,7 +264,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         data={"cases": cases, "scales": cases.scales, "record_steps": np.array(rec), "report_times": rt,
               "truth_metrics": {c: r[0] for c, r in results.items()},
               "filter_metrics": {c: r[1] for c, r in results.items()}, "fits": fits, "filters": fmodels,
-              "timing": timing, "sweep_seconds": t_sweep, "cost": cost_rows},
+              "timing": timing, "sweep_seconds": t_sweep, "cost": cost_rows, "setup": S},
     )
 
 
@@ -284,7 +284,7 @@ def _sweep_table(S, cases, results, fmodels, rt, degree):
                 fits[(c, p, metric)] = fit_loglog(cases.scales, _curve(cases, results, c, p, metric) / FT, degree)
             for j, tr in enumerate(rt):
                 for s, b in zip(cases.scales, idx):
-                    row = {"filter": c, "states": fmodels[c].spec.n, "parameter": p, "scale [-]": s,
+                    row = {"filter": c, "states [-]": fmodels[c].spec.n, "parameter": p, "scale [-]": s,
                            "log10 scale [-]": np.log10(s), "t [min]": tr / 60.0,
                            "horizontal RMS [ft]": mt["sigma_horizontal"][b, j] / FT,
                            "altitude RMS [ft]": mt["sigma_down"][b, j] / FT,
@@ -303,7 +303,7 @@ def _sweep_table(S, cases, results, fmodels, rt, degree):
 def _fits_table(fits, degree):
     rows = []
     for (c, p, metric), f in fits.items():
-        row = {"filter": c, "parameter": p, "metric": METRICS[metric][0], "degree": f.degree}
+        row = {"filter": c, "parameter": p, "metric": METRICS[metric][0], "degree [-]": f.degree}
         for k in range(degree + 1):
             row[f"c{k} [log10 ft]" if k == 0 else f"c{k} [-]"] = f.coef[k] if k < f.coef.size else 0.0
         row.update({"residual RMS [dex]": f.resid_rms, "residual RMS [%]": 100 * np.log(10) * f.resid_rms,
@@ -322,7 +322,7 @@ def _sensitivity_table(cases, results, fits, fmodels):
                 fig = sensitivity_figures(s, e)
                 f = fits[(c, p, metric)]
                 fe = f(np.array([s[0], 1.0, s[-1]]))
-                rows.append({"filter": c, "states": fmodels[c].spec.n, "parameter": p, "metric": label,
+                rows.append({"filter": c, "states [-]": fmodels[c].spec.n, "parameter": p, "metric": label,
                              f"error at x{s[0]:g} [ft]": fig["low"], "error at x1 [ft]": fig["nominal"],
                              f"error at x{s[-1]:g} [ft]": fig["high"],
                              f"relative error at x{s[0]:g} [-]": fig["rel_low"],
@@ -345,7 +345,7 @@ def _ratio_table(sens, fmodels):
             sr, sc = g.loc[ref, "sensitivity [-]"], g.loc[c, "sensitivity [-]"]
             lr, lc = g.loc[ref, "mean |dlog e/dlog s| [-]"], g.loc[c, "mean |dlog e/dlog s| [-]"]
             rows.append({"parameter": p, "metric": metric, "reference": ref, "filter": c,
-                         "states": fmodels[c].spec.n, f"sensitivity {ref} [-]": sr, "sensitivity [-]": sc,
+                         "states [-]": fmodels[c].spec.n, f"sensitivity {ref} [-]": sr, "sensitivity [-]": sc,
                          f"ratio {ref}/filter [x]": sr / sc if sc > 0 else np.inf,
                          f"mean-slope ratio {ref}/filter [x]": lr / lc if lc > 0 else np.inf,
                          "paper ratio [x]": 2.0})
@@ -379,7 +379,7 @@ def _cost_tables(cost):
     ref = min(ref, key=lambda c: cost[c]["n"]) if ref else min(cost, key=lambda c: cost[c]["n"])
     for c, v in cost.items():
         fl = v["flops"]
-        rows.append({"filter": c, "states": v["n"], "measurements m": v["m"], "Taylor terms N_t": v["order"],
+        rows.append({"filter": c, "states [-]": v["n"], "measurements m [-]": v["m"], "Taylor terms N_t [-]": v["order"],
                      "update form": v["form"], "Phi_f eq (6b) [FLOP]": fl["phi"], "Q_f eq (6c-6d) [FLOP]": fl["qd"],
                      "propagation eq (6a) [FLOP]": fl["propagation"], "gain eq (7) [FLOP]": fl["gain"],
                      "update [FLOP]": fl["update"], "total [FLOP/cycle]": fl["total"],
@@ -397,19 +397,19 @@ def _cost_tables(cost):
     n_all = [cost[c]["n"] for c in cost]
     if len(set(n_all)) >= 2:
         p, a = flops.power_law(n_all, [cost[c]["flops"]["total"] for c in cost])
-        srows.append({"quantity": "FLOPs/cycle (all filters)", "exponent p [-]": p, "coefficient a": a})
+        srows.append({"quantity": "FLOPs/cycle (all filters)", "exponent p [-]": p, "coefficient a [unit of quantity]": a})
     if len({cost[c]["n"] for c in have}) >= 2:
         p, a = flops.power_law([cost[c]["n"] for c in have], [cost[c]["flops"]["total"] for c in have])
         srows.append({"quantity": "FLOPs/cycle (filters in the paper's Table 4)", "exponent p [-]": p,
-                      "coefficient a": a})
+                      "coefficient a [unit of quantity]": a})
         p, a = flops.power_law([cost[c]["n"] for c in have], [cost[c]["paper"] for c in have])
-        srows.append({"quantity": "paper 8086/8087 time [s] (Table 4)", "exponent p [-]": p, "coefficient a": a})
+        srows.append({"quantity": "paper 8086/8087 time [s] (Table 4)", "exponent p [-]": p, "coefficient a [unit of quantity]": a})
     meas = [c for c in cost if np.isfinite(cost[c]["seconds"])]
     if len({cost[c]["n"] for c in meas}) >= 2:
         p, a = flops.power_law([cost[c]["n"] for c in meas], [cost[c]["seconds"] for c in meas])
         srows.append({"quantity": "measured numpy time [s] (this machine)", "exponent p [-]": p,
-                      "coefficient a": a})
-    return df, pd.DataFrame(srows, columns=["quantity", "exponent p [-]", "coefficient a"])
+                      "coefficient a [unit of quantity]": a})
+    return df, pd.DataFrame(srows, columns=["quantity", "exponent p [-]", "coefficient a [unit of quantity]"])
 
 
 def _summary(S, cases, results, fmodels, sens, cost_df, rt):
@@ -417,7 +417,7 @@ def _summary(S, cases, results, fmodels, sens, cost_df, rt):
     nom = 0                                         # the shared nominal case
     cost_i = cost_df.set_index("filter")
     for c, (mt, _) in results.items():
-        row = {"filter": c, "states": fmodels[c].spec.n, "t [min]": rt[-1] / 60.0,
+        row = {"filter": c, "states [-]": fmodels[c].spec.n, "t [min]": rt[-1] / 60.0,
                "CEP [ft]": mt["cep"][nom, -1] / FT, "alt PE [ft]": mt["alt_pe"][nom, -1] / FT,
                "azimuth 1sigma [arcmin]": mt["sigma_azimuth"][nom, -1] / ARCMIN,
                "horizontal RMS [ft]": mt["sigma_horizontal"][nom, -1] / FT,

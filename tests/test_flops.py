@@ -1,0 +1,238 @@
+"""FLOP counts of one on-board filter cycle (seed 002 §3.3, Table 4).
+
+The closed forms of :mod:`covtool.flops` are checked against an explicit
+count: the same cycle written as naive Python loops in which every scalar
+add, subtract, multiply and divide increments a counter.  The naive cycle is
+also checked to compute the same numbers as the numpy cycle, and the numpy
+cycle against covtool's own Taylor discretisation, gain and update.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from covtool import flops
+from covtool.covariance import filter_update, kalman_gain
+from covtool.discretize import taylor
+
+
+class Counter:
+    """Naive dense linear algebra on lists of lists, counting scalar FLOPs."""
+
+    def __init__(self):
+        self.n = 0
+
+    def matmul(self, A, B):
+        a, b, c = len(A), len(B), len(B[0])
+        out = [[0.0] * c for _ in range(a)]
+        for i in range(a):
+            for j in range(c):
+                acc = 0.0
+                for k in range(b):
+                    acc += A[i][k] * B[k][j]
+                    self.n += 2
+                out[i][j] = acc
+        return out
+
+    def add(self, A, B, sign=1.0):
+        self.n += len(A) * len(A[0])
+        return [[x + sign * y for x, y in zip(ra, rb)] for ra, rb in zip(A, B)]
+
+    def scale(self, c, A):
+        self.n += len(A) * len(A[0])
+        return [[c * x for x in r] for r in A]
+
+    def div(self, A, c):
+        self.n += len(A) * len(A[0])
+        return [[x / c for x in r] for r in A]
+
+    def scalar(self, k=1):
+        self.n += k
+
+    @staticmethod
+    def T(A):
+        return [list(r) for r in zip(*A)]
+
+    @staticmethod
+    def eye(n):
+        return [[1.0 if i == j else 0.0 for j in range(n)] for i in range(n)]
+
+    def lu_solve_rows(self, S, U):
+        """X with X S = U (S symmetric): LU of S without pivoting, then S Xᵀ = Uᵀ row by row."""
+        m = len(S)
+        L = [[1.0 if i == j else 0.0 for j in range(m)] for i in range(m)]
+        W = [list(r) for r in S]
+        for k in range(m):
+            for i in range(k + 1, m):
+                L[i][k] = W[i][k] / W[k][k]
+                self.n += 1
+                for j in range(k + 1, m):
+                    W[i][j] -= L[i][k] * W[k][j]
+                    self.n += 2
+        X = []
+        for b in U:                                   # one right-hand side per row of U
+            y = [0.0] * m
+            for i in range(m):
+                acc = b[i]
+                for j in range(i):
+                    acc -= L[i][j] * y[j]
+                    self.n += 2
+                y[i] = acc
+            x = [0.0] * m
+            for i in reversed(range(m)):
+                acc = y[i]
+                for j in range(i + 1, m):
+                    acc -= W[i][j] * x[j]
+                    self.n += 2
+                x[i] = acc / W[i][i]
+                self.n += 1
+            X.append(x)
+        return X
+
+
+def naive_cycle(F, Qc, dt, P, H, R, order, form):
+    """The cycle of :func:`covtool.flops.onboard_cycle`, counted op by op."""
+    c = Counter()
+    F, Qc, P, H, R = (np.asarray(x, float).tolist() for x in (F, Qc, P, H, R))
+    n = len(F)
+    counts = {}
+    start = c.n
+    A = c.scale(dt, F)
+    Phi = [list(r) for r in A]
+    for i in range(n):
+        Phi[i][i] += 1.0
+    c.scalar(n)
+    T = A
+    for i in range(2, order):
+        T = c.div(c.matmul(T, A), i)
+        Phi = c.add(Phi, T)
+    counts["phi"] = c.n - start
+    start = c.n
+    C = Qc
+    Q = c.scale(dt, C)
+    coef = dt
+    for i in range(2, order):
+        G = c.matmul(F, C)
+        C = c.add(G, c.T(G))
+        coef = coef * dt / i
+        c.scalar(2)
+        Q = c.add(Q, c.scale(coef, C))
+    counts["qd"] = c.n - start
+    start = c.n
+    P = c.add(c.matmul(c.matmul(Phi, P), c.T(Phi)), Q)
+    counts["propagation"] = c.n - start
+    start = c.n
+    U = c.matmul(P, c.T(H))
+    S = c.add(c.matmul(H, U), R)
+    K = c.lu_solve_rows(S, U)
+    counts["gain"] = c.n - start
+    start = c.n
+    if form == "joseph":
+        Aj = c.add(c.eye(n), c.matmul(K, H), sign=-1.0)
+        P = c.add(c.matmul(c.matmul(Aj, P), c.T(Aj)), c.matmul(c.matmul(K, R), c.T(K)))
+    else:
+        P = c.add(P, c.matmul(K, c.matmul(H, P)), sign=-1.0)
+    counts["update"] = c.n - start
+    counts["total"] = c.n
+    return np.array(P), np.array(K), counts
+
+
+def _problem(n, m, seed=0):
+    rng = np.random.default_rng(seed)
+    F = 0.1 * rng.standard_normal((n, n))
+    L = rng.standard_normal((n, n))
+    Qc = 1e-3 * L @ L.T
+    L = rng.standard_normal((n, n))
+    P = L @ L.T + n * np.eye(n)
+    H = rng.standard_normal((m, n))
+    R = np.diag(rng.uniform(0.5, 2.0, m))
+    return F, Qc, 0.7, P, H, R
+
+
+@pytest.mark.parametrize("n,m,order,form", [(1, 1, 2, "joseph"), (3, 1, 3, "standard"), (4, 3, 4, "joseph"),
+                                            (5, 2, 5, "standard"), (6, 3, 2, "standard"), (2, 3, 6, "joseph")])
+def test_closed_forms_equal_an_explicit_count(n, m, order, form):
+    """Every step's closed form equals the count of the naive loops, exactly."""
+    args = _problem(n, m, seed=n + 10 * m + 100 * order)
+    _, _, counts = naive_cycle(*args, order, form)
+    assert flops.cycle_flops(n, m, order, form) == counts
+
+
+@pytest.mark.parametrize("form", ["joseph", "standard"])
+def test_counted_cycle_is_the_numpy_cycle(form):
+    """The naive (counted) loops compute what onboard_cycle computes (rel 1e-12)."""
+    args = _problem(5, 3, seed=3)
+    Pn, Kn, _ = naive_cycle(*args, 4, form)
+    P, K = flops.onboard_cycle(*args, 4, form)
+    np.testing.assert_allclose(P, Pn, rtol=1e-12, atol=1e-12 * np.abs(P).max())
+    np.testing.assert_allclose(K, Kn, rtol=1e-12, atol=1e-12 * np.abs(K).max())
+
+
+@pytest.mark.parametrize("form", ["joseph", "standard"])
+def test_onboard_cycle_is_seed002_eq6_to_8(form):
+    """onboard_cycle = eq (6b)-(6d) by covtool.discretize.taylor, eq (6a), eq (7), eq (8)/Joseph."""
+    F, Qc, dt, P, H, R = _problem(7, 3, seed=5)
+    order = 6
+    Phi, Qd = taylor(F[None], Qc[None], dt, order)
+    Pm = Phi[0] @ P @ Phi[0].T + Qd[0]
+    K = kalman_gain(Pm, H, R)
+    Pp = filter_update(Pm, K, H, R, form)
+    P1, K1 = flops.onboard_cycle(F, Qc, dt, P, H, R, order, form)
+    np.testing.assert_allclose(K1, K, rtol=1e-11)
+    np.testing.assert_allclose(P1, Pp, rtol=1e-10, atol=1e-12 * np.abs(Pp).max())
+
+
+def test_leading_term_is_cubic():
+    """FLOPs/n³ → 2(2N_t − 4) + 4 (+ 4 with Joseph) for large n."""
+    n, m, order = 20000, 3, 5
+    assert flops.cycle_flops(n, m, order, "standard")["total"] / n**3 == pytest.approx(2 * (2 * order - 4) + 4,
+                                                                                      rel=1e-3)
+    assert flops.cycle_flops(n, m, order, "joseph")["total"] / n**3 == pytest.approx(2 * (2 * order - 4) + 8,
+                                                                                    rel=1e-3)
+
+
+def test_taylor_terms_is_the_adaptive_series_length():
+    """taylor(order=taylor_terms(...)) reproduces the adaptive eq (6b)-(6d) series bit for bit."""
+    rng = np.random.default_rng(2)
+    F = 0.3 * rng.standard_normal((4, 6, 6))
+    L = rng.standard_normal((4, 6, 6))
+    Qc = L @ np.swapaxes(L, 1, 2)
+    k = flops.taylor_terms(F, Qc, 1.0)
+    Pa, Qa = taylor(F, Qc, 1.0)
+    Pk, Qk = taylor(F, Qc, 1.0, order=k)
+    np.testing.assert_array_equal(Pa, Pk)
+    np.testing.assert_array_equal(Qa, Qk)
+    # scalar closed form: the series stops after the first term a^i/i! below 1e-16
+    a = 0.5
+    i = next(i for i in range(1, 40) if a**i / np.prod(np.arange(1.0, i + 1)) < 1e-16)
+    assert flops.taylor_terms(np.full((1, 1, 1), a), np.zeros((1, 1, 1)), 1.0) == i + 1
+
+
+def test_power_law_recovers_exponent():
+    n = np.array([10, 16, 22, 58])
+    p, a = flops.power_law(n, 3.5 * n**3.2)
+    assert p == pytest.approx(3.2, rel=1e-12)
+    assert a == pytest.approx(3.5, rel=1e-12)
+
+
+def test_time_cycle_is_positive():
+    """A benchmark figure only: positive and finite (never a timing assert)."""
+    t = flops.time_cycle(*_problem(4, 3), 3, repeats=3, min_time=1e-4)
+    assert np.isfinite(t) and t > 0
+
+
+def test_paper_table4_as_printed():
+    assert flops.PAPER_TABLE4_SECONDS == {"A": 22.62, "B3": 0.74, "C": 0.29, "D": 0.08}
+
+
+@pytest.mark.parametrize("call,match", [
+    (lambda: flops.phi_flops(4, 1), "at least 2 terms"),
+    (lambda: flops.qd_flops(4, 2.5), "at least 2 terms"),
+    (lambda: flops.gain_flops(0, 3), "positive integers"),
+    (lambda: flops.propagation_flops(2.5), "positive integers"),
+    (lambda: flops.update_flops(4, 3, "kalman"), "unknown update form"),
+])
+def test_errors(call, match):
+    with pytest.raises(ValueError, match=match):
+        call()
