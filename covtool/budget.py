@@ -124,7 +124,9 @@ def initial_groups(model, resolution: str = "block") -> dict[str, tuple]:
     if resolution not in RESOLUTIONS:
         raise ValueError(f"unknown budget resolution {resolution!r} (one of: {', '.join(RESOLUTIONS)})")
     if resolution == "state":
-        return {s.name: (s.name,) for s in model.states}
+        nav_group = {x: g for g, st in NAV_GROUPS.items() for x in st}
+        return {(f"{s.name} ({nav_group[s.name]})" if s.kind == "navigation" and s.name in nav_group else s.name):
+                (s.name,) for s in model.states}
     out = {}
     names = set(model.names)
     nav_block = {s.block for s in model.states if s.kind == "navigation"}

@@ -29,7 +29,7 @@ Study file::
 
     [budget]
     resolution = "block"         # or "state": one source per state / per noise source
-    top = 8                      # sources drawn in the stacked figures (the rest is "other")
+    top = 8                      # sources drawn in the stacked figures: largest peak share (rest: "other")
 
     [output]
     history_every = "30 s"
@@ -289,37 +289,62 @@ def _source_table(sources, factors) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def _palette(k: int):
+    import matplotlib.pyplot as plt
+
+    cols = [plt.get_cmap(nm)(i) for nm in ("tab20", "tab20b", "tab20c") for i in range(20)]
+    return cols[k % len(cols)]
+
+
+def _windows(t, upd):
+    """ZUPT windows ``[(first, last)]`` in minutes from the update steps."""
+    if not len(upd):
+        return []
+    tu = t[np.asarray(upd)]
+    cut = np.flatnonzero(np.diff(tu) > 2 * (t[1] - t[0])) + 1
+    return [(g[0] / 60.0, g[-1] / 60.0) for g in np.split(tu, cut)]
+
+
 def _stack_figure(case, t_rec, var, sources, order, top, upd, t):
-    """Stacked-area variance contributions (top sources + other) per error."""
+    """Stacked areas of the variance contributions and of their shares, per error."""
     def make():
         import matplotlib.pyplot as plt
 
-        cmap = plt.get_cmap("tab20")
-        fig, axs = plt.subplots(3, 1, figsize=(10, 11), sharex=True)
+        fig, axs = plt.subplots(3, 2, figsize=(15, 11), sharex=True, gridspec_kw={"width_ratios": [3, 2]})
         tm = t_rec / 60.0
-        marks = np.unique(np.round(t[upd] / 60.0)) if len(upd) else []
-        for ax, e in zip(axs, ERRORS):
+        wins = _windows(t, upd)
+        for row, e in zip(axs, ERRORS):
             si, unit = PAPER_UNITS[e]
             v = var[e] / si**2
-            final = v[:, -1]
-            idx = [i for i in np.argsort(-final, kind="stable")[:top] if final[i] > 0]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                peak = np.nan_to_num(np.max(v / v.sum(axis=0), axis=1))   # largest share reached
+            idx = [i for i in np.argsort(-peak, kind="stable")[:top] if peak[i] > 0]
             rest = [i for i in range(len(sources)) if i not in idx]
             ys = [np.clip(v[i], 0, None) for i in idx]
             labels = [sources[i].name for i in idx]
-            colors = [cmap(order[sources[i].name] % 20) for i in idx]
+            colors = [_palette(order[sources[i].name]) for i in idx]
             if rest:
                 ys.append(np.clip(v[rest].sum(axis=0), 0, None))
-                labels.append(f"other ({len(rest)})")
-                colors.append("0.75")
-            ax.stackplot(tm, *ys, labels=labels, colors=colors, alpha=0.9)
-            for z in marks:
-                ax.axvline(z, color="0.4", lw=0.5, ls=":")
-            ax.set_ylabel(f"variance [{unit}²]")
-            ax.set_title(f"{case}: {_ERROR_TITLES[e]}")
-            ax.grid(True, alpha=0.3)
-            ax.legend(loc="upper left", fontsize=7, ncol=2)
-        axs[-1].set_xlabel("time [min]")
-        fig.suptitle(f"Error budget, {case} (variance contributions; dotted: ZUPT updates)")
+                labels.append(f"other ({len(rest)} sources)")
+                colors.append("0.8")
+            tot = np.sum(ys, axis=0)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                pct = [np.where(tot > 0, 100.0 * y / tot, 0.0) for y in ys]
+            row[0].stackplot(tm, *ys, labels=labels, colors=colors)
+            row[1].stackplot(tm, *pct, colors=colors)
+            row[0].set_ylabel(f"variance [{unit}²]")
+            row[1].set_ylabel("share of variance [%]")
+            row[1].set_ylim(0, 100)
+            row[0].set_title(f"{case}: {_ERROR_TITLES[e]}")
+            for ax in row:
+                for a, b in wins:
+                    ax.axvspan(a, max(b, a + 0.05), color="k", alpha=0.12, lw=0)
+                ax.grid(True, alpha=0.3)
+            row[0].legend(loc="upper left", fontsize=7, ncol=2)
+        for ax in axs[-1]:
+            ax.set_xlabel("time [min]")
+        title = f"Error budget, {case}: variance contributions (the {top} sources with the largest peak share)"
+        fig.suptitle(title + ("; grey bands: ZUPT windows" if wins else ""))
         fig.tight_layout()
         return fig
     return make
