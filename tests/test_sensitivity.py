@@ -148,6 +148,26 @@ def test_run_sweep_equals_stepwise_reference_on_a_random_system():
         np.testing.assert_allclose(res.P_truth[b, 0], ref.P_truth[-1], rtol=1e-10, atol=1e-12)
 
 
+def test_joint_scaling_of_p0_q_r_leaves_the_truth_unchanged():
+    """Gains are invariant to scaling P_f(0), Q_f and R_f together (eq (6a)-(8) are homogeneous)."""
+    from covtool.sensitivity import SweepCases
+    rng = np.random.default_rng(3)
+    n, m, N = 5, 2, 30
+    Phi = np.eye(n) + 0.05 * rng.standard_normal((N, n, n))
+    L = rng.standard_normal((N, n, n))
+    Qd = 1e-3 * L @ np.swapaxes(L, 1, 2)
+    upd = [4, 5, 17, 18, 29]
+    ev = events(N, upd, [N])
+    sys_ = System.from_steps(Phi, Qd, ev)
+    c = np.array([1.0, 0.01, 37.0])
+    cases = SweepCases(("joint",), c, c, c, c, np.arange(3)[None])
+    H = np.eye(n)[:m]
+    res = run_sweep(sys_, np.eye(n), H, 0.2 * np.eye(m), np.eye(n), sys_, 2 * np.eye(n), H, 0.5 * np.eye(m), cases,
+                    upd, [N], keep=slice(0, n))
+    np.testing.assert_allclose(res.P_truth[1:, 0], res.P_truth[[0, 0], 0], rtol=1e-9)
+    np.testing.assert_allclose(res.P_filter[1:, 0], c[1:, None, None] * res.P_filter[[0, 0], 0], rtol=1e-9)
+
+
 # ---------------------------------------------------------------- the study (short)
 
 def short_decl(**sweep):
@@ -304,6 +324,7 @@ def _with(section, key, value):
     (_with("sweep", "scales", {"from": 2, "to": 100, "per_decade": 4}), r"\[sweep\] scales", "bracket the nominal"),
     (_with("sweep", "fit_degree", 1.5), r"\[sweep\] fit_degree", "non-negative integer"),
     (_with("sweep", "fit_degree", 4), r"\[sweep\] fit_degree", "needs at least 6 scales"),
+    (_with("sweep", "fit_degree", -1), r"\[sweep\] fit_degree", "non-negative integer"),
     (_with("sweep", "discretization", "exact"), r"\[sweep\] discretization", "'declared', 'van_loan'"),
     (_with("cost", "mode", 1), r"\[cost\]", "unknown key 'mode'"),
     (_with("cost", "measure", "yes"), r"\[cost\] measure", "not true or false"),

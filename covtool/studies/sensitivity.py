@@ -14,7 +14,7 @@ Study file (everything a ``zupt_filter_order`` study takes, plus)::
     [sweep]
     parameters = ["P0", "Q", "R"]                 # scaled one at a time
     scales = {from = 0.01, to = 100, per_decade = 4}
-    fit_degree = 4           # polynomial in log10(scale) fitted to log10(error)
+    fit_degree = 5           # polynomial in log10(scale) fitted to log10(error)
     discretization = "van_loan"   # the filters' Φ_f, Q_f: "declared" | "van_loan" | "taylor"
 
     [cost]
@@ -115,7 +115,7 @@ def sweep_options(cfg: dict, where: str) -> dict:
         scales = scale_grid(float(sc["from"]), float(sc["to"]), sc["per_decade"])
     except ValueError as exc:
         raise StudyFileError(f"{w} scales", str(exc)) from None
-    deg = cfg.get("fit_degree", 4)
+    deg = cfg.get("fit_degree", 5)
     if not _is_int(deg) or deg < 0:
         raise StudyFileError(f"{w} fit_degree", f"{deg!r} is not a non-negative integer")
     if scales.size < deg + 2:
@@ -349,6 +349,18 @@ def _ratio_table(sens, fmodels):
                          f"ratio {ref}/filter [x]": sr / sc if sc > 0 else np.inf,
                          f"mean-slope ratio {ref}/filter [x]": lr / lc if lc > 0 else np.inf,
                          "paper ratio [x]": 2.0})
+    for metric, g in sens.groupby("metric", sort=False):
+        worst = g.groupby("filter", sort=False)["sensitivity [-]"].max()
+        slope = g.groupby("filter", sort=False)["mean |dlog e/dlog s| [-]"].max()
+        for c in worst.index:
+            if fmodels[c].spec.n >= fmodels[ref].spec.n:
+                continue
+            rows.append({"parameter": "max(" + ",".join(g["parameter"].unique()) + ")", "metric": metric,
+                         "reference": ref, "filter": c, "states [-]": fmodels[c].spec.n,
+                         f"sensitivity {ref} [-]": worst[ref], "sensitivity [-]": worst[c],
+                         f"ratio {ref}/filter [x]": worst[ref] / worst[c] if worst[c] > 0 else np.inf,
+                         f"mean-slope ratio {ref}/filter [x]": slope[ref] / slope[c] if slope[c] > 0 else np.inf,
+                         "paper ratio [x]": 2.0})
     return pd.DataFrame(rows)
 
 
@@ -369,6 +381,7 @@ def _cost(S, fmodels, co) -> dict:
             sec = flops.time_cycle(fm.F[k], fm.Qc[k], float(S.t[k + 1] - S.t[k]), fm.P0, zupt_matrices(fm.names),
                                    S.filter_R(c), order, fm.spec.update, repeats=co["repeats"], min_time=0.005)
         out[c] = {"n": n, "m": m, "order": order, "form": fm.spec.update, "flops": fl, "seconds": sec,
+                  "flops2": flops.cycle_flops(n, m, 2, fm.spec.update)["total"],
                   "paper": co["paper_seconds"].get(c, np.nan)}
     return out
 
@@ -379,8 +392,8 @@ def _cost_tables(cost):
     ref = min(ref, key=lambda c: cost[c]["n"]) if ref else min(cost, key=lambda c: cost[c]["n"])
     for c, v in cost.items():
         fl = v["flops"]
-        rows.append({"filter": c, "states [-]": v["n"], "measurements m [-]": v["m"], "Taylor terms N_t [-]": v["order"],
-                     "update form": v["form"], "Phi_f eq (6b) [FLOP]": fl["phi"], "Q_f eq (6c-6d) [FLOP]": fl["qd"],
+        rows.append({"filter": c, "states [-]": v["n"], "measurements m [-]": v["m"],
+                     "Taylor terms N_t [-]": v["order"], "update form": v["form"], "Phi_f eq (6b) [FLOP]": fl["phi"], "Q_f eq (6c-6d) [FLOP]": fl["qd"],
                      "propagation eq (6a) [FLOP]": fl["propagation"], "gain eq (7) [FLOP]": fl["gain"],
                      "update [FLOP]": fl["update"], "total [FLOP/cycle]": fl["total"],
                      "measured [us/cycle]": v["seconds"] * 1e6,
@@ -390,26 +403,26 @@ def _cost_tables(cost):
                      f"paper time ratio to {ref} [x]": v["paper"] / cost[ref]["paper"],
                      f"(n/n_{ref})^3 [x]": (v["n"] / cost[ref]["n"]) ** 3,
                      "paper time / n^3 [us]": v["paper"] / v["n"] ** 3 * 1e6,
-                     "implied 8087 rate [kFLOP/s]": fl["total"] / v["paper"] / 1e3})
+                     "implied 8087 rate [kFLOP/s]": fl["total"] / v["paper"] / 1e3,
+                     "total at N_t = 2 [FLOP/cycle]": v["flops2"],
+                     "implied 8087 rate at N_t = 2 [kFLOP/s]": v["flops2"] / v["paper"] / 1e3})
     df = pd.DataFrame(rows)
+    cols = ["quantity", "exponent p [-]", "coefficient a [unit of quantity]"]
     srows = []
+
+    def law(label, names, y):
+        if len({cost[c]["n"] for c in names}) >= 2:
+            p, a = flops.power_law([cost[c]["n"] for c in names], [y(c) for c in names])
+            srows.append(dict(zip(cols, (label, p, a))))
+
     have = [c for c, v in cost.items() if np.isfinite(v["paper"])]
-    n_all = [cost[c]["n"] for c in cost]
-    if len(set(n_all)) >= 2:
-        p, a = flops.power_law(n_all, [cost[c]["flops"]["total"] for c in cost])
-        srows.append({"quantity": "FLOPs/cycle (all filters)", "exponent p [-]": p, "coefficient a [unit of quantity]": a})
-    if len({cost[c]["n"] for c in have}) >= 2:
-        p, a = flops.power_law([cost[c]["n"] for c in have], [cost[c]["flops"]["total"] for c in have])
-        srows.append({"quantity": "FLOPs/cycle (filters in the paper's Table 4)", "exponent p [-]": p,
-                      "coefficient a [unit of quantity]": a})
-        p, a = flops.power_law([cost[c]["n"] for c in have], [cost[c]["paper"] for c in have])
-        srows.append({"quantity": "paper 8086/8087 time [s] (Table 4)", "exponent p [-]": p, "coefficient a [unit of quantity]": a})
-    meas = [c for c in cost if np.isfinite(cost[c]["seconds"])]
-    if len({cost[c]["n"] for c in meas}) >= 2:
-        p, a = flops.power_law([cost[c]["n"] for c in meas], [cost[c]["seconds"] for c in meas])
-        srows.append({"quantity": "measured numpy time [s] (this machine)", "exponent p [-]": p,
-                      "coefficient a [unit of quantity]": a})
-    return df, pd.DataFrame(srows, columns=["quantity", "exponent p [-]", "coefficient a [unit of quantity]"])
+    law("FLOPs/cycle (all filters)", list(cost), lambda c: cost[c]["flops"]["total"])
+    law("FLOPs/cycle (filters in the paper's Table 4)", have, lambda c: cost[c]["flops"]["total"])
+    law("FLOPs/cycle at N_t = 2 (filters in the paper's Table 4)", have, lambda c: cost[c]["flops2"])
+    law("paper 8086/8087 time [s] (Table 4)", have, lambda c: cost[c]["paper"])
+    law("measured numpy time [s] (this machine)", [c for c in cost if np.isfinite(cost[c]["seconds"])],
+        lambda c: cost[c]["seconds"])
+    return df, pd.DataFrame(srows, columns=cols)
 
 
 def _summary(S, cases, results, fmodels, sens, cost_df, rt):
