@@ -15,8 +15,18 @@ def _cmd_run(args) -> int:
     from .studies import run_study
 
     t0 = time.perf_counter()
-    result = run_study(args.study, progress=not args.quiet)
     out = Path(args.out) if args.out else Path("out") / Path(args.study).stem
+    backend = None
+    if args.workers is not None or args.scheduler is not None:
+        from .parallel import make_backend
+
+        backend = make_backend(workers=args.workers, scheduler=args.scheduler)
+    try:
+        result = run_study(args.study, progress=not args.quiet, backend=backend, store=out / "cases",
+                           resume=args.resume)
+    finally:
+        if backend is not None:
+            backend.close()
     files = write_outputs(result, out, figures=not args.no_figures)
     dt = time.perf_counter() - t0
     if not args.quiet:
@@ -46,6 +56,16 @@ def _cmd_show(args) -> int:
     return 0
 
 
+def _positive_int(text: str) -> int:
+    try:
+        n = int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a positive integer")
+    return n
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="covtool", description=__doc__)
     sub = p.add_subparsers(dest="command", required=True)
@@ -54,6 +74,12 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", help="output directory (default out/<study name>)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     r.add_argument("--no-figures", action="store_true", help="skip PNG figures")
+    r.add_argument("--workers", type=_positive_int, metavar="N",
+                   help="run chunks of cases in N local processes (or N workers of '--scheduler local')")
+    r.add_argument("--scheduler", metavar="ADDRESS",
+                   help="run chunks on a Dask cluster: a scheduler address (tcp://host:8786) or 'local'")
+    r.add_argument("--resume", action="store_true",
+                   help="reuse the cases an interrupted run stored in OUT/cases/ and compute only the rest")
     r.set_defaults(func=_cmd_run)
     m = sub.add_parser("models", help="list the model library")
     m.add_argument("--dir", default=None, help="model directory (default: models/)")

@@ -8,9 +8,10 @@ from __future__ import annotations
 
 import copy
 import importlib
+import inspect
 from pathlib import Path
 
-from ..errors import StudyFileError
+from ..errors import InputError, StudyFileError
 from ..io.config import load_toml
 
 #: study kind -> runner module (imported lazily)
@@ -34,8 +35,15 @@ def load_study(path_or_dict):
     return load_toml(path, StudyFileError), path
 
 
-def run_study(path_or_dict, *, progress: bool = False, **overrides):
-    """Run a study declaration; see :func:`covtool.run_study`."""
+def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None, resume: bool = False,
+              **overrides):
+    """Run a study declaration; see :func:`covtool.run_study`.
+
+    ``backend`` (a :mod:`covtool.parallel` backend), ``store`` (directory of
+    the incremental result store) and ``resume`` are passed to runners whose
+    ``run`` accepts them.  ``store`` is a hint and is dropped for the
+    others; asking such a runner for a backend or a resume is an error.
+    """
     decl, path = load_study(path_or_dict)
     where = str(path) if path else "<study>"
     study = decl.get("study")
@@ -48,4 +56,12 @@ def run_study(path_or_dict, *, progress: bool = False, **overrides):
     if kind not in RUNNERS:
         raise StudyFileError(f"{where}: [study]", f"unknown kind {kind!r} (one of: {', '.join(sorted(RUNNERS))})")
     module = importlib.import_module(RUNNERS[kind])
-    return module.run(decl, path=path, progress=progress)
+    accepts = inspect.signature(module.run).parameters
+    options = {k: v for k, v in (("backend", backend), ("store", store), ("resume", resume))
+               if v not in (None, False) and k in accepts}
+    refused = [k for k, v in (("backend", backend), ("resume", resume)) if v not in (None, False) and k not in accepts]
+    if refused:
+        raise InputError(f"{where}: [study] kind", f"{kind!r} runs in-process in one piece; it takes no "
+                         f"{' or '.join(refused)} (kind 'trade_grid' does)")
+    return module.run(decl, path=path, progress=progress, **options)
+
