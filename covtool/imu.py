@@ -592,6 +592,8 @@ class SensorErrors:
             tn = last + self.process_dt * np.arange(1, J + 1)
             dist = None
             if self.needs_speed:
+                if speed_fn is None:
+                    raise ValueError("Markov-in-distance states need the horizontal speed (speed_fn)")
                 dist = np.asarray(speed_fn(tn - 0.5 * self.process_dt), float) * self.process_dt
             a, b = self._coefficients(self.process_dt, dist)
             a = np.broadcast_to(a, (J, nd))
