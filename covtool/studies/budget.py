@@ -149,20 +149,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     runs, var, nominal, residuals = {}, {}, {}, {}
     with progress_bar(len(cases), "budget cases", progress) as bar:
         for c in cases:
-            if c == PURE:
-                src = [s for s in sources if s.kind != MEASUREMENT]
-                n = truth_model.n
-                nom = run_batch(truth, S.P0[None], S.H, S.R, np.eye(n), [], rec, gains=np.zeros((1, 0, n, 3)))
-                br = run_budget(truth, src, Qn, S.P0, S.H, S.R, None, None, [], rec)
-            else:
-                fm, Phi_f, Qd_f = S.filter_model(c)
-                filt = System.from_steps(Phi_f, Qd_f, ev)
-                nom = run_batch(truth, S.P0[None], S.H, S.R, fm.D, S.update_steps, rec, filt=filt,
-                                Pf0=fm.P0[None], Hf=zupt_matrices(fm.names), Rf=S.filter_R(c)[None],
-                                form=S.specs[c].update)
-                br = run_budget(truth, sources, Qn, S.P0, S.H, S.R, fm.D, nom.gains, S.update_steps, rec)
+            br, nominal[c] = case_budget(S, c, truth, sources, Qn, rec)
             runs[c] = br
-            nominal[c] = nom.P_truth[0]
             var[c] = nav_variances(br.P, lat, h, q)
             residuals[c] = _residuals(br, nominal[c], lat, h, q)
             bar.update(1)
@@ -187,10 +175,50 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]},
                   "budget": {**decl.get("budget", {}), **opts}},
         provenance=provenance,
-        data={"t": t, "record_steps": rec, "runs": runs, "variances": var, "nominal": nominal,
+        data={"t": t, "record_steps": rec, "events": ev, "truth_system": truth, "noise": Qn, "runs": runs, "variances": var, "nominal": nominal,
               "residuals": residuals, "sources": sources, "factors": factors, "trajectory": nodes,
               "truth": truth_model, "setup": S},
     )
+
+
+def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec, *, P0=None):
+    """One case's budget and its nominal run.
+
+    Parameters
+    ----------
+    S : covtool.studies.zupt.ZuptSetup
+    case : str
+        A filter name, or ``"pure_ins"`` (no updates; the measurement
+        source is left out).
+    truth : covtool.engine.System
+        Truth Φ, Q_d composed on the event grid of ``rec`` and the updates.
+    sources : list of covtool.budget.Source
+    Qn : ndarray, shape (J, K, n, n)
+        Composed per-source noise.
+    rec : ndarray of int
+        Record steps.
+    P0 : ndarray, shape (n, n), optional
+        Total initial covariance (default ``S.P0``).
+
+    Returns
+    -------
+    budget : covtool.budget.BudgetRun
+        Contributions under the gains of the nominal filter run.
+    P_nominal : ndarray, shape (n_rec, 10, 10)
+        The nominal run (running filter, the study's own Q_d).
+    """
+    P0 = S.P0 if P0 is None else P0
+    if case == PURE:
+        src = [s for s in sources if s.kind != MEASUREMENT]
+        n = truth.n
+        nom = run_batch(truth, P0[None], S.H, S.R, np.eye(n), [], rec, gains=np.zeros((1, 0, n, S.H.shape[0])))
+        return run_budget(truth, src, Qn, P0, S.H, S.R, None, None, [], rec), nom.P_truth[0]
+    fm, Phi_f, Qd_f = S.filter_model(case)
+    filt = System.from_steps(Phi_f, Qd_f, truth.ev)
+    nom = run_batch(truth, P0[None], S.H, S.R, fm.D, S.update_steps, rec, filt=filt, Pf0=fm.P0[None],
+                    Hf=zupt_matrices(fm.names), Rf=S.filter_R(case)[None], form=S.specs[case].update)
+    br = run_budget(truth, sources, Qn, P0, S.H, S.R, fm.D, nom.gains, S.update_steps, rec)
+    return br, nom.P_truth[0]
 
 
 def _composed_noise_check(Qn: np.ndarray, Q_ref: np.ndarray) -> float:
