@@ -1,4 +1,4 @@
-"""Computational cost of one on-board filter cycle (seed 002 §3.3, Table 4).
+"""FLOPs and time of one on-board filter cycle (seed 002 Table 4).
 
 Seed 002 Table 4 gives the time of one filter cycle on an 8 MHz Intel
 8086/8087 (A 22.62 s, B3 0.74 s, C 0.29 s, D 0.08 s).  The machine-independent
@@ -87,7 +87,7 @@ def gain_flops(n: int, m: int) -> int:
 
 
 def update_flops(n: int, m: int, form: str = "joseph") -> int:
-    """FLOPs of the covariance update: eq (8) (``"standard"``) or Joseph."""
+    """FLOPs of the covariance update: eq (8) or Joseph form."""
     _check(n, m)
     if form == "standard":
         return 4 * m * n * n + n * n

@@ -1,4 +1,4 @@
-"""Filter-tuning sensitivity: sweep grids, batched sweeps and curve fits.
+"""Filter-tuning sensitivity: sweep grids, batched runs, fits.
 
 Seed 002 §3.2 (Fig 8) scales the filter's assumed P_f(0), Q_f and R_f one at
 a time from ×1/100 to ×100 and fits the 30-min RMS navigation error by least
@@ -43,7 +43,9 @@ PARAMETERS = ("P0", "Q", "R")
 
 
 def scale_grid(start: float, stop: float, per_decade: int) -> np.ndarray:
-    """Log-spaced scale factors ``10^(k/per_decade)`` from ``start`` to ``stop``.
+    """Log-spaced scale factors from ``start`` to ``stop``.
+
+    The grid is ``10^(k/per_decade)`` for integer ``k``.
 
     Parameters
     ----------
@@ -83,7 +85,7 @@ def scale_grid(start: float, stop: float, per_decade: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class SweepCases:
-    """The cases of a one-at-a-time sweep, with the nominal case shared.
+    """The cases of a one-at-a-time sweep (nominal case shared).
 
     Attributes
     ----------
@@ -110,7 +112,7 @@ class SweepCases:
 
 
 def sweep_cases(parameters, scales) -> SweepCases:
-    """One-at-a-time cases: each parameter over ``scales``, the others at ×1.
+    """One-at-a-time cases: each parameter swept, the others at ×1.
 
     The nominal case (all ×1) is batched once: ``B = 1 + n_par·(n_scales − 1)``
     when the grid contains 1.
@@ -136,7 +138,7 @@ def sweep_cases(parameters, scales) -> SweepCases:
 def run_sweep(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np.ndarray,
               filt: System, Pf0: np.ndarray, Hf: np.ndarray, Rf: np.ndarray, cases: SweepCases,
               update_steps, record_steps, *, form: str = "joseph", keep=slice(0, 10)):
-    """Truth covariance under one filter for every sweep case, in one batch.
+    """Truth covariance under one filter for every case, batched.
 
     Parameters
     ----------

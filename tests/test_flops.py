@@ -1,4 +1,4 @@
-"""FLOP counts of one on-board filter cycle (seed 002 §3.3, Table 4).
+"""FLOP counts of one on-board filter cycle (seed 002 Table 4).
 
 The closed forms of :mod:`covtool.flops` are checked against an explicit
 count: the same cycle written as naive Python loops in which every scalar
@@ -18,7 +18,7 @@ from covtool.discretize import taylor
 
 
 class Counter:
-    """Naive dense linear algebra on lists of lists, counting scalar FLOPs."""
+    """Naive dense linear algebra on lists, counting scalar FLOPs."""
 
     def __init__(self):
         self.n = 0
@@ -59,7 +59,10 @@ class Counter:
         return [[1.0 if i == j else 0.0 for j in range(n)] for i in range(n)]
 
     def lu_solve_rows(self, S, U):
-        """X with X S = U (S symmetric): LU of S without pivoting, then S Xᵀ = Uᵀ row by row."""
+        """X with X S = U (S symmetric), by unpivoted LU.
+
+        LU of S without pivoting, then S Xᵀ = Uᵀ row by row.
+        """
         m = len(S)
         L = [[1.0 if i == j else 0.0 for j in range(m)] for i in range(m)]
         W = [list(r) for r in S]
@@ -92,7 +95,7 @@ class Counter:
 
 
 def naive_cycle(F, Qc, dt, P, H, R, order, form):
-    """The cycle of :func:`covtool.flops.onboard_cycle`, counted op by op."""
+    """The cycle of :func:`covtool.flops.onboard_cycle`, counted."""
     c = Counter()
     F, Qc, P, H, R = (np.asarray(x, float).tolist() for x in (F, Qc, P, H, R))
     n = len(F)
@@ -153,7 +156,7 @@ def _problem(n, m, seed=0):
 @pytest.mark.parametrize("n,m,order,form", [(1, 1, 2, "joseph"), (3, 1, 3, "standard"), (4, 3, 4, "joseph"),
                                             (5, 2, 5, "standard"), (6, 3, 2, "standard"), (2, 3, 6, "joseph")])
 def test_closed_forms_equal_an_explicit_count(n, m, order, form):
-    """Every step's closed form equals the count of the naive loops, exactly."""
+    """Every closed form equals the naive loops' count, exactly."""
     args = _problem(n, m, seed=n + 10 * m + 100 * order)
     _, _, counts = naive_cycle(*args, order, form)
     assert flops.cycle_flops(n, m, order, form) == counts
@@ -161,7 +164,7 @@ def test_closed_forms_equal_an_explicit_count(n, m, order, form):
 
 @pytest.mark.parametrize("form", ["joseph", "standard"])
 def test_counted_cycle_is_the_numpy_cycle(form):
-    """The naive (counted) loops compute what onboard_cycle computes (rel 1e-12)."""
+    """The counted loops compute what onboard_cycle does (1e-12)."""
     args = _problem(5, 3, seed=3)
     Pn, Kn, _ = naive_cycle(*args, 4, form)
     P, K = flops.onboard_cycle(*args, 4, form)
@@ -171,7 +174,11 @@ def test_counted_cycle_is_the_numpy_cycle(form):
 
 @pytest.mark.parametrize("form", ["joseph", "standard"])
 def test_onboard_cycle_is_seed002_eq6_to_8(form):
-    """onboard_cycle = eq (6b)-(6d) by covtool.discretize.taylor, eq (6a), eq (7), eq (8)/Joseph."""
+    """onboard_cycle is seed 002 eq (6a)-(8) as covtool computes it.
+
+    Eq (6b)-(6d) by covtool.discretize.taylor, eq (6a), eq (7) and
+    eq (8) or Joseph by covtool.covariance.
+    """
     F, Qc, dt, P, H, R = _problem(7, 3, seed=5)
     order = 6
     Phi, Qd = taylor(F[None], Qc[None], dt, order)
@@ -193,7 +200,10 @@ def test_leading_term_is_cubic():
 
 
 def test_taylor_terms_is_the_adaptive_series_length():
-    """taylor(order=taylor_terms(...)) reproduces the adaptive eq (6b)-(6d) series bit for bit."""
+    """taylor_terms is the length of the adaptive eq (6b)-(6d) series.
+
+    taylor(order=taylor_terms(...)) reproduces it bit for bit.
+    """
     rng = np.random.default_rng(2)
     F = 0.3 * rng.standard_normal((4, 6, 6))
     L = rng.standard_normal((4, 6, 6))
@@ -217,7 +227,7 @@ def test_power_law_recovers_exponent():
 
 
 def test_time_cycle_is_positive():
-    """A benchmark figure only: positive and finite (never a timing assert)."""
+    """A benchmark figure: positive and finite, never asserted."""
     t = flops.time_cycle(*_problem(4, 3), 3, repeats=3, min_time=1e-4)
     assert np.isfinite(t) and t > 0
 

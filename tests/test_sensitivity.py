@@ -1,4 +1,6 @@
-"""Filter-tuning sensitivity sweeps (seed 002 §3.2, Fig 8) and the zupt_sensitivity study.
+"""Sensitivity sweeps and the zupt_sensitivity study (Fig 8).
+
+Seed 002 §3.2.
 
 Oracles: synthetic curves with known coefficients for the fit; the stepwise
 reference :func:`covtool.covariance.propagate_with_filter` with the same
@@ -68,7 +70,11 @@ def test_sweep_cases_share_the_nominal():
 
 
 def test_fit_recovers_known_coefficients():
-    """log10 e = c0 + c1 x + c2 x² + c3 x³ exactly: coefficients to 1e-12, zero residual, R² = 1."""
+    """An exact cubic in log-log is recovered to 1e-12.
+
+    log10 e = c0 + c1 x + c2 x² + c3 x³: coefficients to 1e-12, zero
+    residual, R² = 1.
+    """
     s = scale_grid(0.01, 100, 4)
     coef = np.array([1.2, -0.15, 0.08, 0.01])
     x = np.log10(s)
@@ -81,7 +87,7 @@ def test_fit_recovers_known_coefficients():
 
 
 def test_fit_residual_measures_the_noise():
-    """With ±δ alternating noise in log10 e, a low-degree fit leaves an RMS residual ≈ δ."""
+    """Alternating ±δ noise in log10 e leaves an RMS residual ≈ δ."""
     s = scale_grid(0.01, 100, 8)
     x = np.log10(s)
     d = 0.01 * (-1.0) ** np.arange(s.size)
@@ -109,7 +115,7 @@ def test_fit_errors(scale, err, deg, match):
 
 
 def test_sensitivity_figures_closed_form():
-    """e = s^0.5 on [0.01, 100]: e(100)/e(1) = 10, e(0.01)/e(1) = 0.1, slope 0.5 everywhere."""
+    """e = s^0.5: e(100)/e(1) = 10, e(0.01)/e(1) = 0.1, slope 0.5."""
     s = scale_grid(0.01, 100, 4)
     f = sensitivity_figures(s, s**0.5)
     assert f["rel_high"] == pytest.approx(10.0) and f["rel_low"] == pytest.approx(0.1)
@@ -122,7 +128,10 @@ def test_sensitivity_figures_closed_form():
 
 
 def test_run_sweep_equals_stepwise_reference_on_a_random_system():
-    """Batched sweep = propagate_with_filter per case with the same scaled P_f(0), Q_f, R_f (rel 1e-10)."""
+    """Batched sweep = stepwise reference per case (rel 1e-10).
+
+    propagate_with_filter with the same scaled P_f(0), Q_f, R_f.
+    """
     rng = np.random.default_rng(7)
     n, nf, m, N = 6, 4, 2, 40
     Phi = np.eye(n) + 0.05 * rng.standard_normal((N, n, n))
@@ -149,7 +158,10 @@ def test_run_sweep_equals_stepwise_reference_on_a_random_system():
 
 
 def test_joint_scaling_of_p0_q_r_leaves_the_truth_unchanged():
-    """Gains are invariant to scaling P_f(0), Q_f and R_f together (eq (6a)-(8) are homogeneous)."""
+    """Scaling P_f(0), Q_f and R_f together leaves the gains alone.
+
+    Eq (6a)-(8) are homogeneous of degree one in (P_f, Q_f, R_f).
+    """
     from covtool.sensitivity import SweepCases
     rng = np.random.default_rng(3)
     n, m, N = 5, 2, 30
@@ -193,7 +205,10 @@ def _rms(P, S, k):
 @pytest.mark.parametrize("case,param,scale", [("B1", "Q", 100.0), ("D", "P0", 0.01), ("A", "R", 0.01),
                                               ("B1", "P0", 10.0)])
 def test_sweep_point_equals_independent_stepwise_run(short, case, param, scale):
-    """A swept point = propagate_with_filter with P_f(0), Q_f or R_f scaled by hand (rel ≤ 1e-8)."""
+    """A swept point = an independent stepwise run (rel ≤ 1e-8).
+
+    propagate_with_filter with P_f(0), Q_f or R_f scaled by hand.
+    """
     S = short.data["setup"]
     fm = short.data["filters"][case]
     sp, sq, sr = (scale if param == p else 1.0 for p in ("P0", "Q", "R"))
@@ -215,7 +230,11 @@ def test_sweep_point_equals_independent_stepwise_run(short, case, param, scale):
 
 @pytest.mark.parametrize("case", ["A", "B1", "D"])
 def test_nominal_point_equals_the_flagship_run(short, case):
-    """×1 = the flagship's run: the filter as declared (Taylor eq (6b)-(6d)) through propagate_with_filter."""
+    """The ×1 point equals the flagship's run (rel ≤ 1e-8).
+
+    The filter as declared (Taylor eq (6b)-(6d)) through
+    propagate_with_filter, as studies/zupt_filter_order.toml runs it.
+    """
     S = short.data["setup"]
     with threadpool_limits(limits=1, user_api="blas"):
         fm, Phi_f, Qd_f = S.filter_model(case)
@@ -237,7 +256,10 @@ def test_filter_a_reuses_the_truth_discretisation(short):
 
 
 def test_optimal_filter_is_at_the_bottom_of_its_curves(short):
-    """Filter A (D = I, its P0, Q, R the truth's) is optimal: every mistuning raises its error."""
+    """Filter A is optimal: every mistuning raises its error.
+
+    D = I and its P0, Q, R are the truth's.
+    """
     sens = short.tables["sensitivity"]
     a = sens[sens["filter"] == "A"]
     assert np.all(a["sensitivity [-]"] > 0)
@@ -352,7 +374,10 @@ def test_unknown_paper_filter_is_named():
 
 
 def test_study_file_as_shipped_is_fig8():
-    """The shipped study sweeps all six filters, P0/Q/R, ×1/100…×100 with ≥ 9 points including ×1."""
+    """The shipped study is Fig 8: six filters, P0/Q/R, ×1/100…×100.
+
+    At least 9 points, ×1 included.
+    """
     d = tomllib.loads(STUDY.read_text())
     assert d["study"]["kind"] == "zupt_sensitivity"
     assert d["filters"]["cases"] == ["A", "B1", "B2", "B3", "C", "D"]

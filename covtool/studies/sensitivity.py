@@ -1,4 +1,6 @@
-"""ZUPT filter trade: tuning sensitivity, compute cost and performance (seed 002 §3.1–3.3).
+"""ZUPT filter trade: sensitivity, cost, performance (seed 002).
+
+Seed 002 §3.1–3.3.
 
 Reproduces seed 002 Fig 8 (the 30-min RMS navigation error as each filter's
 assumed P_f(0), Q_f and R_f is scaled from ×1/100 to ×100, fitted by least
@@ -90,7 +92,7 @@ def _is_number(v) -> bool:
 
 
 def sweep_options(cfg: dict, where: str) -> dict:
-    """Validate ``[sweep]``; return parameters, scales, fit degree, discretization."""
+    """Validate ``[sweep]`` and return its resolved options."""
     w = f"{where}: [sweep]"
     check_keys(cfg, SWEEP_KEYS, w, StudyFileError)
     params = cfg.get("parameters", list(PARAMETERS))
@@ -129,7 +131,7 @@ def sweep_options(cfg: dict, where: str) -> dict:
 
 
 def cost_options(cfg: dict, where: str) -> dict:
-    """Validate ``[cost]`` (filter names are checked after the filters load)."""
+    """Validate ``[cost]`` (filter names are checked after setup)."""
     w = f"{where}: [cost]"
     check_keys(cfg, COST_KEYS, w, StudyFileError)
     measure = cfg.get("measure", True)
@@ -151,7 +153,7 @@ def cost_options(cfg: dict, where: str) -> dict:
 
 
 def _filter_system(S, name: str, method: str, dyn_cache: dict):
-    """``(FilterModel, Φ_f, Q_f, reused)`` with the sweep's discretisation override."""
+    """``(FilterModel, Φ_f, Q_f, reused)`` with the sweep's override."""
     spec = S.specs[name]
     if method != "declared":
         spec = dataclasses.replace(spec, discretization=method)
@@ -170,7 +172,7 @@ def _filter_system(S, name: str, method: str, dyn_cache: dict):
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
-    """Run the sensitivity / compute-cost trade; see the module docstring."""
+    """Run the sensitivity / compute-cost trade (module docstring)."""
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     sw = sweep_options(decl.get("sweep", {}), where)
@@ -269,7 +271,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
 
 def _curve(cases, results, c, p, metric, j=-1):
-    """Error [m] of filter ``c`` along parameter ``p``'s sweep at report ``j``."""
+    """Error [m] of filter ``c`` along ``p``'s sweep at report ``j``."""
     i = cases.parameters.index(p)
     return results[c][0][METRICS[metric][1]][cases.index[i], j]
 
@@ -334,7 +336,10 @@ def _sensitivity_table(cases, results, fits, fmodels):
 
 
 def _ratio_table(sens, fmodels):
-    """The largest filter's sensitivity over each smaller filter's (the paper's "about 2×")."""
+    """Largest filter's sensitivity over each smaller filter's.
+
+    The paper's "about 2×" comparison.
+    """
     ref = max(fmodels, key=lambda c: fmodels[c].spec.n)
     rows = []
     for (p, metric), g in sens.groupby(["parameter", "metric"], sort=False):
@@ -393,7 +398,8 @@ def _cost_tables(cost):
     for c, v in cost.items():
         fl = v["flops"]
         rows.append({"filter": c, "states [-]": v["n"], "measurements m [-]": v["m"],
-                     "Taylor terms N_t [-]": v["order"], "update form": v["form"], "Phi_f eq (6b) [FLOP]": fl["phi"], "Q_f eq (6c-6d) [FLOP]": fl["qd"],
+                     "Taylor terms N_t [-]": v["order"], "update form": v["form"],
+                     "Phi_f eq (6b) [FLOP]": fl["phi"], "Q_f eq (6c-6d) [FLOP]": fl["qd"],
                      "propagation eq (6a) [FLOP]": fl["propagation"], "gain eq (7) [FLOP]": fl["gain"],
                      "update [FLOP]": fl["update"], "total [FLOP/cycle]": fl["total"],
                      "measured [us/cycle]": v["seconds"] * 1e6,
@@ -448,7 +454,12 @@ def _summary(S, cases, results, fmodels, sens, cost_df, rt):
 
 
 def _chart_sheets(cases, results, fits, fine):
-    """Wide sheets for native charts: swept points (blank between them) and fitted curves on a finer grid."""
+    """Wide sheets and specs for the native Fig 8 charts.
+
+    Swept points sit on the rows of their scale (blank between them, so
+    Excel draws them unconnected); the fitted curves fill a grid twice as
+    fine.
+    """
     sheets, charts = {}, []
     on_grid = np.isin(np.round(np.log10(fine), 9), np.round(np.log10(cases.scales), 9))
     for num, metric in ((1, "horizontal"), (2, "altitude")):
