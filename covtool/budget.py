@@ -1,4 +1,4 @@
-"""Error budget: the truth covariance split exactly into its sources.
+"""Error budget: the truth covariance split exactly by source.
 
 With the filter gains held fixed (those of the nominal filter run, SOFE
 style), the truth recursion of seed 002 eq (15)–(16)::
@@ -146,7 +146,7 @@ def initial_groups(model, resolution: str = "block") -> dict[str, tuple]:
 
 
 def split_initial(model, groups: dict, q0=None) -> tuple[list, np.ndarray | None]:
-    """Split the truth P0 into one piece per group plus the cross terms.
+    """Split the truth P0 into group pieces plus the cross terms.
 
     Parameters
     ----------
@@ -275,7 +275,7 @@ def _hilbert(m: int) -> np.ndarray:
 
 def discretize_noise(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, tol: float = 1e-17,
                      max_terms: int = 40) -> np.ndarray:
-    """Discrete noise of each column of a low-rank ``Q_c``, by Taylor series.
+    """Taylor-series ``Q_d`` of each column of a low-rank ``Q_c``.
 
     Parameters
     ----------
@@ -333,7 +333,7 @@ def discretize_noise(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, tol: 
 
 def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100,
                   tol: float = 1e-17) -> np.ndarray:
-    """Per-source noise composed over the event intervals, in one sweep.
+    """Per-source noise composed over the event intervals.
 
     Parameters
     ----------
@@ -380,7 +380,7 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
 
 
 class MemberNoise:
-    """Per-member truth noise for :func:`covtool.engine.run_batch`, without copies.
+    """Per-member truth noise for ``run_batch``, without copies.
 
     Behaves like an array of shape ``(B, K, n, n)`` for the indexing
     ``Q[:, i]`` the engine uses; member ``b`` takes ``arrays[b][i]`` or zero.
@@ -434,7 +434,7 @@ class BudgetRun:
 def run_budget(truth: System, sources: list, Qn: np.ndarray, P0: np.ndarray, H: np.ndarray, R: np.ndarray,
                D: np.ndarray, gains: np.ndarray | None, update_steps, record_steps, *,
                keep=slice(0, 10), blas_threads: int | None = 1) -> BudgetRun:
-    """Propagate every source alone, and the total, in one batched pass.
+    """Every source alone, and the total, in one batched pass.
 
     Parameters
     ----------
@@ -535,7 +535,7 @@ def physical_nav(P: np.ndarray, q) -> np.ndarray:
 
 
 def relative_residual(P_sum: np.ndarray, P_ref: np.ndarray, q) -> float:
-    """Largest ``|ΔP_ij| / √(P_ii P_jj)`` of the physical navigation block.
+    """Largest ``|ΔP_ij| / √(P_ii P_jj)`` of the physical nav block.
 
     Parameters
     ----------

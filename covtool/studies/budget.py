@@ -1,4 +1,4 @@
-"""Error budget study: which sources make the navigation error (seed 002, Fig 4).
+"""Error budget study: the sources of the error (seed 002, Fig 4).
 
 The truth covariance of each case is split exactly into contributions of its
 sources (:mod:`covtool.budget`): initial errors by block (navigation split
@@ -89,7 +89,7 @@ def budget_options(decl: dict, where: str) -> dict:
 
 
 def budget_cases(decl: dict, where: str) -> tuple[list | None, bool]:
-    """The requested cases: ``(filter cases or None for all, pure INS wanted)``.
+    """Requested cases: ``(filter cases or None, pure INS wanted)``.
 
     Raises
     ------
@@ -118,7 +118,7 @@ def budget_cases(decl: dict, where: str) -> tuple[list | None, bool]:
 
 
 def record_steps(t: np.ndarray, every: float, report_times) -> np.ndarray:
-    """Grid indices of the history records: every ``every`` s, the report times and the end."""
+    """Record steps: every ``every`` s, the report times and the end."""
     k = np.round(t / every)
     on = np.flatnonzero(np.isclose(t, k * every))
     rep = [int(np.argmin(np.abs(t - tr))) for tr in report_times]
@@ -175,8 +175,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]},
                   "budget": {**decl.get("budget", {}), **opts}},
         provenance=provenance,
-        data={"t": t, "record_steps": rec, "events": ev, "truth_system": truth, "noise": Qn, "runs": runs, "variances": var, "nominal": nominal,
-              "residuals": residuals, "sources": sources, "factors": factors, "trajectory": nodes,
+        data={"t": t, "record_steps": rec, "events": ev, "truth_system": truth, "noise": Qn, "runs": runs,
+              "variances": var, "nominal": nominal, "residuals": residuals, "sources": sources, "factors": factors, "trajectory": nodes,
               "truth": truth_model, "setup": S},
     )
 
@@ -222,7 +222,7 @@ def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec,
 
 
 def _composed_noise_check(Qn: np.ndarray, Q_ref: np.ndarray) -> float:
-    """Largest ``|Σ_j Q_j − Q|_ik / √(Q_ii Q_kk)`` over the event intervals."""
+    """Largest ``|Σ_j Q_j − Q|_ik / √(Q_ii Q_kk)`` over the intervals."""
     if len(Qn) == 0:
         return float(np.abs(Q_ref).max())
     S = Qn.sum(axis=0)
@@ -233,7 +233,7 @@ def _composed_noise_check(Qn: np.ndarray, Q_ref: np.ndarray) -> float:
 
 
 def _residuals(br, P_nom, lat, h, q) -> dict:
-    """Sum-to-total residuals: against the same-Q_d total and the nominal run."""
+    """Sum-to-total residuals: same-Q_d total and the nominal run."""
     P_sum = br.P.sum(axis=0)
     out = {"same": relative_residual(P_sum, br.P_total, q), "nominal": relative_residual(P_sum, P_nom, q)}
     vs = nav_variances(P_sum, lat, h, q)
@@ -325,7 +325,7 @@ def _palette(k: int):
 
 
 def _windows(t, upd):
-    """ZUPT windows ``[(first, last)]`` in minutes from the update steps."""
+    """ZUPT windows ``[(first, last)]`` [min] from the update steps."""
     if not len(upd):
         return []
     tu = t[np.asarray(upd)]
@@ -334,7 +334,7 @@ def _windows(t, upd):
 
 
 def _stack_figure(case, t_rec, var, sources, order, top, upd, t):
-    """Stacked areas of the variance contributions and of their shares, per error."""
+    """Stacked variance contributions and shares, per error."""
     def make():
         import matplotlib.pyplot as plt
 
