@@ -179,6 +179,8 @@ class DaskBackend(SerialBackend):
         An existing client (its cluster is not closed by :meth:`close`).
     workers : int, optional
         Workers of the local cluster (default: the number of CPUs).
+    timeout : str
+        How long to try to reach the scheduler.
     **cluster_kwargs
         Passed to :class:`~dask.distributed.LocalCluster`.
 
@@ -190,7 +192,8 @@ class DaskBackend(SerialBackend):
 
     name = "dask"
 
-    def __init__(self, address: str | None = None, *, client=None, workers: int | None = None, **cluster_kwargs):
+    def __init__(self, address: str | None = None, *, client=None, workers: int | None = None,
+                 timeout: str = "20s", **cluster_kwargs):
         try:
             from dask.distributed import Client, LocalCluster
         except ImportError:  # pragma: no cover - exercised only without the extra
@@ -207,7 +210,7 @@ class DaskBackend(SerialBackend):
             self.client = Client(self._cluster)
         else:
             try:
-                self.client = Client(address, timeout="20s")
+                self.client = Client(address, timeout=timeout)
             except (OSError, TimeoutError) as exc:
                 raise InputError("scheduler", f"cannot connect to Dask scheduler {address!r}: {exc}") from None
         self.address = self.client.scheduler.address
@@ -391,6 +394,18 @@ class ResultStore:
             os.close(fd)
 
     def _reconcile(self) -> None:
+        p = self.dir / "journal.jsonl"
+        if p.is_file() and p.stat().st_size:
+            with open(p, "rb") as fh:
+                fh.seek(-1, os.SEEK_END)
+                torn = fh.read(1) != b"\n"
+            if torn:                          # a kill in mid-line: end it, so the next record parses
+                fd = os.open(p, os.O_WRONLY | os.O_APPEND)
+                try:
+                    os.write(fd, b"\n")
+                    os.fsync(fd)
+                finally:
+                    os.close(fd)
         journaled = {r["key"] for r in self.journal() if r.get("event") in ("stored", "recovered")}
         for key in sorted(self.keys() - journaled):
             rec = self.load(key)
