@@ -201,26 +201,30 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         results, fmodels, reused = {}, {}, {}
         dyn_cache = {}
         timing.update({"filter models": 0.0, "compose filters": 0.0, "batched runs": 0.0})
+        nr = len(rec)
+
+        def rep(a):
+            return np.broadcast_to(a, (B,) + a.shape).reshape((B * nr,) + a.shape[1:])
+
+        def one(c):
+            tic = time.perf_counter()
+            fm, Phi_f, Qd_f, reused_c = _filter_system(S, c, sw["discretization"], dyn_cache)
+            tac = time.perf_counter()
+            filt = truth_sys if reused_c else System.from_steps(Phi_f, Qd_f, ev)
+            tuc = time.perf_counter()
+            res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
+                            S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update)
+            toc = time.perf_counter()
+            mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
+            mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
+            out = ({k: v.reshape(B, nr) for k, v in mt.items()}, {k: v.reshape(B, nr) for k, v in mf.items()})
+            return fm, reused_c, out, (tac - tic, tuc - tac, toc - tuc)
+
         with progress_bar(len(S.cases), "filters", progress) as bar:
             for c in S.cases:
-                tic = time.perf_counter()
-                fm, Phi_f, Qd_f, reused[c] = _filter_system(S, c, sw["discretization"], dyn_cache)
-                tac = time.perf_counter()
-                filt = truth_sys if reused[c] else System.from_steps(Phi_f, Qd_f, ev)
-                tuc = time.perf_counter()
-                res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
-                                S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update)
-                toc = time.perf_counter()
-                timing["filter models"] += tac - tic
-                timing["compose filters"] += tuc - tac
-                timing["batched runs"] += toc - tuc
-                nr = len(rec)
-                rep = lambda a: np.broadcast_to(a, (B,) + a.shape).reshape((B * nr,) + a.shape[1:])  # noqa: E731
-                mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
-                mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
-                results[c] = ({k: v.reshape(B, nr) for k, v in mt.items()},
-                              {k: v.reshape(B, nr) for k, v in mf.items()})
-                fmodels[c] = fm
+                fmodels[c], reused[c], results[c], dts = one(c)
+                for key, dt_ in zip(("filter models", "compose filters", "batched runs"), dts):
+                    timing[key] += dt_
                 bar.update(1)
         t_sweep = time.perf_counter() - t_start
 
