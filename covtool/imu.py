@@ -651,7 +651,8 @@ class SensorErrors:
         Mv = dtheta.shape[0]
         fbar = (dv / h).reshape(Mv * k, 3)
         wbar = (dtheta / h).reshape(Mv * k, 3)
-        out = {"gyro": np.zeros((M, k, 3)), "accel": np.zeros((M, k, 3))}
+        # collect the sensitivities per sensor, constant and dynamic states apart
+        parts = {(t, d): ([], []) for t in ("gyro", "accel") for d in (False, True)}
         for g in self.groups:
             if g.sensor == "ad_reset":
                 continue
@@ -663,17 +664,28 @@ class SensorErrors:
             else:
                 S = g.sensitivity(fbar, wbar).reshape(Mv, k, 3, g.cols.size)
                 target = g.sensor
-            const = [j for j, i in enumerate(g.cols) if int(i) not in dyn_pos]
-            dyn = [j for j, i in enumerate(g.cols) if int(i) in dyn_pos]
-            if const:
-                xc = self.x0[:, g.cols[const]]                             # (M, nc)
-                out[target] += np.einsum("vkij,mj->mki", S[..., const], xc) if S.shape[0] == 1 else \
-                    np.einsum("mkij,mj->mki", S[..., const], xc)
-            if dyn:
-                xd = xbar_dyn[:, :, [dyn_pos[int(g.cols[j])] for j in dyn]]  # (M, k, nd)
-                Sd = S[..., dyn]
-                out[target] += np.einsum("vkij,mkj->mki", Sd, xd) if Sd.shape[0] == 1 else \
-                    np.einsum("mkij,mkj->mki", Sd, xd)
+            for j, i in enumerate(g.cols):
+                dyn = int(i) in dyn_pos
+                Ss, cols = parts[(target, dyn)]
+                Ss.append(np.broadcast_to(S[..., j], (Mv, k, 3)))
+                cols.append(dyn_pos[int(i)] if dyn else int(i))
+        out = {}
+        for target in ("gyro", "accel"):
+            acc = np.zeros((M, k, 3))
+            Ss, cols = parts[(target, False)]
+            if cols:
+                S = np.stack(Ss, axis=-1)                                  # (Mv, k, 3, nc)
+                xc = self.x0[:, cols]                                      # (M, nc)
+                if Mv == 1:   # one matrix product for all runs
+                    acc += (S[0].reshape(k * 3, -1) @ xc.T).T.reshape(M, k, 3)
+                else:
+                    acc += np.einsum("mkij,mj->mki", S, xc)
+            Ss, cols = parts[(target, True)]
+            if cols:
+                S = np.stack(Ss, axis=-1)                                  # (Mv, k, 3, nd)
+                acc += np.einsum("vkij,mkj->mki", S, xbar_dyn[:, :, cols]) if Mv == 1 else \
+                    np.einsum("mkij,mkj->mki", S, xbar_dyn[:, :, cols])
+            out[target] = acc
         ddth = out["gyro"] * h
         ddv = out["accel"] * h
         for g in self.groups:

@@ -36,12 +36,17 @@ The lag coefficients ``k_L`` (``L = n − i`` samples apart) are those of
 
     ζ = (ω_ie^n + ω_en^n)(t_{m−½}) T
     q_m = exp(−ζ/2) ⊗ q_{m−1} ⊗ exp(φ/2)                        (normalised)
-    v_m = v_{m−1} + (I − ½[ζ×]) C_b^n(t_{m−1}) Δv_b
-                 + [g^n − (2ω_ie^n + ω_en^n) × v^n](t_{m−½}) T
-    (L, l, h)_m = (L, l, h)_{m−1} + T · position_rates(t_{m−½}),  v_{m−½} = ½(v_{m−1}+v_m)
+    Δv_gc = [g^n − (2ω_ie^n + ω_en^n) × v^n](t_{m−½}) T
+    v_m = v_{m−1} + (I − ½[ζ×]) C Δv_b + Δv_gc,        C = C_b^n(t_{m−1})
+    ΔR = T [v_{m−1} + C r − ⅙ ζ × C Δv_b + ½ Δv_gc]
+    (L, l, h)_m = (L, l, h)_{m−1} + (ΔR_N/(R_M+h), ΔR_E/((R_N+h) cos L), −ΔR_D)   (radii at t_{m−½})
 
-The mid-interval position and velocity come from a predictor pass with the
-start-of-interval rates, so the step is self-starting and a filter may
+``r = Σ_i (n − i + ½)/n Δv_i + α×υ/6`` (:func:`body_position_increment`)
+weights each sample's specific force at its mid-time, so ``∫v dt`` is
+exact for a linearly varying specific force up to ``O(h²)`` rather than
+the ``O(T²)`` of the trapezoid (Savage 1998 Part 2, position algorithm).
+The mid-interval position and velocity come from a predictor pass with
+the start-of-interval rates, so the step is self-starting and a filter may
 correct the state between steps (:func:`correct`, seed 002 eq (10)).
 
 Two IMUs at different rates (seed 001 §2.3, Figs 7–10)
@@ -81,7 +86,8 @@ from . import quaternion as quat
 
 __all__ = [
     "NAV_STATES", "NavState", "NavHistory", "coning_coefficients", "coning_residual",
-    "body_increments", "body_position_increment", "step", "run", "correct", "nav_errors", "truth_state", "group_samples",
+    "body_increments", "body_position_increment", "step", "run", "iter_intervals", "correct",
+    "nav_errors", "truth_state", "group_samples",
 ]
 
 #: error-state order of the navigation block (seed 002, eq (14))
@@ -726,6 +732,42 @@ def group_samples(t_samples, t_main, where: str = "IMU") -> np.ndarray:
                          f"samples, expected {n or 'at least 1'} (gap, duplicate or non-integer rate ratio)")
     order = np.argsort(idx, kind="stable")
     return order.reshape(tm.size - 1, n)
+
+
+def iter_intervals(imu, samples_per_step: int):
+    """Navigation intervals of an IMU record or stream, for :func:`step`.
+
+    Parameters
+    ----------
+    imu : ImuRecord, ImuSimulator or iterable of ImuRecord
+        As for :func:`run`.
+    samples_per_step : int
+        Samples per interval n.
+
+    Yields
+    ------
+    dtheta, dv : ndarray, shape (n, 3) or (M, n, 3)
+        The interval's samples.
+    dt : float
+        Interval length. [s]
+
+    Examples
+    --------
+    A filter with feedback (seed 002, eq (10))::
+
+        for dth, dv, T in iter_intervals(sim, 4):
+            state = step(state, dth, dv, T)
+            if zupt_now(state.t):
+                state = correct(state, dx_hat)
+    """
+    n = int(samples_per_step)
+    records = [imu] if hasattr(imu, "dtheta") else (imu.records() if hasattr(imu, "records") else imu)
+    for rec in records:
+        K = rec.dtheta.shape[-2]
+        if K % n:
+            raise ValueError(f"an IMU record of {K} samples is not a multiple of {n} samples per step")
+        for j in range(K // n):
+            yield rec.dtheta[..., j * n:(j + 1) * n, :], rec.dv[..., j * n:(j + 1) * n, :], n * rec.dt
 
 
 def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,

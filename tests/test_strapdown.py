@@ -314,8 +314,8 @@ def test_step_api_and_feedback(lv):
     x0[1] = [1e-6, -2e-6, 3.0, 0.1, -0.2, 0.05, 0.0, 1e-4, -2e-4, 3e-4]
     s = sd.NavState.from_trajectory(lv, 20.0, errors=x0)
     hist = sd.run(s, rec, 4)
-    for j in range(rec.n_samples // 4):
-        s = sd.step(s, rec.dtheta[4 * j:4 * j + 4], rec.dv[4 * j:4 * j + 4], 4 * rec.dt)
+    for dth, dv, T in sd.iter_intervals(rec, 4):
+        s = sd.step(s, dth, dv, T)
     np.testing.assert_allclose(s.as_vector(), hist.state(-1).as_vector(), rtol=0, atol=1e-12)
     truth = sd.truth_state(lv, [s.t])
     err = sd.nav_errors(s, truth)
@@ -368,6 +368,8 @@ def test_input_validation(lv):
         sd.run(s, rec, 4, every=0)
     with pytest.raises(ValueError, match="record of 100 samples is not a multiple of 3"):
         sd.run(s, rec, 3)
+    with pytest.raises(ValueError, match="record of 100 samples is not a multiple of 3"):
+        next(sd.iter_intervals(rec, 3))
     with pytest.raises(ValueError, match=r"starts at 0 s but the state is at 5 s"):
         sd.run(s.replace(t=5.0), rec, 4)
     per_run = ImuRecord(rec.t0, rec.dt, np.zeros((3, 100, 3)), np.zeros((3, 100, 3)))
