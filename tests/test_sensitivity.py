@@ -32,6 +32,7 @@ from covtool.studies.common import FT, discretize_chunked
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "zupt_sensitivity.toml"
+FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
 
 
 # ---------------------------------------------------------------- pure numerics
@@ -213,7 +214,7 @@ def test_sweep_point_equals_independent_stepwise_run(short, case, param, scale):
     fm = short.data["filters"][case]
     sp, sq, sr = (scale if param == p else 1.0 for p in ("P0", "Q", "R"))
     with threadpool_limits(limits=1, user_api="blas"):
-        Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(S.t), "van_loan")
+        Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(S.t), fm.spec.discretization, fm.spec.taylor_order)
         ref = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, sq * Qd_f, sp * fm.P0, S.H, zupt_matrices(fm.names),
                                     fm.D, S.R, S.update_steps, Rf=sr * S.filter_R(case), form=fm.spec.update)
     k = S.t.size - 1
@@ -228,21 +229,33 @@ def test_sweep_point_equals_independent_stepwise_run(short, case, param, scale):
         assert abs(h_ref / nom - 1) > 0.05
 
 
+@pytest.fixture(scope="module")
+def flagship():
+    """The flagship study's own setup (Van Loan truth), shortened like ``short``."""
+    from covtool.studies.zupt import setup
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "11 min"
+    d["output"]["report_times"] = ["11 min"]
+    with threadpool_limits(limits=1, user_api="blas"):
+        return setup(d, path=FLAGSHIP)
+
+
 @pytest.mark.parametrize("case", ["A", "B1", "D"])
-def test_nominal_point_equals_the_flagship_run(short, case):
+def test_nominal_point_equals_the_flagship_run(short, flagship, case):
     """The ×1 point equals the flagship's run (rel ≤ 1e-8).
 
-    The filter as declared (Taylor eq (6b)-(6d)) through
-    propagate_with_filter, as studies/zupt_filter_order.toml runs it.
+    The flagship (studies/zupt_filter_order.toml) discretises the truth by
+    Van Loan and each filter as declared (Taylor eq (6b)-(6d)) and runs
+    propagate_with_filter; the sweep's truth is the Taylor series.
     """
-    S = short.data["setup"]
+    F = flagship
+    assert F.hdr["discretization"] != short.data["setup"].hdr["discretization"]
     with threadpool_limits(limits=1, user_api="blas"):
-        fm, Phi_f, Qd_f = S.filter_model(case)
-        ref = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
-                                    S.R, S.update_steps, Rf=S.filter_R(case), form=fm.spec.update)
-    assert fm.spec.discretization == "taylor"
-    k = S.t.size - 1
-    h_ref, v_ref = _rms(ref.P_truth[k], S, k)
+        fm, Phi_f, Qd_f = F.filter_model(case)
+        ref = propagate_with_filter(F.Phi, F.Qd, F.P0, Phi_f, Qd_f, fm.P0, F.H, zupt_matrices(fm.names), fm.D,
+                                    F.R, F.update_steps, Rf=F.filter_R(case), form=fm.spec.update)
+    k = F.t.size - 1
+    h_ref, v_ref = _rms(ref.P_truth[k], F, k)
     summ = short.summary.set_index("filter")
     assert summ.loc[case, "horizontal RMS [ft]"] * FT == pytest.approx(h_ref, rel=1e-8)
     assert summ.loc[case, "altitude RMS [ft]"] * FT == pytest.approx(v_ref, rel=1e-8)
