@@ -125,7 +125,7 @@ def _gl_nodes(nodes: int):
 
 
 def _auto_nodes(max_freq: float, h: float, minimum: int = 3) -> int:
-    """Gauss–Legendre nodes integrating a tone of ``max_freq`` to ~1e-13."""
+    """Gauss–Legendre nodes integrating ``max_freq`` to ~1e-13."""
     lam = 2.0 * math.pi * max_freq * h
     n = minimum
     while n < 24 and (0.5 * lam) ** (2 * n) / math.factorial(2 * n) > 1e-13:
@@ -325,7 +325,10 @@ class ImuGrade:
 
 
 def imu_grade_dir(directory=None) -> Path:
-    """The grade library: ``<models>/imu`` (see :func:`covtool.model.library.default_model_dir`)."""
+    """The grade library, ``<models>/imu``.
+
+    ``<models>`` is :func:`covtool.model.library.default_model_dir`.
+    """
     if directory is not None:
         return Path(directory)
     from .model.library import default_model_dir
@@ -423,7 +426,7 @@ def imu_grade_from_dict(decl: dict, *, path: str = "<dict>") -> ImuGrade:
 
 
 def load_imu_grade(name_or_path, directory=None) -> ImuGrade:
-    """Load a grade by name (``"kimu"``) or path (``"models/imu/kimu.toml"``).
+    """Load a grade by name (``"kimu"``) or path.
 
     Raises
     ------
@@ -478,6 +481,8 @@ def sample_states(model: Model, n_runs: int, rng=None, *, q0=None) -> np.ndarray
 
 @dataclass
 class _Group:
+    """A block of sensor states and its sensitivity."""
+
     kind: str
     sensor: str
     cols: np.ndarray          # indices into the model state vector
@@ -578,7 +583,7 @@ class SensorErrors:
         return a, b
 
     def _dynamic_path(self, t_edges, speed_fn):
-        """Dynamic states at the sample edges ``t_edges`` (K+1,), shape (M, K+1, n_dyn)."""
+        """Dynamic states at the sample edges, shape (M, K+1, n_dyn)."""
         nd = self.dynamic.size
         if nd == 0:
             return np.zeros((self.n_runs, t_edges.size, 0))
@@ -746,7 +751,7 @@ class Tone:
 
 @dataclass(frozen=True)
 class RandomVibration:
-    """Band-limited random vibration, realised per run as a sum of tones.
+    """Band-limited random vibration (a sum of tones per run).
 
     Attributes
     ----------
@@ -1071,7 +1076,7 @@ class ImuSimulator:
 
     # ---- increments --------------------------------------------------------
     def _true_increments(self, t_start, k):
-        """Exact increments of k samples from ``t_start``, shape (Mv, k, 3)."""
+        """Exact increments of k samples, shape (Mv, k, 3)."""
         h = self.dt
         u, w = _gl_nodes(self.nodes)
         ts = (t_start + (np.arange(k)[:, None] + u[None, :]) * h).ravel()
@@ -1094,7 +1099,7 @@ class ImuSimulator:
         return dth, dv
 
     def _context(self, t_start, k):
-        """Speed function, mid-sample attitude and gravity for the error model."""
+        """Speed, mid-sample attitude and gravity for the errors."""
         from . import earth
 
         kw = {}

@@ -735,7 +735,7 @@ def group_samples(t_samples, t_main, where: str = "IMU") -> np.ndarray:
 
 
 def iter_intervals(imu, samples_per_step: int):
-    """Navigation intervals of an IMU record or stream, for :func:`step`.
+    """Navigation intervals of an IMU record, for :func:`step`.
 
     Parameters
     ----------

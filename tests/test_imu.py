@@ -24,7 +24,6 @@ from covtool import strapdown as sd
 from covtool.dynamics import error_dynamics
 from covtool.errors import ModelFileError
 from covtool.imu import (
-    ImuRecord,
     ImuSimulator,
     RandomVibration,
     SensorErrors,

@@ -234,8 +234,8 @@ def test_static_accel_bias_schuler():
     x0 = np.zeros((1, model.n))
     b = parse_quantity("100 ug", "acceleration")
     x0[0, model.index["acc_bias_x"]] = b
-    sim = ImuSimulator(traj, 10.0, errors=SensorErrors(model, x0, noise=False))
-    hist = sd.run(sim.initial_state(), sim, 1, every=600)
+    sim = ImuSimulator(traj, 8.0, errors=SensorErrors(model, x0, noise=False))
+    hist = sd.run(sim.initial_state(), sim, 4, every=120)
     ned = _ned_metres(hist.errors(traj)[:, 0], LAT, H)
     ws = earth.schuler_frequency(LAT, H)
     closed = b / ws**2 * (1.0 - np.cos(ws * hist.t))
