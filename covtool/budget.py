@@ -38,6 +38,7 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from .dynamics import attitude_errors
 from .engine import System, run_batch, sandwich
@@ -332,7 +333,7 @@ def discretize_noise(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, tol: 
 
 
 def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100,
-                  tol: float = 1e-17) -> np.ndarray:
+                  tol: float = 1e-17, blas_threads: int | None = 1) -> np.ndarray:
     """Per-source noise composed over the event intervals.
 
     Parameters
@@ -345,6 +346,11 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         Event grid (:func:`covtool.engine.events`).
     chunk : int
         Steps discretised at once (bounds the memory).
+    tol : float
+        Convergence of the series (:func:`discretize_noise`).
+    blas_threads : int or None
+        BLAS thread limit, as :func:`covtool.engine.run_batch` (n ≤ 58
+        matrices gain nothing from more threads).
 
     Returns
     -------
@@ -353,6 +359,11 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         interval ``[ev_i, ev_{i+1})``, as :func:`covtool.engine.compose`
         computes it for the total.
     """
+    with threadpool_limits(limits=blas_threads, user_api="blas"):
+        return _compose_noise(Phi, F, factors, dt, ev, chunk, tol)
+
+
+def _compose_noise(Phi, F, factors, dt, ev, chunk, tol):
     N, n, _ = Phi.shape
     J = len(factors)
     K = len(ev) - 1
