@@ -44,6 +44,14 @@ def decl(duration="6 min", cases=("pure_ins", "B1"), disc="taylor", **truth):
     return d
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_blas_thread():
+    """n ≤ 58 matrices: one BLAS thread is fastest, and robust on a busy machine."""
+    from threadpoolctl import threadpool_limits
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
 @pytest.fixture(scope="module")
 def flagship():
     """11 min (two ZUPT windows), Van Loan as the flagship: pure INS, B1, D."""
@@ -350,6 +358,18 @@ def test_cli_writes_tables_workbook_and_figures(tmp_path):
     assert float(prov["D: sum vs nominal run residual"]) <= 1e-9
     b = pd.read_excel(out / "error_budget.xlsx", sheet_name="budget_horizontal")
     assert {"1sigma-equivalent [ft]", "share [%]", "cumulative [%]"} <= set(b.columns)
+
+
+def test_figure_sources_are_ranked_by_peak_share(flagship):
+    """Stacked figures show the sources with the largest peak share (zero totals at t = 0 skipped)."""
+    from covtool.studies.budget import top_sources
+    v = np.array([[0.0, 1.0, 1.0], [0.0, 0.0, 9.0], [0.0, 5.0, 1.0], [0.0, 0.0, 0.0]])
+    assert top_sources(v, 2) == [2, 1]            # peaks 5/6 and 9/11 beat 1/6
+    assert top_sources(v, 10) == [2, 1, 0]        # a source that never contributes is left out
+    assert top_sources(np.zeros((2, 3)), 2) == []
+    var = flagship.data["variances"]["pure_ins"]["horizontal"]
+    names = [flagship.data["runs"]["pure_ins"].sources[i].name for i in top_sources(var, 3)]
+    assert "initial tilt" in names
 
 
 def test_shipped_study_files_validate():

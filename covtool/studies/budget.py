@@ -317,6 +317,30 @@ def _source_table(sources, factors) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def top_sources(v: np.ndarray, top: int) -> list[int]:
+    """Indices of the ``top`` sources with the largest peak share.
+
+    Parameters
+    ----------
+    v : ndarray, shape (B, n_rec)
+        Variance contributions over time.
+    top : int
+
+    Returns
+    -------
+    list of int
+        Sources ordered by the largest share of the total they reach at
+        any record time (times with a zero total are skipped); sources that
+        never contribute are left out.
+    """
+    tot = v.sum(axis=0)
+    pos = tot > 0
+    if not pos.any():
+        return []
+    peak = np.max(v[:, pos] / tot[pos], axis=1)
+    return [int(i) for i in np.argsort(-peak, kind="stable")[:top] if peak[i] > 0]
+
+
 def _palette(k: int):
     import matplotlib.pyplot as plt
 
@@ -344,9 +368,7 @@ def _stack_figure(case, t_rec, var, sources, order, top, upd, t):
         for row, e in zip(axs, ERRORS):
             si, unit = PAPER_UNITS[e]
             v = var[e] / si**2
-            with np.errstate(divide="ignore", invalid="ignore"):
-                peak = np.nan_to_num(np.max(v / v.sum(axis=0), axis=1))   # largest share reached
-            idx = [i for i in np.argsort(-peak, kind="stable")[:top] if peak[i] > 0]
+            idx = top_sources(v, top)
             rest = [i for i in range(len(sources)) if i not in idx]
             ys = [np.clip(v[i], 0, None) for i in idx]
             labels = [sources[i].name for i in idx]
