@@ -143,25 +143,66 @@ def _sym(P):
     return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
-def _sym_into(X, out):
-    """``out = (X + Xᵀ)/2`` per case, without temporaries."""
-    np.add(X, np.swapaxes(X, -1, -2), out=out)
-    out *= 0.5
-    return out
+def _selection(D: np.ndarray):
+    """``(k0, k1)`` if ``D`` maps filter state j onto truth state k0 + j, else None."""
+    n, nf = D.shape
+    cols = np.flatnonzero(D[:, 0]) if nf else []
+    if len(cols) != 1 or cols[0] + nf > n:
+        return None
+    k0 = int(cols[0])
+    E = np.zeros_like(D)
+    E[k0:k0 + nf] = np.eye(nf)
+    return (k0, k0 + nf) if np.array_equal(D, E) else None
 
 
-def _joseph(P, K, HP, S):
-    """``(I − K H) P (I − K H)ᵀ + K R Kᵀ`` in its rank-m expanded form.
+def _joseph(P, K, HP, S, sel=None, symmetrize=True):
+    """``(I − D K H) P (I − D K H)ᵀ + D K R Kᵀ Dᵀ`` in rank-m form, in place.
 
-    With ``HP = H P`` and ``S = H P Hᵀ + R`` the Joseph form equals
-    ``P + X + Xᵀ`` with ``X = (K S/2 − (HP)ᵀ) Kᵀ``, for every gain ``K``
-    (optimal or not), at ``O(m n²)`` instead of ``O(n³)`` per case.  The
-    result is exactly symmetric when ``P`` is.
+    Parameters
+    ----------
+    P : ndarray, shape (B, n, n)
+        Prior covariance; overwritten (it must be owned by the caller).
+    K : ndarray, shape (B, n_f, m)
+        Gains.
+    HP : ndarray, shape (B, m, n)
+        ``H P``.
+    S : ndarray, shape (B, m, m)
+        ``H P Hᵀ + R``.
+    sel : (int, int), optional
+        ``D`` is the selection of truth states ``k0:k1`` (:func:`_selection`);
+        ``None`` means ``D = I``.
+    symmetrize : bool
+        Also replace ``P`` by ``(P + Pᵀ)/2`` (one more pass over ``P``).
+
+    Returns
+    -------
+    ndarray, shape (B, n, n)
+        Exactly symmetric if ``symmetrize``.
+
+    Notes
+    -----
+    With ``DK = D K`` the Joseph form (and eq (16)) equals
+    ``P + X + Xᵀ`` with ``X = (DK S/2 − (HP)ᵀ) (DK)ᵀ`` for every gain (optimal
+    or not): ``O(m n n_f)`` instead of ``O(n³)`` per case.  ``X`` is non-zero
+    only in the columns ``k0:k1``.  Symmetrised, the result is formed as
+    ``Y + Yᵀ`` with ``Y = P/2 + X``.
     """
-    X = (0.5 * (K @ S) - np.swapaxes(HP, 1, 2)) @ np.swapaxes(K, 1, 2)
-    out = np.add(X, np.swapaxes(X, 1, 2))
-    out += P
-    return out
+    k0, k1 = sel if sel is not None else (0, P.shape[1])
+    M = -np.swapaxes(HP, 1, 2)                                  # (B, n, m)
+    M[:, k0:k1] += 0.5 * (K @ S)
+    X = M @ np.swapaxes(K, 1, 2)                                # (B, n, n_f)
+    if not symmetrize:
+        P[:, :, k0:k1] += X
+        P[:, k0:k1, :] += np.swapaxes(X, 1, 2)
+        return P
+    P *= 0.5
+    P[:, :, k0:k1] += X
+    return np.add(P, np.swapaxes(P, 1, 2))
+
+
+#: updates between full symmetrisations of the covariances (the
+#: propagation and the unsymmetrised update leave round-off asymmetry only)
+SYMMETRIZE_EVERY = 8
 
 
 def run_batch(*args, blas_threads: int | None = 1, **kwargs) -> "BatchResult":
@@ -247,6 +288,7 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
         nf = D.shape[1]
         gains = np.broadcast_to(gains, (B,) + gains.shape[1:])
     m = H.shape[0]
+    sel = _selection(np.asarray(D, float))
     idx = np.arange(n)[keep]
     out_t = np.empty((B, len(rec), idx.size, idx.size))
     out_f = None
@@ -257,33 +299,35 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
     ui = ri = 0
     for i, k in enumerate(ev):
         if k in upd_set:
+            sym = ui % SYMMETRIZE_EVERY == SYMMETRIZE_EVERY - 1 or ui == len(upd) - 1
             if running:
                 HPf = Hf @ Pf                                             # (B, m, nf)
                 S = HPf @ Hf.T + Rf                                       # (B, m, m)
                 K = np.swapaxes(np.linalg.solve(S, HPf), 1, 2)            # eq (7), (B, nf, m)
                 if form == "joseph":
-                    Pf = _joseph(Pf, K, HPf, S)
+                    Pf = _joseph(Pf, K, HPf, S, symmetrize=sym)
                 else:
-                    Pf = _sym(Pf - K @ HPf)                               # eq (8)
+                    Pf = Pf - K @ HPf                                     # eq (8)
+                    Pf = _sym(Pf) if sym else Pf
             else:
                 K = gains[:, ui]
             out_g[:, ui] = K
-            DK = D @ K                                                    # (B, n, m)
             HP = H @ P
-            P = _joseph(P, DK, HP, HP @ H.T + R)                          # eq (16)
+            if sel is not None:
+                P = _joseph(P, K, HP, HP @ H.T + R, sel, symmetrize=sym)  # eq (16), D a selection
+            else:
+                P = _joseph(P, D @ K, HP, HP @ H.T + R, symmetrize=sym)   # eq (16)
             ui += 1
         if k in rec_set:
-            out_t[:, ri] = P[:, idx[:, None], idx[None, :]]
+            out_t[:, ri] = _sym(P[:, idx[:, None], idx[None, :]])
             if running:
-                out_f[:, ri] = Pf[:, fidx[:, None], fidx[None, :]]
+                out_f[:, ri] = _sym(Pf[:, fidx[:, None], fidx[None, :]])
             ri += 1
         if i < len(ev) - 1:
-            Qt = truth.Q[i] if truth_Q is None else truth_Q[:, i]
-            X = sandwich(truth.Phi[i], P)
-            X += Qt
-            P = _sym_into(X, P)                                                 # eq (15)
+            # eq (15) and (6a); symmetry is restored every SYMMETRIZE_EVERY updates and when recorded
+            P = sandwich(truth.Phi[i], P)
+            P += truth.Q[i] if truth_Q is None else truth_Q[:, i]
             if running:
-                X = sandwich(filt.Phi[i], Pf)
-                X += qs[:, None, None] * filt.Q[i]
-                Pf = _sym_into(X, Pf)                                           # eq (6a)
+                Pf = sandwich(filt.Phi[i], Pf)
+                Pf += qs[:, None, None] * filt.Q[i]
     return BatchResult(np.array(rec), out_t, out_f, out_g if upd else None, np.array(upd))

@@ -51,31 +51,37 @@ def test_expanded_joseph_equals_product_form_for_any_gain():
     assert np.array_equal(out, np.swapaxes(out, 1, 2))     # exactly symmetric
 
 
-@pytest.mark.parametrize("form", ["joseph", "standard"])
-def test_run_batch_equals_stepwise_reference_on_random_system(form):
-    """Truth n = 7 under a 4-state filter with a wrong model: engine = propagate_with_filter (≤ 1e-10)."""
+@pytest.mark.parametrize("form, kept", [("joseph", [0, 1, 2, 3]), ("standard", [0, 1, 2, 3]),
+                                        ("joseph", [2, 3, 4, 5]), ("joseph", [0, 1, 3, 6])])
+def test_run_batch_equals_stepwise_reference_on_random_system(form, kept):
+    """Truth n = 7 under a 4-state filter with a wrong model: engine = propagate_with_filter (≤ 1e-10).
+
+    The kept states are a leading block, an inner block (both the selection
+    fast path) and scattered states (the general path).
+    """
     rng = np.random.default_rng(4)
     N, n, nf, m = 60, 7, 4, 2
     Phi = np.eye(n) + 0.05 * rng.standard_normal((N, n, n))
     L = rng.standard_normal((N, n, n))
     Qd = 1e-3 * L @ np.swapaxes(L, 1, 2)
-    D = np.eye(n)[:, :nf]
-    Phi_f = Phi[:, :nf, :nf] + 0.01
-    Qd_f = 2.0 * Qd[:, :nf, :nf]
-    H = np.eye(n)[:m]
+    D = np.eye(n)[:, kept]
+    ix = np.ix_(range(N), kept, kept)
+    Phi_f = Phi[ix] + 0.01
+    Qd_f = 2.0 * Qd[ix]
+    H = np.eye(n)[kept[:m]]
     Hf = np.eye(nf)[:m]
-    P0 = np.eye(n)
+    P0 = np.eye(n) + 0.1
     R = 0.1 * np.eye(m)
     upd = [5, 6, 7, 20, 21, 40, 59]
     rec = [0, 10, 30, 60]
     ev = events(N, upd, rec)
     scales = [(1.0, 1.0, 1.0), (10.0, 0.1, 3.0)]
     res = run_batch(System.from_steps(Phi, Qd, ev), P0, H, R, D, upd, rec, filt=System.from_steps(Phi_f, Qd_f, ev),
-                    Pf0=np.stack([s[0] * P0[:nf, :nf] for s in scales]), Hf=Hf,
+                    Pf0=np.stack([s[0] * P0[np.ix_(kept, kept)] for s in scales]), Hf=Hf,
                     Rf=np.stack([s[2] * R for s in scales]), q_scale=np.array([s[1] for s in scales]), form=form,
                     keep=slice(0, n))
     for b, (sp, sq, sr) in enumerate(scales):
-        ref = propagate_with_filter(Phi, Qd, P0, Phi_f, sq * Qd_f, sp * P0[:nf, :nf], H, Hf, D, R, upd,
+        ref = propagate_with_filter(Phi, Qd, P0, Phi_f, sq * Qd_f, sp * P0[np.ix_(kept, kept)], H, Hf, D, R, upd,
                                     Rf=sr * R, form=form)
         np.testing.assert_allclose(res.P_truth[b], ref.P_truth[rec], rtol=1e-10, atol=1e-14)
         np.testing.assert_allclose(res.P_filter[b], ref.P_filter[rec][:, :nf, :nf], rtol=1e-10, atol=1e-14)
