@@ -1,0 +1,489 @@
+"""Monte Carlo validation of the covariance analysis (issue 6).
+
+N nonlinear INS runs (:mod:`covtool.strapdown`) on simulated IMU data with
+errors drawn from the truth model (:mod:`covtool.imu`), unaided and under
+each declared ZUPT filter running as a real feedback filter
+(:mod:`covtool.montecarlo`), against the linear covariance analysis of the
+same setup (:func:`covtool.covariance.propagate`,
+:func:`~covtool.covariance.propagate_with_filter`).
+
+Study file (the ``zupt_filter_order`` sections plus ``[monte_carlo]``)::
+
+    [study]
+    kind = "monte_carlo"
+    duration = "30 min"
+    dt = "1 s"                 # grid of the linear analysis, the updates and the statistics
+
+    [trajectory]
+    builtin = "land_vehicle"
+
+    [truth]
+    model = "sdins58"
+
+    [filters]
+    cases = ["B1", "C", "D"]
+    pure_ins = true
+
+    [zupt]
+    interval = "5 min"
+    duration = "30 s"
+    rate = "1 Hz"
+    sigma = "0.01 ft/s"
+
+    [monte_carlo]
+    runs = 200                 # N
+    runs_per_chunk = 50        # one chunk = one task of the execution backend
+    seed = 1
+    imu_rate = "100 Hz"
+    samples_per_step = 4       # 25 Hz navigation
+    confidence = 0.95
+    nees_every = "10 s"        # default: [output] history_every
+    sensor_noise = true        # false: only the deterministic part (constants, Markov decay)
+    measurement_noise = true
+    process_dt = "0.1 s"       # grid of the sensor-error processes
+
+Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
+(``covtool run --workers N`` or ``--scheduler``), else local processes, one
+per CPU.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
+every finished chunk is stored and ``--resume`` reuses it.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import __version__
+from ..covariance import propagate, propagate_with_filter
+from ..errors import StudyFileError
+from ..filters import zupt_matrices
+from ..io.config import check_keys, quantity
+from ..metrics import nav_metrics, ned_position_covariance
+from ..montecarlo import (QUANTITIES, REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, horizontal_dof,
+                          inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
+from ..results import StudyResult
+from ..strapdown import MAX_SAMPLES, NAV_STATES
+from .common import ARCMIN, FT, study_header
+from .zupt import setup
+
+MC_KEYS = ("runs", "runs_per_chunk", "seed", "imu_rate", "samples_per_step", "confidence", "nees_every",
+           "sensor_noise", "measurement_noise", "process_dt")
+#: the compared quantities: label, unit of the tables, factor from SI
+COMPARED = (("horizontal", "m", 1.0), ("altitude", "m", 1.0), ("azimuth", "arcmin", ARCMIN))
+
+
+def _int(v, w, lo, hi=None):
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo or (hi is not None and v > hi):
+        rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
+        raise StudyFileError(w, f"{v!r} is not an integer {rng}")
+    return int(v)
+
+
+def _bool(v, w):
+    if not isinstance(v, bool):
+        raise StudyFileError(w, f"{v!r} is not true or false")
+    return v
+
+
+def mc_options(decl: dict, where: str) -> dict:
+    """Validate ``[monte_carlo]`` (before any expensive work).
+
+    Raises
+    ------
+    StudyFileError
+        Missing table or ``runs``, unknown key, bad number or unit, an IMU
+        rate that does not put a whole number of navigation steps into one
+        grid step ``dt``.
+    """
+    cfg = decl.get("monte_carlo")
+    if not isinstance(cfg, dict):
+        raise StudyFileError(where, "missing [monte_carlo] table (runs = ..., imu_rate = ..., ...)")
+    w = f"{where}: [monte_carlo]"
+    check_keys(cfg, set(MC_KEYS), w, StudyFileError)
+    if "runs" not in cfg:
+        raise StudyFileError(w, "missing required key 'runs' (the number of Monte Carlo runs)")
+    hdr = study_header(decl, where)
+    o = {
+        "runs": _int(cfg["runs"], f"{w} runs", 2),
+        "runs_per_chunk": _int(cfg.get("runs_per_chunk", 50), f"{w} runs_per_chunk", 1),
+        "seed": _int(cfg.get("seed", 1), f"{w} seed", 0),
+        "imu_rate": quantity(cfg.get("imu_rate", "100 Hz"), "frequency", f"{w} imu_rate", StudyFileError,
+                             positive=True),
+        "samples_per_step": _int(cfg.get("samples_per_step", 4), f"{w} samples_per_step", 1, MAX_SAMPLES),
+        "sensor_noise": _bool(cfg.get("sensor_noise", True), f"{w} sensor_noise"),
+        "measurement_noise": _bool(cfg.get("measurement_noise", True), f"{w} measurement_noise"),
+        "process_dt": quantity(cfg.get("process_dt", "0.1 s"), "time", f"{w} process_dt", StudyFileError,
+                               positive=True),
+    }
+    c = cfg.get("confidence", 0.95)
+    if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 < c < 1.0:
+        raise StudyFileError(f"{w} confidence", f"{c!r} is not a number between 0 and 1")
+    o["confidence"] = float(c)
+    every = (decl.get("output") or {}).get("history_every", "10 s")
+    o["nees_every"] = quantity(cfg.get("nees_every", every), "time", f"{w} nees_every", StudyFileError,
+                               positive=True)
+    spr = hdr["dt"] * o["imu_rate"]
+    if abs(spr - round(spr)) > 1e-6 * max(1.0, spr) or round(spr) % o["samples_per_step"]:
+        raise StudyFileError(f"{w} imu_rate", f"{o['imu_rate']:g} Hz puts {spr:g} samples into one grid step "
+                             f"dt = {hdr['dt']:g} s; it must be a whole multiple of samples_per_step = "
+                             f"{o['samples_per_step']}")
+    o["samples_per_grid_step"] = int(round(spr))
+    o["navigation_rate"] = o["imu_rate"] / o["samples_per_step"]
+    return o
+
+
+def _chunks(runs: int, per: int) -> list[int]:
+    n = math.ceil(runs / per)
+    return [min(per, runs - i * per) for i in range(n)]
+
+
+def _linear(P, nodes) -> dict:
+    """σ of the compared quantities from a covariance history, plus the horizontal dof per run."""
+    m = nav_metrics(P, nodes.lat, nodes.h, nodes.q_nb)
+    Pn = ned_position_covariance(P[:, :3, :3], nodes.lat, nodes.h)
+    return {"horizontal": m["sigma_horizontal"], "altitude": m["sigma_down"], "azimuth": m["sigma_azimuth"],
+            "north": m["sigma_north"], "east": m["sigma_east"], "dof_h": horizontal_dof(Pn[:, :2, :2])}
+
+
+def _rms(s: EnsembleSums, quantity: str) -> np.ndarray:
+    return s.rms({"altitude": "down"}.get(quantity, quantity))
+
+
+def _mean(s: EnsembleSums, quantity: str) -> np.ndarray:
+    if quantity == "horizontal":
+        return np.hypot(s.mean("north"), s.mean("east"))
+    return s.mean({"altitude": "down"}.get(quantity, quantity))
+
+
+def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=None,
+        resume: bool = False) -> StudyResult:
+    """Run a Monte Carlo validation study; see the module docstring.
+
+    Parameters
+    ----------
+    decl : dict
+    path : Path, optional
+        The study file (relative paths and messages).
+    progress : bool
+        Progress bars (truth system, then runs done with the time left).
+    backend : backend or str, optional
+        :mod:`covtool.parallel` backend; default local processes (one per
+        CPU) when there is more than one chunk.
+    store : path, optional
+        Incremental result store (one JSON file per chunk of runs).
+    resume : bool
+        Reuse the chunks already in ``store``.
+    """
+    from ..parallel import ResultStore, make_backend, run_chunks
+
+    t_start = time.perf_counter()
+    where = str(path) if path else "<study>"
+    opt = mc_options(decl, where)
+    S = setup(decl, path=path, progress=progress, extra_sections=("monte_carlo",))
+    t, nodes, truth = S.t, S.nodes, S.truth
+    dt = float(t[1] - t[0])
+    if not np.allclose(np.diff(t), dt, rtol=0, atol=1e-9 * dt):
+        raise StudyFileError(f"{where}: [study] duration", f"{S.hdr['duration']:g} s is not a whole number of "
+                             f"grid steps dt = {dt:g} s (the Monte Carlo grid must be uniform)")
+    fcfg = decl.get("filters", {})
+    pure = fcfg.get("pure_ins", True)
+    if not isinstance(pure, bool):
+        raise StudyFileError(f"{where}: [filters] pure_ins", f"{pure!r} is not true or false")
+    if not pure and not S.cases:
+        raise StudyFileError(f"{where}: [filters]", "nothing to run: no filter cases and pure_ins = false")
+
+    # ---- linear covariance analysis and the filters' gain schedules -------------
+    t_lin = time.perf_counter()
+    every = opt["nees_every"]
+    kk = np.arange(1, t.size)
+    nees_steps = kk[np.isclose(t[kk] / every, np.round(t[kk] / every), rtol=0, atol=1e-9) | (kk == t.size - 1)]
+    lin, claimed, cases, states, pf_check = {}, {}, [], {}, {}
+    if pure:
+        P = propagate(S.Phi, S.Qd, S.P0)
+        lin["pure_ins"] = _linear(P, nodes)
+        cases.append(EnsembleCase("pure_ins", None, {
+            "truth": nees_whitening(P, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)}))
+        states["pure_ins"] = truth.n
+        del P
+    for c in S.cases:
+        spec = S.specs[c]
+        fm, Phi_f, Qd_f = S.filter_model(c)
+        Rf = S.filter_R(c)
+        ff = FeedbackFilter.design(c, fm.names, Phi_f, Qd_f, fm.P0, Rf, S.update_steps, form=spec.update)
+        res = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                    S.update_steps, Rf=Rf, form=spec.update, label=f"filter {c}", times=t)
+        pf_check[c] = float(np.max(np.abs(ff.P - res.P_filter)))
+        lin[c] = _linear(res.P_truth, nodes)
+        claimed[c] = _linear(ff.P[:, :10, :10], nodes) if tuple(fm.names[:10]) == NAV_STATES else None
+        const = [nm for nm in fm.names[10:] if truth.states[truth.index[nm]].process == "constant"]
+        nees = {"truth": nees_whitening(res.P_truth, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb),
+                "filter": nees_whitening(ff.P, ff.names, REDUCED_NAV + tuple(const), nees_steps, nodes.q_nb),
+                "filter_nav": nees_whitening(ff.P, ff.names, REDUCED_NAV, nees_steps, nodes.q_nb)}
+        cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
+        states[c] = len(fm.names)
+        del res
+    t_lin = time.perf_counter() - t_lin
+
+    # ---- the ensemble, in chunks of runs ------------------------------------------
+    sizes = _chunks(opt["runs"], opt["runs_per_chunk"])
+    base = {"traj": _trajectory(decl, where, path), "model": truth, "t": t, "imu_rate": opt["imu_rate"],
+            "samples_per_step": opt["samples_per_step"], "R": S.R, "cases": cases, "seed": opt["seed"],
+            "sensor_noise": opt["sensor_noise"], "measurement_noise": opt["measurement_noise"],
+            "process_dt": opt["process_dt"]}
+    tasks = [{**base, "chunk": i, "runs": m} for i, m in enumerate(sizes)]
+    keys = [f"runs-{i:04d}" for i in range(len(sizes))]
+    first = np.cumsum([0] + sizes)
+    run_ids = [list(range(int(first[i]), int(first[i + 1]))) for i in range(len(sizes))]
+    rs = None
+    if store is not None:
+        manifest = {"kind": "monte_carlo", "covtool_version": __version__, "study": decl,
+                    "truth_model_sha256": truth.sha256,
+                    "filter_file_sha256": hashlib.sha256(Path(S.filter_file).read_bytes()).hexdigest(),
+                    "chunks": keys, "runs": sizes}
+        rs = ResultStore(store, manifest, resume=resume)
+    own = backend is None or isinstance(backend, str)
+    be = make_backend(backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"))
+    try:
+        results, stats = run_chunks(simulate_chunk, tasks, keys, run_ids, backend=be, store=rs, progress=progress,
+                                    desc="Monte Carlo runs")
+    finally:
+        if own:
+            be.close()
+    names = [c.name for c in cases]
+    sums = {}
+    for res in results:
+        for nm in names:
+            s = EnsembleSums.from_json(res["sums"][nm])
+            sums[nm] = s if nm not in sums else sums[nm] + s
+    N = opt["runs"]
+    elapsed = time.perf_counter() - t_start
+
+    # ---- statistics -------------------------------------------------------------------
+    conf = opt["confidence"]
+    k1 = slice(1, None)                   # t = 0 (zero position σ) is not a test point
+    comp_rows, hist_frames, summary_rows, nees_stats = [], [], [], {}
+    band = {}
+    hsel = np.isclose(t / S.every, np.round(t / S.every), rtol=0, atol=1e-9) | (np.arange(t.size) == t.size - 1)
+    for c in names:
+        s, L = sums[c], lin[c]
+        row = {"case": c, "states": states[c], "runs": N}
+        band[c] = {}
+        for q, unit, f in COMPARED:
+            dof = L["dof_h"] if q == "horizontal" else 1.0
+            lo, hi = rms_bounds(L[q], N, dof, conf)
+            x = _rms(s, q)
+            band[c][q] = (x, L[q], lo, hi)
+            fr = inside_fraction(x[k1], lo[k1], hi[k1])
+            end = t.size - 1
+            comp_rows.append({
+                "case": c, "quantity": q, "time points": fr["points"], "inside [%]": 100 * fr["inside"],
+                "above [%]": 100 * fr["above"], "below [%]": 100 * fr["below"],
+                "mean RMS/sigma": float(np.mean(x[k1] / np.where(L[q][k1] > 0, L[q][k1], np.nan))),
+                f"linear sigma at end [{unit}]": L[q][end] / f, f"MC RMS at end [{unit}]": x[end] / f,
+                f"lower bound at end [{unit}]": lo[end] / f, f"upper bound at end [{unit}]": hi[end] / f,
+                f"|MC mean| at end [{unit}]": _mean(s, q)[end] / f,
+                "dof per run at end": float(np.broadcast_to(dof, t.shape)[end]),
+                "pass (>= 95 % inside)": bool(fr["inside"] >= 0.95)})
+            row[f"{q} inside [%]"] = 100 * fr["inside"]
+            row[f"{q} RMS/sigma at end"] = x[end] / L[q][end] if L[q][end] > 0 else np.nan
+        for key, spec in cases[names.index(c)].nees.items():
+            mean = s.nees[key] / N
+            lo, hi = nees_bounds(spec.dof, N, conf)
+            fr = inside_fraction(mean, lo, hi)
+            nees_stats[(c, key)] = (spec, mean, lo, hi, fr)
+            row[f"NEES {key}: dof"] = int(np.median(spec.dof))
+            row[f"NEES {key}: mean/dof"] = float(np.mean(mean / spec.dof))
+            row[f"NEES {key}: inside [%]"] = 100 * fr["inside"]
+        summary_rows.append(row)
+        h = {"case": c, "t [s]": t[hsel], "t [min]": t[hsel] / 60.0}
+        for q, unit, f in COMPARED:
+            x, sig, lo, hi = band[c][q]
+            h[f"{q} sigma linear [{unit}]"] = sig[hsel] / f
+            h[f"{q} RMS MC [{unit}]"] = x[hsel] / f
+            h[f"{q} lower bound [{unit}]"] = lo[hsel] / f
+            h[f"{q} upper bound [{unit}]"] = hi[hsel] / f
+            h[f"{q} MC mean [{unit}]"] = _mean(s, q)[hsel] / f
+        for ax in ("north", "east"):
+            h[f"{ax} sigma linear [m]"] = L[ax][hsel]
+            h[f"{ax} RMS MC [m]"] = s.rms(ax)[hsel]
+        h["horizontal dof per run"] = np.broadcast_to(L["dof_h"], t.shape)[hsel]
+        if claimed.get(c) is not None:
+            h["horizontal sigma filter-claimed [m]"] = claimed[c]["horizontal"][hsel]
+            h["altitude sigma filter-claimed [m]"] = claimed[c]["altitude"][hsel]
+            h["azimuth sigma filter-claimed [arcmin]"] = claimed[c]["azimuth"][hsel] / ARCMIN
+        hf = pd.DataFrame(h)
+        for key in cases[names.index(c)].nees:
+            spec, mean, lo, hi, _ = nees_stats[(c, key)]
+            col = pd.Series(np.nan, index=range(t.size))
+            col[spec.steps] = mean
+            hf[f"NEES {key} mean"] = col[hsel].to_numpy()
+            for nm, arr in (("lower", lo), ("upper", hi)):
+                b = pd.Series(np.nan, index=range(t.size))
+                b[spec.steps] = arr
+                hf[f"NEES {key} {nm} bound"] = b[hsel].to_numpy()
+        hist_frames.append(hf)
+    summary = pd.DataFrame(summary_rows)
+    comparison = pd.DataFrame(comp_rows)
+    history = pd.concat(hist_frames, ignore_index=True)
+    nees_rows = []
+    for (c, key), (spec, mean, lo, hi, fr) in nees_stats.items():
+        nees_rows.append({"case": c, "NEES": key, "covariance": "filter-claimed P_f" if key.startswith("filter")
+                          else "linear truth P (eq (15)-(16))", "states": ", ".join(spec.labels),
+                          "dof": int(np.median(spec.dof)), "time points": fr["points"],
+                          "time-mean NEES": float(np.mean(mean)), "time-mean NEES/dof": float(np.mean(mean / spec.dof)),
+                          "NEES at end": float(mean[-1]), "lower bound": float(lo[-1]), "upper bound": float(hi[-1]),
+                          "inside [%]": 100 * fr["inside"], "above [%]": 100 * fr["above"],
+                          "below [%]": 100 * fr["below"]})
+    nees_table = pd.DataFrame(nees_rows)
+    chunk_seconds = [r["seconds"] for r in results]
+    settings = pd.DataFrame([
+        {"setting": "runs N", "value": N},
+        {"setting": "chunks (runs each)", "value": ", ".join(map(str, sizes))},
+        {"setting": "seed", "value": opt["seed"]},
+        {"setting": "IMU rate [Hz]", "value": opt["imu_rate"]},
+        {"setting": "samples per navigation step", "value": opt["samples_per_step"]},
+        {"setting": "navigation rate [Hz]", "value": opt["navigation_rate"]},
+        {"setting": "grid dt (updates, statistics) [s]", "value": dt},
+        {"setting": "confidence", "value": conf},
+        {"setting": "horizontal bound", "value": "chi-square with Satterthwaite dof N(l1+l2)^2/(l1^2+l2^2) "
+                                                 "(l: eigenvalues of the 2x2 horizontal covariance)"},
+        {"setting": "NEES steps every [s]", "value": every},
+        {"setting": "sensor noise", "value": opt["sensor_noise"]},
+        {"setting": "measurement noise", "value": opt["measurement_noise"]},
+        {"setting": "filter covariance vs propagate_with_filter (max |diff|)",
+         "value": ", ".join(f"{c}: {v:.3g}" for c, v in pf_check.items()) or "-"},
+        {"setting": "backend", "value": stats["backend"]},
+        {"setting": "linear analysis [s]", "value": round(t_lin, 2)},
+        {"setting": "Monte Carlo wall time [s]", "value": round(stats["seconds"], 2)},
+        {"setting": "chunk CPU time, total [s]", "value": round(float(np.sum(chunk_seconds)), 2)},
+        {"setting": "study wall time [s]", "value": round(elapsed, 2)},
+    ])
+    settings["value"] = settings["value"].astype(str)
+    tables = {"summary": summary, "comparison": comparison, "nees": nees_table, "history": history,
+              "settings": settings}
+    upd_t = t[S.update_steps]
+    zupt_marks = np.unique(np.round(upd_t[np.r_[True, np.diff(upd_t) > 2 * dt]]))
+    figures = {f"mc_{c}": _case_figure(c, t, band[c], zupt_marks, N, conf) for c in names}
+    figures["mc_ratio"] = _ratio_figure(names, t, band, N, conf)
+    figures["mc_nees"] = _nees_figure(names, t, nees_stats, N, conf)
+    provenance = {"truth_model": truth.name, "truth_model_sha256": truth.sha256, "filter_file": str(S.filter_file),
+                  "runs": N, "chunks": len(sizes), "seed": opt["seed"], "imu_rate_hz": opt["imu_rate"],
+                  "samples_per_step": opt["samples_per_step"], "backend": stats["backend"],
+                  "chunks_computed": stats["computed"], "chunks_reused": stats["reused"],
+                  "compute_seconds": f"{elapsed:.2f}", "monte_carlo_seconds": f"{stats['seconds']:.2f}",
+                  "result_store": str(store) if store is not None else ""}
+    return StudyResult(
+        name=S.hdr["name"], kind="monte_carlo", tables=tables, figures=figures,
+        resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
+        charts=[{"sheet": "history", "x": "t [min]", "y": ["horizontal RMS MC [m]", "horizontal sigma linear [m]"],
+                 "title": "Horizontal RMS (Monte Carlo) and linear sigma, all cases stacked", "y_title": "m",
+                 "anchor": "B2", "target": "summary"}],
+        data={"t": t, "sums": sums, "linear": lin, "claimed": claimed, "cases": cases, "bands": band,
+              "nees": nees_stats, "options": opt, "stats": stats, "filter_check": pf_check})
+
+
+def _trajectory(decl, where, path):
+    from .nav_covariance import load_trajectory
+
+    hdr = study_header(decl, where)
+    return load_trajectory(decl, where, path.parent if path else None, hdr["dt"])
+
+
+# --------------------------------------------------------------------------
+# figures
+# --------------------------------------------------------------------------
+
+_LABELS = {"horizontal": "horizontal position (radial)", "altitude": "altitude", "azimuth": "azimuth"}
+
+
+def _case_figure(case, t, band, zupt_marks, N, conf):
+    def make():
+        import matplotlib.pyplot as plt
+
+        fig, axs = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
+        tm = t / 60.0
+        for ax, (q, unit, f) in zip(axs, COMPARED):
+            x, sig, lo, hi = band[q]
+            scale = f if q == "azimuth" else FT
+            u = "arcmin" if q == "azimuth" else "ft"
+            ax.fill_between(tm, lo / scale, hi / scale, color="C0", alpha=0.25, lw=0,
+                            label=f"{100 * conf:g} % χ² bounds of σ (N = {N})")
+            ax.plot(tm, sig / scale, "C0", lw=1.2, label="linear covariance σ")
+            ax.plot(tm, x / scale, "C3", lw=0.9, label="Monte Carlo RMS")
+            for z in zupt_marks:
+                ax.axvline(z / 60, color="0.7", lw=0.6, ls=":")
+            ax.set_ylabel(f"{_LABELS[q]} [{u}]")
+            ax.grid(True, alpha=0.3)
+            if q != "azimuth" and np.nanmax(sig) / max(np.nanmin(sig[1:]), 1e-300) > 100:
+                ax.set_yscale("log")
+        axs[0].legend(fontsize=8)
+        axs[-1].set_xlabel("time [min]")
+        fig.suptitle(f"{case}: Monte Carlo RMS against the linear covariance analysis (dotted: ZUPT stops)")
+        fig.tight_layout()
+        return fig
+    return make
+
+
+def _ratio_figure(names, t, band, N, conf):
+    def make():
+        import matplotlib.pyplot as plt
+
+        fig, axs = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
+        tm = t / 60.0
+        for ax, (q, _, _) in zip(axs, COMPARED):
+            for i, c in enumerate(names):
+                x, sig, lo, hi = band[c][q]
+                with np.errstate(invalid="ignore", divide="ignore"):
+                    ax.plot(tm[1:], (x / sig)[1:], f"C{i}", lw=0.9, label=c)
+                    if i == 0 or q == "horizontal":
+                        ax.plot(tm[1:], (lo / sig)[1:], f"C{i}" if q == "horizontal" else "k", ls="--", lw=0.6)
+                        ax.plot(tm[1:], (hi / sig)[1:], f"C{i}" if q == "horizontal" else "k", ls="--", lw=0.6)
+            ax.axhline(1.0, color="k", lw=0.5)
+            ax.set_ylabel(f"{_LABELS[q]}: RMS / σ")
+            ax.grid(True, alpha=0.3)
+        axs[0].legend(ncol=len(names), fontsize=8)
+        axs[-1].set_xlabel("time [min]")
+        fig.suptitle(f"Monte Carlo RMS / linear σ, N = {N}; dashed: {100 * conf:g} % χ² bounds")
+        fig.tight_layout()
+        return fig
+    return make
+
+
+def _nees_figure(names, t, nees_stats, N, conf):
+    def make():
+        import matplotlib.pyplot as plt
+
+        keys = ("truth", "filter", "filter_nav")
+        titles = {"truth": "navigation errors vs the linear truth covariance (eq (15)-(16))",
+                  "filter": "filter states vs the filter's claimed P_f",
+                  "filter_nav": "navigation errors vs the filter's claimed P_f"}
+        fig, axs = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
+        for ax, key in zip(axs, keys):
+            for i, c in enumerate(names):
+                if (c, key) not in nees_stats:
+                    continue
+                spec, mean, lo, hi, _ = nees_stats[(c, key)]
+                tm = t[spec.steps] / 60.0
+                ax.plot(tm, mean / spec.dof, f"C{i}", lw=1.0, label=f"{c} (d = {int(np.median(spec.dof))})")
+                ax.plot(tm, lo / spec.dof, f"C{i}", ls="--", lw=0.6)
+                ax.plot(tm, hi / spec.dof, f"C{i}", ls="--", lw=0.6)
+            ax.axhline(1.0, color="k", lw=0.5)
+            ax.set_yscale("log")
+            ax.set_ylabel("mean NEES / d")
+            ax.set_title(titles[key], fontsize=9)
+            ax.grid(True, which="both", alpha=0.3)
+            if ax.has_data():
+                ax.legend(fontsize=8, ncol=3)
+        axs[-1].set_xlabel("time [min]")
+        fig.suptitle(f"Average NEES over N = {N} runs (dashed: {100 * conf:g} % χ² bounds)")
+        fig.tight_layout()
+        return fig
+    return make
+
+
+__all__ = ["run", "mc_options", "QUANTITIES"]
