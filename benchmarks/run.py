@@ -1,0 +1,353 @@
+"""covtool benchmark harness: study wall times, engine GFLOP/s, speed-up over a naive reference.
+
+Run from the repository root (not part of the test suite)::
+
+    python benchmarks/run.py              # everything, ~2-4 min on a 2-core machine
+    python benchmarks/run.py --quick      # skip the as-is flagship timing
+
+Everything is measured in this one run and printed as a report:
+
+1. Large-GEMM rate of numpy: 2000×2000 float64 matmul, best of 5, with one
+   BLAS thread and with the default pool.
+2. Wall time of the flagship study (``studies/zupt_filter_order.toml``), as
+   run by ``covtool.run_study`` and with the BLAS pool limited to one thread,
+   and of the full Fig 8 sweep (``studies/zupt_sensitivity.toml``).
+3. The propagation core: :func:`covtool.engine.run_batch` over the
+   flagship's event grid for each filter with B = 27 cases (3 parameters ×
+   9 scales, the Fig 8 sweep), counting 4·n³·B FLOP per sandwich
+   ``Φ P Φᵀ`` (truth and filter).  One process with one BLAS thread against
+   the one-thread GEMM rate; two processes at once against the default
+   (two-thread) GEMM rate.
+4. Speed-up over a naive reference at equal accuracy: for every case, per
+   step, ``scipy.linalg.expm`` of the Van Loan matrix for the truth and the
+   filter, then the covariance step and the ZUPT updates, one case at a
+   time.  The naive time of one case per filter is measured and multiplied
+   by the sweep's 27 cases per filter; the engine does all 162 cases end to
+   end (batched Van Loan of the truth and filters once, composition, batched
+   propagation).  The accuracy line is the largest difference between the
+   two 30-min navigation covariances (position, velocity, tilts, azimuth),
+   relative to √(P_ii P_jj).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
+SENSITIVITY = ROOT / "studies" / "zupt_sensitivity.toml"
+FILTERS = ["A", "B1", "B2", "B3", "C", "D"]
+SCALES = np.logspace(-2, 2, 9)           # ×1/100 … ×100, 9 points (×1 included)
+B = 3 * len(SCALES)                      # P0, Q, R scaled one at a time
+
+
+def loadavg() -> str:
+    try:
+        return " ".join(f"{x:.2f}" for x in os.getloadavg())
+    except OSError:
+        return "n/a"
+
+
+def gemm_rate(threads: int | None, n: int = 2000, repeats: int = 5) -> float:
+    """Best-of-``repeats`` GFLOP/s of an n×n float64 matmul (2n³ FLOP)."""
+    from threadpoolctl import threadpool_limits
+
+    rng = np.random.default_rng(0)
+    a, b = rng.standard_normal((n, n)), rng.standard_normal((n, n))
+    with threadpool_limits(limits=threads, user_api="blas"):
+        a @ b
+        best = min(_timed(lambda: a @ b) for _ in range(repeats))
+    return 2 * n**3 / best / 1e9
+
+
+def _timed(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
+# --------------------------------------------------------------------------
+# the flagship's system, shared by the core and naive benchmarks
+# --------------------------------------------------------------------------
+
+def flagship_setup():
+    import tomllib
+
+    from covtool.studies.zupt import setup
+
+    return setup(tomllib.loads(FLAGSHIP.read_text()), path=FLAGSHIP)
+
+
+def sweep_inputs(Pf0, Rf):
+    """Pf0, Rf, q_scale of the 27 Fig 8 cases of one filter (P0, Q, R each scaled alone)."""
+    one = np.ones_like(SCALES)
+    p0 = np.concatenate([SCALES, one, one])
+    q = np.concatenate([one, SCALES, one])
+    r = np.concatenate([one, one, SCALES])
+    return p0[:, None, None] * Pf0, r[:, None, None] * Rf, q
+
+
+def core_systems(S, discretization="declared"):
+    """Truth and per-filter composed systems on the flagship's event grid (record: the end)."""
+    from covtool.discretize import van_loan
+    from covtool.engine import System, events
+    from covtool.filters import zupt_matrices
+
+    N = S.t.size - 1
+    rec = [N]
+    ev = events(N, S.update_steps, rec)
+    truth = System.from_steps(S.Phi, S.Qd, ev)
+    out = {}
+    for f in FILTERS:
+        fm, Phi_f, Qd_f = S.filter_model(f)
+        if discretization == "van_loan":
+            Phi_f, Qd_f = van_loan(fm.F, fm.Qc, np.diff(S.t))
+        out[f] = {"D": fm.D, "P0": fm.P0, "n": fm.spec.n, "form": fm.spec.update,
+                  "filt": System.from_steps(Phi_f, Qd_f, ev), "Hf": zupt_matrices(fm.names), "Rf": S.filter_R(f)}
+    return truth, out, rec
+
+
+def core_run(payload, warm: bool = True) -> tuple[float, float]:
+    """run_batch of every filter's 27 cases: (best-of-repeats seconds summed over filters, sandwich FLOP)."""
+    from threadpoolctl import threadpool_limits
+
+    from covtool.engine import run_batch
+
+    truth, filters, rec, P0, H, R, upd, repeats = payload
+    n = truth.n
+    K = len(truth.ev) - 1
+    total_t = total_f = 0.0
+    with threadpool_limits(limits=1, user_api="blas"):
+        for f, c in filters.items():
+            Pf0, Rfs, q = sweep_inputs(c["P0"], c["Rf"])
+            run = lambda: run_batch(truth, P0, H, R, c["D"], upd, rec, filt=c["filt"], Pf0=Pf0,  # noqa: E731
+                                    Hf=c["Hf"], Rf=Rfs, q_scale=q, form=c["form"])
+            if warm:
+                run()
+            total_t += min(_timed(run) for _ in range(repeats))
+            total_f += K * 4 * B * (n**3 + c["n"] ** 3)
+    return total_t, total_f
+
+
+_PAYLOAD = {}
+
+
+def _load_payload(payload) -> None:
+    """Worker initializer: keep the systems, so the timed calls send nothing large."""
+    _PAYLOAD["p"] = payload
+
+
+def _core_in_worker(repeats: int) -> tuple[int, float, float]:
+    t, f = core_run(_PAYLOAD["p"][:-1] + (repeats,), warm=False)
+    return os.getpid(), t, f
+
+
+def core_two_processes(payload) -> tuple[float, float, set]:
+    """Both workers run the whole core once at the same time: (wall seconds, FLOP, worker pids)."""
+    import multiprocessing
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"), initializer=_load_payload,
+                             initargs=(payload,)) as pool:
+        list(pool.map(_core_in_worker, [1, 1]))                   # warm-up: imports, caches
+        t0 = time.perf_counter()
+        res = list(pool.map(_core_in_worker, [1, 1]))
+        wall = time.perf_counter() - t0
+    return wall, sum(r[2] for r in res), {r[0] for r in res}
+
+
+def sandwich_rate(truth, repeats=3) -> float:
+    from threadpoolctl import threadpool_limits
+
+    from covtool.engine import sandwich
+
+    P = np.broadcast_to(np.eye(truth.n), (B, truth.n, truth.n)).copy()
+    K = len(truth.ev) - 1
+
+    def loop():
+        for i in range(K):
+            sandwich(truth.Phi[i], P)
+    with threadpool_limits(limits=1, user_api="blas"):
+        loop()
+        best = min(_timed(loop) for _ in range(repeats))
+    return K * 4 * truth.n**3 * B / best / 1e9
+
+
+# --------------------------------------------------------------------------
+# naive reference: per-step expm Van Loan, one case at a time
+# --------------------------------------------------------------------------
+
+def naive_case(S, fm, Hf, Rf, Pf0, q_scale):
+    """One case: per-step scipy expm Van Loan of truth and filter, then eq (6)-(8), (15)-(16)."""
+    from scipy.linalg import expm
+
+    from covtool.covariance import filter_update, kalman_gain, truth_update
+
+    def vl(F, Qc, dt):
+        n = F.shape[0]
+        M = np.zeros((2 * n, 2 * n))
+        M[:n, :n] = -F
+        M[:n, n:] = Qc
+        M[n:, n:] = F.T
+        E = expm(M * dt)
+        Phi = E[n:, n:].T
+        return Phi, Phi @ E[:n, n:]
+
+    dts = np.diff(S.t)
+    upd = set(int(k) for k in S.update_steps)
+    P, Pf = S.P0.copy(), Pf0.copy()
+    N = dts.size
+    for k in range(N + 1):
+        if k in upd:
+            K = kalman_gain(Pf, Hf, Rf)
+            Pf = filter_update(Pf, K, Hf, Rf, fm.spec.update)
+            P = truth_update(P, fm.D, K, S.H, S.R)
+        if k < N:
+            Phi, Qd = vl(S.dyn.F[k], S.dyn.Qc[k], dts[k])
+            Phi_f, Qd_f = vl(fm.F[k], q_scale * fm.Qc[k], dts[k])
+            P = Phi @ P @ Phi.T + Qd
+            P = 0.5 * (P + P.T)
+            Pf = Phi_f @ Pf @ Phi_f.T + Qd_f
+            Pf = 0.5 * (Pf + Pf.T)
+    return P
+
+
+def engine_sweep(S):
+    """All 162 Fig 8 cases end to end: batched Van Loan of truth and filters, compose, run_batch."""
+    from threadpoolctl import threadpool_limits
+
+    from covtool.discretize import van_loan
+    from covtool.engine import System, events, run_batch
+    from covtool.filters import zupt_matrices
+
+    out = {}
+    with threadpool_limits(limits=1, user_api="blas"):
+        t0 = time.perf_counter()
+        dts = np.diff(S.t)
+        Phi, Qd = van_loan(S.dyn.F, S.dyn.Qc, dts)
+        N = dts.size
+        ev = events(N, S.update_steps, [N])
+        truth = System.from_steps(Phi, Qd, ev)
+        for f in FILTERS:
+            fm = S.filter_model(f)[0]
+            Phi_f, Qd_f = van_loan(fm.F, fm.Qc, dts)
+            Pf0, Rfs, q = sweep_inputs(fm.P0, S.filter_R(f))
+            res = run_batch(truth, S.P0, S.H, S.R, fm.D, S.update_steps, [N], filt=System.from_steps(Phi_f, Qd_f, ev),
+                            Pf0=Pf0, Hf=zupt_matrices(fm.names), Rf=Rfs, q_scale=q, form=fm.spec.update)
+            out[f] = res.P_truth[:, 0]
+        return time.perf_counter() - t0, out
+
+
+def physical(P, q):
+    """Nav block in physical coordinates: δL, δl, δh, δv, tilts, azimuth (δq's norm direction dropped)."""
+    from covtool.quaternion import attitude_error_matrix
+
+    T = np.zeros((9, 10))
+    T[:6, :6] = np.eye(6)
+    T[6:, 6:] = attitude_error_matrix(q)
+    return T @ P @ T.T
+
+
+def rel_diff(a, b) -> float:
+    """max |a − b| / √(b_ii b_jj)."""
+    d = np.sqrt(np.abs(np.diag(b)))
+    return float(np.max(np.abs(a - b) / (d[:, None] * d[None, :] + 1e-300)))
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="skip the as-is flagship timing (BLAS pool unlimited)")
+    args = ap.parse_args(argv)
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import covtool
+
+    t_all = time.perf_counter()
+    blas = [f"{i['internal_api']} {i.get('version')} ({i['num_threads']} threads, {i.get('architecture')})"
+            for i in threadpool_info() if i["user_api"] == "blas"]
+    print("covtool benchmark report")
+    print("========================")
+    print(f"machine   : {platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
+          f"numpy {np.__version__}, BLAS {', '.join(blas) or 'n/a'}")
+    print(f"load avg  : {loadavg()} (start; other processes share this machine)")
+
+    g1 = gemm_rate(1)
+    gN = gemm_rate(None)
+    print("\n[1] numpy large GEMM, 2000x2000 float64, best of 5")
+    print(f"    1 BLAS thread        : {g1:7.1f} GFLOP/s")
+    print(f"    default pool ({os.cpu_count()} thr) : {gN:7.1f} GFLOP/s")
+
+    print("\n[2] study wall times (covtool.run_study)")
+    if not args.quick:
+        t = _timed(lambda: covtool.run_study(FLAGSHIP))
+        print(f"    flagship zupt_filter_order, as run       : {t:7.2f} s")
+    with threadpool_limits(limits=1, user_api="blas"):
+        t = _timed(lambda: covtool.run_study(FLAGSHIP))
+    print(f"    flagship zupt_filter_order, 1 BLAS thread: {t:7.2f} s")
+    t_sens = None
+    if SENSITIVITY.is_file():
+        t_sens = _timed(lambda: covtool.run_study(SENSITIVITY))
+        print(f"    full Fig 8 sweep zupt_sensitivity, as run: {t_sens:7.2f} s   (target < 10 s)")
+    else:
+        print("    studies/zupt_sensitivity.toml not found: see [4] for the engine-direct sweep")
+
+    S = flagship_setup()
+    truth, filters, rec = core_systems(S)
+    payload = (truth, filters, rec, S.P0, S.H, S.R, S.update_steps, 3)
+    t1, f1 = core_run(payload)
+    wall2, f2, pids = core_two_processes(payload)
+    core1, core2 = f1 / t1 / 1e9, f2 / wall2 / 1e9
+    sw = sandwich_rate(truth)
+    print(f"\n[3] propagation core: run_batch, 6 filters x B = {B} cases, {len(truth.ev) - 1} intervals, "
+          "4 n^3 B FLOP per sandwich")
+    print(f"    sandwich alone, 1 process            : {sw:7.1f} GFLOP/s = {sw / g1:5.1%} of 1-thread GEMM")
+    print(f"    run_batch loop, 1 process            : {core1:7.1f} GFLOP/s = {core1 / g1:5.1%} of 1-thread GEMM "
+          f"({t1:.2f} s for {f1 / 1e9:.1f} GFLOP)")
+    print(f"    run_batch loop, 2 processes at once  : {core2:7.1f} GFLOP/s = {core2 / gN:5.1%} of default-pool "
+          f"GEMM ({len(pids)} workers, {wall2:.2f} s wall; target >= 30 %)")
+
+    n_naive = len(FILTERS)
+    naive_t, diffs = {}, []
+    t_eng, eng = engine_sweep(S)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for f in FILTERS:
+            fm = S.filter_model(f)[0]
+            Hf, Rf = filters[f]["Hf"], filters[f]["Rf"]
+            Pf0, Rfs, q = sweep_inputs(fm.P0, Rf)
+            b = len(SCALES) + len(SCALES) // 2 + 1        # a mistuned case: Q_f x 10^0.5
+            t0 = time.perf_counter()
+            P = naive_case(S, fm, Hf, Rfs[b], Pf0[b], q[b])
+            naive_t[f] = time.perf_counter() - t0
+            q_end = S.nodes.q_nb[-1]
+            diffs.append(rel_diff(physical(eng[f][b], q_end), physical(P[:10, :10], q_end)))
+    naive_total = sum(B * t for t in naive_t.values())
+    print(f"\n[4] speed-up over a naive reference (per-step scipy expm Van Loan, one case at a time)")
+    print(f"    naive, measured per case             : " + ", ".join(f"{f} {t:.2f} s" for f, t in naive_t.items()))
+    print(f"    naive, {len(FILTERS)} filters x {B} cases          : {naive_total:7.1f} s "
+          f"(measured per-case time x {B}; {n_naive} cases run)")
+    print(f"    engine, all {len(FILTERS) * B} cases end to end      : {t_eng:7.2f} s "
+          "(Van Loan once per system, compose, run_batch; 1 process)")
+    print(f"    speed-up                             : {naive_total / t_eng:7.1f} x   (target >= 20 x)")
+    print(f"    accuracy: max |P_engine - P_naive| / sqrt(P_ii P_jj) at 30 min, position, velocity, tilts, "
+          f"azimuth, {n_naive} cases: {max(diffs):.1e}")
+
+    print("\nsummary (one run)")
+    if t_sens is not None:
+        print(f"    Fig 8 sweep wall time         : {t_sens:.2f} s (studies/zupt_sensitivity.toml)")
+    print(f"    Fig 8-size sweep, engine      : {t_eng:.2f} s ({len(FILTERS) * B} cases end to end, [4])")
+    print(f"    core / large GEMM             : {core1 / g1:.2f} (1 core vs 1 thread), "
+          f"{core2 / gN:.2f} (2 processes vs default pool)")
+    print(f"    engine / naive speed-up       : {naive_total / t_eng:.0f}x at max rel. difference {max(diffs):.1e}")
+    print(f"    load avg at end               : {loadavg()};  harness wall time {time.perf_counter() - t_all:.0f} s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
