@@ -10,6 +10,10 @@ from pathlib import Path
 from .errors import CovtoolError
 
 
+#: longer summaries are abbreviated on the console (the files hold every row)
+MAX_SUMMARY_ROWS = 60
+
+
 def _cmd_run(args) -> int:
     from .io.writers import write_outputs
     from .studies import run_study
@@ -30,7 +34,14 @@ def _cmd_run(args) -> int:
     files = write_outputs(result, out, figures=not args.no_figures)
     dt = time.perf_counter() - t0
     if not args.quiet:
-        print(result.summary.to_string(index=False))
+        s = result.summary
+        if len(s) <= MAX_SUMMARY_ROWS:
+            print(s.to_string(index=False))
+        else:
+            print(s.head(10).to_string(index=False))
+            print(f"... {len(s) - 10} more rows in {out / 'summary.csv'}")
+            if "pivot_cep" in result.tables:
+                print("\n" + result.tables["pivot_cep"].to_string(index=False))
         print(f"\nwrote {len(files)} files to {out}/ in {dt:.1f} s")
     return 0
 

@@ -314,7 +314,8 @@ class TradePlan:
                                                           self.r_scales):
                     cases.append({"case": n, "grade": g["name"], "grade scale": g["scale"],
                                   "ZUPT interval [min]": s / 60.0, "filter": f, "states": self.states[f],
-                                  "ZUPT sigma [ft/s]": sig / FT, "P0 scale": p0, "Q scale": q, "R scale": r,
+                                  "ZUPT sigma [ft/s]": float(f"{sig / FT:.12g}"), "P0 scale": p0,
+                                  "Q scale": q, "R scale": r,
                                   "_sigma": sig})
                     n += 1
                 self.chunks.append({"key": f"g{gi:02d}-i{ii:02d}", "decl": self.decls[(gi, ii)],
@@ -467,7 +468,7 @@ def nominal(summary: pd.DataFrame, plan: TradePlan) -> pd.DataFrame:
     for col, vals in (("P0 scale", plan.p0_scales), ("Q scale", plan.q_scales), ("R scale", plan.r_scales)):
         v = 1.0 if 1.0 in vals else min(vals, key=lambda x: abs(math.log(x)))
         sel &= summary[col] == v
-    sel &= np.isclose(summary["ZUPT sigma [ft/s]"], plan.nominal_sigma / FT, rtol=1e-12)
+    sel &= np.isclose(summary["ZUPT sigma [ft/s]"], plan.nominal_sigma / FT, rtol=1e-9)
     return summary[sel]
 
 
