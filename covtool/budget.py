@@ -40,7 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .dynamics import attitude_errors
+from .dynamics import NoiseSource, attitude_errors
 from .engine import System, run_batch, sandwich
 from .metrics import ned_position_covariance
 
@@ -89,20 +89,8 @@ class Source:
     R: np.ndarray | None = None
 
 
-@dataclass
-class NoiseFactor:
-    """Driving noise of one source: ``Q_c = G diag(psd) Gᵀ``.
-
-    Attributes
-    ----------
-    name : str
-    G : ndarray, shape (N, n, k)
-    psd : ndarray, shape (N, k)
-    """
-
-    name: str
-    G: np.ndarray
-    psd: np.ndarray
+#: a grouped driving noise ``Q_c = G diag(psd) Gᵀ`` (the same object as a dynamics noise source)
+NoiseFactor = NoiseSource
 
 
 # ---------------------------------------------------------------------------
