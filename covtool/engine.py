@@ -31,7 +31,7 @@ from threadpoolctl import threadpool_limits
 
 
 def sandwich(A: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """``A P_b Aᵀ`` for every ``b`` with one large and one batched product.
+    """``A P_b Aᵀ`` for every ``b``: one large and one batched GEMM.
 
     Parameters
     ----------
@@ -144,7 +144,7 @@ def _sym(P):
 
 
 def _selection(D: np.ndarray):
-    """``(k0, k1)`` if ``D`` maps filter state j onto truth state k0 + j, else None."""
+    """``(k0, k1)`` if ``D`` selects truth states ``k0:k1``, else None."""
     n, nf = D.shape
     cols = np.flatnonzero(D[:, 0]) if nf else []
     if len(cols) != 1 or cols[0] + nf > n:
@@ -156,7 +156,9 @@ def _selection(D: np.ndarray):
 
 
 def _joseph(P, K, HP, S, sel=None, symmetrize=True):
-    """``(I − D K H) P (I − D K H)ᵀ + D K R Kᵀ Dᵀ`` in rank-m form, in place.
+    """Joseph form / eq (16) update in rank-m form, in place.
+
+    ``(I − D K H) P (I − D K H)ᵀ + D K R Kᵀ Dᵀ``.
 
     Parameters
     ----------

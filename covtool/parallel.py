@@ -1,4 +1,4 @@
-"""Execution backends and an incremental result store for large sweeps.
+"""Execution backends and an incremental store for large sweeps.
 
 A sweep is a list of *chunks*: independent tasks, each a pure function of
 its (picklable) input that returns JSON-serialisable results.  A backend
@@ -46,11 +46,11 @@ __all__ = ["SerialBackend", "ProcessBackend", "DaskBackend", "make_backend", "ca
 
 
 class WorkerError(CovtoolError, RuntimeError):
-    """A chunk failed in a worker; the message carries the original error."""
+    """A chunk failed in a worker (the message names the cause)."""
 
 
 class StoreError(InputError):
-    """An incremental result store cannot be used (e.g. written by another study)."""
+    """An incremental store cannot be used (e.g. another study's)."""
 
 
 # --------------------------------------------------------------------------
@@ -112,7 +112,7 @@ class SerialBackend:
 
 
 class ProcessBackend(SerialBackend):
-    """Run chunks in ``workers`` local processes (one BLAS thread each).
+    """Run chunks in local processes (one BLAS thread each).
 
     Parameters
     ----------
@@ -293,7 +293,7 @@ def _fsync_dir(path: Path) -> None:
 
 
 def _write_durable(path: Path, text: str) -> None:
-    """Write ``text`` to a temporary file, fsync it, rename it into place."""
+    """Write ``text`` to a temporary file, fsync, rename into place."""
     from .io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
@@ -360,7 +360,10 @@ class ResultStore:
         return {p.name[len("chunk-"):-len(".json")] for p in self.dir.glob("chunk-*.json")}
 
     def load(self, key: str) -> dict:
-        """The stored record of chunk ``key`` (``cases``, ``result``, ``computed``)."""
+        """The stored record of chunk ``key``.
+
+        Keys: ``cases``, ``result``, ``computed``.
+        """
         return json.loads(self.path(key).read_text(encoding="utf-8"))
 
     def journal(self) -> list[dict]:

@@ -1,9 +1,10 @@
-"""Trade grid: ZUPT interval × filter × IMU grade × tuning (seed 002 §3-4, issue 4).
+"""Trade grid: ZUPT interval × filter × IMU grade × tuning.
 
-Thousands of truth-under-filter cases, grouped so that every case sharing a
-truth system runs in one batched engine call (:func:`covtool.engine.run_batch`),
-chunked over an execution backend (:mod:`covtool.parallel`) and stored
-incrementally, so that an interrupted grid resumes where it stopped.
+Seed 002 §3-4 (issue 4).  Thousands of truth-under-filter cases, grouped
+so that the cases sharing a truth system and a filter run in one batched
+engine call (:func:`covtool.engine.run_batch`), chunked over an execution
+backend (:mod:`covtool.parallel`) and stored incrementally, so that an
+interrupted grid resumes where it stopped.
 
 Study file::
 
@@ -95,7 +96,7 @@ GRADE_KEYS = ("name", "scale", "description", "override", "arw", "vrw")
 # --------------------------------------------------------------------------
 
 def _si_text(value: float, dimension: str):
-    """An SI value as a quantity string covtool parses back bit for bit."""
+    """An SI value as a quantity string that parses back exactly."""
     unit = DIMENSIONS[dimension][0]
     if value == 0 or not unit:
         return float(value)
@@ -222,7 +223,7 @@ def system_decl(decl: dict, grade_truth_decl: dict, interval: str, interval_s: f
 
 
 class TradePlan:
-    """The validated grid: chunks (one per truth system) and their cases."""
+    """The validated grid: one chunk per truth system, with its cases."""
 
     def __init__(self, decl: dict, path):
         self.path = Path(path) if path else None
@@ -463,7 +464,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
 
 def nominal(summary: pd.DataFrame, plan: TradePlan) -> pd.DataFrame:
-    """Rows at the nominal tuning (P0, Q, R scale 1 if on the grid) and ZUPT σ, last report time."""
+    """Rows of the nominal tuning and ZUPT σ at the last report time.
+
+    Nominal: P0, Q and R scale 1 (or the grid value nearest 1) and the
+    ``[zupt] sigma`` (or the first grid value).
+    """
     sel = summary["t [min]"] == summary["t [min]"].max()
     for col, vals in (("P0 scale", plan.p0_scales), ("Q scale", plan.q_scales), ("R scale", plan.r_scales)):
         v = 1.0 if 1.0 in vals else min(vals, key=lambda x: abs(math.log(x)))
@@ -473,7 +478,11 @@ def nominal(summary: pd.DataFrame, plan: TradePlan) -> pd.DataFrame:
 
 
 def pivot_tables(summary: pd.DataFrame, plan: TradePlan) -> dict:
-    """Grade × interval by filter at the nominal tuning, and each filter's spread over the tuning grid."""
+    """Pivot tables (grade × interval by filter) and tuning spread.
+
+    The pivots hold the nominal cases; ``tuning_spread`` gives each
+    filter's CEP range over every ZUPT σ and tuning of the grid.
+    """
     nom = nominal(summary, plan)
     out = {}
     for name, col in (("pivot_cep", "CEP [ft]"), ("pivot_alt_pe", "alt PE [ft]"),
@@ -508,7 +517,7 @@ def _grid_table(plan: TradePlan) -> pd.DataFrame:
 
 
 def trade_figure(summary: pd.DataFrame, plan: TradePlan):
-    """CEP and altitude PE at the report time against ZUPT interval, one panel per grade."""
+    """CEP and altitude PE against ZUPT interval, a panel per grade."""
     import matplotlib.pyplot as plt
 
     nom = nominal(summary, plan)
