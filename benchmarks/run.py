@@ -1,4 +1,4 @@
-"""covtool benchmark harness: study wall times, engine GFLOP/s, speed-up over a naive reference.
+"""covtool benchmarks: wall times, engine GFLOP/s, naive speed-up.
 
 Run from the repository root (not part of the test suite)::
 
