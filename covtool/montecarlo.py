@@ -97,8 +97,8 @@ from .model.blocks import BLOCK_KINDS, gravity_sensitivity
 
 __all__ = [
     "QUANTITIES", "REDUCED_NAV", "FeedbackFilter", "SensorFeedback", "Nees", "EnsembleCase", "EnsembleSums",
-    "run_ensemble", "simulate_chunk", "rms_bounds", "horizontal_dof", "nees_bounds", "nees_whitening",
-    "reduction_matrix", "inside_fraction",
+    "run_ensemble", "simulate_chunk", "rms_bounds", "horizontal_dof", "nees_bounds", "nees_whitening", "expected_nees",
+    "reduction_matrix", "inside_fraction", "RecordContext",
 ]
 
 #: quantities summed per grid time: NED position [m], NED velocity [m/s], tilts and azimuth [rad]
@@ -447,6 +447,43 @@ def nees_whitening(P, names, labels, steps, q, *, rtol: float = 1e-10) -> Nees:
     return Nees(tuple(labels), steps, scale, W, dof)
 
 
+def expected_nees(spec: Nees, P, names, q):
+    """Mean NEES the linear analysis predicts when the true covariance is ``P``.
+
+    Parameters
+    ----------
+    spec : Nees
+        Whitening of the covariance being tested (e.g. the filter's claim).
+    P : ndarray, shape (N+1, n, n)
+        Covariance of the actual errors of the same states (e.g. the truth
+        covariance under the filter's gains restricted to the filter's
+        states, ``Dᵀ P D``).
+    names : sequence of str
+        State names of ``P``.
+    q : ndarray, shape (N+1, 4)
+        True attitude at the grid times.
+
+    Returns
+    -------
+    mean : ndarray, shape (J,)
+        ``E[ε] = tr B`` with ``B = W Σ Wᵀ`` and ``Σ`` the scaled reduced ``P``.
+    dof : ndarray, shape (J,)
+        ``(tr B)² / tr B²``: the per-run degrees of freedom of the scaled χ²
+        with the same mean and variance as ``ε`` (Satterthwaite); equal to
+        ``spec.dof`` when ``P`` is the covariance being tested.
+    """
+    mean = np.zeros(spec.steps.size)
+    dof = np.zeros(spec.steps.size)
+    for j, k in enumerate(spec.steps):
+        T = reduction_matrix(names, spec.labels, q[k])
+        Sig = _sym(T @ P[k] @ T.T) / np.outer(spec.scale[j], spec.scale[j])
+        B = spec.W[j] @ Sig @ spec.W[j].T
+        tr = np.trace(B)
+        mean[j] = tr
+        dof[j] = tr**2 / np.sum(B * B) if tr > 0 else 1.0
+    return mean, dof
+
+
 @dataclass(frozen=True)
 class EnsembleCase:
     """One case of an ensemble run.
@@ -772,14 +809,31 @@ def horizontal_dof(P2) -> np.ndarray:
         return np.where(den > 0, num / np.where(den > 0, den, 1.0), 1.0)
 
 
-def nees_bounds(dof, n_runs: int, confidence: float = 0.95):
+def nees_bounds(dof, n_runs: int, confidence: float = 0.95, mean=None):
     """χ² bounds of the mean NEES over N runs.
 
-    ``N ε̄ ~ χ²_{N d}``: bounds ``χ²_{Nd,α/2}/N`` and ``χ²_{Nd,1−α/2}/N``.
+    Parameters
+    ----------
+    dof : array_like
+        Degrees of freedom per run ``d`` (the NEES dimension when the tested
+        covariance is the true one).
+    n_runs : int
+    confidence : float
+    mean : array_like, optional
+        Expected NEES when the tested covariance is not the true one
+        (:func:`expected_nees`; ``dof`` is then its Satterthwaite dof).
+
+    Returns
+    -------
+    lo, hi : ndarray
+        ``m χ²_{Nd,α/2}/(Nd)`` and ``m χ²_{Nd,1−α/2}/(Nd)`` with ``m = d``
+        unless given: for a consistent covariance ``N ε̄ ~ χ²_{Nd}``.
     """
     a = 1.0 - confidence
-    nd = np.asarray(dof, float) * n_runs
-    return stats.chi2.ppf(0.5 * a, nd) / n_runs, stats.chi2.ppf(1.0 - 0.5 * a, nd) / n_runs
+    d = np.asarray(dof, float)
+    m = d if mean is None else np.asarray(mean, float)
+    nd = d * n_runs
+    return m * stats.chi2.ppf(0.5 * a, nd) / nd, m * stats.chi2.ppf(1.0 - 0.5 * a, nd) / nd
 
 
 def inside_fraction(x, lo, hi, *, rtol: float = 1e-12) -> dict:

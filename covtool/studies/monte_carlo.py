@@ -64,8 +64,8 @@ from ..errors import StudyFileError
 from ..filters import zupt_matrices
 from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics, ned_position_covariance
-from ..montecarlo import (QUANTITIES, REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, horizontal_dof,
-                          inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
+from ..montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, expected_nees,
+                          horizontal_dof, inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
 from ..results import StudyResult
 from ..strapdown import MAX_SAMPLES, NAV_STATES
 from .common import ARCMIN, FT, study_header
@@ -96,9 +96,10 @@ def mc_options(decl: dict, where: str) -> dict:
     Raises
     ------
     StudyFileError
-        Missing table or ``runs``, unknown key, bad number or unit, an IMU
-        rate that does not put a whole number of navigation steps into one
-        grid step ``dt``.
+        Missing table or ``runs``, unknown key, bad number or unit, a
+        duration that is not a whole number of grid steps ``dt``, an IMU rate
+        that does not put a whole number of navigation steps into one grid
+        step.
     """
     cfg = decl.get("monte_carlo")
     if not isinstance(cfg, dict):
@@ -127,6 +128,10 @@ def mc_options(decl: dict, where: str) -> dict:
     every = (decl.get("output") or {}).get("history_every", "10 s")
     o["nees_every"] = quantity(cfg.get("nees_every", every), "time", f"{w} nees_every", StudyFileError,
                                positive=True)
+    steps = hdr["duration"] / hdr["dt"]
+    if abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
+        raise StudyFileError(f"{where}: [study] duration", f"{hdr['duration']:g} s is not a whole number of grid "
+                             f"steps dt = {hdr['dt']:g} s (the Monte Carlo grid must be uniform)")
     spr = hdr["dt"] * o["imu_rate"]
     if abs(spr - round(spr)) > 1e-6 * max(1.0, spr) or round(spr) % o["samples_per_step"]:
         raise StudyFileError(f"{w} imu_rate", f"{o['imu_rate']:g} Hz puts {spr:g} samples into one grid step "
@@ -187,9 +192,6 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     S = setup(decl, path=path, progress=progress, extra_sections=("monte_carlo",))
     t, nodes, truth = S.t, S.nodes, S.truth
     dt = float(t[1] - t[0])
-    if not np.allclose(np.diff(t), dt, rtol=0, atol=1e-9 * dt):
-        raise StudyFileError(f"{where}: [study] duration", f"{S.hdr['duration']:g} s is not a whole number of "
-                             f"grid steps dt = {dt:g} s (the Monte Carlo grid must be uniform)")
     fcfg = decl.get("filters", {})
     pure = fcfg.get("pure_ins", True)
     if not isinstance(pure, bool):
@@ -202,7 +204,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     every = opt["nees_every"]
     kk = np.arange(1, t.size)
     nees_steps = kk[np.isclose(t[kk] / every, np.round(t[kk] / every), rtol=0, atol=1e-9) | (kk == t.size - 1)]
-    lin, claimed, cases, states, pf_check = {}, {}, [], {}, {}
+    lin, claimed, cases, states, pf_check, predicted = {}, {}, [], {}, {}, {}
     if pure:
         P = propagate(S.Phi, S.Qd, S.P0)
         lin["pure_ins"] = _linear(P, nodes)
@@ -224,6 +226,10 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         nees = {"truth": nees_whitening(res.P_truth, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb),
                 "filter": nees_whitening(ff.P, ff.names, REDUCED_NAV + tuple(const), nees_steps, nodes.q_nb),
                 "filter_nav": nees_whitening(ff.P, ff.names, REDUCED_NAV, nees_steps, nodes.q_nb)}
+        # what the linear analysis predicts for the NEES of the filter's claim: the actual errors of the
+        # filter states have the truth covariance under its gains (labels are truth state names)
+        for key in ("filter", "filter_nav"):
+            predicted[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
         cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
         states[c] = len(fm.names)
         del res
@@ -283,22 +289,32 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             comp_rows.append({
                 "case": c, "quantity": q, "time points": fr["points"], "inside [%]": 100 * fr["inside"],
                 "above [%]": 100 * fr["above"], "below [%]": 100 * fr["below"],
+                "pass (>= 95 % inside)": bool(fr["inside"] >= 0.95),
                 "mean RMS/sigma": float(np.mean(x[k1] / np.where(L[q][k1] > 0, L[q][k1], np.nan))),
-                f"linear sigma at end [{unit}]": L[q][end] / f, f"MC RMS at end [{unit}]": x[end] / f,
-                f"lower bound at end [{unit}]": lo[end] / f, f"upper bound at end [{unit}]": hi[end] / f,
-                f"|MC mean| at end [{unit}]": _mean(s, q)[end] / f,
-                "dof per run at end": float(np.broadcast_to(dof, t.shape)[end]),
-                "pass (>= 95 % inside)": bool(fr["inside"] >= 0.95)})
+                "min RMS/sigma": float(np.nanmin(x[k1] / np.where(L[q][k1] > 0, L[q][k1], np.nan))),
+                "max RMS/sigma": float(np.nanmax(x[k1] / np.where(L[q][k1] > 0, L[q][k1], np.nan))),
+                "unit": unit, "linear sigma at end [unit]": L[q][end] / f, "MC RMS at end [unit]": x[end] / f,
+                "lower bound at end [unit]": lo[end] / f, "upper bound at end [unit]": hi[end] / f,
+                "|MC mean| at end [unit]": _mean(s, q)[end] / f,
+                "dof per run at end": float(np.broadcast_to(dof, t.shape)[end])})
             row[f"{q} inside [%]"] = 100 * fr["inside"]
             row[f"{q} RMS/sigma at end"] = x[end] / L[q][end] if L[q][end] > 0 else np.nan
         for key, spec in cases[names.index(c)].nees.items():
             mean = s.nees[key] / N
             lo, hi = nees_bounds(spec.dof, N, conf)
             fr = inside_fraction(mean, lo, hi)
-            nees_stats[(c, key)] = (spec, mean, lo, hi, fr)
+            pred = predicted.get((c, key))
+            if pred is not None:
+                plo, phi = nees_bounds(pred[1], N, conf, mean=pred[0])
+                pfr = inside_fraction(mean, plo, phi)
+                pred = (pred[0], plo, phi, pfr)
+            nees_stats[(c, key)] = (spec, mean, lo, hi, fr, pred)
             row[f"NEES {key}: dof"] = int(np.median(spec.dof))
             row[f"NEES {key}: mean/dof"] = float(np.mean(mean / spec.dof))
             row[f"NEES {key}: inside [%]"] = 100 * fr["inside"]
+            if pred is not None:
+                row[f"NEES {key}: linear-predicted mean/dof"] = float(np.mean(pred[0] / spec.dof))
+                row[f"NEES {key}: inside bounds of prediction [%]"] = 100 * pred[3]["inside"]
         summary_rows.append(row)
         h = {"case": c, "t [s]": t[hsel], "t [min]": t[hsel] / 60.0}
         for q, unit, f in COMPARED:
@@ -318,27 +334,33 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             h["azimuth sigma filter-claimed [arcmin]"] = claimed[c]["azimuth"][hsel] / ARCMIN
         hf = pd.DataFrame(h)
         for key in cases[names.index(c)].nees:
-            spec, mean, lo, hi, _ = nees_stats[(c, key)]
-            col = pd.Series(np.nan, index=range(t.size))
-            col[spec.steps] = mean
-            hf[f"NEES {key} mean"] = col[hsel].to_numpy()
-            for nm, arr in (("lower", lo), ("upper", hi)):
-                b = pd.Series(np.nan, index=range(t.size))
-                b[spec.steps] = arr
-                hf[f"NEES {key} {nm} bound"] = b[hsel].to_numpy()
+            spec, mean, lo, hi, _, pred = nees_stats[(c, key)]
+            cols = {"mean": mean, "lower bound": lo, "upper bound": hi}
+            if pred is not None:
+                cols.update({"linear-predicted mean": pred[0], "lower bound of prediction": pred[1],
+                             "upper bound of prediction": pred[2]})
+            for nm, arr in cols.items():
+                col = pd.Series(np.nan, index=range(t.size))
+                col[spec.steps] = arr
+                hf[f"NEES {key} {nm}"] = col[hsel].to_numpy()
         hist_frames.append(hf)
     summary = pd.DataFrame(summary_rows)
     comparison = pd.DataFrame(comp_rows)
     history = pd.concat(hist_frames, ignore_index=True)
     nees_rows = []
-    for (c, key), (spec, mean, lo, hi, fr) in nees_stats.items():
-        nees_rows.append({"case": c, "NEES": key, "covariance": "filter-claimed P_f" if key.startswith("filter")
-                          else "linear truth P (eq (15)-(16))", "states": ", ".join(spec.labels),
-                          "dof": int(np.median(spec.dof)), "time points": fr["points"],
-                          "time-mean NEES": float(np.mean(mean)), "time-mean NEES/dof": float(np.mean(mean / spec.dof)),
-                          "NEES at end": float(mean[-1]), "lower bound": float(lo[-1]), "upper bound": float(hi[-1]),
-                          "inside [%]": 100 * fr["inside"], "above [%]": 100 * fr["above"],
-                          "below [%]": 100 * fr["below"]})
+    for (c, key), (spec, mean, lo, hi, fr, pred) in nees_stats.items():
+        row = {"case": c, "NEES": key, "covariance": "filter-claimed P_f" if key.startswith("filter")
+               else "linear truth P (eq (15)-(16))", "states": " ".join(spec.labels),
+               "dof": int(np.median(spec.dof)), "time points": fr["points"],
+               "time-mean NEES": float(np.mean(mean)), "time-mean NEES/dof": float(np.mean(mean / spec.dof)),
+               "NEES at end": float(mean[-1]), "lower bound at end": float(lo[-1]),
+               "upper bound at end": float(hi[-1]), "inside [%]": 100 * fr["inside"],
+               "above [%]": 100 * fr["above"], "below [%]": 100 * fr["below"]}
+        if pred is not None:
+            row.update({"linear-predicted time-mean NEES/dof": float(np.mean(pred[0] / spec.dof)),
+                        "linear-predicted NEES at end": float(pred[0][-1]),
+                        "inside bounds of prediction [%]": 100 * pred[3]["inside"]})
+        nees_rows.append(row)
     nees_table = pd.DataFrame(nees_rows)
     chunk_seconds = [r["seconds"] for r in results]
     settings = pd.DataFrame([
@@ -459,31 +481,36 @@ def _nees_figure(names, t, nees_stats, N, conf):
         import matplotlib.pyplot as plt
 
         keys = ("truth", "filter", "filter_nav")
-        titles = {"truth": "navigation errors vs the linear truth covariance (eq (15)-(16))",
-                  "filter": "filter states vs the filter's claimed P_f",
-                  "filter_nav": "navigation errors vs the filter's claimed P_f"}
+        titles = {"truth": "navigation errors vs the linear truth covariance (eq (15)-(16)); band: χ² bounds of d",
+                  "filter": "filter states vs the filter's claimed P_f; dotted: linear prediction, dashed: its bounds",
+                  "filter_nav": "navigation errors vs the filter's claimed P_f; dotted: linear prediction"}
         fig, axs = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
         for ax, key in zip(axs, keys):
             for i, c in enumerate(names):
                 if (c, key) not in nees_stats:
                     continue
-                spec, mean, lo, hi, _ = nees_stats[(c, key)]
+                spec, mean, lo, hi, _, pred = nees_stats[(c, key)]
                 tm = t[spec.steps] / 60.0
-                ax.plot(tm, mean / spec.dof, f"C{i}", lw=1.0, label=f"{c} (d = {int(np.median(spec.dof))})")
-                ax.plot(tm, lo / spec.dof, f"C{i}", ls="--", lw=0.6)
-                ax.plot(tm, hi / spec.dof, f"C{i}", ls="--", lw=0.6)
+                d = spec.dof
+                ax.plot(tm, mean / d, f"C{i}", lw=1.0, label=f"{c} (d = {int(np.median(d))})")
+                if pred is not None:
+                    ax.plot(tm, pred[0] / d, f"C{i}", ls=":", lw=1.2)
+                    ax.plot(tm, pred[1] / d, f"C{i}", ls="--", lw=0.5)
+                    ax.plot(tm, pred[2] / d, f"C{i}", ls="--", lw=0.5)
+                if i == 0 or key != "truth":
+                    ax.fill_between(tm, lo / d, hi / d, color="0.5", alpha=0.15, lw=0)
             ax.axhline(1.0, color="k", lw=0.5)
             ax.set_yscale("log")
             ax.set_ylabel("mean NEES / d")
             ax.set_title(titles[key], fontsize=9)
             ax.grid(True, which="both", alpha=0.3)
             if ax.has_data():
-                ax.legend(fontsize=8, ncol=3)
+                ax.legend(fontsize=8, ncol=4)
         axs[-1].set_xlabel("time [min]")
-        fig.suptitle(f"Average NEES over N = {N} runs (dashed: {100 * conf:g} % χ² bounds)")
+        fig.suptitle(f"Average NEES over N = {N} runs; grey: {100 * conf:g} % χ² bounds of a consistent covariance")
         fig.tight_layout()
         return fig
     return make
 
 
-__all__ = ["run", "mc_options", "QUANTITIES"]
+__all__ = ["run", "mc_options"]

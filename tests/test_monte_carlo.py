@@ -1,0 +1,435 @@
+"""Monte Carlo validation: real feedback filters on the nonlinear INS against the linear analysis.
+
+Oracles: the linear covariance analysis itself (the same filter model gives
+the same P_f and K bit for bit; a noise-free single run follows Φ x with the
+eq (16) feedback), χ² statistics (closed-form bounds checked by sampling),
+and the block sensitivities (compensating with ĉ = x returns the ideal
+increments).  A small 31-state truth on a 5-min route keeps the suite fast;
+the full 58-state study is `studies/monte_carlo_validation.toml`.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+import covtool
+from covtool import montecarlo as mc
+from covtool.covariance import propagate_with_filter
+from covtool.errors import StudyFileError
+from covtool.filters import zupt_matrices
+from covtool.imu import ImuSimulator, SensorErrors, ideal_increments, sample_states
+from covtool.io.writers import write_outputs
+from covtool.metrics import ned_position_covariance
+from covtool.parallel import ProcessBackend, SerialBackend
+from covtool.quaternion import attitude_error_matrix
+from covtool.studies import monte_carlo as smc
+from covtool.studies.nav_covariance import load_trajectory
+from covtool.studies.zupt import setup
+
+ROOT = Path(__file__).resolve().parents[1]
+STUDY = ROOT / "studies" / "monte_carlo_validation.toml"
+
+MODEL = """
+[model]
+name = "mc_small"
+description = "31-state test truth: every kind of fed-back state (constant, Markov, AD-reset, gravity)"
+
+[[block]]
+kind = "navigation"
+position_sigma = ["0 rad", "0 rad", "0 m"]
+velocity_sigma = "0.001 ft/s"
+quaternion_sigma = ["0", "0.73e-4 rad", "0.73e-4 rad", "1.45e-3 rad"]
+angle_random_walk = "0.002 deg/sqrt(h)"
+velocity_random_walk = "5 ug/sqrt(Hz)"
+
+[[block]]
+kind = "accel_bias"
+sigma = ["20 ug", "20 ug", "30 ug"]
+
+[[block]]
+kind = "gyro_bias"
+sigma = ["0.018 deg/h", "0.018 deg/h", "0.025 deg/h"]
+
+[[block]]
+kind = "accel_scale_factor"
+sigma = "35 ppm"
+
+[[block]]
+kind = "gyro_scale_factor"
+sigma = "35 ppm"
+
+[[block]]
+kind = "gyro_markov_drift"
+sigma = "0.02 deg/h"
+process = "markov"
+tau = "120 s"
+
+[[block]]
+kind = "ad_reset_velocity"
+sigma = "0.7 mm/s"
+process = "markov"
+tau = "20 s"
+
+[[block]]
+kind = "gravity_disturbance"
+sigma = ["5 arcsec", "5 arcsec", "25 mGal"]
+process = "markov_distance"
+distance = "2 km"
+"""
+
+FILTERS = """
+[[filter]]
+name = "OPT"
+truth = "mc_small"
+description = "the truth itself: optimal, feeds back every kind of state"
+keep = "all"
+equivalent_noise = false
+
+[[filter]]
+name = "B"
+truth = "mc_small"
+keep = ["nav", "acc_bias", "gyro_bias", "acc_sf", "gyro_sf"]
+equivalent_noise = "eq11-13"
+
+[[filter]]
+name = "N"
+truth = "mc_small"
+keep = ["nav"]
+equivalent_noise = "eq11-13"
+"""
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("mc")
+    (d / "mc_small.toml").write_text(MODEL)
+    (d / "filters.toml").write_text(FILTERS)
+    return d
+
+
+def small_decl(files, **mc) -> dict:
+    """5 min on a shortened route: stops [110, 150] and [260, 300] s, ZUPTs over the last 20 s of each."""
+    return {
+        "study": {"kind": "monte_carlo", "name": "mc_test", "duration": "5 min", "dt": "1 s"},
+        "trajectory": {"builtin": "land_vehicle", "cycles": 2, "period": "150 s", "stop_duration": "40 s",
+                       "distance": "1500 m", "accel_duration": "10 s", "grade_duration": "20 s"},
+        "truth": {"model": str(files / "mc_small.toml")},
+        "filters": {"file": str(files / "filters.toml"), "cases": ["OPT", "B", "N"], "pure_ins": True},
+        "zupt": {"interval": "150 s", "duration": "20 s", "rate": "1 Hz", "sigma": "0.01 ft/s"},
+        "monte_carlo": {"runs": 60, "runs_per_chunk": 30, "seed": 7, "imu_rate": "100 Hz", "samples_per_step": 4,
+                        **mc},
+        "output": {"history_every": "10 s", "report_times": ["5 min"]},
+    }
+
+
+@pytest.fixture(scope="module")
+def small(files):
+    decl = small_decl(files)
+    return decl, setup(decl, extra_sections=("monte_carlo",))
+
+
+@pytest.fixture(scope="module")
+def study(files):
+    """The small study end to end, in-process (two chunks of 30 runs)."""
+    return covtool.run_study(small_decl(files), backend=SerialBackend())
+
+
+def _design(S, name):
+    fm, Phi_f, Qd_f = S.filter_model(name)
+    ff = mc.FeedbackFilter.design(name, fm.names, Phi_f, Qd_f, fm.P0, S.filter_R(name), S.update_steps,
+                                  form=S.specs[name].update)
+    return fm, Phi_f, Qd_f, ff
+
+
+# --------------------------------------------------------------------------
+# the filter: the same model gives the same P_f and K
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["OPT", "B", "N"])
+def test_filter_covariance_equals_linear_analysis(small, name):
+    """P_f and every K of the feedback filter equal propagate_with_filter's, bit for bit."""
+    _, S = small
+    fm, Phi_f, Qd_f, ff = _design(S, name)
+    ref = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                S.update_steps, Rf=S.filter_R(name))
+    assert np.array_equal(ff.P, ref.P_filter)
+    assert sorted(ff.gains) == sorted(ref.gains) == sorted(int(k) for k in S.update_steps)
+    assert all(np.array_equal(ff.gains[k], ref.gains[k]) for k in ff.gains)
+
+
+# --------------------------------------------------------------------------
+# sensor feedback: compensating with ĉ = x removes the injected errors
+# --------------------------------------------------------------------------
+
+
+def test_compensation_with_true_states_returns_ideal_increments(files, small):
+    """Constant, Markov, AD-reset and gravity states: Δ − h S ĉ with ĉ = x is the ideal increment.
+
+    Noise off, so every state follows its deterministic mean; 10 s at 100 Hz
+    in 1-s records while the vehicle turns and climbs.  The residual is the
+    second-order S(δf)·x (scale factors of ~200 ppm times the errors) and the
+    0.1-s process grid of the simulator.
+    """
+    decl, S = small
+    truth = S.truth
+    traj = load_trajectory(decl, "<test>", None, 1.0)
+    M, t0, T = 3, 40.0, 10.0
+    x0 = sample_states(truth, M, 5, q0=traj.sample([t0]).q_nb[0]) * 5.0       # 5 σ: well above round-off
+    sim = ImuSimulator(traj, 100.0, t0=t0, duration=T, errors=SensorErrors(truth, x0, noise=False, process_dt=0.1))
+    ideal = ideal_increments(traj, 100.0, t0=t0, duration=T)
+    fb = mc.SensorFeedback(truth, truth.names, M)
+    fb.add(x0[:, 10:])
+    rec = sim.record()
+    worst = {}
+    for a in range(0, rec.n_samples, 100):
+        part = rec.slice(a, a + 100)
+        ctx = mc.RecordContext.along(traj, part.t0, part.dt, 100)
+        dth, dv = fb.compensate(part.dtheta, part.dv, part.dt, ctx)
+        for nm, got, raw, ref in (("gyro", dth, part.dtheta, ideal.dtheta), ("accel", dv, part.dv, ideal.dv)):
+            err = np.abs(got - ref[a:a + 100]).max() / np.abs(raw - ref[a:a + 100]).max()
+            worst[nm] = max(worst.get(nm, 0.0), err)
+    assert worst["gyro"] < 1e-3 and worst["accel"] < 1e-3, worst
+
+
+# --------------------------------------------------------------------------
+# a deterministic run against the linear prediction
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name, sources", [
+    ("B", {"acc_bias_x": 300e-6 * 9.80665, "gyro_bias_z": np.radians(0.1) / 3600, "azimuth": 1e-3}),
+    ("OPT", {"gyro_markov_y": np.radians(0.2) / 3600, "acc_ad_x": 5e-3, "grav_dg": 5e-4, "acc_sf_z": 200e-6}),
+])
+def test_single_run_follows_the_linear_prediction(files, small, name, sources, capsys):
+    """Noise off, a few error sources: the nonlinear run with real feedback equals Φ x with eq (16) feedback.
+
+    The linear prediction: ``x_{k+1} = Φ_k x_k`` and, at a ZUPT,
+    ``x ← (I − D K H) x`` (noise-free measurement).  The nonlinear run uses
+    the same K on its own velocity and feeds back into the INS and the IMU
+    compensation.  Tolerance: 1.5 % of the largest value of each quantity.
+    """
+    decl, S = small
+    truth = S.truth
+    traj = load_trajectory(decl, "<test>", None, 1.0)
+    fm, _, _, ff = _design(S, name)
+    x = np.zeros(truth.n)
+    for nm, v in sources.items():
+        if nm == "azimuth":      # δq = −½ R(q0) φ for φ = (0, 0, ψ)
+            x[6:10] = np.linalg.pinv(attitude_error_matrix(traj.sample([0.0]).q_nb[0])) @ np.array([0.0, 0.0, v])
+        else:
+            x[truth.index[nm]] = v
+    x0 = x[None, :]
+    sim = ImuSimulator(traj, 100.0, duration=S.t[-1], errors=SensorErrors(truth, x0, noise=False))
+    case = mc.EnsembleCase(name, ff)
+    _, errs = mc.run_ensemble(sim, x0, [case], S.t, samples_per_step=4, R=S.R, measurement_noise=False,
+                              model=truth, record_errors=True)
+    e = errs[name][:, 0, :]
+    # linear prediction
+    H, D = S.H, fm.D
+    lin = np.empty((S.t.size, truth.n))
+    xl = x.copy()
+    for k in range(S.t.size):
+        if k in ff.gains:
+            xl = xl - D @ (ff.gains[k] @ (H @ xl))
+        lin[k] = xl
+        if k < S.t.size - 1:
+            xl = S.Phi[k] @ xl
+    n = S.nodes
+    Pn = np.stack([ned_position_covariance(np.eye(3)[None], n.lat, n.h)[:, i, i] for i in range(3)], axis=-1)
+    scale = np.sqrt(Pn)                                   # (R_M+h, (R_N+h) cos L, 1)
+    A = attitude_error_matrix(n.q_nb)
+    lines = []
+    for label, a, b in (("position", e[:, :3] * scale, lin[:, :3] * scale), ("velocity", e[:, 3:6], lin[:, 3:6]),
+                        ("attitude", np.einsum("kij,kj->ki", A, e[:, 6:10]),
+                         np.einsum("kij,kj->ki", A, lin[:, 6:10]))):
+        rel = np.abs(a - b).max() / np.abs(b).max()
+        lines.append(f"{name} {label}: max |linear| {np.abs(b).max():.4g}, max difference {100 * rel:.2f} %")
+        assert rel < 0.015, lines[-1]
+    with capsys.disabled():
+        print(f"\n[single run vs linear, {', '.join(sources)}]\n  " + "\n  ".join(lines))
+
+
+# --------------------------------------------------------------------------
+# χ² bounds
+# --------------------------------------------------------------------------
+
+
+def test_rms_and_nees_bounds_closed_forms():
+    lo, hi = mc.rms_bounds(2.0, 200)
+    assert lo == pytest.approx(2.0 * np.sqrt(stats.chi2.ppf(0.025, 200) / 200))
+    assert hi == pytest.approx(2.0 * np.sqrt(stats.chi2.ppf(0.975, 200) / 200))
+    lo2, hi2 = mc.rms_bounds(2.0, 200, 2.0)
+    assert lo < lo2 < 2.0 < hi2 < hi
+    assert mc.horizontal_dof(np.diag([4.0, 4.0])) == pytest.approx(2.0)
+    assert mc.horizontal_dof(np.diag([4.0, 0.0])) == pytest.approx(1.0)
+    assert mc.horizontal_dof(np.zeros((2, 2))) == 1.0
+    assert mc.horizontal_dof(np.array([[4.0, 1.0], [1.0, 1.0]])) == pytest.approx(
+        25.0 / (np.linalg.eigvalsh([[4.0, 1.0], [1.0, 1.0]]) ** 2).sum())
+    nlo, nhi = mc.nees_bounds(9, 200)
+    assert nlo == pytest.approx(stats.chi2.ppf(0.025, 1800) / 200) and nhi == pytest.approx(
+        stats.chi2.ppf(0.975, 1800) / 200)
+    fr = mc.inside_fraction([0.0, 1.0, 3.0, 0.5], [0.0, 0.9, 1.0, 0.6], [0.0, 1.1, 2.0, 0.7])
+    assert fr == {"inside": 0.5, "above": 0.25, "below": 0.25, "points": 4}
+
+
+def test_horizontal_bounds_cover_95_percent():
+    """Radial RMS of an elongated 2-D error: Satterthwaite bounds cover ≈ 95 %; 2N dof would not."""
+    rng = np.random.default_rng(3)
+    N, trials = 50, 20000
+    P2 = np.array([[9.0, 2.0], [2.0, 1.0]])
+    L = np.linalg.cholesky(P2)
+    x = rng.standard_normal((trials, N, 2)) @ L.T
+    rms = np.sqrt((x**2).sum(axis=-1).mean(axis=-1))
+    sig = np.sqrt(np.trace(P2))
+    lo, hi = mc.rms_bounds(sig, N, mc.horizontal_dof(P2))
+    cover = np.mean((rms >= lo) & (rms <= hi))
+    lo2, hi2 = mc.rms_bounds(sig, N, 2.0)
+    cover2 = np.mean((rms >= lo2) & (rms <= hi2))
+    assert cover == pytest.approx(0.95, abs=0.01)
+    assert cover2 < 0.92
+
+
+# --------------------------------------------------------------------------
+# the ensemble against the linear σ
+# --------------------------------------------------------------------------
+
+
+def test_small_ensemble_matches_the_linear_sigma(study, capsys):
+    """60 runs, 5 min: RMS inside χ² bounds, truth NEES ≈ 9, the optimal filter's NEES ≈ d.
+
+    The RMS curves are strongly correlated in time, so one unlucky draw can
+    leave a 95 % band for tens of seconds; the test asks for 95 % of the
+    points inside the 99 % bounds, which a model error of 25 % fails.
+    """
+    r = study
+    comp = r.tables["comparison"]
+    N = int(r.summary["runs"].iloc[0])
+    lines = []
+    for c, bands in r.data["bands"].items():
+        for q, (x, sig, _, _) in bands.items():
+            dof = r.data["linear"][c]["dof_h"] if q == "horizontal" else 1.0
+            lo, hi = mc.rms_bounds(sig, N, dof, confidence=0.99)
+            fr = mc.inside_fraction(x[1:], lo[1:], hi[1:])
+            row = comp[(comp["case"] == c) & (comp["quantity"] == q)].iloc[0]
+            lines.append(f"{c:8s} {q:10s} inside 95 %: {row['inside [%]']:5.1f} %, 99 %: {100 * fr['inside']:5.1f} %, "
+                         f"mean RMS/σ {row['mean RMS/sigma']:.3f}")
+            assert fr["inside"] >= 0.95, lines[-1]
+            b = mc.rms_bounds(1.0, N, 1.0, confidence=0.99)
+            assert b[0] < row["mean RMS/sigma"] < b[1], lines[-1]
+    nees = r.tables["nees"]
+    lines += [f"NEES {row['case']} {row['NEES']}: d = {row['dof']}, time-mean/d {row['time-mean NEES/dof']:.3f} "
+              f"(linear prediction {row.get('linear-predicted time-mean NEES/dof', np.nan):.3f}), "
+              f"inside {row['inside [%]']:.1f} %" for _, row in nees.iterrows()]
+    with capsys.disabled():
+        print(f"\n[small Monte Carlo, N = {N}]\n  " + "\n  ".join(lines))
+    truth = nees[nees["NEES"] == "truth"]
+    assert truth["time-mean NEES/dof"].between(0.9, 1.1).all() and (truth["inside [%]"] >= 90.0).all()
+    opt = nees[(nees["case"] == "OPT") & (nees["NEES"] == "filter")].iloc[0]
+    assert opt["dof"] == 9 + 12 and 0.9 < opt["time-mean NEES/dof"] < 1.1 and opt["inside [%]"] >= 90.0
+    # the eq (11)-(13) filters are pessimistic: NEES of their own claim below d, as the linear analysis predicts
+    for c in ("B", "N"):
+        for key in ("filter", "filter_nav"):
+            row = nees[(nees["case"] == c) & (nees["NEES"] == key)].iloc[0]
+            assert row["time-mean NEES/dof"] < 0.8 and row["below [%]"] == 100.0
+            assert row["time-mean NEES/dof"] == pytest.approx(row["linear-predicted time-mean NEES/dof"], rel=0.05)
+            assert row["inside bounds of prediction [%]"] >= 90.0
+
+
+def test_study_outputs(study, tmp_path):
+    """Workbook sheets, one figure per case plus ratio and NEES, provenance, filter check."""
+    r = study
+    assert list(r.summary["case"]) == ["pure_ins", "OPT", "B", "N"]
+    assert set(r.tables) == {"summary", "comparison", "nees", "history", "settings"}
+    assert r.data["filter_check"] == {"OPT": 0.0, "B": 0.0, "N": 0.0}
+    assert sum(s.n_runs for s in [r.data["sums"]["B"]]) == 60
+    files = {p.name for p in write_outputs(r, tmp_path / "out")}
+    assert {"mc_pure_ins.png", "mc_OPT.png", "mc_B.png", "mc_N.png", "mc_ratio.png", "mc_nees.png",
+            "mc_test.xlsx", "summary.csv", "history.csv"} <= files
+    from openpyxl import load_workbook
+    wb = load_workbook(tmp_path / "out" / "mc_test.xlsx")
+    assert {"summary", "comparison", "nees", "history", "settings", "provenance"} <= set(wb.sheetnames)
+
+
+def test_chunks_are_independent_of_backend_and_resume(files, tmp_path):
+    """Two local processes, and a resumed store, give the in-process sums bit for bit."""
+    decl = small_decl(files, runs=6, runs_per_chunk=3)
+    decl["filters"].update(cases=["B"], pure_ins=False)
+    r1 = covtool.run_study(decl, backend=SerialBackend())
+    with ProcessBackend(2) as be:
+        r2 = covtool.run_study(decl, backend=be, store=tmp_path / "cases")
+    s1, s2 = r1.data["sums"]["B"], r2.data["sums"]["B"]
+    assert s1.n_runs == s2.n_runs == 6
+    assert np.array_equal(s1.s2, s2.s2) and np.array_equal(s1.s1, s2.s1)
+    assert all(np.array_equal(s1.nees[k], s2.nees[k]) for k in s1.nees)
+    r3 = covtool.run_study(decl, backend=SerialBackend(), store=tmp_path / "cases", resume=True)
+    assert r3.data["stats"]["reused"] == 2 and r3.data["stats"]["computed"] == 0
+    assert np.array_equal(r3.data["sums"]["B"].s2, s1.s2)
+
+
+# --------------------------------------------------------------------------
+# study files
+# --------------------------------------------------------------------------
+
+
+def test_validation_study_declares_the_acceptance_case():
+    decl = tomllib.loads(STUDY.read_text())
+    o = smc.mc_options(decl, str(STUDY))
+    assert decl["study"]["kind"] == "monte_carlo" and o["runs"] >= 200
+    assert {"B1", "D"} <= set(decl["filters"]["cases"]) and decl["filters"]["pure_ins"] is True
+    assert decl["zupt"]["interval"] == "5 min" and decl["study"]["duration"] == "30 min"
+    assert o["navigation_rate"] == 25.0 and o["samples_per_grid_step"] == 100
+
+
+@pytest.mark.parametrize("change, match", [
+    ({"monte_carlo": None}, r"missing \[monte_carlo\] table"),
+    ({"monte_carlo": {}}, "missing required key 'runs'"),
+    ({"monte_carlo": {"runs": 10, "bogus": 1}}, "unknown key 'bogus'"),
+    ({"monte_carlo": {"runs": 1}}, r"runs: 1 is not an integer >= 2"),
+    ({"monte_carlo": {"runs": 10.5}}, "runs: 10.5 is not an integer"),
+    ({"monte_carlo": {"runs": 10, "runs_per_chunk": 0}}, "runs_per_chunk: 0 is not an integer"),
+    ({"monte_carlo": {"runs": 10, "samples_per_step": 7}}, r"samples_per_step: 7 is not an integer 1\.\.6"),
+    ({"monte_carlo": {"runs": 10, "imu_rate": "100 m/s"}}, "imu_rate"),
+    ({"monte_carlo": {"runs": 10, "imu_rate": "90 Hz"}}, "puts 90 samples into one grid step"),
+    ({"monte_carlo": {"runs": 10, "imu_rate": "100.5 Hz"}}, "must be a whole multiple of samples_per_step"),
+    ({"monte_carlo": {"runs": 10, "confidence": 1.5}}, "confidence: 1.5 is not a number between 0 and 1"),
+    ({"monte_carlo": {"runs": 10, "sensor_noise": "yes"}}, "sensor_noise: 'yes' is not true or false"),
+    ({"monte_carlo": {"runs": 10, "nees_every": "-1 s"}}, "nees_every: '-1 s' must be positive"),
+    ({"monte_carlo": {"runs": 10, "process_dt": "3 m"}}, "process_dt"),
+])
+def test_monte_carlo_table_errors(files, change, match):
+    decl = small_decl(files)
+    for k, v in change.items():
+        if v is None:
+            decl.pop(k)
+        else:
+            decl[k] = v
+    with pytest.raises(StudyFileError, match=match):
+        covtool.run_study(decl, backend=SerialBackend())
+
+
+def test_study_section_errors(files):
+    decl = small_decl(files)
+    bad = copy.deepcopy(decl)
+    bad["filters"]["cases"] = ["B", "Z"]
+    with pytest.raises(StudyFileError, match=r"\[filters\] cases: unknown filter 'Z'"):
+        covtool.run_study(bad, backend=SerialBackend())
+    bad = copy.deepcopy(decl)
+    bad["filters"].update(cases=[], pure_ins=False)
+    with pytest.raises(StudyFileError, match="nothing to run"):
+        covtool.run_study(bad, backend=SerialBackend())
+    bad = copy.deepcopy(decl)
+    bad["filters"]["pure_ins"] = "no"
+    with pytest.raises(StudyFileError, match="pure_ins: 'no' is not true or false"):
+        covtool.run_study(bad, backend=SerialBackend())
+    bad = copy.deepcopy(decl)
+    bad["study"]["duration"] = "299.5 s"
+    bad["output"]["report_times"] = ["299.5 s"]
+    with pytest.raises(StudyFileError, match="not a whole number of grid steps"):
+        covtool.run_study(bad, backend=SerialBackend())
