@@ -613,82 +613,86 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
     if abs(sim.t0 - t[0]) > 1e-9 or sim.t0 + sim.n_samples * h < t[-1] - 1e-6 * h:
         raise ValueError("the IMU simulator does not cover the grid")
     M = sim.n_runs
+    C = len(cases)
     x0 = np.asarray(x0, float)
     N = t.size - 1
     tr, rmh, rnhc, Aq = _truth_frames(sim.traj, t, sim.mounting)
     Lr = np.linalg.cholesky(np.asarray(R, float)) if measurement_noise else None
-    state0 = sim.initial_state(x0[:, :10])
+    # all cases in one navigation state: case i holds rows i·M … (i+1)·M − 1, so one strapdown
+    # step advances every run of every case (the step cost is mostly per call, not per run)
+    s0 = sim.initial_state(x0[:, :10])
+    state = sd.NavState(s0.t, *(np.concatenate([a] * C) for a in (s0.lat, s0.lon, s0.h, s0.v_n, s0.q,
+                                                                   s0.dtheta_prev, s0.dv_prev)))
     run = []
-    for c in cases:
+    for i, c in enumerate(cases):
         f = c.filter
         fb = SensorFeedback(model, f.names, M) if f is not None and any(nm not in _NAV for nm in f.names) else None
-        nav_cols = [f.names.index(nm) if nm in f.names else -1 for nm in _NAV] if f is not None else None
-        sens_cols = [f.names.index(nm) for nm in fb.names] if fb is not None else []
-        run.append({"case": c, "state": state0, "fb": fb, "nav_cols": nav_cols, "sens_cols": sens_cols,
-                    "sums": EnsembleSums.zeros(N + 1, c.nees), "nees_pos": {k: {int(s): j for j, s in
-                                                                             enumerate(v.steps)}
-                                                                         for k, v in c.nees.items()},
+        run.append({"case": c, "rows": slice(i * M, (i + 1) * M), "fb": fb,
+                    "nav_cols": [f.names.index(nm) if nm in f.names else -1 for nm in _NAV] if f else None,
+                    "sens_cols": [f.names.index(nm) for nm in fb.names] if fb is not None else [],
+                    "sums": EnsembleSums.zeros(N + 1, c.nees),
+                    "nees_pos": {key: {int(st): j for j, st in enumerate(v.steps)} for key, v in c.nees.items()},
                     "errors": np.empty((N + 1, M, 10)) if record_errors else None})
     upd_steps = sorted({k for c in cases if c.filter is not None for k in c.filter.gains})
-    noise = {}
-    if Lr is not None:
-        for k in upd_steps:
-            noise[k] = rng.standard_normal((M, 3)) @ Lr.T
+    noise = {k: rng.standard_normal((M, 3)) @ Lr.T for k in upd_steps} if Lr is not None else {}
     need_ctx = any(r["fb"] is not None and r["fb"].needs_context for r in run)
     truth_idx = model.index if model is not None else {}
 
-    def observe(r, k):
-        st = r["state"]
+    def observe(k):
         ti = sd.NavState(float(t[k]), tr.lat[k:k + 1], tr.lon[k:k + 1], tr.h[k:k + 1], tr.v_n[k:k + 1],
                          tr.q[k:k + 1], np.zeros((1, 3)), np.zeros((1, 3)))
-        e = sd.nav_errors(st, ti)
-        if r["errors"] is not None:
-            r["errors"][k] = e
-        phi = e[:, 6:10] @ Aq[k].T
-        X = np.column_stack([e[:, 0] * rmh[k], e[:, 1] * rnhc[k], -e[:, 2], e[:, 3:6], phi])
-        s = r["sums"]
-        s.s1[k] += X.sum(axis=0)
-        s.s2[k] += (X * X).sum(axis=0)
-        s.s_ne[k] += float(np.dot(X[:, 0], X[:, 1]))
-        for key, spec in r["case"].nees.items():
-            j = r["nees_pos"][key].get(k)
-            if j is None:
-                continue
-            vec = np.empty((M, len(spec.labels)))
-            for col, lab in enumerate(spec.labels):
-                if lab in REDUCED_NAV[:6]:
-                    vec[:, col] = e[:, _NAV.index(lab)]
-                elif lab in ("phiN", "phiE", "phiD"):
-                    vec[:, col] = phi[:, "NED".index(lab[-1])]
-                else:
-                    fb = r["fb"]
-                    est = fb.c[:, fb.names.index(lab)] if fb is not None and lab in fb.names else 0.0
-                    vec[:, col] = x0[:, truth_idx[lab]] - est
-            u = np.einsum("ij,mj->mi", spec.W[j], vec / spec.scale[j])
-            s.nees[key][j] += float(np.sum(u * u))
+        E = sd.nav_errors(state, ti)
+        PHI = E[:, 6:10] @ Aq[k].T
+        X_all = np.column_stack([E[:, 0] * rmh[k], E[:, 1] * rnhc[k], -E[:, 2], E[:, 3:6], PHI])
+        for r in run:
+            e, phi, X = E[r["rows"]], PHI[r["rows"]], X_all[r["rows"]]
+            if r["errors"] is not None:
+                r["errors"][k] = e
+            s = r["sums"]
+            s.s1[k] += X.sum(axis=0)
+            s.s2[k] += (X * X).sum(axis=0)
+            s.s_ne[k] += float(np.dot(X[:, 0], X[:, 1]))
+            for key, spec in r["case"].nees.items():
+                j = r["nees_pos"][key].get(k)
+                if j is None:
+                    continue
+                vec = np.empty((M, len(spec.labels)))
+                for col, lab in enumerate(spec.labels):
+                    if lab in REDUCED_NAV[:6]:
+                        vec[:, col] = e[:, _NAV.index(lab)]
+                    elif lab in ("phiN", "phiE", "phiD"):
+                        vec[:, col] = phi[:, "NED".index(lab[-1])]
+                    else:
+                        fb = r["fb"]
+                        est = fb.c[:, fb.names.index(lab)] if fb is not None and lab in fb.names else 0.0
+                        vec[:, col] = x0[:, truth_idx[lab]] - est
+                u = np.einsum("ij,mj->mi", spec.W[j], vec / spec.scale[j])
+                s.nees[key][j] += float(np.sum(u * u))
 
-    def update(r, k):
-        f = r["case"].filter
-        if f is None or k not in f.gains:
-            return
-        z = r["state"].v_n - 0.0
-        if Lr is not None:
-            z = z + noise[k]
-        xh = z @ f.gains[k].T                                           # (M, n_f)
-        dx = np.zeros((M, 10))
-        for i, col in enumerate(r["nav_cols"]):
-            if col >= 0:
-                dx[:, i] = xh[:, col]
-        r["state"] = sd.correct(r["state"], dx)
-        if r["fb"] is not None:
-            r["fb"].add(xh[:, r["sens_cols"]])
+    def update(k):
+        dx = None
+        for r in run:
+            f = r["case"].filter
+            if f is None or k not in f.gains:
+                continue
+            z = state.v_n[r["rows"]] - 0.0                              # ZUPT: the true velocity is zero
+            if Lr is not None:
+                z = z + noise[k]
+            xh = z @ f.gains[k].T                                       # x̂ = K z, (M, n_f)
+            if dx is None:
+                dx = np.zeros((C * M, 10))
+            for i, col in enumerate(r["nav_cols"]):
+                if col >= 0:
+                    dx[r["rows"], i] = xh[:, col]
+            if r["fb"] is not None:
+                r["fb"].add(xh[:, r["sens_cols"]])
+        return state if dx is None else sd.correct(state, dx)
 
     records = sim.records(chunk=spr * max(1, int(round(60.0 / dt))))
-    buf, pos, t_buf = None, 0, None
+    buf, pos = None, 0
     for k in range(N + 1):
-        for r in run:
-            update(r, k)
-            observe(r, k)
+        state = update(k)
+        observe(k)
         if k == N:
             break
         if buf is None or pos >= buf.dtheta.shape[-2]:
@@ -696,19 +700,18 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
         rec = buf.slice(pos, pos + spr)
         pos += spr
         ctx = RecordContext.along(sim.traj, rec.t0, h, spr, sim.mounting) if need_ctx else None
-        for r in run:
-            dth, dvv = rec.dtheta, rec.dv
-            if r["fb"] is not None:
-                dth, dvv = r["fb"].compensate(np.broadcast_to(dth, (M, spr, 3)), np.broadcast_to(dvv, (M, spr, 3)),
-                                              h, ctx)
-            part = type(rec)(rec.t0, h, dth, dvv)
-            hist = sd.run(r["state"], part, n, every=10**9)
-            r["state"] = hist.state(-1).replace(t=float(t[k + 1]),
-                                                dtheta_prev=np.broadcast_to(dth[..., -1, :], (M, 3)).copy(),
-                                                dv_prev=np.broadcast_to(dvv[..., -1, :], (M, 3)).copy())
-    sums = {r["case"].name: r["sums"] for r in run}
+        raw_th = np.broadcast_to(rec.dtheta, (M, spr, 3))
+        raw_dv = np.broadcast_to(rec.dv, (M, spr, 3))
+        parts = [r["fb"].compensate(raw_th, raw_dv, h, ctx) if r["fb"] is not None else (raw_th, raw_dv)
+                 for r in run]
+        dth = np.concatenate([p[0] for p in parts])
+        dvv = np.concatenate([p[1] for p in parts])
+        hist = sd.run(state, type(rec)(rec.t0, h, dth, dvv), n, every=10**9)
+        state = hist.state(-1).replace(t=float(t[k + 1]), dtheta_prev=dth[:, -1, :].copy(),
+                                       dv_prev=dvv[:, -1, :].copy())
     for r in run:
         r["sums"].n_runs = M
+    sums = {r["case"].name: r["sums"] for r in run}
     if record_errors:
         return sums, {r["case"].name: r["errors"] for r in run}
     return sums
