@@ -151,17 +151,20 @@ def _core_in_worker(repeats: int) -> tuple[int, float, float]:
 
 
 def core_two_processes(payload) -> tuple[float, float, set]:
-    """Both workers run the whole core once at the same time: (wall seconds, FLOP, worker pids)."""
+    """Both workers run the core at once: (best wall [s], FLOP, pids)."""
     import multiprocessing
     from concurrent.futures import ProcessPoolExecutor
 
     with ProcessPoolExecutor(2, mp_context=multiprocessing.get_context("spawn"), initializer=_load_payload,
                              initargs=(payload,)) as pool:
         list(pool.map(_core_in_worker, [1, 1]))                   # warm-up: imports, caches
-        t0 = time.perf_counter()
-        res = list(pool.map(_core_in_worker, [1, 1]))
-        wall = time.perf_counter() - t0
-    return wall, sum(r[2] for r in res), {r[0] for r in res}
+        walls, pids = [], set()
+        for _ in range(3):                                         # best of 3 rounds
+            t0 = time.perf_counter()
+            res = list(pool.map(_core_in_worker, [1, 1]))
+            walls.append(time.perf_counter() - t0)
+            pids |= {r[0] for r in res}
+    return min(walls), sum(r[2] for r in res), pids
 
 
 def sandwich_rate(truth, repeats=3) -> float:
@@ -321,7 +324,7 @@ def main(argv=None) -> int:
     print(f"    run_batch loop, 1 process            : {core1:7.1f} GFLOP/s = {core1 / g1:5.1%} of 1-thread GEMM "
           f"({t1:.2f} s for {f1 / 1e9:.1f} GFLOP, best of 5 per filter)")
     print(f"    run_batch loop, 2 processes at once  : {core2:7.1f} GFLOP/s = {core2 / gN:5.1%} of default-pool "
-          f"GEMM ({len(pids)} workers, {wall2:.2f} s wall; target >= 30 %)")
+          f"GEMM ({len(pids)} workers, {wall2:.2f} s wall, best of 3; target >= 30 %)")
 
     n_naive = len(FILTERS)
     naive_t, diffs = {}, []
