@@ -1,0 +1,692 @@
+"""High-dynamics flight profiles with the Trajectory interface.
+
+A flight profile is the true motion of a high-dynamics vehicle (seed 001:
+a guided vehicle with boost, manoeuvres and flight vibration) returned as a
+:class:`covtool.trajectory.Trajectory` whose :meth:`~covtool.trajectory.Trajectory.sample`
+evaluates the generating kinematics, so IMU increments and the linear
+error model see the same exact motion as for the land-vehicle profiles.
+
+Kinematics
+----------
+Four channels: speed ``s``, heading ``ψ``, flight-path pitch ``θ`` and roll
+``φ``.  A ``fly`` segment changes any of them; each change is a
+trapezoid of its *rate* (raised-cosine ramps ``S(u) = (1 − cos πu)/2`` of
+length ``transition``, a hold, and a ramp back), so every rate and its
+derivative are continuous.  The body x axis lies along the flight path
+(no angle of attack) and roll turns the body about it::
+
+    v^n = s [cos θ cos ψ, cos θ sin ψ, −sin θ] + C_b^n v_vib^b
+    q_nb = from_euler(φ + δφ, θ + δθ, ψ + δψ)
+
+A *vibration interval* adds small angular oscillations ``δφ, δθ, δψ`` (about
+body x, y, z) and a body-frame velocity oscillation ``v_vib^b`` whose
+acceleration amplitude is the declared one, both multiplied by a smooth
+on/off envelope.  ``v̇^n``, ``ω_nb^b`` (3-2-1 Euler rates, with roll) and
+hence ``f^b`` and ``ω_ib^b`` follow analytically
+(:func:`covtool.trajectory.inverse_mechanization`).
+
+Position is the only integrated quantity: ``h = h0 − ∫v_D``,
+``L = L0 + ∫v_N/(R_M + h)`` (Picard iteration) and
+``l = l0 + ∫v_E/((R_N + h) cos L)``, by spectral (Gauss–Legendre)
+integration on a knot grid that contains every breakpoint of the channels
+and is fine enough for the highest vibration frequency; positions between
+knots use the integrated interpolating polynomial through the nodes.  The
+result is exact to ~1e-14 relative.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import earth
+from . import quaternion as quat
+from .errors import TrajectoryError, UnitError
+from .trajectory import Trajectory, inverse_mechanization
+from .units import parse_quantity
+
+__all__ = ["FlightProfile", "Segment", "VibrationTone", "VibrationInterval", "flight",
+           "high_dynamics_flight", "flight_from_config", "SEGMENT_KEYS", "FLIGHT_BUILTINS"]
+
+#: flight segment kind -> allowed keys
+SEGMENT_KEYS = {
+    "stand": ("kind", "duration"),
+    "fly": ("kind", "duration", "to_speed", "to_pitch", "to_roll", "turn", "transition"),
+}
+_SEGMENT_DIMS = {"duration": "time", "to_speed": "velocity", "to_pitch": "angle", "to_roll": "angle",
+                 "turn": "angle", "transition": "time"}
+_INITIAL_DIMS = {"lat": "angle", "lon": "angle", "h": "length", "heading": "angle", "pitch": "angle"}
+_VIB_DIMS = {"start": "time", "duration": "time", "ramp": "time"}
+_TONE_DIMS = {"angular": "angle", "linear": "acceleration"}
+#: default transition of a channel change [s]
+DEFAULT_TRANSITION = 1.0
+
+# spectral integration: nodes per knot interval and the largest interval
+_NODES = 10
+_MAX_KNOT = 0.1
+
+
+def _S(u):
+    return 0.5 * (1.0 - np.cos(np.pi * u))
+
+
+@dataclass(frozen=True)
+class _Change:
+    """A trapezoid-of-rate change of one channel over ``[t0, t0 + T]``."""
+
+    t0: float
+    T: float
+    delta: float
+    Tr: float
+
+    @property
+    def peak(self) -> float:
+        return self.delta / (self.T - self.Tr)
+
+    def rate(self, tau):
+        p, Tr, T = self.peak, self.Tr, self.T
+        up = p * _S(np.clip(tau, 0.0, Tr) / Tr)
+        down = p * _S(np.clip(T - tau, 0.0, Tr) / Tr)
+        return np.where(tau < Tr, up, np.where(tau > T - Tr, down, p))
+
+    def integral(self, tau):
+        p, Tr, T = self.peak, self.Tr, self.T
+        u = np.clip(tau, 0.0, Tr) / Tr
+        first = p * Tr * 0.5 * (u - np.sin(np.pi * u) / np.pi)
+        hold = p * Tr * 0.5 + p * (tau - Tr)
+        w = np.clip(T - tau, 0.0, Tr) / Tr
+        last = self.delta - p * Tr * 0.5 * (w - np.sin(np.pi * w) / np.pi)
+        return np.where(tau < Tr, first, np.where(tau > T - Tr, last, hold))
+
+
+class _Channel:
+    """A channel: its start value and its sequence of changes."""
+
+    def __init__(self, x0: float):
+        self.x0 = float(x0)
+        self.changes: list[_Change] = []
+        self.end = float(x0)
+
+    def add(self, t0, T, delta, Tr):
+        if delta != 0.0:
+            self.changes.append(_Change(float(t0), float(T), float(delta), float(min(Tr, 0.5 * T))))
+            self.end += float(delta)
+
+    def breakpoints(self):
+        out = []
+        for c in self.changes:
+            out += [c.t0, c.t0 + c.Tr, c.t0 + c.T - c.Tr, c.t0 + c.T]
+        return out
+
+    def evaluate(self, t):
+        """Value and rate at times ``t``."""
+        x = np.full(t.shape, self.x0)
+        r = np.zeros(t.shape)
+        for c in self.changes:
+            tau = t - c.t0
+            inside = (tau > 0.0) & (tau < c.T)
+            after = tau >= c.T
+            if inside.any():
+                x[inside] += c.integral(tau[inside])
+                r[inside] += c.rate(tau[inside])
+            x[after] += c.delta
+        return x, r
+
+
+@dataclass(frozen=True)
+class Segment:
+    """One flight segment, SI values.
+
+    Attributes
+    ----------
+    kind : str
+        ``"stand"`` (at rest) or ``"fly"``.
+    duration : float
+        [s]
+    to_speed, to_pitch, to_roll : float or None
+        Target speed [m/s], flight-path pitch [rad] and roll [rad] at the end
+        of the segment (None: unchanged).  Roll is a continuous angle, so
+        ``to_roll = 2π`` is a full roll.
+    turn : float
+        Heading change (right positive). [rad]
+    transition : float
+        Ramp time of every rate change (at most half the duration). [s]
+    """
+
+    kind: str
+    duration: float
+    to_speed: float | None = None
+    to_pitch: float | None = None
+    to_roll: float | None = None
+    turn: float = 0.0
+    transition: float = DEFAULT_TRANSITION
+
+
+@dataclass(frozen=True)
+class VibrationTone:
+    """A sinusoidal vibration component.
+
+    Attributes
+    ----------
+    kind : str
+        ``"angular"``: oscillation of the roll, pitch or yaw angle (axis x,
+        y, z) with amplitude [rad]; ``"linear"``: body-frame acceleration
+        along the axis with amplitude [m/s²].
+    axis : str
+        ``"x"``, ``"y"`` or ``"z"``.
+    amplitude, frequency, phase : float
+        [rad or m/s²], [Hz], [rad].
+    """
+
+    kind: str
+    axis: str
+    amplitude: float
+    frequency: float
+    phase: float = 0.0
+
+
+@dataclass(frozen=True)
+class VibrationInterval:
+    """Vibration over ``[start, start + duration]`` with on/off ramps.
+
+    Attributes
+    ----------
+    start, duration, ramp : float
+        [s]; the envelope rises over ``ramp`` with ``S`` and falls likewise.
+    tones : tuple of VibrationTone
+    """
+
+    start: float
+    duration: float
+    ramp: float
+    tones: tuple
+
+    def envelope(self, t):
+        """Envelope ``w(t)`` and ``ẇ(t)``."""
+        tau = t - self.start
+        R, T = self.ramp, self.duration
+        u = np.clip(tau, 0.0, R) / R
+        d = np.clip(T - tau, 0.0, R) / R
+        w = np.where(tau < R, _S(u), np.where(tau > T - R, _S(d), 1.0))
+        k = 0.5 * np.pi / R
+        dw = np.where(tau < R, k * np.sin(np.pi * u), np.where(tau > T - R, -k * np.sin(np.pi * d), 0.0))
+        outside = (tau <= 0.0) | (tau >= T)
+        return np.where(outside, 0.0, w), np.where(outside, 0.0, dw)
+
+    @property
+    def max_frequency(self) -> float:
+        return max((tn.frequency for tn in self.tones), default=0.0)
+
+    def breakpoints(self):
+        s, T, R = self.start, self.duration, self.ramp
+        return [s, s + R, s + T - R, s + T]
+
+
+_AXIS = {"x": 0, "y": 1, "z": 2}
+
+
+class FlightProfile:
+    """Analytic flight kinematics (the ``_source`` of a Trajectory).
+
+    Parameters
+    ----------
+    segments : sequence of Segment
+    lat, lon, h : float
+        Start position. [rad], [rad], [m]
+    heading, pitch : float
+        Start heading and pitch (e.g. the launcher elevation). [rad]
+    vibration : sequence of VibrationInterval
+    where : str
+        Location prefix of error messages.
+
+    Raises
+    ------
+    TrajectoryError
+        A stand while moving, flying at zero speed, a non-positive duration
+        or transition, overlapping vibration intervals, a vibration before the
+        vehicle moves, a pitch beyond ±80 deg.
+    """
+
+    def __init__(self, segments, *, lat, lon, h, heading=0.0, pitch=0.0, vibration=(), where="flight"):
+        if not abs(lat) < math.radians(89.9):
+            raise TrajectoryError(f"{where}: initial: lat", f"{math.degrees(lat):g} deg is not within ±89.9 deg")
+        if not -1e4 < h < 1e5:
+            raise TrajectoryError(f"{where}: initial: h", f"{h:g} m is outside [-10 km, 100 km]")
+        if not abs(pitch) <= math.radians(80.0):
+            raise TrajectoryError(f"{where}: initial: pitch", f"{math.degrees(pitch):g} deg is not within ±80 deg")
+        if not segments:
+            raise TrajectoryError(f"{where}: segment", "expected a non-empty list of segments")
+        self.lat0, self.lon0, self.h0 = float(lat), float(lon), float(h)
+        self.speed = _Channel(0.0)
+        self.heading = _Channel(heading)
+        self.pitch = _Channel(pitch)
+        self.roll = _Channel(0.0)
+        t = 0.0
+        stands = []
+        moving_from = None
+        for i, seg in enumerate(segments):
+            w = f"{where}: segment[{i}] ({seg.kind})"
+            if not (math.isfinite(seg.duration) and seg.duration > 0):
+                raise TrajectoryError(f"{w}: duration", f"must be positive, got {seg.duration:g} s")
+            T = float(seg.duration)
+            if seg.kind == "stand":
+                if self.speed.end != 0.0:
+                    raise TrajectoryError(w, f"the vehicle is moving ({self.speed.end:.6g} m/s); "
+                                          "a stand needs zero speed")
+                stands.append((t, t + T))
+            elif seg.kind == "fly":
+                if not (math.isfinite(seg.transition) and seg.transition > 0):
+                    raise TrajectoryError(f"{w}: transition", f"must be positive, got {seg.transition:g} s")
+                Tr = seg.transition
+                if self.speed.end == 0.0 and not (seg.to_speed or 0.0) > 0:
+                    raise TrajectoryError(w, "flying at zero speed; give a positive 'to_speed' or use "
+                                          "kind = 'stand'")
+                if seg.to_speed is not None:
+                    if seg.to_speed < 0:
+                        raise TrajectoryError(f"{w}: to_speed", f"{seg.to_speed:g} m/s must not be negative")
+                    self.speed.add(t, T, seg.to_speed - self.speed.end, Tr)
+                if seg.to_pitch is not None:
+                    if not abs(seg.to_pitch) <= math.radians(80.0):
+                        raise TrajectoryError(f"{w}: to_pitch",
+                                              f"{math.degrees(seg.to_pitch):g} deg is not within ±80 deg")
+                    self.pitch.add(t, T, seg.to_pitch - self.pitch.end, Tr)
+                if seg.to_roll is not None:
+                    self.roll.add(t, T, seg.to_roll - self.roll.end, Tr)
+                self.heading.add(t, T, seg.turn, Tr)
+                if moving_from is None:
+                    moving_from = t
+            else:
+                raise TrajectoryError(w, f"unknown segment kind {seg.kind!r} (one of: fly, stand)")
+            t += T
+        self.span = (0.0, t)
+        self.stands = tuple(stands)
+        vib = sorted(vibration, key=lambda v: v.start)
+        for k, v in enumerate(vib):
+            w = f"{where}: vibration[{k}]"
+            if not (v.duration > 0 and v.ramp > 0 and 2.0 * v.ramp <= v.duration):
+                raise TrajectoryError(w, f"needs duration > 0 and 0 < ramp <= duration/2 "
+                                      f"(got duration {v.duration:g} s, ramp {v.ramp:g} s)")
+            if v.start < 0 or v.start + v.duration > t + 1e-9:
+                raise TrajectoryError(w, f"[{v.start:g}, {v.start + v.duration:g}] s is outside the "
+                                      f"flight [0, {t:g}] s")
+            if any(a < v.start + v.duration and v.start < b for a, b in stands):
+                raise TrajectoryError(w, "overlaps a stand segment (vibration is a flight environment)")
+            if k and v.start < vib[k - 1].start + vib[k - 1].duration:
+                raise TrajectoryError(w, "overlaps the previous vibration interval")
+            for j, tn in enumerate(v.tones):
+                if tn.kind not in _TONE_DIMS:
+                    raise TrajectoryError(f"{w}: tone[{j}]", f"kind {tn.kind!r} is not 'angular' or 'linear'")
+                if tn.axis not in _AXIS:
+                    raise TrajectoryError(f"{w}: tone[{j}]", f"axis {tn.axis!r} is not 'x', 'y' or 'z'")
+                if not tn.frequency > 0:
+                    raise TrajectoryError(f"{w}: tone[{j}]", f"frequency {tn.frequency:g} Hz must be positive")
+        self.vibration = tuple(vib)
+        br = [0.0, t]
+        for ch in (self.speed, self.heading, self.pitch, self.roll):
+            br += ch.breakpoints()
+        for v in self.vibration:
+            br += v.breakpoints()
+        br = np.unique(np.clip(np.array(br), 0.0, t))
+        self.breakpoints = br
+        knots = [br[:1]]
+        for a, b in zip(br[:-1], br[1:]):
+            # inside a vibration interval a knot interval spans at most 1/6 of the fastest period
+            step = _MAX_KNOT
+            for v in self.vibration:
+                if a < v.start + v.duration and v.start < b:
+                    step = min(step, 1.0 / (6.0 * v.max_frequency))
+            n = max(1, int(math.ceil((b - a) / step - 1e-9)))
+            knots.append(a + (b - a) * np.arange(1, n + 1) / n)
+        knots = np.concatenate(knots)
+        self._knots = knots[np.concatenate([[True], np.diff(knots) > 1e-12])]
+        self._integrate()
+
+    # ---- kinematics ------------------------------------------------------
+    @property
+    def max_frequency(self) -> float:
+        """Highest vibration frequency. [Hz]"""
+        return max((v.max_frequency for v in self.vibration), default=0.0)
+
+    def stationary(self):
+        """Closed intervals of the stand segments. [s]"""
+        out = []
+        for a, b in self.stands:
+            if out and abs(out[-1][1] - a) < 1e-9:
+                out[-1] = (out[-1][0], b)
+            else:
+                out.append((a, b))
+        return tuple(out)
+
+    def _vibration(self, t):
+        """Angle offsets, their rates, body velocity and acceleration."""
+        ang = np.zeros(t.shape + (3,))
+        dang = np.zeros(t.shape + (3,))
+        vb = np.zeros(t.shape + (3,))
+        ab = np.zeros(t.shape + (3,))
+        for v in self.vibration:
+            m = (t > v.start) & (t < v.start + v.duration)
+            if not m.any():
+                continue
+            tt = t[m]
+            w, dw = v.envelope(tt)
+            for tn in v.tones:
+                k = _AXIS[tn.axis]
+                om = 2.0 * math.pi * tn.frequency
+                arg = om * tt + tn.phase
+                if tn.kind == "angular":
+                    ang[m, k] += w * tn.amplitude * np.sin(arg)
+                    dang[m, k] += tn.amplitude * (dw * np.sin(arg) + w * om * np.cos(arg))
+                else:
+                    vb[m, k] += -w * tn.amplitude / om * np.cos(arg)
+                    ab[m, k] += tn.amplitude * (-dw / om * np.cos(arg) + w * np.sin(arg))
+        return ang, dang, vb, ab
+
+    def _motion(self, t):
+        """Velocity, its rate, attitude and body rate (no position)."""
+        s, ds = self.speed.evaluate(t)
+        psi, dpsi = self.heading.evaluate(t)
+        th, dth = self.pitch.evaluate(t)
+        ph, dph = self.roll.evaluate(t)
+        cp, sp, ct, st = np.cos(psi), np.sin(psi), np.cos(th), np.sin(th)
+        u = np.stack([ct * cp, ct * sp, -st], axis=-1)
+        du = np.stack([-st * cp * dth - ct * sp * dpsi, -st * sp * dth + ct * cp * dpsi, -ct * dth], axis=-1)
+        v_n = s[:, None] * u
+        dv_n = ds[:, None] * u + s[:, None] * du
+        ang, dang, vb, ab = self._vibration(t)
+        roll, pitch, yaw = ph + ang[:, 0], th + ang[:, 1], psi + ang[:, 2]
+        droll, dpitch, dyaw = dph + dang[:, 0], dth + dang[:, 1], dpsi + dang[:, 2]
+        q = quat.from_euler(roll, pitch, yaw)
+        sr, cr = np.sin(roll), np.cos(roll)
+        spp, cpp = np.sin(pitch), np.cos(pitch)
+        w_nb = np.stack([droll - dyaw * spp, dpitch * cr + dyaw * sr * cpp, -dpitch * sr + dyaw * cr * cpp], -1)
+        if self.vibration:
+            C = quat.dcm(q)
+            v_n = v_n + np.einsum("kij,kj->ki", C, vb)
+            dv_n = dv_n + np.einsum("kij,kj->ki", C, ab + np.cross(w_nb, vb))
+        return v_n, dv_n, q, w_nb
+
+    # ---- position ----------------------------------------------------------
+    def _integrate(self):
+        x, w = np.polynomial.legendre.leggauss(_NODES)
+        u = 0.5 * (1.0 + x)
+        self._u, self._w = u, 0.5 * w
+        # integrated Lagrange basis through the nodes: B_j(s) = ∫_0^s ℓ_j, as polynomial coefficients
+        V = np.vander(u, _NODES, increasing=True)                       # ℓ_j = Σ_p c_pj s^p
+        coef = np.linalg.solve(V, np.eye(_NODES))                        # (p, j)
+        icoef = np.zeros((_NODES + 1, _NODES))
+        icoef[1:] = coef / np.arange(1, _NODES + 1)[:, None]
+        self._icoef = icoef
+        S = np.vander(u, _NODES + 1, increasing=True) @ icoef            # (i, j): ∫_0^{u_i} ℓ_j
+        a = self._knots[:-1]
+        d = np.diff(self._knots)
+        self._dk = d
+        tn = (a[:, None] + d[:, None] * u[None, :]).ravel()
+        v_n = self._motion(tn)[0].reshape(a.size, _NODES, 3)
+        K = a.size
+
+        def integrate(g, x0):
+            knot = x0 + np.concatenate([[0.0], np.cumsum(d * (g @ self._w))])
+            nodes = knot[:-1, None] + d[:, None] * (g @ S.T)
+            return knot, nodes
+
+        gh = -v_n[..., 2]
+        h_k, h_nodes = integrate(gh, self.h0)
+        lat_nodes = np.full((K, _NODES), self.lat0)
+        for _ in range(8):
+            rm, _rn = earth.radii(lat_nodes)
+            gL = v_n[..., 0] / (rm + h_nodes)
+            L_k, new = integrate(gL, self.lat0)
+            change = np.max(np.abs(new - lat_nodes))
+            lat_nodes = new
+            if change < 1e-16:
+                break
+        rm, rn = earth.radii(lat_nodes)
+        gL = v_n[..., 0] / (rm + h_nodes)
+        gl = v_n[..., 1] / ((rn + h_nodes) * np.cos(lat_nodes))
+        gd = np.linalg.norm(v_n, axis=-1)
+        l_k, _ = integrate(gl, self.lon0)
+        d_k, _ = integrate(gd, 0.0)
+        self._pos = {"h": (h_k, gh), "lat": (L_k, gL), "lon": (l_k, gl), "distance": (d_k, gd)}
+
+    def position(self, t):
+        """Latitude, longitude, height and distance at times ``t``."""
+        k = np.clip(np.searchsorted(self._knots, t, side="right") - 1, 0, self._dk.size - 1)
+        s = (t - self._knots[k]) / self._dk[k]
+        B = np.vander(s, _NODES + 1, increasing=True) @ self._icoef      # (N, j)
+        out = {}
+        for key, (knot, g) in self._pos.items():
+            out[key] = knot[k] + self._dk[k] * np.einsum("nj,nj->n", B, g[k])
+        return out
+
+    def evaluate(self, t):
+        """Trajectory fields (except ``t``) at times ``t``."""
+        t = np.asarray(t, dtype=float)
+        v_n, dv_n, q, w_nb = self._motion(t)
+        p = self.position(t)
+        f_b, w_ib_b = inverse_mechanization(p["lat"], p["h"], v_n, dv_n, q, w_nb)
+        return dict(lat=p["lat"], lon=p["lon"], h=p["h"], v_n=v_n, q_nb=q, f_b=f_b, w_ib_b=w_ib_b,
+                    distance=p["distance"])
+
+
+def flight(segments, *, lat, lon, h, heading=0.0, pitch=0.0, vibration=(), dt=0.1, name="flight",
+           where="flight") -> Trajectory:
+    """A flight profile as a Trajectory.
+
+    Parameters
+    ----------
+    segments : sequence of Segment
+    lat, lon, h, heading, pitch : float
+        Start position and attitude (roll 0). [rad], [m]
+    vibration : sequence of VibrationInterval
+    dt : float
+        Step of the returned grid (sampling is exact at any time). [s]
+    name, where : str
+        Label and error-message prefix.
+
+    Returns
+    -------
+    Trajectory
+        With ``_source`` the :class:`FlightProfile`; its ``max_frequency``
+        tells an IMU simulator how many quadrature nodes it needs.
+    """
+    if not (math.isfinite(dt) and dt > 0):
+        raise TrajectoryError(f"{where}: dt", f"must be positive, got {dt!r}")
+    prof = FlightProfile(segments, lat=lat, lon=lon, h=h, heading=heading, pitch=pitch, vibration=vibration,
+                         where=where)
+    t0, t1 = prof.span
+    n = int(math.floor((t1 - t0) / dt + 1e-9))
+    t = t0 + dt * np.arange(n + 1)
+    if t1 - t[-1] > 1e-9 * max(1.0, t1):
+        t = np.append(t, t1)
+    else:
+        t[-1] = t1
+    return Trajectory(t=t, **prof.evaluate(t), stationary=prof.stationary(), name=name, _source=prof)
+
+
+#: the built-in profile's segments (datasheet units), see :func:`high_dynamics_flight`
+HIGH_DYNAMICS_SEGMENTS = (
+    {"kind": "stand", "duration": "12 s"},
+    {"kind": "fly", "duration": "6 s", "to_speed": "650 m/s", "turn": "25 deg", "transition": "1 s"},
+    {"kind": "fly", "duration": "4 s", "to_pitch": "0 deg", "to_speed": "640 m/s", "transition": "1 s"},
+    {"kind": "fly", "duration": "3 s", "to_roll": "360 deg", "transition": "0.5 s"},
+    {"kind": "fly", "duration": "1.5 s", "to_roll": "420 deg", "transition": "0.5 s"},
+    {"kind": "fly", "duration": "5 s", "turn": "60 deg", "transition": "1 s"},
+    {"kind": "fly", "duration": "1.5 s", "to_roll": "360 deg", "transition": "0.5 s"},
+    {"kind": "fly", "duration": "10 s", "turn": "-10 deg", "transition": "2 s"},
+    {"kind": "fly", "duration": "5 s", "to_speed": "800 m/s", "turn": "-40 deg", "transition": "1 s"},
+    {"kind": "fly", "duration": "3 s", "to_pitch": "15 deg", "transition": "1 s"},
+    {"kind": "fly", "duration": "3 s", "to_pitch": "0 deg", "transition": "1 s"},
+    {"kind": "fly", "duration": "4 s", "turn": "45 deg", "to_speed": "780 m/s", "transition": "1 s"},
+    {"kind": "fly", "duration": "4 s", "turn": "-45 deg", "transition": "1 s"},
+    {"kind": "fly", "duration": "5 s", "to_speed": "760 m/s"},
+)
+#: the built-in profile's vibration interval (during the 10 s cruise)
+HIGH_DYNAMICS_VIBRATION = {
+    "start": "33 s", "duration": "10 s", "ramp": "1 s",
+    "tone": [
+        {"kind": "angular", "axis": "x", "amplitude": "0.2 mrad", "frequency": "17 Hz"},
+        {"kind": "angular", "axis": "y", "amplitude": "0.15 mrad", "frequency": "23 Hz"},
+        {"kind": "angular", "axis": "z", "amplitude": "0.1 mrad", "frequency": "29 Hz"},
+        {"kind": "linear", "axis": "x", "amplitude": "1 g", "frequency": "13 Hz"},
+        {"kind": "linear", "axis": "y", "amplitude": "0.5 g", "frequency": "19 Hz"},
+        {"kind": "linear", "axis": "z", "amplitude": "0.8 g", "frequency": "31 Hz"},
+    ],
+}
+#: the built-in profile's start (a launcher at 36.37 N, 127.36 E)
+HIGH_DYNAMICS_INITIAL = {"lat": "36.37 deg", "lon": "127.36 deg", "h": "60 m", "heading": "45 deg",
+                         "pitch": "10 deg"}
+
+
+def high_dynamics_flight(*, dt=0.1, vibration=True, name="high_dynamics_flight") -> Trajectory:
+    """Built-in high-dynamics flight (seed 001's verification flight).
+
+    A 12 s stand on a launcher at 10 deg elevation (alignment), a 6 s boost
+    to 650 m/s (about 11 g) with a 25 deg heading change, pitch-over, a
+    full roll at ~180 deg/s, a 60 deg bank with a 60 deg turn (~14 g), a
+    10 s cruise with flight vibration (angular and linear tones, 13–31 Hz),
+    a 3 g sustain boost with a 40 deg turn, a pull-up and S-turns: 67 s.
+
+    Parameters
+    ----------
+    dt : float
+        Grid step. [s]
+    vibration : bool
+        Include the vibration interval.
+    name : str
+
+    Returns
+    -------
+    Trajectory
+    """
+    cfg = {"segment": [dict(s) for s in HIGH_DYNAMICS_SEGMENTS], "initial": dict(HIGH_DYNAMICS_INITIAL)}
+    if vibration:
+        cfg["vibration"] = [dict(HIGH_DYNAMICS_VIBRATION)]
+    return flight_from_config(cfg, where="high_dynamics_flight", dt=dt, name=name)
+
+
+#: built-in flight profiles
+FLIGHT_BUILTINS = {"high_dynamics_flight": high_dynamics_flight}
+
+
+def _q(value, dim, where):
+    try:
+        return parse_quantity(value, dim, where=where)
+    except UnitError as exc:
+        raise TrajectoryError(exc.where, exc.problem) from None
+
+
+def _check(d, allowed, where):
+    if not isinstance(d, dict):
+        raise TrajectoryError(where, f"expected a table, got {type(d).__name__}")
+    for k in d:
+        if k not in allowed:
+            raise TrajectoryError(where, f"unknown key {k!r} (allowed: {', '.join(sorted(allowed))})")
+
+
+def flight_from_config(cfg: dict, *, where: str, dt: float, name: str | None = None) -> Trajectory:
+    """Flight profile from a study-file table.
+
+    Parameters
+    ----------
+    cfg : dict
+        ``{builtin = "high_dynamics_flight", vibration = true}`` or
+        ``{segment = [...], initial = {...}, vibration = [...]}`` with
+        datasheet units: segments ``{kind = "fly", duration, to_speed,
+        to_pitch, to_roll, turn, transition}`` or ``{kind = "stand",
+        duration}``; ``initial`` ``lat, lon, h`` (required), ``heading``,
+        ``pitch``; vibration intervals ``{start, duration, ramp, tone = [{kind,
+        axis, amplitude, frequency, phase}]}``.  ``name`` optional.
+    where : str
+        Error-message prefix (``"studies/x.toml: [trajectory]"``).
+    dt : float
+        Grid step. [s]
+    name : str, optional
+        Label (overrides ``cfg["name"]``).
+
+    Returns
+    -------
+    Trajectory
+
+    Raises
+    ------
+    TrajectoryError
+        Naming ``where``, the key and the problem.
+    """
+    _check(cfg, {"builtin", "segment", "initial", "vibration", "name"}, where)
+    label = name or cfg.get("name") or "flight"
+    if not isinstance(label, str):
+        raise TrajectoryError(f"{where}: name", f"{label!r} is not a string")
+    if "builtin" in cfg:
+        extra = set(cfg) - {"builtin", "vibration", "name"}
+        if extra:
+            raise TrajectoryError(where, f"'builtin' takes only 'vibration' and 'name' (got {sorted(extra)})")
+        b = cfg["builtin"]
+        if b not in FLIGHT_BUILTINS:
+            raise TrajectoryError(f"{where}: builtin", f"unknown flight profile {b!r} (one of: "
+                                  f"{', '.join(sorted(FLIGHT_BUILTINS))})")
+        vib = cfg.get("vibration", True)
+        if not isinstance(vib, bool):
+            raise TrajectoryError(f"{where}: vibration", f"{vib!r} is not true or false")
+        return FLIGHT_BUILTINS[b](dt=dt, vibration=vib, name=cfg.get("name") or b)
+    for key in ("segment", "initial"):
+        if key not in cfg:
+            raise TrajectoryError(where, f"missing required key {key!r} (or give 'builtin')")
+    init = cfg["initial"]
+    _check(init, set(_INITIAL_DIMS), f"{where}: initial")
+    iv = {}
+    for key, dim in _INITIAL_DIMS.items():
+        if key in init:
+            iv[key] = _q(init[key], dim, f"{where}: initial: {key}")
+        elif key in ("lat", "lon", "h"):
+            raise TrajectoryError(f"{where}: initial", f"missing required key {key!r}")
+    segs = cfg["segment"]
+    if not isinstance(segs, list) or not segs:
+        raise TrajectoryError(f"{where}: segment", "expected a non-empty list of segments")
+    segments = []
+    for i, s in enumerate(segs):
+        w = f"{where}: segment[{i}]"
+        if not isinstance(s, dict):
+            raise TrajectoryError(w, f"expected a table, got {type(s).__name__}")
+        kind = s.get("kind")
+        if kind not in SEGMENT_KEYS:
+            raise TrajectoryError(w, f"unknown segment kind {kind!r} (one of: {', '.join(sorted(SEGMENT_KEYS))})")
+        w = f"{w} ({kind})"
+        _check(s, SEGMENT_KEYS[kind], w)
+        if "duration" not in s:
+            raise TrajectoryError(w, "missing required key 'duration'")
+        v = {k: _q(x, _SEGMENT_DIMS[k], f"{w}: {k}") for k, x in s.items() if k != "kind"}
+        segments.append(Segment(kind, v["duration"], v.get("to_speed"), v.get("to_pitch"), v.get("to_roll"),
+                                v.get("turn", 0.0), v.get("transition", DEFAULT_TRANSITION)))
+    vib_cfg = cfg.get("vibration", [])
+    if isinstance(vib_cfg, dict):
+        vib_cfg = [vib_cfg]
+    if not isinstance(vib_cfg, list):
+        raise TrajectoryError(f"{where}: vibration", "expected a table or a list of tables")
+    vibration = []
+    for k, vc in enumerate(vib_cfg):
+        w = f"{where}: vibration[{k}]"
+        _check(vc, set(_VIB_DIMS) | {"tone"}, w)
+        for key in ("start", "duration", "tone"):
+            if key not in vc:
+                raise TrajectoryError(w, f"missing required key {key!r}")
+        vv = {key: _q(vc[key], dim, f"{w}: {key}") for key, dim in _VIB_DIMS.items() if key in vc}
+        tones = []
+        if not isinstance(vc["tone"], list) or not vc["tone"]:
+            raise TrajectoryError(f"{w}: tone", "expected a non-empty list of tones")
+        for j, tc in enumerate(vc["tone"]):
+            wt = f"{w}: tone[{j}]"
+            _check(tc, {"kind", "axis", "amplitude", "frequency", "phase"}, wt)
+            for key in ("kind", "axis", "amplitude", "frequency"):
+                if key not in tc:
+                    raise TrajectoryError(wt, f"missing required key {key!r}")
+            if tc["kind"] not in _TONE_DIMS:
+                raise TrajectoryError(f"{wt}: kind", f"{tc['kind']!r} is not 'angular' or 'linear'")
+            tones.append(VibrationTone(tc["kind"], tc["axis"], _q(tc["amplitude"], _TONE_DIMS[tc["kind"]],
+                                                                   f"{wt}: amplitude"),
+                                       _q(tc["frequency"], "frequency", f"{wt}: frequency"),
+                                       _q(tc.get("phase", 0.0), "angle", f"{wt}: phase")))
+        vibration.append(VibrationInterval(vv["start"], vv["duration"], vv.get("ramp", 1.0), tuple(tones)))
+    return flight(segments, lat=iv["lat"], lon=iv["lon"], h=iv["h"], heading=iv.get("heading", 0.0),
+                  pitch=iv.get("pitch", 0.0), vibration=vibration, dt=dt, name=label, where=where)
