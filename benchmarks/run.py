@@ -8,8 +8,9 @@ Run from the repository root (not part of the test suite)::
 Everything is measured in this one run and printed as a report:
 
 1. Large-GEMM rate of numpy: 2000×2000 float64 matmul, best of 5, with one
-   BLAS thread and with the default pool; measured again before and after
-   [3], and the highest rate is the reference of [3]'s ratios.
+   BLAS thread and with the default pool; measured again in every round of
+   [3] (interleaved with the core), and the highest rate is the reference
+   of [3]'s ratios: the machine is shared, so both sides are best-of.
 2. Wall time of the flagship study (``studies/zupt_filter_order.toml``), as
    run by ``covtool.run_study`` and with the BLAS pool limited to one thread,
    and of the full Fig 8 sweep (``studies/zupt_sensitivity.toml``).
@@ -115,8 +116,8 @@ def core_systems(S, discretization="declared"):
     return truth, out, rec
 
 
-def core_run(payload, warm: bool = True) -> tuple[float, float]:
-    """run_batch of every filter's 27 cases: (best-of-repeats seconds summed over filters, sandwich FLOP)."""
+def core_times(payload, warm: bool = True) -> tuple[dict, float]:
+    """run_batch of every filter's 27 cases: (best-of-repeats seconds per filter, sandwich FLOP)."""
     from threadpoolctl import threadpool_limits
 
     from covtool.engine import run_batch
@@ -124,7 +125,7 @@ def core_run(payload, warm: bool = True) -> tuple[float, float]:
     truth, filters, rec, P0, H, R, upd, repeats = payload
     n = truth.n
     K = len(truth.ev) - 1
-    total_t = total_f = 0.0
+    times, total_f = {}, 0.0
     with threadpool_limits(limits=1, user_api="blas"):
         for f, c in filters.items():
             Pf0, Rfs, q = sweep_inputs(c["P0"], c["Rf"])
@@ -132,9 +133,15 @@ def core_run(payload, warm: bool = True) -> tuple[float, float]:
                                     Hf=c["Hf"], Rf=Rfs, q_scale=q, form=c["form"])
             if warm:
                 run()
-            total_t += min(_timed(run) for _ in range(repeats))
+            times[f] = min(_timed(run) for _ in range(repeats))
             total_f += K * 4 * B * (n**3 + c["n"] ** 3)
-    return total_t, total_f
+    return times, total_f
+
+
+def core_run(payload, warm: bool = True) -> tuple[float, float]:
+    """run_batch of every filter's 27 cases: (seconds summed over filters, sandwich FLOP)."""
+    times, flop = core_times(payload, warm)
+    return sum(times.values()), flop
 
 
 _PAYLOAD = {}
@@ -307,8 +314,13 @@ def main(argv=None) -> int:
     payload = (truth, filters, rec, S.P0, S.H, S.R, S.update_steps, 3)
     # GEMM again next to the core: the machine is shared, so both are best-of and the
     # ratio uses the highest GEMM rate seen in this run (the conservative choice)
-    g1s, gNs = [g1, gemm_rate(1)], [gN, gemm_rate(None)]
-    t1, f1 = core_run(payload[:-1] + (5,))
+    g1s, gNs = [g1], [gN, gemm_rate(None)]
+    best: dict = {}
+    for _ in range(5):                       # interleaved rounds: GEMM shots, then the core
+        g1s.append(gemm_rate(1, repeats=2))
+        times, f1 = core_times(payload[:-1] + (1,))
+        best = {f: min(t, best.get(f, np.inf)) for f, t in times.items()}
+    t1 = sum(best.values())
     wall2, f2, pids = core_two_processes(payload)
     sw = sandwich_rate(truth, repeats=5)
     g1s.append(gemm_rate(1))
@@ -317,12 +329,11 @@ def main(argv=None) -> int:
     core1, core2 = f1 / t1 / 1e9, f2 / wall2 / 1e9
     print(f"\n[3] propagation core: run_batch, 6 filters x B = {B} cases, {len(truth.ev) - 1} intervals, "
           "4 n^3 B FLOP per sandwich")
-    print(f"    large GEMM measured at start/before/after: 1 thread "
-          f"{' / '.join(f'{x:.1f}' for x in g1s)}, default pool {' / '.join(f'{x:.1f}' for x in gNs)} GFLOP/s; "
-          "ratios use the highest")
+    print(f"    large GEMM, 1 thread, at start, in each core round, after: {' / '.join(f'{x:.1f}' for x in g1s)}; "
+          f"default pool: {' / '.join(f'{x:.1f}' for x in gNs)} GFLOP/s; ratios use the highest")
     print(f"    sandwich alone, 1 process            : {sw:7.1f} GFLOP/s = {sw / g1:5.1%} of 1-thread GEMM")
     print(f"    run_batch loop, 1 process            : {core1:7.1f} GFLOP/s = {core1 / g1:5.1%} of 1-thread GEMM "
-          f"({t1:.2f} s for {f1 / 1e9:.1f} GFLOP, best of 5 per filter)")
+          f"({t1:.2f} s for {f1 / 1e9:.1f} GFLOP, best of 5 rounds per filter)")
     print(f"    run_batch loop, 2 processes at once  : {core2:7.1f} GFLOP/s = {core2 / gN:5.1%} of default-pool "
           f"GEMM ({len(pids)} workers, {wall2:.2f} s wall, best of 3; target >= 30 %)")
 
