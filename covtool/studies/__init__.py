@@ -62,6 +62,6 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     refused = [k for k, v in (("backend", backend), ("resume", resume)) if v not in (None, False) and k not in accepts]
     if refused:
         raise InputError(f"{where}: [study] kind", f"{kind!r} runs in-process in one piece; it takes no "
-                         f"{' or '.join(refused)} (kind 'trade_grid' does)")
+                         f"{' or '.join(refused)} (--workers, --scheduler, --resume)")
     return module.run(decl, path=path, progress=progress, **options)
 
