@@ -72,6 +72,25 @@ def test_cases_equal_propagate_with_filter(small, grade, interval, filt, q):
     np.testing.assert_allclose(row["filter-claimed CEP [ft]"], c["cep"][0] / FT, rtol=1e-9)
 
 
+def test_filter_A_shares_the_truth_system_and_equals_the_optimal_filter():
+    """Filter A reuses the truth's Φ, Q_d (Taylor truth) and still equals the stepwise reference."""
+    d = small_decl()
+    d["filters"]["cases"] = ["A"]
+    d["grid"].update(zupt_interval=["4 min"], q_scale=[1.0])
+    d["grade"] = d["grade"][:1]
+    r = run(d)
+    assert r.provenance["filters_reusing_truth_phi_qd"] == "A"
+    S = setup(TradePlan(d, None).decls[(0, 0)])
+    fm, Phi_f, Qd_f = S.filter_model("A")                     # computed separately here
+    ref = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                S.update_steps, Rf=S.filter_R("A"))
+    n, k = S.nodes, S.t.size - 1
+    m = nav_metrics(ref.P_truth[k:, :10, :10], n.lat[k:], n.h[k:], n.q_nb[k:], n.distance[k:])
+    row = r.summary.iloc[0]
+    np.testing.assert_allclose(row["CEP [ft]"], m["cep"][0] / FT, rtol=1e-9)
+    np.testing.assert_allclose(row["filter-claimed CEP [ft]"], row["CEP [ft]"], rtol=1e-9)   # optimal filter
+
+
 def test_grade_scales_sensor_errors_only():
     d = small_decl()
     base = load_truth(d, "t", None)
