@@ -1069,9 +1069,13 @@ class GapReport:
         Samples bridged.
     policy : str
     sigma_attitude : ndarray, shape (3,)
-        Predicted extra attitude error per sensor axis (1σ). [rad]
+        Predicted extra error of the summed angle increments per sensor
+        axis (1σ). [rad]
     sigma_velocity : ndarray, shape (3,)
-        Predicted extra velocity error per sensor axis (1σ). [m/s]
+        Predicted extra error of the summed velocity increments (1σ). [m/s]
+    trials : int
+        Trial bridges the prediction rests on (0: the lost white noise
+        only).
     """
 
     imu: str
@@ -1081,6 +1085,7 @@ class GapReport:
     policy: str
     sigma_attitude: np.ndarray
     sigma_velocity: np.ndarray
+    trials: int = 0
 
 
 @dataclass
@@ -1105,11 +1110,6 @@ class BridgedLog:
     dt: float
     gaps: list = field(default_factory=list)
     bridged: np.ndarray | None = None
-
-    def record(self, a: int = 0, b: int | None = None) -> ImuRecord:
-        """Samples ``a … b−1`` as an :class:`~covtool.imu.ImuRecord`."""
-        b = self.t.size if b is None else b
-        return ImuRecord(float(self.t[a] - self.dt), self.dt, self.dtheta[..., a:b, :], self.dv[..., a:b, :])
 
 
 def find_gaps(t, dt: float, where: str = "IMU log"):
@@ -1142,48 +1142,46 @@ def find_gaps(t, dt: float, where: str = "IMU log"):
     bad = (np.abs(steps - whole) > 0.1) | (whole < 1)
     if bad.any():
         k = int(np.argmax(bad))
-        raise InputError(f"{where}: time", f"row {k + 2}: step {t[k + 1] - t[k]:.9g} s from t = {t[k]:.9g} s is "
-                         f"not a whole number of sample periods ({dt:.9g} s); the log is not on one sample grid")
+        raise InputError(f"{where}: column 't [s]'", f"row {k + 2}: step {t[k + 1] - t[k]:.9g} s after "
+                         f"t = {t[k]:.9g} s is not a whole number of sample periods ({dt:.9g} s); "
+                         "the log is not on one sample grid")
     return [(int(k), int(whole[k]) - 1) for k in np.flatnonzero(whole > 1)]
 
 
-def _fill(x, k, n, policy, window):
-    """The ``n`` samples bridged after sample ``k`` of ``x`` (…, K, 3)."""
-    before = x[..., k, :]
-    after = x[..., k + 1, :]
+def _fill(prev, nxt, n: int, policy: str):
+    """Increments for ``n`` missing samples from the samples around them.
+
+    ``prev`` (…, w, 3) are the valid samples just before the gap, ``nxt``
+    (…, w, 3) those just after (w ≥ 1, oldest first).
+    """
+    w = prev.shape[-2]
     if policy == "hold":
-        return np.repeat(before[..., None, :], n, axis=-2)
-    if policy == "interpolate":
-        u = np.arange(1, n + 1) / (n + 1)
-        return before[..., None, :] + u[:, None] * (after - before)[..., None, :]
-    a = max(0, k + 1 - window)
-    mean = x[..., a:k + 1, :].mean(axis=-2)
-    return np.repeat(mean[..., None, :], n, axis=-2)
+        return np.repeat(prev[..., -1:, :], n, axis=-2)
+    a = prev.mean(axis=-2)
+    if policy == "propagate":
+        return np.repeat(a[..., None, :], n, axis=-2)
+    # interpolate: a straight line through the window means at their mid-times
+    b = nxt.mean(axis=-2)
+    ta, tb = -(w + 1) / 2.0, n + (w - 1) / 2.0
+    u = (np.arange(n) - ta) / (tb - ta)
+    return a[..., None, :] + u[:, None] * (b - a)[..., None, :]
 
 
-def _predicted_gap_error(x, k, n, policy, window, h, white):
-    """1σ per axis of the summed increment error of a bridge."""
-    X = np.asarray(x)[0] if np.ndim(x) == 3 else np.asarray(x)
-    rb, ra = X[k] / h, X[k + 1] / h
-    T = n * h
-    if policy == "hold":
-        dyn = 0.5 * T * np.abs(ra - rb)
-    elif policy == "interpolate":
-        # rate curvature from the second differences on either side of the gap
-        curv = np.zeros(3)
-        if k >= 2:
-            curv = np.maximum(curv, np.abs(X[k] - 2.0 * X[k - 1] + X[k - 2]) / h**3)
-        if k + 3 < X.shape[0]:
-            curv = np.maximum(curv, np.abs(X[k + 3] - 2.0 * X[k + 2] + X[k + 1]) / h**3)
-        dyn = curv * T**3 / 12.0
-    else:
-        a = max(0, k + 1 - window)
-        dyn = 0.5 * T * np.abs(ra - X[a:k + 1].mean(axis=0) / h) + 0.5 * T * np.abs(ra - rb)
-    return np.sqrt(dyn**2 + white**2 * T)
+def _trial_errors(x, stretches, n, policy, w, max_trials):
+    """Errors of the summed increments of trial bridges in valid data."""
+    errs = []
+    for s0, s1 in stretches:                  # valid samples s0 … s1 (inclusive), no gap inside
+        first, last = s0 + w - 1, s1 - n - w  # the trial gap covers a+1 … a+n
+        if last < first:
+            continue
+        for a in np.linspace(first, last, min(max_trials, last - first + 1)).astype(int):
+            fill = _fill(x[..., a + 1 - w:a + 1, :], x[..., a + n + 1:a + n + 1 + w, :], n, policy)
+            errs.append((fill.sum(axis=-2) - x[..., a + 1:a + n + 1, :].sum(axis=-2)).reshape(-1, 3))
+    return np.concatenate(errs) if errs else np.zeros((0, 3))
 
 
 def bridge_gaps(t, dtheta, dv, dt: float, policy: str, *, arw: float = 0.0, vrw: float = 0.0,
-                imu: str = "IMU", window: int = 10, where: str = "IMU log") -> BridgedLog:
+                imu: str = "IMU", window: int = 10, trials: int = 8, where: str = "IMU log") -> BridgedLog:
     """Bridge missing samples of an IMU log by a declared policy.
 
     Parameters
@@ -1195,16 +1193,19 @@ def bridge_gaps(t, dtheta, dv, dt: float, policy: str, *, arw: float = 0.0, vrw:
     dt : float
         Nominal sample period. [s]
     policy : {"hold", "interpolate", "propagate", "refuse"}
-        ``hold``: repeat the last sample; ``interpolate``: linear between
-        the samples on either side; ``propagate``: the mean increment of the
-        ``window`` samples before the gap; ``refuse``: raise.
+        ``hold``: repeat the last sample; ``propagate``: the mean increment
+        of the ``window`` samples before the gap; ``interpolate``: a
+        straight line between the means of the ``window`` samples on either
+        side; ``refuse``: raise.
     arw, vrw : float
         Root-PSDs of the IMU's white noises: the noise the missing samples
-        carried is lost, ``σ² = arw² T_gap``. [rad/√s], [m/s/√s]
+        carried is lost, at least ``σ² = arw² T_gap``. [rad/√s], [m/s/√s]
     imu : str
         Name in the report.
     window : int
-        Samples averaged by ``propagate``.
+        Samples averaged by ``propagate`` and ``interpolate``.
+    trials : int
+        Trial bridges on each side of a gap for the error prediction.
     where : str
         Names the log in error messages.
 
@@ -1212,16 +1213,16 @@ def bridge_gaps(t, dtheta, dv, dt: float, policy: str, *, arw: float = 0.0, vrw:
     -------
     BridgedLog
         Every bridged gap is reported (:class:`GapReport`) with its
-        predicted extra error: the dynamic part from the samples around the
-        gap (``hold``: half the rate change across it times its length;
-        ``interpolate``: the curvature term ``|ω̈| T³/12``; ``propagate``: the
-        mean's offset from the rates at the gap) plus the lost white noise.
+        predicted extra error: the RMS error of the summed increments of
+        the same policy applied to trial gaps of the same length in the
+        valid data on each side (up to ``trials`` per side, all runs
+        pooled; the larger side), and never less than the lost white noise.
 
     Raises
     ------
     InputError
-        Unknown policy, a gap with ``policy = "refuse"``, a gap at an end of
-        the log (nothing to bridge from), or a log not on one grid.
+        Unknown policy, a gap with ``policy = "refuse"``, too few valid
+        samples around a gap to bridge it, or a log not on one grid.
     """
     if policy not in GAP_POLICIES:
         raise InputError(f"{where}: gap policy", f"{policy!r} is not one of {', '.join(GAP_POLICIES)}")
@@ -1231,24 +1232,42 @@ def bridge_gaps(t, dtheta, dv, dt: float, policy: str, *, arw: float = 0.0, vrw:
     gaps = find_gaps(t, dt, where)
     if gaps and policy == "refuse":
         k, n = gaps[0]
-        raise InputError(f"{where}: time", f"{n} samples missing between t = {t[k]:.9g} s and "
+        raise InputError(f"{where}: column 't [s]'", f"{n} samples missing between t = {t[k]:.9g} s and "
                          f"{t[k + 1]:.9g} s (gap policy 'refuse'); {len(gaps)} gap(s) in all")
     if not gaps:
         return BridgedLog(t, dtheta, dv, dt, [], np.zeros(t.size, bool))
+    w = max(1, int(window)) if policy != "hold" else 1
+    bounds = [-1] + [k for k, _ in gaps] + [t.size - 1]
+    stretches = [(bounds[i] + 1, bounds[i + 1]) for i in range(len(bounds) - 1)]
     pieces_t, pieces_th, pieces_v, flags, reports = [], [], [], [], []
     start = 0
-    for k, n in gaps:
+    for g, (k, n) in enumerate(gaps):
+        s_before, s_after = stretches[g], stretches[g + 1]
+        if k - s_before[0] + 1 < w or s_after[1] - (k + 1) + 1 < w:
+            raise InputError(f"{where}: column 't [s]'", f"gap of {n} samples after t = {t[k]:.9g} s: fewer than "
+                             f"{w} valid samples on each side to bridge it with policy {policy!r}")
         pieces_t.append(t[start:k + 1])
         pieces_th.append(dtheta[..., start:k + 1, :])
         pieces_v.append(dv[..., start:k + 1, :])
         flags.append(np.zeros(k + 1 - start, bool))
         pieces_t.append(t[k] + dt * np.arange(1, n + 1))
-        pieces_th.append(_fill(dtheta, k, n, policy, window))
-        pieces_v.append(_fill(dv, k, n, policy, window))
+        prev = slice(k + 1 - w, k + 1)
+        nxt = slice(k + 1, k + 1 + w)
+        pieces_th.append(_fill(dtheta[..., prev, :], dtheta[..., nxt, :], n, policy))
+        pieces_v.append(_fill(dv[..., prev, :], dv[..., nxt, :], n, policy))
         flags.append(np.ones(n, bool))
-        s_att = _predicted_gap_error(dtheta, k, n, policy, window, dt, arw)
-        s_vel = _predicted_gap_error(dv, k, n, policy, window, dt, vrw)
-        reports.append(GapReport(imu, float(t[k]), float(t[k + 1]), n, policy, s_att, s_vel))
+        T = n * dt
+        var_att, var_vel, count = np.full(3, arw**2 * T), np.full(3, vrw**2 * T), 0
+        for side in (s_before, s_after):
+            # the larger side's mean square: the dynamics may change at the gap
+            e_th = _trial_errors(dtheta, [side], n, policy, w, trials)
+            e_v = _trial_errors(dv, [side], n, policy, w, trials)
+            if len(e_th):
+                var_att = np.maximum(var_att, np.mean(e_th**2, axis=0))
+                var_vel = np.maximum(var_vel, np.mean(e_v**2, axis=0))
+                count += len(e_th)
+        reports.append(GapReport(imu, float(t[k]), float(t[k + 1]), n, policy, np.sqrt(var_att), np.sqrt(var_vel),
+                                 count))
         start = k + 1
     pieces_t.append(t[start:])
     pieces_th.append(dtheta[..., start:, :])

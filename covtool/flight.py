@@ -48,7 +48,7 @@ from .trajectory import Trajectory, inverse_mechanization
 from .units import parse_quantity
 
 __all__ = ["FlightProfile", "Segment", "VibrationTone", "VibrationInterval", "flight",
-           "high_dynamics_flight", "flight_from_config", "SEGMENT_KEYS", "FLIGHT_BUILTINS"]
+           "high_dynamics_flight", "flight_from_config", "quadrature_nodes", "SEGMENT_KEYS", "FLIGHT_BUILTINS"]
 
 #: flight segment kind -> allowed keys
 SEGMENT_KEYS = {
@@ -503,6 +503,35 @@ def flight(segments, *, lat, lon, h, heading=0.0, pitch=0.0, vibration=(), dt=0.
     else:
         t[-1] = t1
     return Trajectory(t=t, **prof.evaluate(t), stationary=prof.stationary(), name=name, _source=prof)
+
+
+def quadrature_nodes(traj, rate: float, minimum: int = 3, tol: float = 1e-13) -> int:
+    """Gauss–Legendre nodes per IMU sample for a trajectory's vibration.
+
+    Parameters
+    ----------
+    traj : Trajectory
+        A flight (its profile's ``max_frequency``) or any other trajectory
+        (no vibration: ``minimum``).
+    rate : float
+        IMU sample rate. [Hz]
+    minimum : int
+    tol : float
+        Bound on ``(λ/2)^{2n}/(2n)!`` with ``λ = 2π f_max / rate``, the
+        relative quadrature error of the fastest tone.
+
+    Returns
+    -------
+    int
+        For :class:`covtool.imu.ImuSimulator`'s ``nodes`` (its own automatic
+        choice knows only its own vibration).
+    """
+    fmax = float(getattr(traj._source, "max_frequency", 0.0) or 0.0)
+    lam = 2.0 * math.pi * fmax / float(rate)
+    n = int(minimum)
+    while n < 24 and (0.5 * lam) ** (2 * n) / math.factorial(2 * n) > tol:
+        n += 1
+    return n
 
 
 #: the built-in profile's segments (datasheet units), see :func:`high_dynamics_flight`

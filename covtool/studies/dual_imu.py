@@ -1,0 +1,735 @@
+"""Dual-IMU verification in flight (seed 001, method II).
+
+A development IMU (the KIMU) flies beside the main IMU on a high-dynamics
+flight; both navigate at once, each after its own alignment, and the two
+solutions are compared after the mounting misalignment is compensated.
+covtool predicts the covariance of the difference from the two grades'
+error models, flags the intervals where the difference leaves that
+envelope (a χ² test of the normalised innovations over sliding windows,
+designed for a given false-alarm probability per flight), and detects and
+estimates a g-sensitive gyro scale-factor error of the KIMU (seed 001,
+Fig 16).  The same comparison runs on two recorded logs
+(:func:`compare_logs`, ``covtool dualnav``).
+
+Study file (datasheet units)::
+
+    [study]
+    kind = "dual_imu"
+    name = "dual_imu_flight"
+
+    [trajectory]
+    builtin = "high_dynamics_flight"     # or segment/initial/vibration (covtool.flight)
+
+    [imu.main]
+    grade = "main_imu"                   # models/imu/*.toml
+    mounting = ["0 deg", "0 deg", "0 deg"]     # roll, pitch, yaw of the sensor in the body
+    [imu.kimu]
+    grade = "kimu"
+    mounting = ["2 deg", "-1.5 deg", "3 deg"]
+    ratio = 4                            # KIMU samples per main sample
+
+    [alignment]
+    duration = "10 s"                    # at rest, at the start of the logs
+    heading_sigma = "0.1 deg"            # the input heading both IMUs share
+    # lat, lon, h, heading: the input position/heading (logs; a simulation takes the trajectory's)
+
+    [comparison]
+    interval = "1 s"                     # comparison epochs
+    model_step = "0.04 s"                # step of the linear model
+    components = ["velocity", "attitude"]
+    noise = { position = "1 mm", velocity = "0.1 mm/s", attitude = "2 urad" }
+
+    [monitor]
+    window = "10 s"
+    false_alarm = 0.01                   # per flight, for each test
+    candidates = "all"                   # or ["z/x", ...]: gyro axis / accel axis
+
+    [gaps]
+    policy = "interpolate"               # hold | interpolate | propagate | refuse
+    window = 10                          # samples averaged by interpolate/propagate
+    trials = 8                           # trial bridges per side for the error prediction
+
+    [simulation]
+    runs = 200                           # fault-free flights (false-alarm rate)
+    fault_runs = 50
+    batch = 50
+    seed = 1
+    [simulation.fault]
+    gyro = "z"
+    accel = "x"
+    coefficient = "1000 ppm/g"
+    [[simulation.gap]]
+    imu = "kimu"
+    start = "14 s"
+    duration = "40 ms"
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .. import dualnav as dn
+from .. import quaternion as quat
+from ..errors import InputError, ModelFileError, StudyFileError, TrajectoryError
+from ..io.config import check_keys, quantity
+from ..results import StudyResult
+
+COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
+#: display units of the difference components
+DIFF_UNITS = {"pos": ("m", 1.0), "vel": ("m/s", 1.0), "att": ("mrad", 1e3)}
+PPM_G = 1e-6 / dn.G0          # 1 ppm/g in 1/(m/s²)
+_TOP = {"study", "trajectory", "imu", "alignment", "comparison", "monitor", "gaps", "simulation"}
+
+
+@dataclass(frozen=True)
+class DualConfig:
+    """A validated dual-IMU study (SI)."""
+
+    name: str
+    description: str
+    grades: dict            # "main"/"kimu" -> ImuGrade
+    mounting: dict          # "main"/"kimu" -> quaternion
+    ratio: int
+    align_time: float
+    heading_sigma: float
+    initial: dict           # lat, lon, h, heading (may be partial)
+    interval: float
+    model_step: float
+    components: tuple
+    noise: np.ndarray
+    window: float
+    false_alarm: float
+    candidates: tuple
+    gap_policy: str
+    gap_window: int
+    gap_trials: int
+    runs: int
+    fault_runs: int
+    batch: int
+    seed: int
+    fault: tuple | None     # (gyro axis, accel axis, coefficient SI)
+    gaps: tuple             # ((imu, start, duration), ...)
+
+
+def _axis(value, where):
+    if value not in ("x", "y", "z"):
+        raise StudyFileError(where, f"{value!r} is not 'x', 'y' or 'z'")
+    return "xyz".index(value)
+
+
+def _candidate(text, where):
+    if not isinstance(text, str) or len(text.split("/")) != 2:
+        raise StudyFileError(where, f"{text!r} is not 'gyro axis/accel axis', e.g. 'z/x'")
+    g, a = text.split("/")
+    return (_axis(g.strip(), where), _axis(a.strip(), where))
+
+
+def _int(value, where, minimum):
+    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+        raise StudyFileError(where, f"{value!r} is not an integer >= {minimum}")
+    return int(value)
+
+
+def gsens_coefficient(value, where) -> float:
+    """A g-sensitive scale factor (``"1000 ppm/g"``) in 1/(m/s²)."""
+    from ..units import parse_quantity
+    from ..errors import UnitError
+
+    if not isinstance(value, str):
+        raise StudyFileError(where, f"{value!r} is not a quantity such as '1000 ppm/g'")
+    try:
+        per_g = parse_quantity(f"({value}) * g", "dimensionless", where=where)
+    except UnitError:
+        raise StudyFileError(where, f"{value!r} is not a scale factor per g (e.g. '1000 ppm/g')") from None
+    return per_g / dn.G0
+
+
+def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
+    """Validate a ``dual_imu`` declaration.
+
+    Raises
+    ------
+    StudyFileError
+        Naming the file, the table and key, and the problem.
+    """
+    from ..imu import load_imu_grade
+
+    check_keys(decl, _TOP, where, StudyFileError)
+    st = decl.get("study", {})
+    check_keys(st, {"kind", "name", "description"}, f"{where}: [study]", StudyFileError)
+    name = st.get("name", Path(where).stem if where not in ("<study>", "") else "dual_imu")
+    imu = decl.get("imu", {})
+    check_keys(imu, {"main", "kimu"}, f"{where}: [imu]", StudyFileError)
+    grades, mounting = {}, {}
+    defaults = {"main": "main_imu", "kimu": "kimu"}
+    ratio = 4
+    for key in ("main", "kimu"):
+        t = imu.get(key, {})
+        w = f"{where}: [imu.{key}]"
+        check_keys(t, {"grade", "mounting", "ratio"} if key == "kimu" else {"grade", "mounting"}, w, StudyFileError)
+        g = t.get("grade", defaults[key])
+        if isinstance(g, str) and base_dir is not None and g.endswith(".toml") and not Path(g).is_absolute():
+            g = str(Path(base_dir) / g)
+        try:
+            grades[key] = load_imu_grade(g)
+        except ModelFileError as exc:
+            raise StudyFileError(f"{w} grade", str(exc)) from None
+        if grades[key].rate is None:
+            raise StudyFileError(f"{w} grade", f"IMU grade {grades[key].name!r} declares no rate")
+        m = t.get("mounting", ["0 deg", "0 deg", "0 deg"])
+        if not isinstance(m, list) or len(m) != 3:
+            raise StudyFileError(f"{w} mounting", "expected [roll, pitch, yaw] of the sensor frame in the body")
+        ang = [quantity(v, "angle", f"{w} mounting[{i}]", StudyFileError) for i, v in enumerate(m)]
+        mounting[key] = np.asarray(quat.from_euler(*ang), float)
+        if key == "kimu" and "ratio" in t:
+            ratio = _int(t["ratio"], f"{w} ratio", 1)
+    r_rates = grades["kimu"].rate / grades["main"].rate
+    if abs(r_rates - ratio) > 1e-9 * ratio:
+        raise StudyFileError(f"{where}: [imu.kimu] ratio", f"{ratio} does not match the grades' rates "
+                             f"({grades['kimu'].rate:g} Hz / {grades['main'].rate:g} Hz = {r_rates:g})")
+    al = decl.get("alignment", {})
+    w = f"{where}: [alignment]"
+    check_keys(al, {"duration", "heading_sigma", "lat", "lon", "h", "heading"}, w, StudyFileError)
+    align = quantity(al.get("duration", "10 s"), "time", f"{w} duration", StudyFileError, positive=True)
+    hsig = quantity(al.get("heading_sigma", "0.1 deg"), "angle", f"{w} heading_sigma", StudyFileError,
+                    nonnegative=True)
+    initial = {}
+    for key, dim in (("lat", "angle"), ("lon", "angle"), ("h", "length"), ("heading", "angle")):
+        if key in al:
+            initial[key] = quantity(al[key], dim, f"{w} {key}", StudyFileError)
+    cp = decl.get("comparison", {})
+    w = f"{where}: [comparison]"
+    check_keys(cp, {"interval", "model_step", "components", "noise"}, w, StudyFileError)
+    interval = quantity(cp.get("interval", "1 s"), "time", f"{w} interval", StudyFileError, positive=True)
+    step = quantity(cp.get("model_step", "0.04 s"), "time", f"{w} model_step", StudyFileError, positive=True)
+    hm = 1.0 / grades["main"].rate
+    for key, val in (("interval", interval), ("model_step", step)):
+        n = round(val / hm)
+        if n < 1 or abs(n * hm - val) > 1e-6 * hm:
+            raise StudyFileError(f"{w} {key}", f"{val:g} s is not a whole number of main samples ({hm:g} s)")
+    n_step, n_int = round(step / hm), round(interval / hm)
+    if n_step % 2 or n_int % n_step:
+        raise StudyFileError(f"{w} model_step", f"{step:g} s must be an even number of main samples and divide "
+                             f"the interval {interval:g} s")
+    comps = cp.get("components", ["velocity", "attitude"])
+    if not isinstance(comps, list) or not comps or any(c not in COMPONENT_GROUPS for c in comps):
+        raise StudyFileError(f"{w} components", f"{comps!r}: expected a non-empty list of "
+                             f"{', '.join(COMPONENT_GROUPS)}")
+    components = tuple(sorted({i for c in comps for i in COMPONENT_GROUPS[c]}))
+    nz = cp.get("noise", {})
+    check_keys(nz, set(COMPONENT_GROUPS), f"{w} noise", StudyFileError)
+    dims = {"position": "length", "velocity": "velocity", "attitude": "angle"}
+    dflt = {"position": "1 mm", "velocity": "0.1 mm/s", "attitude": "2 urad"}
+    noise = np.zeros(9)
+    for key, idx in COMPONENT_GROUPS.items():
+        noise[list(idx)] = quantity(nz.get(key, dflt[key]), dims[key], f"{w} noise.{key}", StudyFileError,
+                                    nonnegative=True)
+    mo = decl.get("monitor", {})
+    w = f"{where}: [monitor]"
+    check_keys(mo, {"window", "false_alarm", "candidates"}, w, StudyFileError)
+    window = quantity(mo.get("window", "10 s"), "time", f"{w} window", StudyFileError, positive=True)
+    if round(window / interval) < 1 or abs(round(window / interval) * interval - window) > 1e-6 * interval:
+        raise StudyFileError(f"{w} window", f"{window:g} s is not a whole number of comparison intervals "
+                             f"({interval:g} s)")
+    fa = mo.get("false_alarm", 0.01)
+    if isinstance(fa, bool) or not isinstance(fa, (int, float)) or not 0 < fa < 1:
+        raise StudyFileError(f"{w} false_alarm", f"{fa!r} is not a probability in (0, 1)")
+    cands = mo.get("candidates", "all")
+    if cands == "all":
+        candidates = tuple((i, j) for i in range(3) for j in range(3))
+    elif isinstance(cands, list) and cands:
+        candidates = tuple(_candidate(c, f"{w} candidates[{k}]") for k, c in enumerate(cands))
+        if len(set(candidates)) != len(candidates):
+            raise StudyFileError(f"{w} candidates", "lists a candidate twice")
+    else:
+        raise StudyFileError(f"{w} candidates", f"{cands!r}: expected 'all' or a list such as ['z/x']")
+    gp = decl.get("gaps", {})
+    w = f"{where}: [gaps]"
+    check_keys(gp, {"policy", "window", "trials"}, w, StudyFileError)
+    policy = gp.get("policy", "interpolate")
+    if policy not in dn.GAP_POLICIES:
+        raise StudyFileError(f"{w} policy", f"{policy!r} is not one of {', '.join(dn.GAP_POLICIES)}")
+    gwin = _int(gp.get("window", 10), f"{w} window", 1)
+    trials = _int(gp.get("trials", 8), f"{w} trials", 0)
+    sim = decl.get("simulation", {})
+    w = f"{where}: [simulation]"
+    check_keys(sim, {"runs", "fault_runs", "batch", "seed", "fault", "gap"}, w, StudyFileError)
+    runs = _int(sim.get("runs", 100), f"{w} runs", 0)
+    fruns = _int(sim.get("fault_runs", 20), f"{w} fault_runs", 0)
+    batch = _int(sim.get("batch", 50), f"{w} batch", 1)
+    seed = _int(sim.get("seed", 1), f"{w} seed", 0)
+    fault = None
+    if "fault" in sim:
+        f = sim["fault"]
+        wf = f"{where}: [simulation.fault]"
+        check_keys(f, {"gyro", "accel", "coefficient"}, wf, StudyFileError)
+        for key in ("gyro", "accel", "coefficient"):
+            if key not in f:
+                raise StudyFileError(wf, f"missing required key {key!r}")
+        fault = (_axis(f["gyro"], f"{wf} gyro"), _axis(f["accel"], f"{wf} accel"),
+                 gsens_coefficient(f["coefficient"], f"{wf} coefficient"))
+        if (fault[0], fault[1]) not in candidates:
+            raise StudyFileError(wf, f"the injected {dn.candidate_label(fault)} is not among [monitor] candidates")
+    elif fruns:
+        raise StudyFileError(w, f"fault_runs = {fruns} needs a [simulation.fault] table")
+    gaps = []
+    glist = sim.get("gap", [])
+    if not isinstance(glist, list):
+        raise StudyFileError(f"{w} gap", "expected an array of tables [[simulation.gap]]")
+    for k, g in enumerate(glist):
+        wg = f"{where}: [[simulation.gap]][{k}]"
+        check_keys(g, {"imu", "start", "duration"}, wg, StudyFileError)
+        if g.get("imu") not in ("main", "kimu"):
+            raise StudyFileError(f"{wg} imu", f"{g.get('imu')!r} is not 'main' or 'kimu'")
+        for key in ("start", "duration"):
+            if key not in g:
+                raise StudyFileError(wg, f"missing required key {key!r}")
+        gaps.append((g["imu"], quantity(g["start"], "time", f"{wg} start", StudyFileError, nonnegative=True),
+                     quantity(g["duration"], "time", f"{wg} duration", StudyFileError, positive=True)))
+    return DualConfig(name, st.get("description", ""), grades, mounting, ratio, align, hsig, initial, interval, step,
+                      components, noise, window, float(fa), candidates, policy, gwin, trials, runs, fruns, batch,
+                      seed, fault, tuple(gaps))
+
+
+def make_setup(cfg: DualConfig, initial: dict, where: str) -> dn.DualSetup:
+    """The numeric setup of :func:`covtool.dualnav.run_dual`."""
+    for key in ("lat", "lon", "h", "heading"):
+        if key not in initial:
+            raise StudyFileError(f"{where}: [alignment]", f"missing {key!r}: the logs need the input position and "
+                                 "heading (lat, lon, h, heading)")
+    hm = 1.0 / cfg.grades["main"].rate
+    return dn.DualSetup(
+        cfg.grades["main"].to_model(), cfg.grades["kimu"].to_model(), cfg.mounting["main"], cfg.mounting["kimu"],
+        cfg.ratio, cfg.align_time, initial["lat"], initial["lon"], initial["h"], initial["heading"],
+        cfg.heading_sigma, int(round(cfg.model_step / hm)), int(round(cfg.interval / hm)), cfg.components,
+        cfg.noise, int(round(cfg.window / cfg.interval)), cfg.false_alarm, cfg.candidates)
+
+
+# --------------------------------------------------------------------------
+# simulation
+# --------------------------------------------------------------------------
+
+
+def _trajectory(decl, where):
+    from ..flight import flight_from_config
+
+    cfg = decl.get("trajectory", {"builtin": "high_dynamics_flight"})
+    try:
+        return flight_from_config(cfg, where=f"{where}: [trajectory]", dt=0.1)
+    except TrajectoryError:
+        raise
+
+
+def _initial_from_trajectory(traj) -> dict:
+    s = traj.sample([float(traj.t[0])])
+    return {"lat": float(s.lat[0]), "lon": float(s.lon[0]), "h": float(s.h[0]),
+            "heading": float(quat.to_euler(s.q_nb)[0, 2])}
+
+
+def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
+    """Simulated logs of both IMUs (M runs), with the declared telemetry gaps.
+
+    Returns
+    -------
+    logs : dict of str to (t, dtheta, dv, dt)
+        Per IMU: sample end times (gap samples removed) and increments
+        (M, K, 3).
+    removed : dict of str to list of (ndarray, ndarray, ndarray)
+        Per IMU and gap: the removed sample indices and their true increments.
+    """
+    from ..flight import quadrature_nodes
+    from ..imu import ImuSimulator, sample_states
+
+    logs, removed = {}, {}
+    for key in ("main", "kimu"):
+        g = cfg.grades[key]
+        model = g.to_model()
+        x0 = sample_states(model, n_runs, rng)
+        gs = ()
+        if key == "kimu" and fault is not None:
+            gs = (fault,)
+        err = dn.GSensitiveErrors(model, x0, rng, gsens=gs)
+        sim = ImuSimulator(traj, g.rate, errors=err, quantization=g.quantization, saturation=g.range,
+                           mounting=cfg.mounting[key], nodes=quadrature_nodes(traj, g.rate))
+        rec = sim.record()
+        t = rec.t
+        keep = np.ones(t.size, bool)
+        removed[key] = []
+        for imu, start, dur in cfg.gaps:
+            if imu != key:
+                continue
+            idx = np.flatnonzero((t > start + 1e-9) & (t <= start + dur + 1e-9))
+            keep[idx] = False
+            removed[key].append((idx, rec.dtheta[:, idx].copy(), rec.dv[:, idx].copy()))
+        logs[key] = (t[keep], rec.dtheta[:, keep], rec.dv[:, keep], rec.dt)
+    return logs, removed
+
+
+def bridge(logs, cfg: DualConfig, where="logs"):
+    """Bridge both logs' gaps by the study's policy."""
+    out = {}
+    for key in ("main", "kimu"):
+        t, th, dv, dt = logs[key]
+        m = cfg.grades[key].to_model()
+        out[key] = dn.bridge_gaps(t, th, dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
+                                  window=cfg.gap_window, trials=cfg.gap_trials, where=f"{where} ({key})")
+    return out
+
+
+def _actual_gap_errors(bridged, removed):
+    """RMS over runs of the summed-increment error of every simulated gap."""
+    rows = []
+    for key, lst in removed.items():
+        b = bridged[key]
+        filled = np.flatnonzero(b.bridged)
+        for (idx, th, dv), rep in zip(lst, b.gaps):
+            # the bridged samples of this gap are the n filled ones after rep.after
+            sel = filled[(b.t[filled] > rep.after + 1e-9) & (b.t[filled] < rep.before - 1e-9)]
+            e_th = dn._runs(b.dtheta)[:, sel].sum(axis=1) - th.sum(axis=1)
+            e_v = dn._runs(b.dv)[:, sel].sum(axis=1) - dv.sum(axis=1)
+            rows.append((np.sqrt(np.mean(e_th**2, axis=0)), np.sqrt(np.mean(e_v**2, axis=0))))
+    return rows
+
+
+def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+    """Run a dual-IMU verification study; see the module docstring."""
+    where = str(path) if path else "<study>"
+    base_dir = path.parent if path else None
+    t0 = time.perf_counter()
+    cfg = parse_study(decl, where, base_dir)
+    traj = _trajectory(decl, where)
+    if not any(a <= 1e-9 and b >= cfg.align_time - 1e-9 for a, b in traj.stationary):
+        raise StudyFileError(f"{where}: [alignment] duration", f"{cfg.align_time:g} s: the flight must start "
+                             "with a stand at least as long as the alignment")
+    initial = {**_initial_from_trajectory(traj)}
+    setup = make_setup(cfg, initial, where)
+    root = np.random.SeedSequence(cfg.seed)
+    ss_free, ss_fault = root.spawn(2)
+    outcome = {}
+    gap_rows = []
+    for label, n_runs, ss, fault in (("fault_free", cfg.runs, ss_free, None),
+                                     ("fault", cfg.fault_runs, ss_fault, cfg.fault)):
+        batches = [min(cfg.batch, n_runs - a) for a in range(0, n_runs, cfg.batch)]
+        res = []
+        for b, seq in zip(batches, ss.spawn(len(batches))):
+            rng = np.random.default_rng(seq)
+            logs, removed = simulate_logs(traj, cfg, b, rng, fault=fault)
+            bridged = bridge(logs, cfg, where=f"{where}: simulated logs")
+            psi = initial["heading"] + cfg.heading_sigma * rng.standard_normal(b)
+            r = dn.run_dual(bridged["main"], bridged["kimu"], setup, heading=psi)
+            res.append(r)
+            if not gap_rows:
+                actual = _actual_gap_errors(bridged, removed)
+                for rep, (a_th, a_v) in zip(bridged["main"].gaps + bridged["kimu"].gaps, actual):
+                    gap_rows.append(_gap_row(rep, a_th, a_v))
+        outcome[label] = res
+    elapsed = time.perf_counter() - t0
+    return _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed)
+
+
+def _gap_row(rep: dn.GapReport, actual_att=None, actual_vel=None) -> dict:
+    row = {"imu": rep.imu, "after [s]": rep.after, "before [s]": rep.before, "samples bridged": rep.samples,
+           "duration [ms]": 1e3 * (rep.before - rep.after), "policy": rep.policy, "trials": rep.trials}
+    for k, a in enumerate("xyz"):
+        row[f"predicted att {a} [urad]"] = 1e6 * rep.sigma_attitude[k]
+    for k, a in enumerate("xyz"):
+        row[f"predicted vel {a} [mm/s]"] = 1e3 * rep.sigma_velocity[k]
+    if actual_att is not None:
+        for k, a in enumerate("xyz"):
+            row[f"actual RMS att {a} [urad]"] = 1e6 * actual_att[k]
+        for k, a in enumerate("xyz"):
+            row[f"actual RMS vel {a} [mm/s]"] = 1e3 * actual_vel[k]
+    return row
+
+
+def _history(run: dn.DualRun, i: int, label: str) -> pd.DataFrame:
+    comps = run.model.components
+    df = pd.DataFrame({"case": label, "run": i, "t [s]": run.t})
+    for c_i, c in enumerate(comps):
+        name = dn.DIFF_NAMES[c]
+        unit, scale = DIFF_UNITS[name[:3]]
+        df[f"{name} [{unit}]"] = scale * run.z[i, :, c]
+        df[f"{name} 1sigma [{unit}]"] = scale * run.envelope[:, c_i]
+    df["NIS"] = run.inn.nis[i]
+    w = run.window_stat.shape[1]
+    stat = np.full(run.t.size, np.nan)
+    stat[run.t.size - w:] = run.window_stat[i]
+    df["window chi2 (ending here)"] = stat
+    df["window threshold"] = run.window_threshold
+    return df
+
+
+def _run_rows(runs, label, cfg, truth=None):
+    rows = []
+    k = 0
+    for r in runs:
+        gs = r.gsens
+        for i in range(r.z.shape[0]):
+            best = int(gs.identified[i])
+            row = {"case": label, "run": k, "max window chi2": float(r.window_stat[i].max()),
+                   "window threshold": r.window_threshold, "window alarm": bool(r.flagged[i].any()),
+                   "flagged intervals [s]": "; ".join(f"{a:.0f}-{b:.0f}" for a, b in r.intervals[i]),
+                   "max GLR": float(gs.glr[i, best]), "GLR threshold": gs.threshold,
+                   "g-sensitivity detected": bool(gs.detected[i]),
+                   "identified": dn.candidate_label(gs.candidates[best])}
+            if truth is not None:
+                c = gs.candidates.index((truth[0], truth[1]))
+                est = gs.estimate[i, c]
+                row.update({"estimate [ppm/g]": est / PPM_G, "1sigma [ppm/g]": gs.sigma[c] / PPM_G,
+                            "error [%]": 100.0 * (est - truth[2]) / truth[2],
+                            "correctly identified": bool(gs.detected[i] and best == c)})
+            rows.append(row)
+            k += 1
+    return pd.DataFrame(rows)
+
+
+def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
+    free, fault = outcome["fault_free"], outcome["fault"]
+    t_free = _run_rows(free, "fault-free", cfg)
+    t_fault = _run_rows(fault, "g-sensitivity injected", cfg, cfg.fault)
+    n0, n1 = len(t_free), len(t_fault)
+    summary = [
+        ("flight duration", traj.duration, "s", traj.name),
+        ("IMUs", f"{cfg.grades['main'].name} @ {cfg.grades['main'].rate:g} Hz, "
+                 f"{cfg.grades['kimu'].name} @ {cfg.grades['kimu'].rate:g} Hz", "", "seed 001 Table 2 grades"),
+        ("compared components", ", ".join(dn.DIFF_NAMES[c] for c in cfg.components), "",
+         f"every {cfg.interval:g} s after a {cfg.align_time:g} s alignment"),
+        ("false-alarm design per flight", 100.0 * cfg.false_alarm, "%",
+         f"each test; window test Bonferroni over sliding {cfg.window:g} s windows, GLR over "
+         f"{len(cfg.candidates)} candidates"),
+    ]
+    if n0:
+        fa_w = int(t_free["window alarm"].sum())
+        fa_g = int(t_free["g-sensitivity detected"].sum())
+        fa_any = int((t_free["window alarm"] | t_free["g-sensitivity detected"]).sum())
+        summary += [
+            ("fault-free flights", n0, "", f"seed {cfg.seed}, independent errors per flight"),
+            ("false alarms, window test", 100.0 * fa_w / n0, "%", f"{fa_w} of {n0} flights"),
+            ("false detections, g-sensitivity GLR", 100.0 * fa_g / n0, "%", f"{fa_g} of {n0} flights"),
+            ("false alarms, either test", 100.0 * fa_any / n0, "%", f"{fa_any} of {n0} flights"),
+            ("mean NIS per epoch", float(np.mean(np.concatenate([r.inn.nis for r in free]))), "",
+             f"expected {len(cfg.components)} (the compared components)"),
+        ]
+    if n1:
+        det = int(t_fault["g-sensitivity detected"].sum())
+        ok = int(t_fault["correctly identified"].sum())
+        alarm = int(t_fault["window alarm"].sum())
+        err = t_fault["error [%]"].to_numpy()
+        est = t_fault["estimate [ppm/g]"].to_numpy()
+        summary += [
+            ("g-sensitivity injected", f"KIMU gyro {dn.candidate_label(cfg.fault)}: {cfg.fault[2] / PPM_G:g}",
+             "ppm/g", "δω_i = k f_j ω_i (seed 001 Fig 16)"),
+            ("flights with the fault", n1, "", ""),
+            ("detected (GLR)", 100.0 * det / n1, "%", f"{det} of {n1}"),
+            ("correctly identified", 100.0 * ok / n1, "%", f"{ok} of {n1}"),
+            ("flagged by the window test", 100.0 * alarm / n1, "%", f"{alarm} of {n1}"),
+            ("coefficient estimate, mean", float(est.mean()), "ppm/g", f"true {cfg.fault[2] / PPM_G:g}"),
+            ("coefficient estimate, std", float(est.std(ddof=1)) if n1 > 1 else float("nan"), "ppm/g",
+             f"predicted 1σ {float(t_fault['1sigma [ppm/g]'].mean()):.1f}"),
+            ("largest |error|", float(np.max(np.abs(err))), "%", "acceptance: < 20 %"),
+            ("estimates within 20 %", 100.0 * float(np.mean(np.abs(err) < 20.0)), "%", ""),
+        ]
+    summary += [("bridged gaps", len(gap_rows), "", f"policy {cfg.gap_policy!r}"),
+                ("wall time", elapsed, "s", "")]
+    summary = pd.DataFrame(summary, columns=["item", "value", "unit", "note"])
+    summary["value"] = summary["value"].astype(object)
+    tables = {"summary": summary, "fault_free_runs": t_free, "fault_runs": t_fault}
+    ref = (free or fault)[0]
+    cand = {"candidate": [dn.candidate_label(c) for c in cfg.candidates],
+            "1sigma [ppm/g]": ref.gsens.sigma / PPM_G}
+    if fault:
+        g = np.concatenate([r.gsens.glr for r in fault])
+        e = np.concatenate([r.gsens.estimate for r in fault])
+        cand["fault runs: mean estimate [ppm/g]"] = e.mean(axis=0) / PPM_G
+        cand["fault runs: mean GLR"] = g.mean(axis=0)
+    if free:
+        g = np.concatenate([r.gsens.glr for r in free])
+        cand["fault-free runs: mean GLR (expected 1)"] = g.mean(axis=0)
+    tables["candidates"] = pd.DataFrame(cand)
+    hist = [_history(free[0], 0, "fault-free")] if free else []
+    if fault:
+        hist.append(_history(fault[0], 0, "g-sensitivity injected"))
+    tables["history"] = pd.concat(hist, ignore_index=True)
+    tables["gaps"] = pd.DataFrame(gap_rows)
+    tables["main_states"] = setup.main_model.state_table()
+    tables["kimu_states"] = setup.kimu_model.state_table()
+    figures = _figures(cfg, free, fault)
+    return StudyResult(
+        name=cfg.name, kind="dual_imu", tables=tables, figures=figures,
+        resolved={**decl, "study": {**decl.get("study", {}), "name": cfg.name}},
+        provenance={"main_grade": cfg.grades["main"].path, "kimu_grade": cfg.grades["kimu"].path,
+                    "main_model_sha256": setup.main_model.sha256, "kimu_model_sha256": setup.kimu_model.sha256,
+                    "joint_states": ref.model.n, "epochs": ref.t.size, "compute_seconds": f"{elapsed:.2f}"},
+        data={"fault_free": free, "fault": fault, "trajectory": traj, "config": cfg, "setup": setup},
+    )
+
+
+def _figures(cfg, free, fault, estimates=True):
+    def fig_difference():
+        import matplotlib.pyplot as plt
+
+        comps = free[0].model.components if free else fault[0].model.components
+        fig, axs = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
+        for k, c in enumerate(comps[-6:]):
+            ax = axs.flat[k]
+            name = dn.DIFF_NAMES[c]
+            unit, scale = DIFF_UNITS[name[:3]]
+            ref = free[0] if free else fault[0]
+            ci = list(ref.model.components).index(c)
+            ax.fill_between(ref.t, -3 * scale * ref.envelope[:, ci], 3 * scale * ref.envelope[:, ci], color="0.85",
+                            label="±3σ predicted")
+            for runs, color, lab in ((free, "C0", "fault-free"), (fault, "C3", "g-sensitivity")):
+                for r in runs[:1]:
+                    for i in range(min(3, r.z.shape[0])):
+                        ax.plot(r.t, scale * r.z[i, :, c], color=color, lw=0.8, label=lab if i == 0 else None)
+            ax.set_title(f"{name} (main − KIMU)")
+            ax.set_ylabel(f"[{unit}]")
+            ax.grid(True, alpha=0.3)
+        axs.flat[0].legend(fontsize=8)
+        for ax in axs[-1]:
+            ax.set_xlabel("time [s]")
+        fig.suptitle(f"{cfg.name}: navigation difference after mounting compensation vs predicted envelope")
+        fig.tight_layout()
+        return fig
+
+    def fig_window():
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(9, 4.5))
+        thr = None
+        for runs, color, lab in ((free, "0.6", "fault-free"), (fault, "C3", "g-sensitivity injected")):
+            first = True
+            for r in runs:
+                W = r.window_stat.shape[1]
+                tt = r.t[r.t.size - W:]
+                for i in range(r.window_stat.shape[0]):
+                    ax.plot(tt, r.window_stat[i], color=color, lw=0.5, alpha=0.6, label=lab if first else None)
+                    first = False
+                thr = r.window_threshold
+        if thr is not None:
+            ax.axhline(thr, color="k", ls="--", label=f"threshold (α = {cfg.false_alarm:g} per flight)")
+        ax.set_yscale("log")
+        ax.set_xlabel("end of window [s]")
+        ax.set_ylabel(f"Σ NIS over {cfg.window:g} s")
+        ax.legend(fontsize=8)
+        ax.grid(True, alpha=0.3)
+        return fig
+
+    def fig_estimates():
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 4))
+        if fault:
+            c = fault[0].gsens.candidates.index((cfg.fault[0], cfg.fault[1]))
+            e = np.concatenate([r.gsens.estimate[:, c] for r in fault]) / PPM_G
+            k = cfg.fault[2] / PPM_G
+            ax.hist(e, bins=20, color="C3", alpha=0.7, label="fault runs")
+            ax.axvline(k, color="k", label="injected")
+            ax.axvspan(0.8 * k, 1.2 * k, color="C2", alpha=0.15, label="±20 %")
+        if free:
+            c = free[0].gsens.candidates.index((cfg.fault[0], cfg.fault[1])) if cfg.fault else 0
+            e = np.concatenate([r.gsens.estimate[:, c] for r in free]) / PPM_G
+            ax.hist(e, bins=20, color="0.5", alpha=0.7, label="fault-free runs")
+        ax.set_xlabel("estimated g-sensitive scale factor [ppm/g]")
+        ax.set_ylabel("flights")
+        ax.legend(fontsize=8)
+        return fig
+
+    figs = {"difference_envelope": fig_difference, "window_test": fig_window}
+    if cfg.fault and estimates:
+        figs["gsens_estimates"] = fig_estimates
+    return figs
+
+
+# --------------------------------------------------------------------------
+# recorded logs
+# --------------------------------------------------------------------------
+
+
+def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
+    """The dual-IMU comparison of two recorded logs.
+
+    Parameters
+    ----------
+    main_log, kimu_log : covtool.io.imu_log.ImuLog
+        Logs from the start of the alignment (vehicle at rest).
+    decl : dict
+        A ``dual_imu`` study declaration; ``[alignment]`` must give the
+        input ``lat``, ``lon``, ``h`` and ``heading``; ``[trajectory]`` and
+        ``[simulation]`` are ignored.
+    path : Path, optional
+        The study file (messages, relative grade paths).
+
+    Returns
+    -------
+    StudyResult
+        Tables ``summary``, ``history``, ``gaps`` (every bridged interval),
+        ``intervals`` (flagged spans), ``candidates``; figures.
+
+    Raises
+    ------
+    InputError
+        Bad logs (columns, time), rates that do not match the grades, gaps
+        with policy ``refuse``, logs too short for the alignment and a
+        window.
+    """
+    where = str(path) if path else "<study>"
+    base_dir = path.parent if path else None
+    t0 = time.perf_counter()
+    cfg = parse_study(decl, where, base_dir)
+    setup = make_setup(cfg, cfg.initial, where)
+    bridged = {}
+    for key, log in (("main", main_log), ("kimu", kimu_log)):
+        rate = cfg.grades[key].rate
+        dt = 1.0 / rate
+        measured = log.period
+        if abs(measured - dt) > 0.01 * dt:
+            raise InputError(f"{log.path}: column 't [s]'", f"median sample period {measured:.9g} s does not match "
+                             f"the {key} grade's rate {rate:g} Hz ({dt:.9g} s)")
+        m = cfg.grades[key].to_model()
+        bridged[key] = dn.bridge_gaps(log.t, log.dtheta, log.dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
+                                      window=cfg.gap_window, trials=cfg.gap_trials, where=log.path)
+    r = dn.run_dual(bridged["main"], bridged["kimu"], setup)
+    elapsed = time.perf_counter() - t0
+    gs = r.gsens
+    best = int(gs.identified[0])
+    summary = [
+        ("main log", main_log.path, "", f"{main_log.t.size} samples"),
+        ("KIMU log", kimu_log.path, "", f"{kimu_log.t.size} samples"),
+        ("compared span", f"{r.t[0]:.3f} to {r.t[-1]:.3f}", "s", f"{r.t.size} epochs"),
+        ("bridged gaps", len(bridged["main"].gaps) + len(bridged["kimu"].gaps), "",
+         f"{int(bridged['main'].bridged.sum()) + int(bridged['kimu'].bridged.sum())} samples, policy "
+         f"{cfg.gap_policy!r}"),
+        ("window alarms", len(r.intervals[0]), "intervals",
+         "; ".join(f"{a:.1f}-{b:.1f} s" for a, b in r.intervals[0]) or "none"),
+        ("window threshold", r.window_threshold, "", f"α = {cfg.false_alarm:g} per flight"),
+        ("max window chi2", float(r.window_stat[0].max()), "", ""),
+        ("g-sensitivity detected", bool(gs.detected[0]), "", f"GLR {gs.glr[0, best]:.1f} vs {gs.threshold:.1f}"),
+        ("most likely candidate", dn.candidate_label(gs.candidates[best]), "", "gyro axis / accel axis"),
+        ("its coefficient", gs.estimate[0, best] / PPM_G, "ppm/g", f"1σ {gs.sigma[best] / PPM_G:.1f} ppm/g"),
+        ("wall time", elapsed, "s", ""),
+    ]
+    summary = pd.DataFrame(summary, columns=["item", "value", "unit", "note"])
+    summary["value"] = summary["value"].astype(object)
+    gaps = pd.DataFrame([_gap_row(g) for g in bridged["main"].gaps + bridged["kimu"].gaps])
+    intervals = pd.DataFrame([{"start [s]": a, "end [s]": b} for a, b in r.intervals[0]],
+                             columns=["start [s]", "end [s]"])
+    cand = pd.DataFrame({"candidate": [dn.candidate_label(c) for c in gs.candidates],
+                         "estimate [ppm/g]": gs.estimate[0] / PPM_G, "1sigma [ppm/g]": gs.sigma / PPM_G,
+                         "GLR": gs.glr[0]})
+    tables = {"summary": summary, "history": _history(r, 0, "logs"), "gaps": gaps, "intervals": intervals,
+              "candidates": cand}
+    return StudyResult(
+        name=f"dualnav_{Path(main_log.path).stem}", kind="dualnav", tables=tables,
+        figures=_figures(cfg, [r], [], estimates=False),
+        resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},
+        provenance={"main_grade": cfg.grades["main"].path, "kimu_grade": cfg.grades["kimu"].path,
+                    "compute_seconds": f"{elapsed:.2f}"},
+        data={"run": r, "bridged": bridged, "config": cfg},
+    )
