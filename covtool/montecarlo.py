@@ -1,4 +1,4 @@
-"""Monte Carlo validation: real feedback filters on the simulated INS.
+"""Monte Carlo validation: real feedback filters on a simulated INS.
 
 Pure numeric core (arrays in, arrays out): an ensemble of M nonlinear
 strapdown INS runs (:mod:`covtool.strapdown`) driven by an IMU simulator with
@@ -202,7 +202,7 @@ class _Block:
 
 
 class SensorFeedback:
-    """Accumulated sensor-error estimates of M runs and their compensation.
+    """Accumulated sensor-error estimates of M runs, fed back.
 
     Parameters
     ----------
@@ -252,7 +252,7 @@ class SensorFeedback:
         self.c = self.c + dx
 
     def _factors(self, t_rel, d_rel):
-        """Mean-dynamics factors ``e^{−t/τ} e^{−d/D}``, shape (len(t_rel), n_s)."""
+        """Mean-dynamics factors ``e^{−t/τ − d/D}``, shape (k, n_s)."""
         with np.errstate(divide="ignore"):
             return np.exp(-np.asarray(t_rel)[:, None] / self.tau[None, :]
                           - np.asarray(d_rel)[:, None] / self.dist[None, :])
@@ -330,7 +330,7 @@ class RecordContext:
 
     @classmethod
     def along(cls, traj, t0: float, h: float, k: int, mounting=None) -> "RecordContext":
-        """Evaluate the context of ``k`` samples of period ``h`` from ``t0``."""
+        """Context of ``k`` samples of period ``h`` from ``t0``."""
         te = t0 + h * np.arange(k + 1)
         tm = t0 + h * (np.arange(k) + 0.5)
         hi = float(traj.t[-1])
@@ -348,7 +348,7 @@ class RecordContext:
 
 @dataclass(frozen=True)
 class Nees:
-    """Whitening of a covariance history for NEES, on a set of grid times.
+    """Whitening of a covariance history for NEES at grid times.
 
     The error vector is the reduced vector of ``labels``: navigation errors
     with the quaternion error replaced by ``φ`` (:data:`REDUCED_NAV`), then
@@ -448,7 +448,7 @@ def nees_whitening(P, names, labels, steps, q, *, rtol: float = 1e-10) -> Nees:
 
 
 def expected_nees(spec: Nees, P, names, q):
-    """Mean NEES the linear analysis predicts when the true covariance is ``P``.
+    """Mean NEES the linear analysis predicts for true covariance P.
 
     Parameters
     ----------
@@ -544,7 +544,10 @@ class EnsembleSums:
                    {k: np.array(v, float) for k, v in d["nees"].items()})
 
     def rms(self, quantity: str) -> np.ndarray:
-        """Ensemble RMS (about zero) of one of :data:`QUANTITIES` (or ``"horizontal"``)."""
+        """Ensemble RMS about zero of a quantity.
+
+        One of :data:`QUANTITIES`, or ``"horizontal"`` (radial).
+        """
         if quantity == "horizontal":
             return np.sqrt((self.s2[:, 0] + self.s2[:, 1]) / self.n_runs)
         return np.sqrt(self.s2[:, QUANTITIES.index(quantity)] / self.n_runs)

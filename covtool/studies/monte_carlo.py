@@ -148,7 +148,7 @@ def _chunks(runs: int, per: int) -> list[int]:
 
 
 def _linear(P, nodes) -> dict:
-    """σ of the compared quantities from a covariance history, plus the horizontal dof per run."""
+    """σ of the compared quantities and the horizontal dof per run."""
     m = nav_metrics(P, nodes.lat, nodes.h, nodes.q_nb)
     Pn = ned_position_covariance(P[:, :3, :3], nodes.lat, nodes.h)
     return {"horizontal": m["sigma_horizontal"], "altitude": m["sigma_down"], "azimuth": m["sigma_azimuth"],
