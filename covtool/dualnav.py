@@ -38,10 +38,12 @@ Automatic Control 21(1), 1976.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.stats import chi2
+from threadpoolctl import threadpool_limits
 
 from . import earth
 from . import quaternion as quat
@@ -72,6 +74,19 @@ GAP_POLICIES = ("hold", "interpolate", "propagate", "refuse")
 _EPS = np.zeros((3, 3, 3))
 _EPS[0, 1, 2] = _EPS[1, 2, 0] = _EPS[2, 0, 1] = 1.0
 _EPS[0, 2, 1] = _EPS[2, 1, 0] = _EPS[1, 0, 2] = -1.0
+
+
+def _serial_blas(fn):
+    """Run ``fn`` with one BLAS thread.
+
+    Every matrix here is small (≤ 110 rows): threads only add contention,
+    up to 70× slower on a loaded two-core machine.
+    """
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        with threadpool_limits(limits=1, user_api="blas"):
+            return fn(*args, **kwargs)
+    return wrapper
 
 
 def candidate_label(pair) -> str:
@@ -285,6 +300,7 @@ def nav_difference(main: sd.NavHistory, kimu: sd.NavHistory, mount_main=None, mo
 # --------------------------------------------------------------------------
 
 
+@_serial_blas
 def alignment_second_order(f_mean, heading, mounting, cov_u, step: float = 0.05):
     """Second-order part of the alignment error for Gaussian input errors.
 
@@ -609,6 +625,7 @@ def _discretize(F, Qc, dt, Fc=None, chunk=200, nav=10):
     return Phi, Qd, Gam
 
 
+@_serial_blas
 def difference_model(main: ImuLinearization, kimu: ImuLinearization, *, t_epochs, lat_epochs, h_epochs,
                      substeps_per_epoch: int, dt_sub: float, heading_sigma: float, products=None,
                      candidates=(), components=tuple(range(9)), noise=None, extra_noise=None,
@@ -868,6 +885,7 @@ class Whitener:
         return Innovations(self.nu, self.S, self.nis, self.rho)
 
 
+@_serial_blas
 def innovations(model: DifferenceModel, z) -> Innovations:
     """Whiten open-loop differences with the model's Kalman filter.
 
@@ -1002,7 +1020,8 @@ class GsensEstimate:
     information: np.ndarray
 
 
-def gsens_estimates(inn: Innovations, candidates, false_alarm: float) -> GsensEstimate:
+@_serial_blas
+def gsens_estimates(inn: Innovations, candidates, false_alarm: float, *, strict: bool = True) -> GsensEstimate:
     """Detect and estimate a g-sensitive scale factor from the innovations.
 
     Parameters
@@ -1012,6 +1031,9 @@ def gsens_estimates(inn: Innovations, candidates, false_alarm: float) -> GsensEs
     false_alarm : float
         Design probability of a detection in a fault-free flight
         (Bonferroni over the candidates).
+    strict : bool
+        Raise if a candidate has no signature; otherwise its estimate is
+        NaN, its σ infinite and its GLR 0.
 
     Returns
     -------
@@ -1036,13 +1058,15 @@ def gsens_estimates(inn: Innovations, candidates, false_alarm: float) -> GsensEs
     A = np.einsum("jmc,jmd->cd", inn.rho, Sinv_rho)
     b = np.einsum("Mjm,jmc->Mc", inn.nu, Sinv_rho)
     diag = np.diag(A).copy()
-    if np.any(diag <= 0):
-        bad = [candidate_label(cands[i]) for i in np.flatnonzero(diag <= 0)]
+    dead = diag <= 0
+    if strict and dead.any():
+        bad = [candidate_label(cands[i]) for i in np.flatnonzero(dead)]
         raise ValueError(f"g-sensitivity candidates {', '.join(bad)} have no signature in this flight "
                          "(the product ω_i f_j is zero throughout)")
-    est = b / diag
-    sigma = 1.0 / np.sqrt(diag)
-    glr = b**2 / diag
+    safe = np.where(dead, 1.0, diag)
+    est = np.where(dead, np.nan, b / safe)
+    sigma = np.where(dead, np.inf, 1.0 / np.sqrt(safe))
+    glr = np.where(dead, 0.0, b**2 / safe)
     thr = float(chi2.isf(false_alarm / nc, 1))
     best = np.argmax(glr, axis=1)
     detected = glr[np.arange(glr.shape[0]), best] > thr
@@ -1426,6 +1450,7 @@ def _closed_loop(model, rec_m, rec_k, sm, sk, r, ce, setup, q_ref_m, q_ref_k) ->
     return w.result()
 
 
+@_serial_blas
 def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=None,
              gap_noise=True, feedback=True) -> DualRun:
     """Align, navigate, compare and test the two IMUs.
@@ -1574,6 +1599,6 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
         inn = innovations(model, z[..., list(setup.components)])
     stat, thr, flagged = window_test(inn.nis, model.m, setup.window, setup.false_alarm)
     intervals = [flagged_intervals(f, em.t, setup.window) for f in flagged]
-    gs = gsens_estimates(inn, setup.candidates, setup.false_alarm)
+    gs = gsens_estimates(inn, setup.candidates, setup.false_alarm, strict=False)
     env = np.sqrt(np.diagonal(model.open_loop(), axis1=1, axis2=2))
     return DualRun(em.t, z, model, env, inn, stat, thr, flagged, intervals, gs, em, ek)
