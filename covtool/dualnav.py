@@ -56,7 +56,8 @@ from .model.spec import Model
 
 __all__ = [
     "DIFF_NAMES", "COMPONENTS", "AXES", "GAP_POLICIES", "GSensitiveErrors", "triad_alignment",
-    "alignment_jacobian", "alignment_second_order", "nav_difference", "ImuLinearization", "DifferenceModel", "difference_model",
+    "alignment_jacobian", "alignment_second_order", "nav_difference", "ImuLinearization", "DifferenceModel",
+    "difference_model",
     "Innovations", "Whitener", "innovations", "window_test", "flagged_intervals", "GsensEstimate", "gsens_estimates",
     "GapReport", "BridgedLog", "find_gaps", "bridge_gaps", "DualSetup", "DualRun", "run_dual",
     "candidate_label", "G0",

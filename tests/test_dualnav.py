@@ -36,10 +36,9 @@ from covtool.dynamics import Context, error_dynamics
 from covtool.errors import InputError, StudyFileError, TrajectoryError
 from covtool.flight import (FlightProfile, Segment, VibrationInterval, VibrationTone, flight, flight_from_config,
                             high_dynamics_flight, quadrature_nodes)
-from covtool.imu import ImuRecord, ImuSimulator, SensorErrors, ideal_increments, load_imu_grade, sample_states
+from covtool.imu import ImuSimulator, SensorErrors, ideal_increments, load_imu_grade
 from covtool.studies import run_study
-from covtool.studies.dual_imu import (PPM_G, compare_logs, gsens_coefficient, make_setup, parse_study,
-                                      simulate_logs)
+from covtool.studies.dual_imu import PPM_G, gsens_coefficient, make_setup, parse_study, simulate_logs
 
 G = 9.80665
 INITIAL = {"lat": "36 deg", "lon": "127 deg", "h": "50 m", "heading": "30 deg", "pitch": "10 deg"}
@@ -251,6 +250,13 @@ def test_flight_profile_errors(kw, match):
     args.update(kw)
     with pytest.raises(TrajectoryError, match=match):
         FlightProfile(args.pop("segments"), **args)
+
+
+def test_flight_config_must_be_tables():
+    with pytest.raises(TrajectoryError, match=r"f: expected a table, got str"):
+        flight_from_config("high_dynamics_flight", where="f", dt=0.1)
+    with pytest.raises(TrajectoryError, match=r"f: initial: expected a table, got list"):
+        flight_from_config({"initial": [], "segment": []}, where="f", dt=0.1)
 
 
 def test_flight_dt_error():
@@ -675,7 +681,8 @@ _DELETE = object()
     (("imu", "kimu", "mounting"), ["1 deg"], r"s: \[imu\.kimu\] mounting: expected \[roll, pitch, yaw\]"),
     (("imu", "kimu", "mounting"), ["1 deg", "1 m", "0 deg"], r"s: \[imu\.kimu\] mounting\[1\]: '1 m' is not an angle"),
     (("imu", "kimu", "ratio"), 0, r"s: \[imu\.kimu\] ratio: 0 is not an integer >= 1"),
-    (("imu", "kimu", "ratio"), 2, r"s: \[imu\.kimu\] ratio: 2 does not match the grades' rates \(400 Hz / 100 Hz = 4\)"),
+    (("imu", "kimu", "ratio"), 2,
+     r"s: \[imu\.kimu\] ratio: 2 does not match the grades' rates \(400 Hz / 100 Hz = 4\)"),
     (("alignment", "duration"), "-1 s", r"s: \[alignment\] duration: '-1 s' must be positive"),
     (("alignment", "tilt"), "1 deg", r"s: \[alignment\]: unknown key 'tilt'"),
     (("comparison", "interval"), "1.005 s", r"s: \[comparison\] interval: 1\.005 s is not a whole number of main"),
@@ -705,6 +712,13 @@ _DELETE = object()
 def test_study_file_errors(keys, value, match):
     with pytest.raises(StudyFileError, match=match):
         parse_study(_bad(keys, value), "s")
+
+
+def test_study_grade_without_rate(tmp_path):
+    grade = tmp_path / "norate.toml"
+    grade.write_text('[imu]\nname = "norate"\n[gyro]\nbias = "1 deg/h"\n', encoding="utf-8")
+    with pytest.raises(StudyFileError, match=r"s: \[imu\.kimu\] grade: IMU grade 'norate' declares no rate"):
+        parse_study(_bad(("imu", "kimu", "grade"), str(grade)), "s")
 
 
 def test_study_needs_a_stand_for_alignment_and_initial_for_logs():

@@ -66,7 +66,6 @@ Study file (datasheet units)::
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -76,7 +75,7 @@ import pandas as pd
 
 from .. import dualnav as dn
 from .. import quaternion as quat
-from ..errors import InputError, ModelFileError, StudyFileError, TrajectoryError
+from ..errors import InputError, ModelFileError, StudyFileError
 from ..io.config import check_keys, quantity
 from ..results import StudyResult
 
@@ -320,10 +319,7 @@ def _trajectory(decl, where):
     from ..flight import flight_from_config
 
     cfg = decl.get("trajectory", {"builtin": "high_dynamics_flight"})
-    try:
-        return flight_from_config(cfg, where=f"{where}: [trajectory]", dt=0.1)
-    except TrajectoryError:
-        raise
+    return flight_from_config(cfg, where=f"{where}: [trajectory]", dt=0.1)
 
 
 def _initial_from_trajectory(traj) -> dict:
