@@ -119,12 +119,18 @@ def midpoint_context(traj, t: np.ndarray) -> Context:
 
 
 def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="discretising", chunk=150):
-    """Discretise in chunks (bounded memory) with a progress bar."""
+    """Discretise in chunks (bounded memory) with a progress bar.
+
+    BLAS is limited to one thread: for these 58–116-wide matrices OpenBLAS's
+    thread pool was measured 3–10× slower on a loaded 2-core machine.
+    """
+    from threadpoolctl import threadpool_limits
+
     N = F.shape[0]
     Phi = np.empty_like(F)
     Qd = np.empty_like(F)
     dt = np.broadcast_to(np.asarray(dt, float), (N,))
-    with progress_bar(N, desc, progress) as bar:
+    with threadpool_limits(limits=1, user_api="blas"), progress_bar(N, desc, progress) as bar:
         for a in range(0, N, chunk):
             b = min(N, a + chunk)
             Phi[a:b], Qd[a:b] = discretize(F[a:b], Qc[a:b], dt[a:b], method, order)
