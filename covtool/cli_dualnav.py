@@ -26,7 +26,11 @@ __all__ = ["add_parser", "cmd_dualnav", "default_study"]
 
 
 def default_study() -> Path:
-    """``$COVTOOL_DUALNAV_STUDY``, else ``./studies/dual_imu_flight.toml``, else the repo's."""
+    """The study file used when ``--study`` is not given.
+
+    ``$COVTOOL_DUALNAV_STUDY``, else ``./studies/dual_imu_flight.toml``,
+    else the repository's.
+    """
     env = os.environ.get("COVTOOL_DUALNAV_STUDY")
     if env:
         return Path(env)

@@ -130,7 +130,7 @@ class GSensitiveErrors(SensorErrors):
         self.gsens = tuple(out)
 
     def increment_errors(self, t0, h, dtheta, dv, **kw):
-        """As :meth:`SensorErrors.increment_errors`, plus the g-sensitive term."""
+        """Sensor-error increments plus the g-sensitive term."""
         ddth, ddv = super().increment_errors(t0, h, dtheta, dv, **kw)
         for i, j, k in self.gsens:
             ddth[..., i] += k * (dv[..., j] / h) * dtheta[..., i]
@@ -171,7 +171,7 @@ def _dcm_to_quat(C):
 
 
 def triad_alignment(f_mean, heading, mounting=None) -> np.ndarray:
-    """Attitude of an IMU at rest from its accelerometers and a heading.
+    """Attitude of an IMU at rest from its accelerometers and heading.
 
     Parameters
     ----------
@@ -303,7 +303,7 @@ def nav_difference(main: sd.NavHistory, kimu: sd.NavHistory, mount_main=None, mo
 
 @_serial_blas
 def alignment_second_order(f_mean, heading, mounting, cov_u, step: float = 0.05):
-    """Second-order part of the alignment error for Gaussian input errors.
+    """Second-order alignment error for Gaussian input errors.
 
     Parameters
     ----------
@@ -447,7 +447,7 @@ class ImuLinearization:
 
 @dataclass
 class DifferenceModel:
-    """Joint linear model of the two INS errors at the comparison epochs.
+    """Joint linear model of the two INS errors at the epochs.
 
     Attributes
     ----------
@@ -492,14 +492,16 @@ class DifferenceModel:
 
     @property
     def n(self) -> int:
+        """Joint states."""
         return self.P0.shape[0]
 
     @property
     def m(self) -> int:
+        """Compared components."""
         return len(self.components)
 
     def open_loop(self) -> np.ndarray:
-        """Predicted covariance of the compared difference, shape (J+1, m, m).
+        """Predicted covariance of the compared difference (open loop).
 
         ``P_z = H P Hᵀ + R`` with ``P`` propagated without any comparison:
         the envelope the difference should stay in.
@@ -776,7 +778,7 @@ def difference_model(main: ImuLinearization, kimu: ImuLinearization, *, t_epochs
 
 @dataclass
 class Innovations:
-    """Kalman-filter innovations of the difference under the no-fault model.
+    """Innovations of the difference under the no-fault model.
 
     Attributes
     ----------
@@ -798,7 +800,7 @@ class Innovations:
 
 
 class Whitener:
-    """The Kalman filter of a :class:`DifferenceModel`, one epoch at a time.
+    """Kalman filter of a DifferenceModel, one epoch at a time.
 
     Parameters
     ----------
@@ -832,7 +834,7 @@ class Whitener:
         self.rho = np.empty((J1, m, nc))
 
     def update(self, j: int, z) -> np.ndarray:
-        """Process the compared difference ``z`` (M, m) of epoch ``j``; return ν."""
+        """Process epoch ``j``'s compared difference (M, m); return ν."""
         model = self.model
         H = model.H[j]
         P = self.P
@@ -865,7 +867,7 @@ class Whitener:
         return v
 
     def take_navigation(self):
-        """Estimated navigation errors of main and KIMU, each (M, 10), zeroed here."""
+        """Hand over the navigation-error estimates (M, 10) each."""
         nm = self.model.n_main
         dm = self.x[:, :10].copy()
         dk = self.x[:, nm:nm + 10].copy()
@@ -883,6 +885,7 @@ class Whitener:
         self.mu = Phi @ self.mu + model.Gamma[j]
 
     def result(self) -> "Innovations":
+        """The innovations processed so far."""
         return Innovations(self.nu, self.S, self.nis, self.rho)
 
 
@@ -1023,7 +1026,7 @@ class GsensEstimate:
 
 @_serial_blas
 def gsens_estimates(inn: Innovations, candidates, false_alarm: float, *, strict: bool = True) -> GsensEstimate:
-    """Detect and estimate a g-sensitive scale factor from the innovations.
+    """Detect and estimate a g-sensitive scale factor (GLR/GLS).
 
     Parameters
     ----------
@@ -1485,8 +1488,11 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
     ------
     InputError
         The logs do not overlap, are too short for the alignment and one
-        comparison window, or the KIMU does not deliver ``ratio`` samples
-        per main interval (named by :func:`~covtool.strapdown.group_samples`).
+        comparison window, the alignment is not a whole number of main
+        samples, or the KIMU does not deliver ``ratio`` samples per main
+        interval (named by :func:`~covtool.strapdown.group_samples`).
+    ValueError
+        ``compare_every`` not a multiple of ``substep``, or ``substep`` odd.
     """
     r = int(setup.ratio)
     hm = main.dt

@@ -83,15 +83,18 @@ class _Change:
 
     @property
     def peak(self) -> float:
+        """Rate held between the ramps."""
         return self.delta / (self.T - self.Tr)
 
     def rate(self, tau):
+        """Rate at time ``tau`` into the change."""
         p, Tr, T = self.peak, self.Tr, self.T
         up = p * _S(np.clip(tau, 0.0, Tr) / Tr)
         down = p * _S(np.clip(T - tau, 0.0, Tr) / Tr)
         return np.where(tau < Tr, up, np.where(tau > T - Tr, down, p))
 
     def integral(self, tau):
+        """Change accumulated by ``tau``."""
         p, Tr, T = self.peak, self.Tr, self.T
         u = np.clip(tau, 0.0, Tr) / Tr
         first = p * Tr * 0.5 * (u - np.sin(np.pi * u) / np.pi)
@@ -110,11 +113,13 @@ class _Channel:
         self.end = float(x0)
 
     def add(self, t0, T, delta, Tr):
+        """Append a change of ``delta`` over ``[t0, t0 + T]``."""
         if delta != 0.0:
             self.changes.append(_Change(float(t0), float(T), float(delta), float(min(Tr, 0.5 * T))))
             self.end += float(delta)
 
     def breakpoints(self):
+        """Times where a rate derivative changes form."""
         out = []
         for c in self.changes:
             out += [c.t0, c.t0 + c.Tr, c.t0 + c.T - c.Tr, c.t0 + c.T]
@@ -217,9 +222,11 @@ class VibrationInterval:
 
     @property
     def max_frequency(self) -> float:
+        """Highest tone frequency. [Hz]"""
         return max((tn.frequency for tn in self.tones), default=0.0)
 
     def breakpoints(self):
+        """Ends of the ramps and of the interval."""
         s, T, R = self.start, self.duration, self.ramp
         return [s, s + R, s + T - R, s + T]
 
@@ -506,7 +513,7 @@ def flight(segments, *, lat, lon, h, heading=0.0, pitch=0.0, vibration=(), dt=0.
 
 
 def quadrature_nodes(traj, rate: float, minimum: int = 3, tol: float = 1e-13) -> int:
-    """Gauss–Legendre nodes per IMU sample for a trajectory's vibration.
+    """Gauss–Legendre nodes per IMU sample for a flight's vibration.
 
     Parameters
     ----------

@@ -329,7 +329,7 @@ def _initial_from_trajectory(traj) -> dict:
 
 
 def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
-    """Simulated logs of both IMUs (M runs), with the declared telemetry gaps.
+    """Simulated logs of both IMUs (M runs) with the declared gaps.
 
     Returns
     -------
