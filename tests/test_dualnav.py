@@ -714,6 +714,31 @@ def test_study_file_errors(keys, value, match):
         parse_study(_bad(keys, value), "s")
 
 
+def test_flight_study_file_parses_and_round_trips():
+    """studies/dual_imu_flight.toml: load → dump → load gives the same validated study."""
+    import tomllib
+    from pathlib import Path
+
+    import tomli_w
+
+    path = Path(__file__).resolve().parents[1] / "studies" / "dual_imu_flight.toml"
+    decl = tomllib.loads(path.read_text(encoding="utf-8"))
+    a = parse_study(decl, str(path))
+    b = parse_study(tomllib.loads(tomli_w.dumps(decl)), str(path))
+    for field in dataclasses.fields(a):
+        va, vb = getattr(a, field.name), getattr(b, field.name)
+        if field.name == "grades":
+            assert {k: g.gyro for k, g in va.items()} == {k: g.gyro for k, g in vb.items()}
+        elif field.name == "mounting":
+            assert all(np.array_equal(va[k], vb[k]) for k in va)
+        elif isinstance(va, np.ndarray):
+            np.testing.assert_array_equal(va, vb)
+        else:
+            assert va == vb, field.name
+    assert a.fault == (2, 0, pytest.approx(1000 * PPM_G)) and a.runs == 1000 and len(a.gaps) == 3
+    assert a.initial["heading"] == pytest.approx(math.radians(45.0))
+
+
 def test_study_grade_without_rate(tmp_path):
     grade = tmp_path / "norate.toml"
     grade.write_text('[imu]\nname = "norate"\n[gyro]\nbias = "1 deg/h"\n', encoding="utf-8")

@@ -566,7 +566,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     )
 
 
-def _figures(cfg, free, fault, estimates=True):
+def _figures(cfg, free, fault, estimates=True, labels=("fault-free", "g-sensitivity injected")):
     def fig_difference():
         import matplotlib.pyplot as plt
 
@@ -580,7 +580,7 @@ def _figures(cfg, free, fault, estimates=True):
             ci = list(ref.model.components).index(c)
             ax.fill_between(ref.t, -3 * scale * ref.envelope[:, ci], 3 * scale * ref.envelope[:, ci], color="0.85",
                             label="±3σ predicted")
-            for runs, color, lab in ((free, "C0", "fault-free"), (fault, "C3", "g-sensitivity")):
+            for runs, color, lab in ((free, "C0", labels[0]), (fault, "C3", labels[1])):
                 for r in runs[:1]:
                     for i in range(min(3, r.z.shape[0])):
                         ax.plot(r.t, scale * r.z[i, :, c], color=color, lw=0.8, label=lab if i == 0 else None)
@@ -599,7 +599,7 @@ def _figures(cfg, free, fault, estimates=True):
 
         fig, ax = plt.subplots(figsize=(9, 4.5))
         thr = None
-        for runs, color, lab in ((free, "0.6", "fault-free"), (fault, "C3", "g-sensitivity injected")):
+        for runs, color, lab in ((free, "0.6", labels[0]), (fault, "C3", labels[1])):
             first = True
             for r in runs:
                 W = r.window_stat.shape[1]
@@ -723,7 +723,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
               "candidates": cand}
     return StudyResult(
         name=f"dualnav_{Path(main_log.path).stem}", kind="dualnav", tables=tables,
-        figures=_figures(cfg, [r], [], estimates=False),
+        figures=_figures(cfg, [r], [], estimates=False, labels=("logs", "")),
         resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},
         provenance={"main_grade": cfg.grades["main"].path, "kimu_grade": cfg.grades["kimu"].path,
                     "compute_seconds": f"{elapsed:.2f}"},
