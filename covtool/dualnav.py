@@ -1392,6 +1392,10 @@ class DualRun:
     gsens : GsensEstimate
     main, kimu : covtool.strapdown.NavHistory
         The two solutions at the epochs.
+    unused : dict of str to (int, int)
+        Samples of each log before and after the compared span (outside the
+        common span of the logs, or after the last whole comparison
+        interval): reported, never silently dropped.
     """
 
     t: np.ndarray
@@ -1406,6 +1410,7 @@ class DualRun:
     gsens: GsensEstimate
     main: sd.NavHistory
     kimu: sd.NavHistory
+    unused: dict = field(default_factory=dict)
 
 
 def _runs(x):
@@ -1608,4 +1613,7 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
     intervals = [flagged_intervals(f, em.t, setup.window) for f in flagged]
     gs = gsens_estimates(inn, setup.candidates, setup.false_alarm, strict=False)
     env = np.sqrt(np.diagonal(model.open_loop(), axis1=1, axis2=2))
-    return DualRun(em.t, z, model, env, inn, stat, thr, flagged, intervals, gs, em, ek)
+    used_k = k_idx[:(n_align + n_nav) * r]
+    unused = {"main": (e0, main.t.size - (e0 + n_align + n_nav)),
+              "kimu": (int(used_k[0]), kimu.t.size - int(used_k[-1]) - 1)}
+    return DualRun(em.t, z, model, env, inn, stat, thr, flagged, intervals, gs, em, ek, unused)

@@ -616,6 +616,10 @@ def test_run_dual_errors(setup_static):
     main, kimu = _static_log(100.0, 20.0), _static_log(400.0, 20.0)
     r = dn.run_dual(main, kimu, setup)                      # at rest, error-free: the two agree
     assert np.abs(r.z[0, :, 3:6]).max() < 1e-9 and np.abs(r.z[0, :, 6:]).max() < 1e-9
+    assert r.unused == {"main": (0, 0), "kimu": (0, 0)}
+    # a KIMU log that starts 0.5 s late and a main log 0.37 s longer: the unused samples are counted
+    r = dn.run_dual(_static_log(100.0, 20.37), _static_log(400.0, 19.5, t0=0.5), setup)
+    assert r.t[0] == pytest.approx(5.5) and r.unused == {"main": (50, 87), "kimu": (0, 200)}   # whole epochs end at 19.5 s
     late = dataclasses.replace(kimu, t=kimu.t + 30.0)
     with pytest.raises(InputError, match=r"logs: the main log \[0, 20\] s and the KIMU log \[30, 50\] s share no "
                                          r"main interval"):

@@ -699,6 +699,9 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         ("main log", main_log.path, "", f"{main_log.t.size} samples"),
         ("KIMU log", kimu_log.path, "", f"{kimu_log.t.size} samples"),
         ("compared span", f"{r.t[0]:.3f} to {r.t[-1]:.3f}", "s", f"{r.t.size} epochs"),
+        ("samples not compared (before, after)",
+         f"main {r.unused['main'][0]}, {r.unused['main'][1]}; KIMU {r.unused['kimu'][0]}, {r.unused['kimu'][1]}", "",
+         "outside the common span or after the last whole comparison interval"),
         ("bridged gaps", len(bridged["main"].gaps) + len(bridged["kimu"].gaps), "",
          f"{int(bridged['main'].bridged.sum()) + int(bridged['kimu'].bridged.sum())} samples, policy "
          f"{cfg.gap_policy!r}"),
