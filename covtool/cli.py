@@ -100,6 +100,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dir", default=None, help="model directory (default: models/)")
     s.add_argument("--markdown", action="store_true", help="print the table as Markdown (docs/)")
     s.set_defaults(func=_cmd_show)
+    from .cli_dualnav import add_parser as add_dualnav_parser
+    add_dualnav_parser(sub)
     return p
 
 

@@ -36,6 +36,7 @@ from .discretize import discretize
 from .dynamics import Context, ErrorDynamics, NavOptions, error_dynamics
 from .errors import ModelFileError
 from .io.config import check_keys, load_toml
+from .model.blocks import NAV_STATES
 from .model.spec import Model
 from .units import parse_quantity
 from .errors import UnitError
@@ -160,9 +161,10 @@ def _spec(f: dict, truth: Model, where: str, path: str) -> FilterSpec:
                              f"(truth model {truth.name!r})") from None
     kept_set = set(kept) - dropped
     kept = tuple(nm for nm in truth.names if nm in kept_set)   # truth order
-    for v in VELOCITY_STATES:
+    for v in NAV_STATES:
         if v not in kept_set:
-            raise ModelFileError(f"{where}: keep", f"a ZUPT filter must keep the velocity state {v!r}")
+            raise ModelFileError(f"{where}: keep", f"a ZUPT filter must keep the navigation state {v!r} "
+                                 "(the 10 states of seed 002 eq (14))")
     P0 = {}
     for nm, val in (f.get("P0") or {}).items():
         if nm not in truth.index:
@@ -196,7 +198,7 @@ def _spec(f: dict, truth: Model, where: str, path: str) -> FilterSpec:
         ewn = "eq11-13"
     if ewn not in (False, "eq11-13", "matched"):
         raise ModelFileError(f"{where}: equivalent_noise",
-                             f"{ewn!r} is not one of false, \"full\" (eq (11)-(13)), \"matched\"")
+                             f"{ewn!r} is not one of false, true, \"eq11-13\", \"matched\"")
     return FilterSpec(
         name=f["name"], truth=truth.name, kept=kept,
         options=NavOptions(coriolis=f.get("coriolis", True), couple_vertical=not f.get("decouple_vertical", False)),

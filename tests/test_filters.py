@@ -254,7 +254,7 @@ def test_filter_P0_of_a_dropped_state_is_a_clear_error(truth):
 
 
 def test_filter_without_velocity_states_is_a_clear_error(truth):
-    with pytest.raises(ModelFileError, match=r"must keep the velocity state 'dvN'"):
+    with pytest.raises(ModelFileError, match=r"must keep the navigation state 'dL'"):
         filters_from_dict({"filter": [{"name": "X", "keep": ["acc_bias"]}]}, truth, path="f.toml")
 
 

@@ -46,3 +46,37 @@ def test_quaternion_error_to_attitude_error_round_trip():
     M = quat.attitude_error_matrix(q)
     np.testing.assert_allclose(M @ (qhat - q), phi, rtol=1e-4)
     np.testing.assert_allclose(M @ q, 0.0, atol=1e-15)
+
+
+@pytest.mark.parametrize("ratio", [1.0, 0.3, 0.05, 0.01, 0.0033, 0.001, 1e-5])
+def test_cep_against_independent_quadrature_for_elongated_ellipses(ratio):
+    """Exact CEP against scipy's adaptive quad + brentq for any eccentricity (rel ≤ 1e-9).
+
+    Reference: P(r) = ∫ φ(x₂/σ₂)/σ₂ erf(√(r²−x₂²)/(√2σ₁)) dx₂ by adaptive
+    quadrature; for σ₂/σ₁ ≥ 0.05 also the major-axis form, which must agree.
+    Regression: a Newton test on the step size alone returned a CEP 10 % low
+    at σ₂/σ₁ = 0.0033.  Physics: CEP → 0.67449 σ₁ (1 + O((σ₂/σ₁)²)).
+    """
+    from scipy.integrate import quad
+    from scipy.optimize import brentq
+    from scipy.special import erf as _erf
+    s1, s2 = 3.0, 3.0 * ratio
+
+    def p_minor(r):
+        lim = min(r, 14 * s2)
+        g = lambda x: np.exp(-0.5 * (x / s2) ** 2) / (np.sqrt(2 * np.pi) * s2) * _erf(  # noqa: E731
+            np.sqrt(max(r * r - x * x, 0.0)) / (np.sqrt(2) * s1))
+        return 2 * quad(g, 0, lim, epsabs=1e-15, epsrel=1e-13, limit=400)[0]
+
+    def p_major(r):
+        g = lambda x: np.exp(-0.5 * (x / s1) ** 2) / (np.sqrt(2 * np.pi) * s1) * _erf(  # noqa: E731
+            np.sqrt(max(r * r - x * x, 0.0)) / (np.sqrt(2) * s2))
+        return 2 * quad(g, 0, r, epsabs=1e-15, epsrel=1e-13, limit=400)[0]
+
+    ref = brentq(lambda r: p_minor(r) - 0.5, 0.5 * s1, 1.3 * np.hypot(s1, s2), xtol=1e-15)
+    if ratio >= 0.05:
+        ref2 = brentq(lambda r: p_major(r) - 0.5, 0.5 * s1, 1.3 * np.hypot(s1, s2), xtol=1e-15)
+        assert ref2 == pytest.approx(ref, rel=1e-10)
+    got = cep(np.diag([s1**2, s2**2]))
+    assert got == pytest.approx(ref, rel=1e-9)
+    assert got >= PE_FACTOR * s1 * (1 - 1e-12)

@@ -182,7 +182,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=()) -
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
     nodes = traj.sample(t)
     P0 = truth.initial_covariance(nodes.q_nb[0])
-    moving = np.diff(t)[np.linalg.norm(ctx.v_n, axis=1) > 0.1].sum()
+    moving = t[-1] - t[0] - sum(max(0.0, min(b, t[-1]) - max(a, t[0])) for a, b in traj.stationary)
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
     H = zupt_matrices(truth.names)
     R = np.eye(3) * zsig**2
