@@ -63,5 +63,10 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     if refused:
         raise InputError(f"{where}: [study] kind", f"{kind!r} runs in-process in one piece; it takes no "
                          f"{' or '.join(refused)} (--workers, --scheduler, --resume)")
-    return module.run(decl, path=path, progress=progress, **options)
+    # covtool's matrices are small to medium (n <= 116): OpenBLAS's thread pool was
+    # measured 3-30x slower than one thread for them on a loaded 2-core machine;
+    # parallelism comes from processes (covtool.parallel) instead.
+    from threadpoolctl import threadpool_limits
+    with threadpool_limits(limits=1, user_api="blas"):
+        return module.run(decl, path=path, progress=progress, **options)
 
