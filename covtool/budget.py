@@ -300,7 +300,6 @@ def discretize_noise(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, tol: 
     """
     F = np.asarray(F, float)
     N, n, _ = F.shape
-    k = G.shape[2]
     dt = np.broadcast_to(np.asarray(dt, float), (N,))[:, None, None]
     Y = np.asarray(G, float).copy()
     terms = [Y]

@@ -6,8 +6,6 @@ Both functions take stacks of matrices (leading time axis) and return
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from scipy.linalg import expm
 

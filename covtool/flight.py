@@ -43,9 +43,10 @@ import numpy as np
 
 from . import earth
 from . import quaternion as quat
-from .errors import TrajectoryError, UnitError
+from .errors import TrajectoryError
 from .trajectory import Trajectory, inverse_mechanization
-from .units import parse_quantity
+from .trajectory import _check_keys as _check  # validation helpers shared with trajectories
+from .trajectory import _q
 
 __all__ = ["FlightProfile", "Segment", "VibrationTone", "VibrationInterval", "flight",
            "high_dynamics_flight", "flight_from_config", "quadrature_nodes", "SEGMENT_KEYS", "FLIGHT_BUILTINS"]
@@ -606,19 +607,6 @@ def high_dynamics_flight(*, dt=0.1, vibration=True, name="high_dynamics_flight")
 FLIGHT_BUILTINS = {"high_dynamics_flight": high_dynamics_flight}
 
 
-def _q(value, dim, where):
-    try:
-        return parse_quantity(value, dim, where=where)
-    except UnitError as exc:
-        raise TrajectoryError(exc.where, exc.problem) from None
-
-
-def _check(d, allowed, where):
-    if not isinstance(d, dict):
-        raise TrajectoryError(where, f"expected a table, got {type(d).__name__}")
-    for k in d:
-        if k not in allowed:
-            raise TrajectoryError(where, f"unknown key {k!r} (allowed: {', '.join(sorted(allowed))})")
 
 
 def flight_from_config(cfg: dict, *, where: str, dt: float, name: str | None = None) -> Trajectory:

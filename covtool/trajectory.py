@@ -61,8 +61,8 @@ from scipy.integrate import solve_ivp
 
 from . import earth
 from . import quaternion as quat
-from .errors import TrajectoryError, UnitError
-from .units import parse_quantity
+from .errors import TrajectoryError
+from .io.config import check_keys, quantity
 
 __all__ = [
     "Trajectory", "land_vehicle", "static", "from_segments", "trajectory_from_config",
@@ -790,18 +790,11 @@ BUILTINS = {
 
 
 def _q(value, dimension, where):
-    try:
-        return parse_quantity(value, dimension, where=where)
-    except UnitError as exc:
-        raise TrajectoryError(exc.where, exc.problem) from None
+    return quantity(value, dimension, where, TrajectoryError)
 
 
 def _check_keys(d, allowed, where):
-    if not isinstance(d, dict):
-        raise TrajectoryError(where, f"expected a table, got {type(d).__name__}")
-    for k in d:
-        if k not in allowed:
-            raise TrajectoryError(where, f"unknown key {k!r} (allowed: {', '.join(sorted(allowed))})")
+    check_keys(d, allowed, where, TrajectoryError)
 
 
 def from_segments(segments, initial, *, dt=1.0, name="", where="trajectory") -> Trajectory:

@@ -40,7 +40,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import re
-from pathlib import Path
 
 import numpy as np
 import tomli_w
@@ -138,7 +137,7 @@ def _block_states(b: dict, where: str, file: str) -> list[State]:
                              f"(allowed: {', '.join(bk.processes)})")
     if "board" in b:
         if kind != "ad_reset_velocity":
-            raise ModelFileError(f"{where}: board", f"'board' parameters apply only to kind 'ad_reset_velocity'")
+            raise ModelFileError(f"{where}: board", "'board' parameters apply only to kind 'ad_reset_velocity'")
         if "sigma" in b:
             raise ModelFileError(f"{where}: board", "give either 'sigma' or 'board', not both")
         b = {**b, "sigma": [_board_sigma(b["board"], f"{where}: board")] * n}

@@ -39,12 +39,16 @@ from .common import (history_frame, load_truth, report_times, study_header, summ
                      truth_system)
 
 
-def load_trajectory(decl, where, base_dir, dt):
-    """The study's ``[trajectory]``."""
+def load_trajectory(decl, where, base_dir, dt, duration=None):
+    """The study's ``[trajectory]``; it must last at least ``duration`` [s] if given."""
     from ..trajectory import trajectory_from_config
 
     cfg = decl.get("trajectory", {"builtin": "land_vehicle"})
-    return trajectory_from_config(cfg, where=f"{where}: [trajectory]", base_dir=base_dir, dt=dt)
+    traj = trajectory_from_config(cfg, where=f"{where}: [trajectory]", base_dir=base_dir, dt=dt)
+    if duration is not None and traj.t[-1] < duration - 1e-9:
+        raise StudyFileError(f"{where}: [study] duration",
+                             f"{duration:g} s is longer than the trajectory ({traj.t[-1]:g} s)")
+    return traj
 
 
 def output_options(decl, where, duration):
@@ -63,10 +67,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     hdr = study_header(decl, where)
     every, rtimes = output_options(decl, where, hdr["duration"])
     t0 = time.perf_counter()
-    traj = load_trajectory(decl, where, base_dir, hdr["dt"])
-    if traj.t[-1] < hdr["duration"] - 1e-9:
-        raise StudyFileError(f"{where}: [study] duration",
-                             f"{hdr['duration']:g} s is longer than the trajectory ({traj.t[-1]:g} s)")
+    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     truth = load_truth(decl, where, base_dir)
     t = time_grid(hdr["duration"], hdr["dt"])
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)

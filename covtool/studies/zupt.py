@@ -36,7 +36,7 @@ import pandas as pd
 
 from ..covariance import propagate, propagate_with_filter
 from ..dynamics import error_dynamics
-from ..errors import ModelFileError, StudyFileError
+from ..errors import StudyFileError
 from ..filters import build_filter, default_filter_file, load_filters, zupt_matrices
 from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics
@@ -163,10 +163,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=()) -
     every, rtimes = output_options(decl, where, hdr["duration"])
     fcfg = decl.get("filters", {})
     check_keys(fcfg, {"file", "cases", "pure_ins"}, f"{where}: [filters]", StudyFileError)
-    traj = load_trajectory(decl, where, base_dir, hdr["dt"])
-    if traj.t[-1] < hdr["duration"] - 1e-9:
-        raise StudyFileError(f"{where}: [study] duration",
-                             f"{hdr['duration']:g} s is longer than the trajectory ({traj.t[-1]:g} s)")
+    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     truth = load_truth(decl, where, base_dir)
     t = time_grid(hdr["duration"], hdr["dt"])
     upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
@@ -215,7 +212,6 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             bar.update(1)
     elapsed = time.perf_counter() - t_start
 
-    k_end = t.size - 1
     rows = []
     for case, m in metrics.items():
         for tr in rtimes:
