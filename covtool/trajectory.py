@@ -63,6 +63,7 @@ from . import earth
 from . import quaternion as quat
 from .errors import TrajectoryError
 from .io.config import check_keys, quantity
+from .io.csv_table import read_numeric_csv
 
 __all__ = [
     "Trajectory", "land_vehicle", "static", "from_segments", "trajectory_from_config",
@@ -1037,49 +1038,11 @@ def load_trajectory_csv(path) -> Trajectory:
         increasing, quaternion norm off by more than
         :data:`QUATERNION_NORM_TOL`, bad ``stationary`` flags.
     """
-    import pandas as pd
-
     path = Path(path)
     where = str(path)
-    try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
-    except FileNotFoundError:
-        raise TrajectoryError(where, "file not found") from None
-    except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise TrajectoryError(where, f"not a readable CSV file ({exc})") from None
-    df.columns = [str(c).strip() for c in df.columns]
-    for col in CSV_COLUMNS:
-        if col not in df.columns:
-            raise TrajectoryError(where, f"missing column {col!r}")
-    allowed = set(CSV_COLUMNS) | set(CSV_OPTIONAL_COLUMNS)
-    for col in df.columns:
-        if col not in allowed:
-            raise TrajectoryError(where, f"unknown column {col!r} (expected {', '.join(CSV_COLUMNS)}; "
-                                  f"optional {', '.join(CSV_OPTIONAL_COLUMNS)})")
-    if len(df) < 2:
-        raise TrajectoryError(where, f"needs at least 2 data rows, found {len(df)}")
-    cols = {}
-    for col in df.columns:
-        raw = df[col].str.strip()
-        num = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
-        bad = ~np.isfinite(num)
-        if bad.any():
-            r = int(np.argmax(bad))
-            text = raw.iloc[r]
-            if text == "":
-                what = "is empty"
-            elif _is_float(text):
-                what = f"{text!r} is not finite"
-            else:
-                what = f"{text!r} is not a number"
-            raise TrajectoryError(f"{where}: column {col!r}", f"row {r + 1}: {what}")
-        cols[col] = num
+    cols = read_numeric_csv(path, CSV_COLUMNS, CSV_OPTIONAL_COLUMNS, error=TrajectoryError)
     t = cols["t [s]"]
     step = np.diff(t)
-    if np.any(step <= 0):
-        r = int(np.argmax(step <= 0)) + 2
-        raise TrajectoryError(f"{where}: column 't [s]'", f"row {r}: time {t[r - 1]:.17g} s is not after "
-                              f"the previous row's {t[r - 2]:.17g} s (time must be strictly increasing)")
     q = np.column_stack([cols[c] for c in ("q0", "q1", "q2", "q3")])
     norm = np.linalg.norm(q, axis=1)
     off = np.abs(norm - 1.0) > QUATERNION_NORM_TOL
@@ -1131,14 +1094,6 @@ def load_trajectory_csv(path) -> Trajectory:
                       distance=distance, stationary=tuple(intervals), name=path.stem)
     return Trajectory(**_fields(traj), stationary=traj.stationary, name=traj.name,
                       _source=_Interpolant(traj))
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def save_trajectory_csv(traj: Trajectory, path) -> None:

@@ -22,11 +22,11 @@ the column and the (1-based data) row.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError
+from .csv_table import read_numeric_csv
 
 __all__ = ["LOG_COLUMNS", "ImuLog", "load_imu_log", "save_imu_log", "nominal_period"]
 
@@ -84,60 +84,12 @@ def load_imu_log(path) -> ImuLog:
         empty, non-numeric or non-finite value, time not strictly
         increasing.
     """
-    import pandas as pd
-
-    path = Path(path)
     where = str(path)
-    try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
-    except FileNotFoundError:
-        raise InputError(where, "file not found") from None
-    except (pd.errors.EmptyDataError, pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise InputError(where, f"not a readable CSV file ({exc})") from None
-    cols = [str(c).strip() for c in df.columns]
-    seen = set()
-    for c in cols:
-        if c in seen or c.split(".")[0] in seen and c.rsplit(".", 1)[-1].isdigit():
-            raise InputError(where, f"column {c.split('.')[0]!r} appears more than once")
-        seen.add(c)
-    df.columns = cols
-    for c in cols:
-        if c not in LOG_COLUMNS:
-            raise InputError(where, f"unknown column {c!r} (expected {', '.join(LOG_COLUMNS)})")
-    for c in LOG_COLUMNS:
-        if c not in cols:
-            raise InputError(where, f"missing column {c!r} (expected {', '.join(LOG_COLUMNS)})")
-    if len(df) < 2:
-        raise InputError(where, f"needs at least 2 data rows, found {len(df)}")
-    data = {}
-    for c in LOG_COLUMNS:
-        raw = df[c].str.strip()
-        num = pd.to_numeric(raw, errors="coerce").to_numpy(dtype=float)
-        bad = ~np.isfinite(num)
-        if bad.any():
-            r = int(np.argmax(bad))
-            text = raw.iloc[r]
-            what = "is empty" if text == "" else (f"{text!r} is not finite" if _is_float(text)
-                                                 else f"{text!r} is not a number")
-            raise InputError(f"{where}: column {c!r}", f"row {r + 1}: {what}")
-        data[c] = num
+    data = read_numeric_csv(path, LOG_COLUMNS, error=InputError)
     t = data["t [s]"]
-    step = np.diff(t)
-    if np.any(step <= 0):
-        r = int(np.argmax(step <= 0)) + 2
-        raise InputError(f"{where}: column 't [s]'", f"row {r}: time {t[r - 1]:.17g} s is not after the previous "
-                         f"row's {t[r - 2]:.17g} s (time must be strictly increasing)")
     dth = np.column_stack([data[c] for c in LOG_COLUMNS[1:4]])
     dv = np.column_stack([data[c] for c in LOG_COLUMNS[4:7]])
     return ImuLog(where, t, dth, dv)
-
-
-def _is_float(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def save_imu_log(path, t, dtheta, dv) -> None:
