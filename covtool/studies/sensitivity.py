@@ -59,7 +59,6 @@ Loan truth to about 1e-11 (tested to 1e-8).
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import time
 from pathlib import Path
@@ -69,16 +68,15 @@ import pandas as pd
 from threadpoolctl import threadpool_limits
 
 from .. import flops
-from ..dynamics import error_dynamics
 from ..engine import System, events
 from ..errors import StudyFileError
-from ..filters import build_filter, zupt_matrices
+from ..filters import zupt_matrices
 from ..io.config import check_keys
 from ..metrics import nav_metrics
 from ..results import StudyResult
 from ..sensitivity import PARAMETERS, fit_loglog, scale_grid, sensitivity_figures, sweep_cases, run_sweep
-from .common import ARCMIN, FT, discretize_chunked, progress_bar
-from .zupt import dyn_key, setup
+from .common import ARCMIN, FT, progress_bar
+from .zupt import setup
 
 SWEEP_KEYS = {"parameters", "scales", "fit_degree", "discretization"}
 COST_KEYS = {"measure", "repeats", "taylor_order", "paper_seconds"}
@@ -157,25 +155,6 @@ def cost_options(cfg: dict, where: str) -> dict:
     return {"measure": measure, "repeats": rep, "taylor_order": order, "paper_seconds": dict(paper)}
 
 
-def _filter_system(S, name: str, method: str, dyn_cache: dict):
-    """``(FilterModel, Φ_f, Q_f, reused)`` with the sweep's override."""
-    spec = S.specs[name]
-    if method != "declared":
-        spec = dataclasses.replace(spec, discretization=method)
-    key = dyn_key(spec.options)
-    if key not in dyn_cache:
-        dyn_cache[key] = S.dyn if key == dyn_key(None) else error_dynamics(S.truth, S.ctx, spec.options)
-    fm = build_filter(spec, S.truth, S.ctx, zupt_interval=S.zupt_interval, q0=S.nodes.q_nb[0],
-                      truth_dynamics=dyn_cache[key], mean_speed=S.mean_speed, dt_steps=np.diff(S.t))
-    same_method = spec.discretization == S.hdr["discretization"] and (
-        spec.discretization == "van_loan" or spec.taylor_order is None)
-    if same_method and fm.F.shape == S.dyn.F.shape and np.array_equal(fm.F, S.dyn.F) \
-            and np.array_equal(fm.Qc, S.dyn.Qc):
-        return fm, S.Phi, S.Qd, True
-    Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(S.t), spec.discretization, spec.taylor_order)
-    return fm, Phi_f, Qd_f, False
-
-
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     """Run the sensitivity / compute-cost trade (module docstring)."""
     t_start, c_start = time.perf_counter(), time.process_time()
@@ -204,7 +183,6 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         B = cases.n_cases
         lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
         results, fmodels, reused = {}, {}, {}
-        dyn_cache = {}
         timing.update({"filter models": 0.0, "compose filters": 0.0, "batched runs": 0.0})
         nr = len(rec)
 
@@ -213,7 +191,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
         def one(c):
             tic = time.perf_counter()
-            fm, Phi_f, Qd_f, reused_c = _filter_system(S, c, sw["discretization"], dyn_cache)
+            fm, Phi_f, Qd_f, reused_c = S.filter_system(c, sw["discretization"])
             tac = time.perf_counter()
             filt = truth_sys if reused_c else System.from_steps(Phi_f, Qd_f, ev)
             tuc = time.perf_counter()

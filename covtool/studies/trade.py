@@ -335,33 +335,6 @@ class TradePlan:
 # one chunk: one truth system, all its cases (runs in a worker)
 # --------------------------------------------------------------------------
 
-def filter_system(S, name: str, dyn_cache: dict):
-    """``(FilterModel, Φ_f, Q_f)`` of a filter; ``Φ_f = None`` if it is the truth's.
-
-    A filter with exactly the truth's F and Q_c, discretised by the same
-    method (filter A with a Taylor or Van Loan truth alike), has the
-    truth's Φ and Q_d: they are reused, not computed again.
-    """
-    from ..dynamics import error_dynamics
-    from ..filters import build_filter
-    from .common import discretize_chunked
-    from .zupt import dyn_key
-
-    spec = S.specs[name]
-    key = dyn_key(spec.options)
-    if key not in dyn_cache:
-        dyn_cache[key] = S.dyn if key == dyn_key(None) else error_dynamics(S.truth, S.ctx, spec.options)
-    fm = build_filter(spec, S.truth, S.ctx, zupt_interval=S.zupt_interval, q0=S.nodes.q_nb[0],
-                      truth_dynamics=dyn_cache[key], mean_speed=S.mean_speed, dt_steps=np.diff(S.t))
-    same_method = spec.discretization == S.hdr["discretization"] and (
-        spec.discretization == "van_loan" or spec.taylor_order is None)
-    if same_method and fm.F.shape == S.dyn.F.shape and np.array_equal(fm.F, S.dyn.F) \
-            and np.array_equal(fm.Qc, S.dyn.Qc):
-        return fm, None, None
-    Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(S.t), spec.discretization, spec.taylor_order)
-    return fm, Phi_f, Qd_f
-
-
 def compute_chunk(task: dict) -> dict:
     """Every case of one (grade, interval) truth system.
 
@@ -394,14 +367,14 @@ def compute_chunk(task: dict) -> dict:
     by_filter: dict = {}
     for c in task["cases"]:
         by_filter.setdefault(c["filter"], []).append(c)
-    rows, dyn_cache, reused = {}, {}, []
+    rows, reused = {}, []
     eye = np.eye(S.H.shape[0])
     for f, cs in by_filter.items():
         a = time.perf_counter()
-        fm, Phi_f, Qd_f = filter_system(S, f, dyn_cache)
+        fm, Phi_f, Qd_f, same = S.filter_system(f)
         spec = S.specs[f]
-        filt = truth if Phi_f is None else System.from_steps(Phi_f, Qd_f, ev)
-        if Phi_f is None:
+        filt = truth if same else System.from_steps(Phi_f, Qd_f, ev)
+        if same:
             reused.append(f)
         b = time.perf_counter()
         sig = np.array([c["_sigma"] for c in cs])

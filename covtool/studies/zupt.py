@@ -27,6 +27,7 @@ Study file::
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -132,10 +133,27 @@ class ZuptSetup:
     _dyn_cache: dict = field(default_factory=dict)
     _filters: dict = field(default_factory=dict)
 
-    def filter_model(self, name: str):
-        """``(FilterModel, Φ_f, Q_f)`` of a declared filter, cached."""
-        if name not in self._filters:
+    def filter_system(self, name: str, discretization: str | None = None):
+        """``(FilterModel, Φ_f, Q_f, reused)`` of a declared filter, cached.
+
+        Parameters
+        ----------
+        name : str
+            Declared filter.
+        discretization : {None, "declared", "taylor", "van_loan"}
+            Override of the filter's declared discretisation (sweeps).
+
+        Notes
+        -----
+        A filter with exactly the truth's F and Q_c, discretised by the
+        truth's method (filter A with the same method), has the truth's Φ and
+        Q_d: they are returned as they are (``reused = True``), not computed again.
+        """
+        ckey = (name, None if discretization == "declared" else discretization)
+        if ckey not in self._filters:
             spec = self.specs[name]
+            if ckey[1] is not None:
+                spec = dataclasses.replace(spec, discretization=ckey[1])
             key = dyn_key(spec.options)
             if key not in self._dyn_cache:
                 self._dyn_cache[key] = self.dyn if key == dyn_key(None) else error_dynamics(
@@ -143,9 +161,20 @@ class ZuptSetup:
             fm = build_filter(spec, self.truth, self.ctx, zupt_interval=self.zupt_interval,
                               q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
                               mean_speed=self.mean_speed, dt_steps=np.diff(self.t))
-            Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(self.t), spec.discretization, spec.taylor_order)
-            self._filters[name] = (fm, Phi_f, Qd_f)
-        return self._filters[name]
+            same_method = spec.discretization == self.hdr["discretization"] and (
+                spec.discretization == "van_loan" or spec.taylor_order is None)
+            if same_method and fm.F.shape == self.dyn.F.shape and np.array_equal(fm.F, self.dyn.F) \
+                    and np.array_equal(fm.Qc, self.dyn.Qc):
+                self._filters[ckey] = (fm, self.Phi, self.Qd, True)
+            else:
+                Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(self.t), spec.discretization,
+                                                 spec.taylor_order)
+                self._filters[ckey] = (fm, Phi_f, Qd_f, False)
+        return self._filters[ckey]
+
+    def filter_model(self, name: str):
+        """``(FilterModel, Φ_f, Q_f)`` of a declared filter, cached (see :meth:`filter_system`)."""
+        return self.filter_system(name)[:3]
 
     def filter_R(self, name: str) -> np.ndarray:
         """The measurement noise the filter assumes (its ``zupt_sigma`` or the study's)."""
