@@ -264,8 +264,22 @@ def test_nominal_point_equals_the_flagship_run(short, flagship, case):
     assert len(nominal) == 3 and np.ptp(nominal["horizontal RMS [m]"]) == 0.0
 
 
-def test_filter_a_reuses_the_truth_discretisation(short):
-    assert short.provenance["filters_reusing_truth_phi_qd"] == "A"
+def test_filter_a_reuses_the_truth_discretisation():
+    """Filter A takes the truth's Φ, Q_d; that shortcut is right only if
+    discretising A's own F, Q_c by its declared method gives them again."""
+    from covtool.discretize import discretize
+    from covtool.studies.zupt import setup
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        flagship = setup(short_decl(), path=STUDY, extra_sections=("sweep", "cost"))
+    fm, Phi_f, Qd_f, reused = flagship.filter_system("A")
+    assert reused
+    Phi_own, Qd_own = discretize(fm.F[:50], fm.Qc[:50], np.diff(flagship.t)[:50], fm.spec.discretization,
+                                 fm.spec.taylor_order)
+    np.testing.assert_allclose(Phi_own, flagship.Phi[:50], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(Qd_own, flagship.Qd[:50], rtol=1e-9, atol=1e-12 * np.abs(flagship.Qd[:50]).max())
+    fm_b, _, _, reused_b = flagship.filter_system("B1")
+    assert not reused_b and fm_b.F.shape[1] == 22
 
 
 def test_optimal_filter_is_at_the_bottom_of_its_curves(short):
