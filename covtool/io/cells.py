@@ -14,23 +14,26 @@ Text
       *quote prefix* style (``quotePrefix``: the cell is shown and kept as
       text even when edited, like typing a leading apostrophe).  The value
       is exactly the user's text;
-    * CSV: formula-like text gets a leading apostrophe (``'=1+2``), and the
-      csv module quotes fields holding separators or quotes.  A reader gets
-      the user's text back by removing that one apostrophe
+    * CSV: formula-like text gets a leading apostrophe (``'=1+2``) and every
+      text field is wrapped in double quotes (``csv.QUOTE_NONNUMERIC``; a
+      minimally quoted field would not protect a CR inside it).  A reader
+      gets the user's text back by removing that one apostrophe
       (:func:`csv_text_value`).
 
     Control characters other than tab, LF and CR cannot be stored in xlsx
     (XML 1.0); in both formats they are written as the escape ``\\xNN``.
+    XML reads a CR in a workbook cell back as LF (line-end normalisation).
 Numbers
     Finite numbers stay numbers.  A NaN or infinity where a number was
     expected is never an empty cell or 0: the workbook shows the text
-    ``NaN``, ``inf`` or ``-inf``; the CSV holds ``nan``, ``inf`` or ``-inf``
-    (which every CSV reader parses back as the float).  ``None`` (no value,
+    ``NaN``, ``inf`` or ``-inf``; the CSV holds ``"nan"``, ``inf`` or
+    ``-inf`` (which ``float()`` and pandas parse back as the float).  ``None`` (no value,
     e.g. text that does not apply) is an empty cell in both.
 """
 
 from __future__ import annotations
 
+import csv
 import math
 import re
 
@@ -117,7 +120,7 @@ def write_csv(df: pd.DataFrame, path) -> None:
     path : path-like
         Destination (inside a staging directory: the caller moves it).
     """
-    csv_frame(df).to_csv(path, index=False, na_rep=CSV_NAN)
+    csv_frame(df).to_csv(path, index=False, na_rep=CSV_NAN, quoting=csv.QUOTE_NONNUMERIC)
 
 
 __all__ = ["FORMULA_TRIGGERS", "is_formula_like", "printable", "nonfinite_text", "csv_text", "csv_text_value",

@@ -107,7 +107,7 @@ def parse(decl: dict, path: Path | None) -> dict:
     study = require(decl, "study", f, StudyFileError)
     check_keys(study, {"kind", "name", "title", "description"}, w, StudyFileError)
     require(study, "name", w, StudyFileError)
-    p["name"] = check_study_name(study, f, StudyFileError)
+    p["name"] = check_study_name(study, f, StudyFileError, default="ad_reset")
     p["title"] = str(study.get("title", p["name"]))
 
     w = f"{f}: [board]"
