@@ -171,8 +171,8 @@ def _evil_study_files(tmp_path):
     (tmp_path / "f.toml").write_text(tomli_w.dumps(filt))
     study = tomllib.loads(ZUPT.read_text())
     study["study"].update(duration="6 min", description="+1 study", name="evil")
-    study["truth"]["model"] = "m.toml"
-    study["filters"].update(file="f.toml", cases=["B1"])
+    study["truth"]["model"] = str(tmp_path / "m.toml")
+    study["filters"].update(file=str(tmp_path / "f.toml"), cases=["B1"])
     study["output"]["report_times"] = ["6 min"]
     (tmp_path / "s.toml").write_text(tomli_w.dumps(study))
     return tmp_path / "s.toml"
@@ -560,10 +560,16 @@ def test_staging_left_by_kill_9_is_removed_by_the_next_run(tmp_path):
         os.utime(old_style_old, (1e9, 1e9))
         tmp = next(p for p in out.iterdir() if p.name.endswith(".tmp"))
         os.utime(tmp, (1e9, 1e9))                            # older than the minute of grace
+        probe = out / f".probe-{_dead_pid()}-x1"             # of a check_output_dir killed mid-probe
+        probe.write_text("")
+        os.utime(probe, (1e9, 1e9))
+        young = out / f".chunk.json.{_dead_pid()}-y2.tmp"     # within the grace: maybe another host's writer
+        young.write_text("")
         write_outputs(_evil_result(), out, figures=False)
         names = sorted(p.name for p in out.iterdir())
         assert live.name in names and old_style_new.name in names
-        assert old_style_old.name not in names and tmp.name not in names
+        assert old_style_old.name not in names and tmp.name not in names and probe.name not in names
+        assert young.name in names
         assert not [n for n in names if n.startswith(".staging-") and n not in (live.name, old_style_new.name)]
         assert check_output_dir(out) == out                  # the early check cleans up as well
         assert live.exists()
@@ -571,6 +577,12 @@ def test_staging_left_by_kill_9_is_removed_by_the_next_run(tmp_path):
         sleeper.kill()
         sleeper.wait()
     assert remove_stale(out) == [live]
+
+
+def _dead_pid():
+    p = subprocess.Popen([sys.executable, "-c", "pass"])
+    p.wait()
+    return p.pid
 
 
 def test_failure_leaves_earlier_outputs_and_no_staging(tmp_path):
@@ -612,3 +624,10 @@ def test_current_umask_reads_without_changing():
         assert os.umask(0o037) == 0o037
     finally:
         os.umask(old)
+
+
+def test_trade_grade_name_refused_at_load():
+    d = tomllib.loads((ROOT / "studies" / "trade_grid.toml").read_text())
+    d["grade"][1]["name"] = "=2*3"
+    with pytest.raises(StudyFileError, match=r"\[\[grade\]\] #2 name: '=2\*3' is not a valid grade name"):
+        covtool.run_study(d)

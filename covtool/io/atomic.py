@@ -27,8 +27,8 @@ from ..errors import InputError
 
 #: ``.staging-<pid>-<random>`` (new) or ``.staging-<random>`` (covtool <= 0.x, no PID)
 _STAGING = re.compile(r"^\.staging-(?:(\d+)-)?[A-Za-z0-9_]+$")
-#: ``.<name>.<pid>-<random>.tmp``
-_TMP = re.compile(r"^\..+\.(\d+)-[A-Za-z0-9_]+\.tmp$")
+#: ``.<name>.<pid>-<random>.tmp`` (:func:`atomic_path`) or ``.probe-<pid>-<random>`` (:func:`check_output_dir`)
+_TMP = re.compile(r"^(?:\..+\.(\d+)-[A-Za-z0-9_]+\.tmp|\.probe-(\d+)-[A-Za-z0-9_]+)$")
 #: a staging directory without a PID (older covtool) is stale after this long [s]
 _PIDLESS_STALE_AFTER = 3600.0
 #: a temporary file of a dead PID is removed once it is this old [s]
@@ -101,7 +101,7 @@ def remove_stale(directory: str | os.PathLike) -> list[Path]:
                 removed.append(p)
             continue
         m = _TMP.match(p.name)
-        if m and p.is_file() and not _pid_alive(int(m.group(1))):
+        if m and p.is_file() and not _pid_alive(int(m.group(1) or m.group(2))):
             with contextlib.suppress(OSError):
                 # a minute's grace: the PID may belong to a writer on another host of a shared disk
                 if now - p.stat().st_mtime > _TMP_GRACE:
