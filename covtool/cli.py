@@ -18,7 +18,7 @@ def _output_dir(args) -> Path:
     """``--out`` (or ``out/<study stem>``), checked before any computation."""
     from .io.atomic import check_output_dir
 
-    if args.out is not None:
+    if args.out:
         return check_output_dir(args.out, "--out")
     return check_output_dir(Path("out") / Path(args.study).stem, "default output directory (--out)")
 
