@@ -14,12 +14,21 @@ from .errors import CovtoolError
 MAX_SUMMARY_ROWS = 60
 
 
+def _output_dir(args) -> Path:
+    """``--out`` (or ``out/<study stem>``), checked before any computation."""
+    from .io.atomic import check_output_dir
+
+    if args.out:
+        return check_output_dir(args.out, "--out")
+    return check_output_dir(Path("out") / Path(args.study).stem, "default output directory (--out)")
+
+
 def _cmd_run(args) -> int:
     from .io.writers import write_outputs
     from .studies import run_study
 
     t0 = time.perf_counter()
-    out = Path(args.out) if args.out else Path("out") / Path(args.study).stem
+    out = _output_dir(args)
     backend = None
     if args.workers is not None or args.scheduler is not None:
         from .parallel import make_backend

@@ -48,7 +48,10 @@ def cmd_dualnav(args) -> int:
     from .studies import load_study
     from .studies.dual_imu import compare_logs
 
+    from .io.atomic import check_output_dir
+
     t0 = time.perf_counter()
+    out = check_output_dir(args.out, "--out")
     study = Path(args.study) if args.study else default_study()
     decl, path = load_study(study)
     kind = decl.get("study", {}).get("kind") if isinstance(decl.get("study"), dict) else None
@@ -57,7 +60,6 @@ def cmd_dualnav(args) -> int:
     main = load_imu_log(args.main)
     kimu = load_imu_log(args.kimu)
     result = compare_logs(main, kimu, decl, path=path)
-    out = Path(args.out)
     files = write_outputs(result, out, figures=not args.no_figures)
     if not args.quiet:
         print(result.summary.to_string(index=False))

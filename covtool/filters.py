@@ -36,6 +36,7 @@ from .discretize import discretize
 from .dynamics import Context, ErrorDynamics, NavOptions, error_dynamics
 from .errors import ModelFileError
 from .io.config import check_keys, load_toml
+from .io.names import check_name
 from .model.blocks import NAV_STATES
 from .model.spec import Model
 from .units import parse_quantity
@@ -127,7 +128,7 @@ def filters_from_dict(decl: dict, truth: Model, *, path: str = "<dict>") -> dict
         check_keys(f, _FILTER_KEYS, where, ModelFileError)
         if "name" not in f:
             raise ModelFileError(where, "missing required key 'name'")
-        name = f["name"]
+        name = check_name(f["name"], f"{path}: filter {i + 1}: name", ModelFileError, what="filter name")
         if name in by_name:
             raise ModelFileError(where, "duplicate filter name")
         if "base" in f:

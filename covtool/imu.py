@@ -60,6 +60,7 @@ import tomli_w
 from . import quaternion as quat
 from .errors import ModelFileError, UnitError
 from .io.config import as_list, check_keys, load_toml
+from .io.names import check_name
 from .model.blocks import BLOCK_KINDS, gravity_sensitivity
 from .model.loader import model_from_dict
 from .model.spec import Model
@@ -383,6 +384,7 @@ def imu_grade_from_dict(decl: dict, *, path: str = "<dict>") -> ImuGrade:
     name = meta.get("name")
     if not isinstance(name, str) or not name:
         raise ModelFileError(f"{file}: [imu] name", "missing or not a non-empty string")
+    check_name(name, f"{file}: [imu] name", ModelFileError, what="IMU grade name")
     rate = None
     if "rate" in meta:
         rate = _quantity(meta["rate"], "frequency", f"{file}: [imu] rate")

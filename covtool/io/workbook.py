@@ -4,6 +4,10 @@ Every sheet has a frozen, bold header row whose labels carry units in
 brackets, a sensible number format and auto-sized columns.  Native Excel line
 charts can be added from chart specs so that the customer's copy redraws from
 the sheet data.
+
+Every string (header, label, provenance) is a text cell, never a formula,
+and a NaN or infinity is the text ``NaN``/``inf``, never an empty cell: see
+:mod:`covtool.io.cells` for the rules.
 """
 
 from __future__ import annotations
@@ -14,9 +18,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 from openpyxl import Workbook
+from openpyxl.cell.cell import Cell
 from openpyxl.chart import LineChart, Reference, ScatterChart, Series
 from openpyxl.styles import Font
 from openpyxl.utils import get_column_letter
+
+from .cells import is_formula_like, nonfinite_text, printable
 
 _MAX_SHEET = 31
 
@@ -44,37 +51,62 @@ def _number_format(series: pd.Series) -> str | None:
 
 
 def write_dataframe(ws, df: pd.DataFrame, *, index: bool = False) -> None:
-    """Write ``df`` to worksheet ``ws`` with header styling and formats."""
+    """Write ``df`` to worksheet ``ws`` with header styling and formats.
+
+    Strings become text cells (:func:`text_cell`), NaN/inf the text
+    ``NaN``/``inf``/``-inf``, finite numbers numbers.
+    """
     if index:
         df = df.reset_index()
-    cols = [str(c) for c in df.columns]
-    ws.append(cols)
+    ws.append([text_cell(ws, str(c)) for c in df.columns])
     for cell in ws[1]:
         cell.font = Font(bold=True)
     for row in df.itertuples(index=False, name=None):
-        ws.append([_cell(v) for v in row])
+        ws.append([_cell(ws, v) for v in row])
     ws.freeze_panes = "A2"
     for j, col in enumerate(df.columns, start=1):
-        fmt = _number_format(df[col])
+        fmt = _number_format(df.iloc[:, j - 1])
         letter = get_column_letter(j)
         if fmt:
             for (cell,) in ws.iter_rows(min_row=2, max_row=len(df) + 1, min_col=j, max_col=j):
                 cell.number_format = fmt
-        width = max(len(str(col)), *(len(_fmt_str(v)) for v in df[col].head(200))) if len(df) else len(str(col))
+        width = max(len(str(col)), *(len(_fmt_str(v)) for v in df.iloc[:200, j - 1])) if len(df) else len(str(col))
         ws.column_dimensions[letter].width = min(max(10, width + 2), 60)
 
 
-def _cell(v):
+def text_cell(ws, text: str) -> Cell:
+    """A text cell holding ``text`` exactly, never a formula.
+
+    ``data_type`` is set to ``'s'`` after the value (openpyxl would infer a
+    formula from a leading ``=``); formula-like text also gets Excel's
+    quote prefix so that editing the cell keeps it text.  XML-illegal
+    control characters become ``\\xNN`` escapes.
+    """
+    text = printable(text)
+    c = Cell(ws, value=text)
+    c.data_type = "s"
+    if is_formula_like(text):
+        c.quotePrefix = True
+    return c
+
+
+def _cell(ws, v):
+    if v is None or v is pd.NA or v is pd.NaT:
+        return None
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
     if isinstance(v, (np.floating, float)):
         v = float(v)
-        return None if not math.isfinite(v) else v
+        return v if math.isfinite(v) else text_cell(ws, nonfinite_text(v))
     if isinstance(v, np.integer):
         return int(v)
-    if isinstance(v, np.bool_):
-        return bool(v)
-    if isinstance(v, (list, tuple, dict)):
-        return str(v)
-    return v
+    if isinstance(v, int):
+        return v
+    if isinstance(v, str):
+        return text_cell(ws, v)
+    if isinstance(v, (pd.Timestamp, np.datetime64)):
+        return pd.Timestamp(v).to_pydatetime()
+    return text_cell(ws, str(v))
 
 
 def _fmt_str(v) -> str:
@@ -129,7 +161,8 @@ def build_workbook(tables: dict[str, pd.DataFrame], provenance: dict, charts=(),
         ws = wb.create_sheet(sheet_title(name))
         write_dataframe(ws, df)
     ws = wb.create_sheet("provenance")
-    write_dataframe(ws, pd.DataFrame({"key": list(provenance), "value": [str(v) for v in provenance.values()]}))
+    write_dataframe(ws, pd.DataFrame({"key": [str(k) for k in provenance],
+                                      "value": [str(v) for v in provenance.values()]}, dtype=object))
     ws.column_dimensions["B"].width = 100
     for spec in charts:
         add_line_chart(wb, spec)
@@ -138,4 +171,4 @@ def build_workbook(tables: dict[str, pd.DataFrame], provenance: dict, charts=(),
     return wb
 
 
-__all__ = ["build_workbook", "add_line_chart", "write_dataframe", "sheet_title", "LineChart"]
+__all__ = ["build_workbook", "add_line_chart", "write_dataframe", "text_cell", "sheet_title", "LineChart"]

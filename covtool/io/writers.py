@@ -2,7 +2,10 @@
 
 Outputs: ``summary.csv``, one CSV per table, ``<name>.xlsx`` workbook with a
 provenance sheet, one PNG per figure, and ``resolved_study.toml``.  Everything
-is staged and moved into place atomically (:mod:`covtool.io.atomic`).
+is staged and moved into place atomically (:mod:`covtool.io.atomic`).  Text
+is written so that no spreadsheet evaluates it, and a NaN is never an empty
+cell (:mod:`covtool.io.cells`).  Every file lands inside ``out_dir``: the
+workbook's name is checked to be one plain file-name component first.
 """
 
 from __future__ import annotations
@@ -15,7 +18,10 @@ import tomli_w
 
 from .. import __version__
 from ..results import StudyResult
+from ..errors import InputError
 from .atomic import staging_dir
+from .cells import write_csv
+from .names import check_file_stem
 from .workbook import build_workbook
 
 
@@ -47,14 +53,34 @@ def provenance_rows(result: StudyResult) -> dict:
     return rows
 
 
+def _inside(stage: Path, filename: str) -> Path:
+    """``stage / filename``, refused unless it is a direct child of ``stage``."""
+    p = stage / filename
+    if p.parent != stage or p.name != filename:
+        raise InputError(repr(filename), "is not a plain file name; no output was written")
+    return p
+
+
 def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list[Path]:
-    """Write all outputs of ``result`` into ``out_dir``; return the file paths."""
+    """Write all outputs of ``result`` into ``out_dir``; return the file paths.
+
+    Raises
+    ------
+    InputError
+        The study or a table name is not one plain file-name component
+        (checked before anything is written), or an output's place in
+        ``out_dir`` is taken by a directory.
+    """
     out_dir = Path(out_dir)
+    check_file_stem(result.name, "study name", strict=False)
+    for name in result.tables:
+        check_file_stem(name, f"table {name!r}", strict=False)
     written = []
     with staging_dir(out_dir) as stage:
         for name, df in result.tables.items():
-            df.to_csv(stage / f"{name}.csv", index=False)
-        build_workbook(result.tables, provenance_rows(result), result.charts, path=stage / f"{result.name}.xlsx")
+            write_csv(df, _inside(stage, f"{name}.csv"))
+        build_workbook(result.tables, provenance_rows(result), result.charts,
+                       path=_inside(stage, f"{result.name}.xlsx"))
         (stage / "resolved_study.toml").write_text(
             f"# resolved by covtool {__version__}\n" + tomli_w.dumps(_toml_safe(result.resolved)), encoding="utf-8")
         if figures and result.figures:
@@ -63,7 +89,7 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
             import matplotlib.pyplot as plt
             for name, make in result.figures.items():
                 fig = make()
-                fig.savefig(stage / f"{name}.png", dpi=120, bbox_inches="tight")
+                fig.savefig(_inside(stage, f"{name}.png"), dpi=120, bbox_inches="tight")
                 plt.close(fig)
         written = [out_dir / p.relative_to(stage) for p in sorted(stage.rglob("*")) if p.is_file()]
     return written

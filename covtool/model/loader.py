@@ -46,6 +46,7 @@ import tomli_w
 
 from ..errors import ModelFileError, UnitError
 from ..io.config import as_list, check_keys, load_toml
+from ..io.names import check_name
 from ..units import DIMENSIONS, is_unit, parse_quantity
 from .blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
 from .spec import PROCESSES, Model, State
@@ -100,6 +101,7 @@ def _positive(value, dim, where) -> float:
 def _nav_states(b: dict, where: str) -> tuple[list[State], float, float]:
     check_keys(b, _NAV_KEYS, where, ModelFileError)
     src = b.get("source", "")
+    check_name(b.get("name", "nav"), f"{where}: name", ModelFileError, what="block name")
     pos = as_list(b.get("position_sigma", 0.0), 3, f"{where}: position_sigma", ModelFileError)
     vel = as_list(b.get("velocity_sigma", 0.0), 3, f"{where}: velocity_sigma", ModelFileError)
     qs = as_list(b.get("quaternion_sigma", 0.0), 4, f"{where}: quaternion_sigma", ModelFileError)
@@ -120,9 +122,7 @@ def _block_states(b: dict, where: str, file: str) -> list[State]:
     check_keys(b, _BLOCK_KEYS, where, ModelFileError)
     kind = b["kind"]
     bk = BLOCK_KINDS[kind]
-    prefix = b.get("name", bk.prefix)
-    if not isinstance(prefix, str) or not prefix.isidentifier():
-        raise ModelFileError(f"{where}: name", f"{prefix!r} is not a valid block name")
+    prefix = check_name(b.get("name", bk.prefix), f"{where}: name", ModelFileError, what="block name")
     n = bk.n
     names = b.get("names")
     if names is None:
@@ -211,6 +211,7 @@ def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
     check_keys(meta, _MODEL_KEYS, f"{file}: [model]", ModelFileError)
     if "name" not in meta:
         raise ModelFileError(f"{file}: [model]", "missing required key 'name'")
+    check_name(meta["name"], f"{file}: [model] name", ModelFileError, what="model name")
     blocks = decl.get("block", [])
     if not isinstance(blocks, list) or not blocks:
         raise ModelFileError(file, "no [[block]] declared")
@@ -239,6 +240,7 @@ def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
         raise ModelFileError(file, "missing the navigation block (kind = \"navigation\")")
     seen = {}
     for s in states:
+        check_name(s.name, f"{file}: block {s.block!r}: names", ModelFileError, what="state name")
         if s.name in seen:
             raise ModelFileError(f"{file}: state {s.name!r}", "duplicate state name")
         seen[s.name] = s

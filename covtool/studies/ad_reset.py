@@ -29,6 +29,7 @@ from ..board import adreset, alignment as align
 from ..board import output_filter as of
 from ..errors import StudyFileError
 from ..io.config import check_keys, quantity, require
+from ..io.names import check_study_name
 from ..results import StudyResult
 from ..units import from_si
 
@@ -105,7 +106,8 @@ def parse(decl: dict, path: Path | None) -> dict:
     w = f"{f}: [study]"
     study = require(decl, "study", f, StudyFileError)
     check_keys(study, {"kind", "name", "title", "description"}, w, StudyFileError)
-    p["name"] = str(require(study, "name", w, StudyFileError))
+    require(study, "name", w, StudyFileError)
+    p["name"] = check_study_name(study, f, StudyFileError, default="ad_reset")
     p["title"] = str(study.get("title", p["name"]))
 
     w = f"{f}: [board]"

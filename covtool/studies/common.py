@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -12,6 +11,7 @@ from ..discretize import discretize
 from ..dynamics import Context, NavOptions, error_dynamics
 from ..errors import ModelFileError, StudyFileError, UnitError
 from ..io.config import check_keys, quantity
+from ..io.names import check_study_name
 from ..model.library import load_model_by_name
 from ..model.spec import Model
 from ..units import from_si, parse_quantity
@@ -35,7 +35,7 @@ def study_header(decl: dict, where: str, extra_keys=()) -> dict:
                f"{where}: [study]", StudyFileError)
     out = {
         "kind": st["kind"],
-        "name": st.get("name", Path(where).stem if where != "<study>" else st["kind"]),
+        "name": check_study_name(st, where, StudyFileError, default=st["kind"]),
         "description": st.get("description", ""),
         "duration": quantity(st.get("duration", "30 min"), "time", f"{where}: [study] duration", StudyFileError,
                              positive=True),

@@ -77,6 +77,7 @@ from .. import dualnav as dn
 from .. import quaternion as quat
 from ..errors import InputError, ModelFileError, StudyFileError
 from ..io.config import check_keys, quantity
+from ..io.names import check_study_name
 from ..results import StudyResult
 
 COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
@@ -162,7 +163,7 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
     check_keys(decl, _TOP, where, StudyFileError)
     st = decl.get("study", {})
     check_keys(st, {"kind", "name", "description"}, f"{where}: [study]", StudyFileError)
-    name = st.get("name", Path(where).stem if where not in ("<study>", "") else "dual_imu")
+    name = check_study_name(st, where, StudyFileError, default="dual_imu")
     imu = decl.get("imu", {})
     check_keys(imu, {"main", "kimu"}, f"{where}: [imu]", StudyFileError)
     grades, mounting = {}, {}

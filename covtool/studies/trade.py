@@ -77,6 +77,7 @@ from ..engine import System, events, run_batch
 from ..errors import InputError, StudyFileError
 from ..filters import load_filters, zupt_matrices
 from ..io.config import check_keys, quantity
+from ..io.names import check_name
 from ..metrics import nav_metrics
 from ..results import StudyResult
 from ..units import DIMENSIONS
@@ -176,6 +177,7 @@ def _grades(decl: dict, where: str) -> list[dict]:
         name = g.get("name")
         if not isinstance(name, str) or not name:
             raise StudyFileError(w, "missing 'name' (a non-empty string)")
+        check_name(name, f"{w} name", StudyFileError, what="grade name")
         if name in names:
             raise StudyFileError(f"{w} name", f"grade {name!r} is declared twice")
         names.add(name)
