@@ -143,10 +143,9 @@ def gsens_coefficient(value, where) -> float:
     if not isinstance(value, str):
         raise StudyFileError(where, f"{value!r} is not a quantity such as '1000 ppm/g'")
     try:
-        per_g = parse_quantity(f"({value}) * g", "dimensionless", where=where)
+        return parse_quantity(value, "inverse_acceleration", where=where)
     except UnitError:
         raise StudyFileError(where, f"{value!r} is not a scale factor per g (e.g. '1000 ppm/g')") from None
-    return per_g / dn.G0
 
 
 def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
