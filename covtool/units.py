@@ -279,7 +279,8 @@ def _resolve(name: str) -> _Unit:
         raise _Refusal(f"unknown unit {name!r}") from None
     if not math.isclose(float(q2.magnitude), 2.0 * float(q1.magnitude), rel_tol=1e-12):
         raise _Refusal(f"{name!r} is an offset unit (a temperature scale)")
-    return _unit(float(q1.magnitude), {str(k): Fraction(v).limit_denominator(12) for k, v in q1._units.items()})  # noqa: SLF001
+    base = q1._units.items()  # noqa: SLF001 - pint has no public API for the base-unit exponents
+    return _unit(float(q1.magnitude), {str(k): Fraction(v).limit_denominator(12) for k, v in base})
 
 
 _SYMBOL_UNITS = {"degree", "arcminute", "arcsecond", "percent", "permille"}

@@ -650,7 +650,8 @@ def test_csv_stationary_flag_must_match_the_motion(tmp_path, lv):
     k = int(np.flatnonzero(df["stationary"] == 1)[5])
     df.loc[k, ["w_x [rad/s]", "w_y [rad/s]", "w_z [rad/s]"]] = [0.0, 0.0, -0.1]
     df.to_csv(path, index=False, float_format="%.17g")
-    # at rest the gyros measure the Earth rate [Ω cos L, 0, −Ω sin L]: ω_nb = [−Ω cos L, 0, −0.1 + Ω sin L] (level)
+    # at rest the gyros measure the Earth rate [Ω cos L, 0, −Ω sin L]:
+    # |ω_nb| = |(−Ω cos L cos ψ, Ω cos L sin ψ, −0.1 + Ω sin L)| at any heading ψ (level)
     lat = math.radians(36.37)
     rate = math.hypot(earth.OMEGA_IE * math.cos(lat), 0.1 - earth.OMEGA_IE * math.sin(lat))
     with pytest.raises(TrajectoryError, match=rf"row {k + 1}: flagged stationary \(1\) while the vehicle moves: "

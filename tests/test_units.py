@@ -85,7 +85,8 @@ def _quantities():
             if m and not m.group(2).startswith(("state", "states", "run ")):
                 found.append((p.relative_to(ROOT).as_posix(), float(m.group(1)), m.group(2).strip()))
     # quoted quantities in the documentation and in the package's docstrings and defaults
-    for p in sorted(list((ROOT / "docs").rglob("*.md")) + [ROOT / "README.md"] + list((ROOT / "covtool").rglob("*.py"))):
+    texts = list((ROOT / "docs").rglob("*.md")) + [ROOT / "README.md"] + list((ROOT / "covtool").rglob("*.py"))
+    for p in sorted(texts):
         if not p.is_file() or p.name == "units.py":
             continue
         for s in _QUOTED.findall(p.read_text(encoding="utf-8")):
@@ -277,7 +278,8 @@ def test_spellings_of_a_dimension_are_units_of_it(text, dim, si):
 REFUSALS = [
     # hostile input is refused by the grammar, before any arithmetic
     ("9**9**9 ug", "acceleration", r"'9\*\*9\*\*9 ug': cannot read '\*\*' at character 2: a number takes no exponent"),
-    ("1 ug**9**9", "acceleration", r"exponent 9 at character 7 is not allowed \(a non-zero multiple of 1/2 within ±4\)"),
+    ("1 ug**9**9", "acceleration",
+     r"exponent 9 at character 7 is not allowed \(a non-zero multiple of 1/2 within ±4\)"),
     ("1 ug^100", "acceleration", r"exponent 100 at character 6 is not allowed"),
     ("1 s^3/4", "time", r"exponent 3/4 at character 5 is not allowed"),
     ("1 s^0", "time", r"exponent 0 at character 5 is not allowed"),

@@ -41,7 +41,7 @@ def _is_float(text: str) -> bool:
 def _size(n: int) -> str:
     for unit, scale in (("GB", 1e9), ("MB", 1e6), ("kB", 1e3)):
         if n >= scale:
-            return f"{n / scale:.3g} {unit}"
+            return f"{n / scale:.3g} {unit} ({n} bytes)"
     return f"{n} bytes"
 
 
@@ -162,8 +162,8 @@ def read_numeric_csv(path, required, optional=(), *, error=InputError, time_colu
     if path.is_dir():
         raise error(where, "is a directory, not a CSV file")
     if size > limit:
-        raise error(where, f"the file is {_size(size)} ({size} bytes), larger than the {_size(limit)} "
-                    f"({limit} bytes) covtool reads; split or decimate it")
+        raise error(where, f"the file is {_size(size)}, larger than the {_size(limit)} covtool reads; split or "
+                    "decimate it")
     try:
         n_lines, ends_with_newline = _scan(path, where, error)
         f = open(path, encoding="utf-8-sig", newline="")
