@@ -1708,7 +1708,10 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
 
 
 def ppm_text(x: float) -> str:
-    """A clock offset as signed text with 0.1 ppm resolution ('+200.0', never '-0.0')."""
+    """Clock offset as signed text, 0.1 ppm resolution.
+
+    ``+200.0``; a value that rounds to zero is ``+0.0``, never ``-0.0``.
+    """
     return f"{round(float(x), 1) + 0.0:+.1f}"
 
 

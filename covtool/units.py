@@ -283,9 +283,6 @@ def _resolve(name: str) -> _Unit:
     return _unit(float(q1.magnitude), {str(k): Fraction(v).limit_denominator(12) for k, v in base})
 
 
-_SYMBOL_UNITS = {"degree", "arcminute", "arcsecond", "percent", "permille"}
-
-
 # --------------------------------------------------------------------------
 # parser
 # --------------------------------------------------------------------------
@@ -522,7 +519,7 @@ def _matches(unit: _Unit, dimension: str) -> bool:
 
 
 def is_unit(text: str, dimension: str) -> bool:
-    """Return True if ``text`` is a unit (or quantity) of ``dimension``.
+    """True if ``text`` is a unit (or quantity) of ``dimension``.
 
     Parameters
     ----------
