@@ -236,7 +236,7 @@ def _unit(factor: float, dims: dict) -> _Unit:
 _ONE = _Unit(1.0, ())
 _ROOT_WORDS = {"rt", "sqrt", "root"}
 _G_PREFIX = {"g": 1.0, "ug": 1e-6, "\u00b5g": 1e-6, "\u03bcg": 1e-6, "mg": 1e-3, "ng": 1e-9}
-_DOMAIN = {"dph": ("degree/hour", None), "dps": ("degree/second", None)}
+_DOMAIN = {"dph": ("degree", "hour"), "dps": ("degree", "second")}     # datasheet shorthands
 _AMBIGUOUS = {
     "nm": "nanometre or nautical mile; write nmi for the nautical mile",
     "NM": "nautical mile or newton metre; write nmi for the nautical mile",
@@ -263,7 +263,7 @@ def _resolve(name: str) -> _Unit:
     if name == "ppb":
         return _unit(1e-9, {})
     if name in _DOMAIN:
-        a, b = _DOMAIN[name][0].split("/")
+        a, b = _DOMAIN[name]
         return _resolve(a) / _resolve(b)
     if name.startswith("rt") and len(name) > 2:
         rest = name[2:].lstrip("_")
