@@ -50,7 +50,7 @@ from . import quaternion as quat
 from . import strapdown as sd
 from .discretize import van_loan
 from .dynamics import Context, error_dynamics
-from .errors import InputError
+from .errors import InputError, NumericalError
 from .imu import ImuRecord, SensorErrors
 from .model.spec import Model
 
@@ -59,7 +59,7 @@ __all__ = [
     "alignment_jacobian", "alignment_second_order", "nav_difference", "ImuLinearization", "DifferenceModel",
     "difference_model",
     "Innovations", "Whitener", "innovations", "window_test", "flagged_intervals", "GsensEstimate", "gsens_estimates",
-    "GapReport", "BridgedLog", "find_gaps", "bridge_gaps", "DualSetup", "DualRun", "run_dual",
+    "GapReport", "BridgedLog", "find_gaps", "bridge_gaps", "clock_rate", "ppm_text", "DualSetup", "DualRun", "run_dual",
     "candidate_label", "G0",
 ]
 
@@ -959,6 +959,10 @@ def window_test(nis, dof: int, window: int, false_alarm: float):
         raise ValueError(f"window of {window} epochs does not fit {J1} epochs")
     if not 0.0 < false_alarm < 1.0:
         raise ValueError(f"false-alarm probability must be in (0, 1), got {false_alarm!r}")
+    if not np.isfinite(nis).all():
+        m, j = np.argwhere(~np.isfinite(nis))[0]
+        raise NumericalError(f"window test: the normalised innovation of run {m} at epoch {j} is not finite (the "
+                             "navigation or the filter diverged); no alarm decision can be reported")
     c = np.concatenate([np.zeros((nis.shape[0], 1)), np.cumsum(nis, axis=1)], axis=1)
     stat = c[:, window:] - c[:, :-window]
     Nw = stat.shape[1]
@@ -1071,6 +1075,10 @@ def gsens_estimates(inn: Innovations, candidates, false_alarm: float, *, strict:
     est = np.where(dead, np.nan, b / safe)
     sigma = np.where(dead, np.inf, 1.0 / np.sqrt(safe))
     glr = np.where(dead, 0.0, b**2 / safe)
+    if not np.isfinite(glr).all():
+        m = int(np.argwhere(~np.isfinite(glr))[0, 0])
+        raise NumericalError(f"g-sensitivity test: the GLR statistic of run {m} is not finite (the navigation or "
+                             "the filter diverged); no detection can be reported")
     thr = float(chi2.isf(false_alarm / nc, 1))
     best = np.argmax(glr, axis=1)
     detected = glr[np.arange(glr.shape[0]), best] > thr
@@ -1118,18 +1126,24 @@ class GapReport:
 
 @dataclass
 class BridgedLog:
-    """An IMU log on its uniform grid after gap bridging.
+    """An IMU log after gap bridging.
 
     Attributes
     ----------
     t : ndarray, shape (K,)
-        Sample end times. [s]
+        Sample end times: the recorded times of the kept samples, exactly;
+        bridged samples evenly between their recorded neighbours. [s]
     dtheta, dv : ndarray, shape (K, 3) or (M, K, 3)
     dt : float
-        Sample period. [s]
+        Nominal sample period (the grade's). [s]
     gaps : list of GapReport
     bridged : ndarray of bool, shape (K,)
         True for the samples the policy filled in.
+    where : str
+        The log (its file) named in every message.
+    period : float or None
+        Sample period measured from the recorded times
+        (:func:`clock_rate`). [s]
     """
 
     t: np.ndarray
@@ -1138,6 +1152,49 @@ class BridgedLog:
     dt: float
     gaps: list = field(default_factory=list)
     bridged: np.ndarray | None = None
+    where: str = ""
+    period: float | None = None
+
+    @property
+    def clock_ppm(self) -> float:
+        """Measured period's offset from the nominal one. [ppm]"""
+        period = self.period if self.period is not None else clock_rate(self.t, self.dt)[0]
+        return (period / self.dt - 1.0) * 1e6
+
+
+#: resolution of :func:`clock_rate` on recorded times exact to 17 digits [ppm]
+CLOCK_PPM_TOL = 0.1
+
+
+def clock_rate(t, dt: float) -> tuple[float, float]:
+    """Sample period of a log measured from its recorded times.
+
+    Parameters
+    ----------
+    t : array_like, shape (K,)
+        Recorded sample end times, strictly increasing, possibly with
+        missing samples. [s]
+    dt : float
+        Nominal sample period. [s]
+
+    Returns
+    -------
+    period : float
+        Least-squares slope of ``t`` against the sample number (missing
+        samples counted from the median step). [s]
+    ppm : float
+        ``(period / dt − 1) · 10⁶``: how far the log's clock runs from its
+        nominal rate. [ppm]
+    """
+    t = np.asarray(t, float)
+    if t.size < 2:
+        return float(dt), 0.0
+    step = np.diff(t)
+    n = np.concatenate([[0.0], np.cumsum(np.maximum(np.rint(step / np.median(step)), 1.0))])
+    tc = t - t[0]
+    nc = n - n.mean()
+    period = float(nc @ (tc - tc.mean()) / (nc @ nc))
+    return period, (period / dt - 1.0) * 1e6
 
 
 def find_gaps(t, dt: float, where: str = "IMU log"):
@@ -1235,16 +1292,20 @@ def bridge_gaps(t, dtheta, dv, dt: float, policy: str, *, arw: float = 0.0, vrw:
     trials : int
         Trial bridges on each side of a gap for the error prediction.
     where : str
-        Names the log in error messages.
+        Names the log in error messages (and in :attr:`BridgedLog.where`).
 
     Returns
     -------
     BridgedLog
-        Every bridged gap is reported (:class:`GapReport`) with its
-        predicted extra error: the RMS error of the summed increments of
-        the same policy applied to trial gaps of the same length in the
-        valid data on each side (up to ``trials`` per side, all runs
-        pooled; the larger side), and never less than the lost white noise.
+        Kept samples keep their recorded times exactly; the ``n`` samples
+        inserted in a gap get times evenly between the recorded
+        neighbours.  Gaps are counted in the log's own median step, and the
+        measured period (:func:`clock_rate`) is kept.  Every bridged gap is
+        reported (:class:`GapReport`) with its predicted extra error: the
+        RMS error of the summed increments of the same policy applied to
+        trial gaps of the same length in the valid data on each side (up to
+        ``trials`` per side, all runs pooled; the larger side), and never
+        less than the lost white noise.
 
     Raises
     ------
@@ -1257,13 +1318,17 @@ def bridge_gaps(t, dtheta, dv, dt: float, policy: str, *, arw: float = 0.0, vrw:
     t = np.asarray(t, float)
     dtheta = np.asarray(dtheta, float)
     dv = np.asarray(dv, float)
-    gaps = find_gaps(t, dt, where)
+    # gaps are counted in the log's own sample period: a clock a few hundred ppm off its nominal rate
+    # would otherwise turn a long gap into a non-integer number of periods
+    own = float(np.median(np.diff(t))) if t.size > 1 else float(dt)
+    gaps = find_gaps(t, own, where)
+    period, _ = clock_rate(t, dt)
     if gaps and policy == "refuse":
         k, n = gaps[0]
         raise InputError(f"{where}: column 't [s]'", f"{n} samples missing between t = {t[k]:.9g} s and "
                          f"{t[k + 1]:.9g} s (gap policy 'refuse'); {len(gaps)} gap(s) in all")
     if not gaps:
-        return BridgedLog(t, dtheta, dv, dt, [], np.zeros(t.size, bool))
+        return BridgedLog(t, dtheta, dv, dt, [], np.zeros(t.size, bool), where, period)
     w = max(1, int(window)) if policy != "hold" else 1
     bounds = [-1] + [k for k, _ in gaps] + [t.size - 1]
     stretches = [(bounds[i] + 1, bounds[i + 1]) for i in range(len(bounds) - 1)]
@@ -1278,7 +1343,9 @@ def bridge_gaps(t, dtheta, dv, dt: float, policy: str, *, arw: float = 0.0, vrw:
         pieces_th.append(dtheta[..., start:k + 1, :])
         pieces_v.append(dv[..., start:k + 1, :])
         flags.append(np.zeros(k + 1 - start, bool))
-        pieces_t.append(t[k] + dt * np.arange(1, n + 1))
+        # kept samples keep their recorded times; only the inserted ones are placed, evenly between the
+        # recorded neighbours (the log's own clock, whatever its rate)
+        pieces_t.append(t[k] + (t[k + 1] - t[k]) * np.arange(1, n + 1) / (n + 1))
         prev = slice(k + 1 - w, k + 1)
         nxt = slice(k + 1, k + 1 + w)
         pieces_th.append(_fill(dtheta[..., prev, :], dtheta[..., nxt, :], n, policy))
@@ -1301,11 +1368,8 @@ def bridge_gaps(t, dtheta, dv, dt: float, policy: str, *, arw: float = 0.0, vrw:
     pieces_th.append(dtheta[..., start:, :])
     pieces_v.append(dv[..., start:, :])
     flags.append(np.zeros(t.size - start, bool))
-    tt = np.concatenate(pieces_t)
-    # the grid is rebuilt from the first sample so that bridged times carry no rounding drift
-    tt = t[0] + dt * np.rint((tt - t[0]) / dt)
-    return BridgedLog(tt, np.concatenate(pieces_th, axis=-2), np.concatenate(pieces_v, axis=-2), dt, reports,
-                      np.concatenate(flags))
+    return BridgedLog(np.concatenate(pieces_t), np.concatenate(pieces_th, axis=-2), np.concatenate(pieces_v, axis=-2),
+                      dt, reports, np.concatenate(flags), where, period)
 
 
 # --------------------------------------------------------------------------
@@ -1396,6 +1460,10 @@ class DualRun:
         Samples of each log before and after the compared span (outside the
         common span of the logs, or after the last whole comparison
         interval): reported, never silently dropped.
+    clock : dict of str to float
+        ``main``, ``kimu``: each log's measured clock offset from its
+        nominal rate; ``mismatch``: the main period over ``ratio`` KIMU
+        periods, minus one. [ppm]
     """
 
     t: np.ndarray
@@ -1411,6 +1479,7 @@ class DualRun:
     main: sd.NavHistory
     kimu: sd.NavHistory
     unused: dict = field(default_factory=dict)
+    clock: dict = field(default_factory=dict)
 
 
 def _runs(x):
@@ -1495,27 +1564,46 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
         The logs do not overlap, are too short for the alignment and one
         comparison window, the alignment is not a whole number of main
         samples, or the KIMU does not deliver ``ratio`` samples per main
-        interval (named by :func:`~covtool.strapdown.group_samples`).
+        interval (named by :func:`~covtool.strapdown.group_samples`).  Each
+        message names the log it is about (:attr:`BridgedLog.where`); when
+        the logs cannot be paired because their clocks drift apart by more
+        than :data:`CLOCK_PPM_TOL`, the one further from its nominal rate is
+        named with both measured rates.
     ValueError
         ``compare_every`` not a multiple of ``substep``, or ``substep`` odd.
     """
     r = int(setup.ratio)
     hm = main.dt
-    # main intervals (t_k − h, t_k]: keep those the KIMU log covers entirely
-    edges = np.concatenate([[main.t[0] - hm], main.t])
+    clock = _clocks(main, kimu, r)
+    name_m = main.where or "main log"
+    name_k = kimu.where or "KIMU log"
+    # main intervals (t_k − h, t_k]: keep those the KIMU log covers entirely (h the main log's own period)
+    edges = np.concatenate([[main.t[0] - (main.period or hm)], main.t])
     tol = 1e-6 * kimu.dt
     e0 = int(np.searchsorted(edges, kimu.t[0] - kimu.dt - tol, side="left"))
     e1 = int(np.searchsorted(edges, kimu.t[-1] + tol, side="right")) - 1
     if e1 - e0 < 1:
-        raise InputError("logs", f"the main log [{edges[0]:.9g}, {edges[-1]:.9g}] s and the KIMU log "
-                         f"[{kimu.t[0] - kimu.dt:.9g}, {kimu.t[-1]:.9g}] s share no main interval")
+        def label(log, what):
+            return f"the {what} log {log.where} " if log.where else f"the {what} log "
+
+        raise InputError("logs", f"{label(main, 'main')}[{edges[0]:.9g}, {edges[-1]:.9g}] s and "
+                         f"{label(kimu, 'KIMU')}[{kimu.t[0] - kimu.dt:.9g}, {kimu.t[-1]:.9g}] s share no main interval")
     sel = (kimu.t > edges[e0] + tol) & (kimu.t <= edges[e1] + tol)
     try:
         groups = sd.group_samples(kimu.t[sel], edges[e0:e1 + 1], where="KIMU log")
     except ValueError as exc:
-        raise InputError("KIMU log", str(exc).removeprefix("KIMU log: ")) from None
+        problem = str(exc).removeprefix("KIMU log: ")
+        if abs(clock["mismatch"]) > CLOCK_PPM_TOL:
+            # the logs drift apart: blame the one whose clock is further from its nominal rate
+            main_worse = abs(clock["main"]) >= abs(clock["kimu"])
+            culprit, other = (name_m, name_k) if main_worse else (name_k, name_m)
+            ppm_c, ppm_o = (clock["main"], clock["kimu"]) if main_worse else (clock["kimu"], clock["main"])
+            raise InputError(culprit, f"its clock runs {ppm_text(ppm_c)} ppm off its nominal rate ({other}: "
+                             f"{ppm_text(ppm_o)} ppm), so the logs drift apart by {ppm_text(clock['mismatch'])} ppm "
+                             f"and cannot be paired sample by sample ({problem})") from None
+        raise InputError(name_k, problem) from None
     if groups.shape[1] != r:
-        raise InputError("KIMU log", f"delivers {groups.shape[1]} samples per main interval, the study declares "
+        raise InputError(name_k, f"delivers {groups.shape[1]} samples per main interval, the study declares "
                          f"a rate ratio of {r}")
     k_idx = np.flatnonzero(sel)[groups.ravel()]
     m_th = _runs(main.dtheta)[:, e0:e1]
@@ -1616,4 +1704,20 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
     used_k = k_idx[:(n_align + n_nav) * r]
     unused = {"main": (e0, main.t.size - (e0 + n_align + n_nav)),
               "kimu": (int(used_k[0]), kimu.t.size - int(used_k[-1]) - 1)}
-    return DualRun(em.t, z, model, env, inn, stat, thr, flagged, intervals, gs, em, ek, unused)
+    return DualRun(em.t, z, model, env, inn, stat, thr, flagged, intervals, gs, em, ek, unused, clock)
+
+
+def ppm_text(x: float) -> str:
+    """Clock offset as signed text, 0.1 ppm resolution.
+
+    ``+200.0``; a value that rounds to zero is ``+0.0``, never ``-0.0``.
+    """
+    return f"{round(float(x), 1) + 0.0:+.1f}"
+
+
+def _clocks(main: BridgedLog, kimu: BridgedLog, ratio: int) -> dict:
+    """Each log's clock offset from its nominal rate, and their mismatch. [ppm]"""
+    p_m = main.period if main.period is not None else clock_rate(main.t, main.dt)[0]
+    p_k = kimu.period if kimu.period is not None else clock_rate(kimu.t, kimu.dt)[0]
+    return {"main": (p_m / main.dt - 1.0) * 1e6, "kimu": (p_k / kimu.dt - 1.0) * 1e6,
+            "mismatch": (p_m / (ratio * p_k) - 1.0) * 1e6}

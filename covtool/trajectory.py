@@ -68,7 +68,8 @@ from .io.csv_table import read_numeric_csv
 __all__ = [
     "Trajectory", "land_vehicle", "static", "from_segments", "trajectory_from_config",
     "load_trajectory_csv", "save_trajectory_csv", "inverse_mechanization",
-    "CSV_COLUMNS", "CSV_OPTIONAL_COLUMNS", "SEGMENT_KINDS", "BUILTINS",
+    "CSV_COLUMNS", "CSV_OPTIONAL_COLUMNS", "SEGMENT_KINDS", "BUILTINS", "wrap_longitude",
+    "GAP_FACTOR", "STATIONARY_FLAG_SPEED", "STATIONARY_FLAG_RATE",
 ]
 
 #: required CSV columns, in file order (units in brackets)
@@ -88,6 +89,15 @@ STATIONARY_SPEED = 1e-3
 STATIONARY_RATE = 1e-6
 #: tolerance on |q| - 1 when loading a CSV file [-]
 QUATERNION_NORM_TOL = 1e-6
+#: a CSV time step longer than this many times the file's median step is a
+#: gap (at least one missing sample) and is refused unless declared
+GAP_FACTOR = 1.5
+#: speed above which a row flagged ``stationary = 1`` is refused [m/s]
+STATIONARY_FLAG_SPEED = 0.01
+#: body rate w.r.t. NED above which a row flagged ``stationary = 1`` is refused [rad/s]
+STATIONARY_FLAG_RATE = 1e-3
+#: largest |longitude| accepted in a CSV file [deg]
+MAX_CSV_LONGITUDE = 360.0
 
 #: segment kind -> allowed keys
 SEGMENT_KINDS = {
@@ -256,18 +266,55 @@ class Trajectory:
         -------
         pandas.DataFrame
             Columns :data:`CSV_COLUMNS` followed by ``distance [m]`` and
-            ``stationary`` (0/1).
+            ``stationary`` (0/1); longitude wrapped to [−180°, 180°).
         """
         import pandas as pd
 
         data = np.column_stack([
-            self.t, np.degrees(self.lat), np.degrees(self.lon), self.h,
+            self.t, np.degrees(self.lat), np.degrees(wrap_longitude(self.lon)), self.h,
             self.v_n, self.q_nb, self.f_b, self.w_ib_b,
         ])
         df = pd.DataFrame(data, columns=list(CSV_COLUMNS))
         df["distance [m]"] = self.distance
         df["stationary"] = self.stationary_mask(self.t).astype(int)
         return df
+
+
+def wrap_longitude(lon):
+    """Longitude wrapped to [−π, π) for reports and files.
+
+    Parameters
+    ----------
+    lon : float or array_like
+        Longitude, possibly continuous across the antimeridian. [rad]
+
+    Returns
+    -------
+    ndarray
+        The same angle in [−π, π); values already in range are returned
+        bit for bit.
+    """
+    lon = np.asarray(lon, dtype=float)
+    inside = (lon >= -np.pi) & (lon < np.pi)
+    return np.where(inside, lon, np.mod(lon + np.pi, 2.0 * np.pi) - np.pi)
+
+
+def _unwrap_longitude(lon, lat, h, v_e, t):
+    """Longitude made continuous, each step chosen nearest the velocity's.
+
+    A file reports longitude wrapped (179.9999° then −179.9999°); the step
+    ``Δl`` between rows is taken as the one of ``Δl + 2πk`` closest to the
+    trapezoidal integral of ``l̇ = v_E / ((R_N + h) cos L)``, so interpolation
+    never runs the long way round the Earth.  Rows with no wrap are
+    returned bit for bit.
+    """
+    _, rn = earth.radii(lat)
+    rate = v_e / ((rn + h) * np.cos(lat))
+    predicted = 0.5 * (rate[1:] + rate[:-1]) * np.diff(t)
+    turns = np.rint((predicted - np.diff(lon)) / (2.0 * np.pi))
+    if not turns.any():
+        return lon
+    return lon + 2.0 * np.pi * np.concatenate([[0.0], np.cumsum(turns)])
 
 
 def _frozen(a: np.ndarray) -> np.ndarray:
@@ -900,8 +947,10 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
     cfg : dict
         One of ``{builtin = "land_vehicle", ...parameters}``,
         ``{builtin = "static", duration, lat, lon, h, heading}``,
-        ``{segment = [...], initial = {...}}`` or ``{csv = "file.csv"}``;
-        each may carry ``name``.  Parameters use datasheet units.
+        ``{segment = [...], initial = {...}}`` or ``{csv = "file.csv"}``
+        (with an optional ``max_gap = "5 s"``: the longest time step that
+        may be interpolated, see :func:`load_trajectory_csv`); each may
+        carry ``name``.  Parameters use datasheet units.
     where : str
         Location prefix of error messages (``"studies/x.toml: [trajectory]"``).
     base_dir : Path or None
@@ -935,14 +984,18 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
             raise TrajectoryError(where, "missing required key 'initial'")
         return from_segments(cfg["segment"], cfg["initial"], dt=dt, name=name or "segments", where=where)
     if source == "csv":
-        _check_keys(cfg, ("csv", "name"), where)
+        _check_keys(cfg, ("csv", "name", "max_gap"), where)
         if not isinstance(cfg["csv"], str):
             raise TrajectoryError(f"{where}: csv", f"{cfg['csv']!r} is not a file name")
+        max_gap = None
+        if "max_gap" in cfg:
+            max_gap = _q(cfg["max_gap"], "time", f"{where}: max_gap")
+            _positive(max_gap, f"{where}: max_gap")
         path = Path(cfg["csv"])
         if not path.is_absolute() and base_dir is not None:
             path = Path(base_dir) / path
         try:
-            traj = load_trajectory_csv(path)
+            traj = load_trajectory_csv(path, max_gap=max_gap)
         except TrajectoryError as exc:
             raise TrajectoryError(f"{where}: {exc.where}", exc.problem) from None
         return traj if not name else Trajectory(**_fields(traj), stationary=traj.stationary,
@@ -1010,21 +1063,30 @@ class _Interpolant:
         return out
 
 
-def load_trajectory_csv(path) -> Trajectory:
+def load_trajectory_csv(path, *, max_gap: float | None = None, max_bytes: int | None = None) -> Trajectory:
     """Read a trajectory CSV file.
 
     Parameters
     ----------
     path : str or Path
         File with the columns :data:`CSV_COLUMNS` and optionally
-        :data:`CSV_OPTIONAL_COLUMNS`.
+        :data:`CSV_OPTIONAL_COLUMNS`, in any order (matched by name).
+    max_gap : float, optional
+        Longest time step that is interpolated. [s]  Default: a step longer
+        than :data:`GAP_FACTOR` times the file's median step is a gap and
+        is refused; give ``max_gap`` (``[trajectory] max_gap`` in a study
+        file) to declare that longer steps may be interpolated.
+    max_bytes : int, optional
+        Largest file read (:data:`covtool.io.csv_table.MAX_BYTES`). [bytes]
 
     Returns
     -------
     Trajectory
-        :meth:`~Trajectory.sample` interpolates it.  Without a
-        ``stationary`` column, samples with speed below
-        :data:`STATIONARY_SPEED` and body rate w.r.t. NED below
+        :meth:`~Trajectory.sample` interpolates it.  Longitude is unwrapped
+        (each step the one nearest the east velocity's, so a file crossing
+        the antimeridian interpolates the short way) and is wrapped again
+        only when written.  Without a ``stationary`` column, samples with
+        speed below :data:`STATIONARY_SPEED` and body rate w.r.t. NED below
         :data:`STATIONARY_RATE` form the stationary intervals (runs of at
         least two samples).  Without ``distance [m]``, the distance is the
         trapezoidal integral of the speed.  Quaternions are normalised and
@@ -1033,16 +1095,32 @@ def load_trajectory_csv(path) -> Trajectory:
     Raises
     ------
     TrajectoryError
-        Naming the file, column and row (1-based data row) for: missing or
-        unknown columns, non-numeric or empty values, time not strictly
-        increasing, quaternion norm off by more than
-        :data:`QUATERNION_NORM_TOL`, bad ``stationary`` flags.
+        One line naming the file, the column and the row (1-based data row)
+        for: everything :func:`covtool.io.csv_table.read_numeric_csv`
+        refuses (missing, unknown or duplicated columns, truncated lines,
+        empty, non-numeric or non-finite cells, time not strictly
+        increasing, a file over the size limit); a gap in time; quaternion
+        norm off by more than :data:`QUATERNION_NORM_TOL`; latitude beyond
+        ±89.9°; |longitude| over :data:`MAX_CSV_LONGITUDE`; a ``stationary``
+        flag that is not 0 or 1, or is 1 while the vehicle moves faster
+        than :data:`STATIONARY_FLAG_SPEED` or turns faster than
+        :data:`STATIONARY_FLAG_RATE` with respect to the NED frame.
     """
     path = Path(path)
     where = str(path)
-    cols = read_numeric_csv(path, CSV_COLUMNS, CSV_OPTIONAL_COLUMNS, error=TrajectoryError)
+    cols = read_numeric_csv(path, CSV_COLUMNS, CSV_OPTIONAL_COLUMNS, error=TrajectoryError, max_bytes=max_bytes)
     t = cols["t [s]"]
     step = np.diff(t)
+    median = float(np.median(step))
+    bound = GAP_FACTOR * median if max_gap is None else float(max_gap)
+    long_steps = step > bound
+    if long_steps.any():
+        r = int(np.argmax(long_steps)) + 2
+        how = (f"more than {GAP_FACTOR:g} × the file's median step {median:.6g} s" if max_gap is None
+               else f"more than the declared max_gap {bound:.6g} s")
+        raise TrajectoryError(f"{where}: column 't [s]'", f"row {r}: a gap of {step[r - 2]:.6g} s after t = "
+                              f"{t[r - 2]:.9g} s, {how}; {int(long_steps.sum())} gap(s) in all (declare "
+                              "[trajectory] max_gap to interpolate across them)")
     q = np.column_stack([cols[c] for c in ("q0", "q1", "q2", "q3")])
     norm = np.linalg.norm(q, axis=1)
     off = np.abs(norm - 1.0) > QUATERNION_NORM_TOL
@@ -1053,13 +1131,19 @@ def load_trajectory_csv(path) -> Trajectory:
     q = q / norm[:, None]
     flips = np.cumprod(np.where(np.sum(q[1:] * q[:-1], axis=1) < 0, -1.0, 1.0))
     q[1:] *= flips[:, None]
-    lat, lon, h = np.radians(cols["lat [deg]"]), np.radians(cols["lon [deg]"]), cols["h [m]"]
+    lat, h = np.radians(cols["lat [deg]"]), cols["h [m]"]
     bad_lat = np.abs(lat) >= np.radians(89.9)
     if bad_lat.any():
         r = int(np.argmax(bad_lat))
         raise TrajectoryError(f"{where}: column 'lat [deg]'", f"row {r + 1}: {cols['lat [deg]'][r]:g} deg "
                               "is not within ±89.9 deg")
+    bad_lon = np.abs(cols["lon [deg]"]) > MAX_CSV_LONGITUDE
+    if bad_lon.any():
+        r = int(np.argmax(bad_lon))
+        raise TrajectoryError(f"{where}: column 'lon [deg]'", f"row {r + 1}: {cols['lon [deg]'][r]:g} deg "
+                              f"is not within ±{MAX_CSV_LONGITUDE:g} deg")
     v_n = np.column_stack([cols[c] for c in ("v_N [m/s]", "v_E [m/s]", "v_D [m/s]")])
+    lon = _unwrap_longitude(np.radians(cols["lon [deg]"]), lat, h, v_n[:, 1], t)
     f_b = np.column_stack([cols[c] for c in ("f_x [m/s^2]", "f_y [m/s^2]", "f_z [m/s^2]")])
     w_ib_b = np.column_stack([cols[c] for c in ("w_x [rad/s]", "w_y [rad/s]", "w_z [rad/s]")])
     speed = np.linalg.norm(v_n, axis=1)
@@ -1067,6 +1151,8 @@ def load_trajectory_csv(path) -> Trajectory:
         distance = cols["distance [m]"]
     else:
         distance = np.concatenate([[0.0], np.cumsum(0.5 * (speed[1:] + speed[:-1]) * step)])
+    w_in = earth.earth_rate_n(lat) + earth.transport_rate_n(lat, h, v_n)
+    turn = np.linalg.norm(w_ib_b - np.einsum("kji,kj->ki", quat.dcm(q), w_in), axis=1)   # |ω_nb^b|
     if "stationary" in cols:
         flag = cols["stationary"]
         bad = (flag != 0) & (flag != 1)
@@ -1074,10 +1160,16 @@ def load_trajectory_csv(path) -> Trajectory:
             r = int(np.argmax(bad))
             raise TrajectoryError(f"{where}: column 'stationary'", f"row {r + 1}: {flag[r]:g} is not 0 or 1")
         still = flag == 1
+        moving = still & ((speed > STATIONARY_FLAG_SPEED) | (turn > STATIONARY_FLAG_RATE))
+        if moving.any():
+            r = int(np.argmax(moving))
+            what = (f"speed {speed[r]:.6g} m/s (tolerance {STATIONARY_FLAG_SPEED:g} m/s)"
+                    if speed[r] > STATIONARY_FLAG_SPEED else
+                    f"body rate w.r.t. NED {turn[r]:.6g} rad/s (tolerance {STATIONARY_FLAG_RATE:g} rad/s)")
+            raise TrajectoryError(f"{where}: column 'stationary'", f"row {r + 1}: flagged stationary (1) while "
+                                  f"the vehicle moves: {what}; {int(moving.sum())} such row(s)")
     else:
-        w_in = earth.earth_rate_n(lat) + earth.transport_rate_n(lat, h, v_n)
-        w_nb = w_ib_b - np.einsum("kji,kj->ki", quat.dcm(q), w_in)
-        still = (speed < STATIONARY_SPEED) & (np.linalg.norm(w_nb, axis=1) < STATIONARY_RATE)
+        still = (speed < STATIONARY_SPEED) & (turn < STATIONARY_RATE)
     intervals = []
     k = 0
     while k < t.size:

@@ -832,3 +832,160 @@ def test_cli_dualnav_errors(log_files, tmp_path):
     with pytest.raises(InputError, match=r"kimu\.csv: column 't \[s\]': median sample period 0\.0025 s does not "
                                          r"match the main grade's rate 100 Hz"):
         args.func(args)
+
+
+# --------------------------------------------------------------------------
+# issue 9 case 9: recorded times kept, clock rates measured, the right log named
+# --------------------------------------------------------------------------
+
+PPM = 200.0
+
+
+def _clocked(rate, seconds, ppm, where):
+    """A static log whose recorded times run ``ppm`` slow of the nominal period."""
+    log = _static_log(rate, seconds)
+    return dataclasses.replace(log, t=log.t * (1.0 + ppm * 1e-6), where=where)
+
+
+def test_bridging_keeps_recorded_times_with_a_200_ppm_clock(setup_static):
+    """Before: kept times re-snapped to the nominal grid (0.5 period off after 2500 samples), then
+    'KIMU log: main interval 0 … holds 3 samples' blamed the KIMU; after: times kept, the run goes through."""
+    main = _clocked(100.0, 20.0, PPM, "main.csv")
+    kimu = _clocked(400.0, 20.0, PPM, "kimu.csv")           # synchronised to the main IMU: the same clock
+    keep = np.ones(main.t.size, bool)
+    keep[1000:1003] = False
+    b = dn.bridge_gaps(main.t[keep], main.dtheta[keep], main.dv[keep], 0.01, "interpolate", imu="main",
+                       where="main.csv")
+    np.testing.assert_array_equal(b.t[~b.bridged], main.t[keep])          # recorded times, exactly
+    assert b.bridged.sum() == 3 and b.bridged[1000:1003].all()
+    # inserted samples evenly between the recorded neighbours: the drifting grid itself, to rounding
+    np.testing.assert_allclose(b.t[1000:1003], main.t[1000:1003], rtol=0, atol=1e-12)
+    assert b.t[-1] - 0.01 * 2000 == pytest.approx(PPM * 1e-6 * 20.0, rel=1e-9)     # 4 ms = 0.4 period off nominal
+    assert b.clock_ppm == pytest.approx(PPM, abs=dn.CLOCK_PPM_TOL)
+    assert b.where == "main.csv"
+    r = dn.run_dual(b, dn.bridge_gaps(kimu.t, kimu.dtheta, kimu.dv, 0.0025, "interpolate", where="kimu.csv"),
+                    setup_static)
+    assert r.clock["main"] == pytest.approx(PPM, abs=dn.CLOCK_PPM_TOL)
+    assert r.clock["kimu"] == pytest.approx(PPM, abs=dn.CLOCK_PPM_TOL)
+    assert abs(r.clock["mismatch"]) < dn.CLOCK_PPM_TOL
+    assert np.abs(r.z[0, :, 3:6]).max() < 1e-9                             # at rest, error-free: they agree
+
+
+def test_clock_rate_is_measured_across_gaps():
+    t = 0.0025 * np.arange(1, 8001) * (1.0 + PPM * 1e-6)
+    keep = np.ones(t.size, bool)
+    keep[[100, 4000, 4001, 4002]] = False
+    period, ppm = dn.clock_rate(t[keep], 0.0025)
+    assert period == pytest.approx(0.0025 * (1 + PPM * 1e-6), rel=1e-12)
+    assert ppm == pytest.approx(PPM, abs=dn.CLOCK_PPM_TOL)
+    assert dn.ppm_text(-1e-9) == "+0.0" and dn.ppm_text(199.96) == "+200.0"
+
+
+@pytest.mark.parametrize("late, match", [
+    ("kimu", r"kimu\.csv: its clock runs \+200\.0 ppm off its nominal rate \(main\.csv: \+0\.0 ppm\), so the logs "
+             r"drift apart by -200\.0 ppm and cannot be paired sample by sample \(main interval \d+ .* holds 3"),
+    ("main", r"main\.csv: its clock runs \+200\.0 ppm off its nominal rate \(kimu\.csv: \+0\.0 ppm\), so the logs "
+             r"drift apart by \+200\.0 ppm"),
+])
+def test_clock_mismatch_names_the_log_whose_clock_is_off(setup_static, late, match):
+    main = _clocked(100.0, 20.0, PPM if late == "main" else 0.0, "main.csv")
+    kimu = _clocked(400.0, 20.0, PPM if late == "kimu" else 0.0, "kimu.csv")
+    with pytest.raises(InputError, match=match):
+        dn.run_dual(main, kimu, setup_static)
+
+
+def test_a_kimu_gap_names_the_kimu_log_file(setup_static):
+    main, kimu = _static_log(100.0, 20.0), _static_log(400.0, 20.0)
+    holey = dataclasses.replace(kimu, t=np.delete(kimu.t, 500), dtheta=np.delete(kimu.dtheta, 500, axis=0),
+                                dv=np.delete(kimu.dv, 500, axis=0), where="flight/kimu.csv")
+    with pytest.raises(InputError, match=r"^flight/kimu\.csv: main interval 125 .* holds 3 samples, expected 4"):
+        dn.run_dual(main, holey, setup_static)
+    late = dataclasses.replace(kimu, t=kimu.t + 30.0, where="k.csv")
+    with pytest.raises(InputError, match=r"logs: the main log \[0, 20\] s and the KIMU log k\.csv \[30, 50\] s share"):
+        dn.run_dual(main, late, setup_static)
+
+
+def test_nan_statistics_are_never_a_negative_detection(linear_model):
+    """Before: a 1e300 in a log gave 'g-sensitivity detected: False' with GLR nan; now a NaN stops the test."""
+    from covtool.errors import NumericalError
+
+    m = linear_model
+    inn = dn.innovations(m, np.zeros((m.t.size, m.m)))
+    bad = dataclasses.replace(inn, nu=np.where(np.arange(inn.nu.shape[1])[None, :, None] == 3, np.nan, inn.nu))
+    with pytest.raises(NumericalError, match=r"g-sensitivity test: the GLR statistic of run 0 is not finite"):
+        dn.gsens_estimates(bad, m.candidates, 0.01)
+    nis = np.ones((2, 20))
+    nis[1, 7] = np.nan
+    with pytest.raises(NumericalError, match=r"window test: the normalised innovation of run 1 at epoch 7 is not "
+                                             r"finite"):
+        dn.window_test(nis, 6, 5, 0.01)
+
+
+def _edited_log(src, dst, edit):
+    lines = src.read_text(encoding="utf-8").splitlines()
+    dst.write_text("\n".join(edit(lines)) + "\n", encoding="utf-8")
+    return dst
+
+
+def test_cli_refuses_a_non_physical_value_naming_log_row_column(log_files, tmp_path):
+    """Before: 1e300 in the KIMU log → NaN statistics, 'g-sensitivity detected: False', exit 0."""
+    from covtool.cli import main as cli_main
+
+    (paths, study, _) = log_files
+
+    def put(lines):
+        cells = lines[4000].split(",")             # data row 4000 (line 0 is the header)
+        cells[4] = "1e300"
+        lines[4000] = ",".join(cells)
+        return lines
+
+    bad = _edited_log(paths["kimu"], tmp_path / "kimu_1e300.csv", put)
+    args = _parser().parse_args(["dualnav", str(paths["main"]), str(bad), "--study", str(study),
+                                 "--out", str(tmp_path / "o"), "--no-figures"])
+    # 50 g × 2.5 ms × 1.1 (hand): the largest dv a KIMU sample can hold
+    bound = 1.1 * 50 * G * 0.0025
+    with pytest.raises(InputError, match=rf"kimu_1e300\.csv: column 'dv_x \[m/s\]': row 4000: 1e\+300 m/s is beyond "
+                                         rf"what the kimu grade can output \(1\.1 × its specific-force range 50 g × "
+                                         rf"0\.0025 s = {bound:.6g} m/s\)"):
+        args.func(args)
+    assert not (tmp_path / "o").exists()
+    assert cli_main(["dualnav", str(paths["main"]), str(bad), "--study", str(study), "--out",
+                     str(tmp_path / "o"), "--no-figures", "--quiet"]) == 2
+
+
+def test_cli_refuses_a_header_that_labels_the_wrong_columns(log_files, tmp_path):
+    """A header with Δθ and Δv swapped but the data not: refused at the alignment, not read as is."""
+    (paths, study, _) = log_files
+    from covtool.io.imu_log import LOG_COLUMNS
+
+    swapped = [LOG_COLUMNS[0], *LOG_COLUMNS[4:7], *LOG_COLUMNS[1:4]]
+
+    def relabel(lines):
+        return [",".join(swapped)] + lines[1:601]           # the 6 s stand: every value within the ranges
+
+    bad = _edited_log(paths["main"], tmp_path / "main_swapped.csv", relabel)
+    args = _parser().parse_args(["dualnav", str(bad), str(paths["kimu"]), "--study", str(study),
+                                 "--out", str(tmp_path / "o"), "--no-figures"])
+    with pytest.raises(InputError, match=r"main_swapped\.csv: columns 'dv_x \[m/s\]'\.\.'dv_z \[m/s\]': rows 1-500: "
+                                         r"the mean specific force over the 5 s alignment is .* m/s², not gravity "
+                                         r"9\.79\d* m/s² within 10 %: the vehicle was not at rest, or the header "
+                                         r"labels the wrong columns"):
+        args.func(args)
+    # the whole flight: the boost's Δv read as Δθ is beyond the gyro range
+    bad = _edited_log(paths["main"], tmp_path / "main_swapped.csv", lambda lines: [",".join(swapped)] + lines[1:])
+    with pytest.raises(InputError, match=r"main_swapped\.csv: column 'dtheta_x \[rad\]': row \d+: .* rad is beyond "
+                                         r"what the main grade can output .*: a corrupted value, or a header that "
+                                         r"labels the wrong columns"):
+        args.func(args)
+    # the columns in another order with their own names: matched by name, the same comparison
+    from covtool.io.imu_log import load_imu_log
+
+    order = [6, 0, 3, 1, 5, 2, 4]
+
+    def permute(lines):
+        return [",".join(line.split(",")[i] for i in order) for line in lines]
+
+    perm = load_imu_log(_edited_log(paths["main"], tmp_path / "main_perm.csv", permute))
+    ref = load_imu_log(paths["main"])
+    for key in ("t", "dtheta", "dv"):
+        np.testing.assert_array_equal(getattr(perm, key), getattr(ref, key))

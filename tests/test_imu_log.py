@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
+
 import numpy as np
 import pytest
 
@@ -88,3 +91,70 @@ def test_missing_file(tmp_path):
 def test_save_checks_shapes(tmp_path):
     with pytest.raises(ValueError, match=r"expected t \(K,\), dtheta and dv \(K, 3\)"):
         save_imu_log(tmp_path / "x.csv", [1.0, 2.0], np.zeros((2, 3)), np.zeros((3, 3)))
+
+
+# --------------------------------------------------------------------------
+# issue 9 case 9 and issue 10 cases 5-6
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("text, match", [
+    (HEADER + "\n1,0,0,0,0,0,-0.098\n2,0,0,0,0\n3,0,0,0,0,0,-0.098\n",
+     r"log\.csv: column 'dv_y \[m/s\]': row 2: missing: the line has 5 of the 7 cells of the header "
+     r"\(truncated line\?\)"),
+    (HEADER + "\n1,0,0,0,0,0,-0.098\n2,0,0,0,0,0,-0.0", r"log\.csv: row 2: the last line has no line end: the file "
+                                                       r"looks truncated"),
+    (HEADER + "\n1,0,0,0,0,0,-0.098\n2,0,0,0,0,0,-0.098,7\n", r"log\.csv: row 2: the line has 8 cells, the header has 7"),
+    (HEADER + "\n1,0,0,0,0,0,-0.098\n\n3,0,0,0,0,0,-0.098\n", r"log\.csv: row 2: empty line"),
+])
+def test_truncated_and_malformed_lines(tmp_path, text, match):
+    """Before: a last line cut inside its last number ('-0.0') was read as a value."""
+    with pytest.raises(InputError, match=match):
+        load_imu_log(_write(tmp_path, text))
+
+
+def test_size_limit(tmp_path):
+    p = _write(tmp_path, HEADER + "\n" + GOOD)
+    size = p.stat().st_size
+    with pytest.raises(InputError, match=rf"log\.csv: the file is {size} bytes, larger than the 100 bytes covtool "
+                                         r"reads"):
+        load_imu_log(p, max_bytes=100)
+    assert load_imu_log(p, max_bytes=size).t.size == 2
+
+
+def _rest_log(n=500, rate=100.0, f=(0.0, 0.0, -9.8), w=(7e-5, 0.0, -4e-5), path="rest.csv"):
+    from covtool.io.imu_log import ImuLog
+
+    h = 1.0 / rate
+    t = h * np.arange(1, n + 1)
+    return ImuLog(path, t, np.tile(np.array(w) * h, (n, 1)), np.tile(np.array(f) * h, (n, 1)))
+
+
+def test_check_imu_log_range():
+    from covtool.io.imu_log import check_imu_log
+
+    log = _rest_log()
+    check_imu_log(log, period=0.01, gyro_range=math.radians(1000.0), accel_range=50 * 9.80665)
+    dth = log.dtheta.copy()
+    dth[42, 1] = -0.2                                   # 20 rad/s over one 10 ms sample: beyond 1000 deg/s
+    bad = dataclasses.replace(log, dtheta=dth)
+    bound = 1.1 * math.radians(1000.0) * 0.01           # hand: margin × range × period
+    with pytest.raises(InputError, match=rf"rest\.csv: column 'dtheta_y \[rad\]': row 43: -0\.2 rad is beyond what the "
+                                         rf"main grade can output \(1\.1 × its rate range 1000 deg/s × 0\.01 s = "
+                                         rf"{bound:.6g} rad\)"):
+        check_imu_log(bad, period=0.01, gyro_range=math.radians(1000.0), label="main")
+    check_imu_log(bad, period=0.01, gyro_range=None)    # no range declared: nothing to check
+
+
+@pytest.mark.parametrize("f, w, match", [
+    ((0.0, 0.0, -8.0), (0.0, 0.0, 0.0), r"columns 'dv_x \[m/s\]'\.\.'dv_z \[m/s\]': rows 1-500: the mean specific "
+                                        r"force over the 5 s alignment is 8 m/s², not gravity 9\.8 m/s² within 10 %"),
+    ((0.0, 0.0, -9.8), (0.0, 0.02, 0.0), r"columns 'dtheta_x \[rad\]'\.\.'dtheta_z \[rad\]': rows 1-500: the mean "
+                                         r"rate over the 5 s alignment is 0\.02 rad/s, more than 0\.01 rad/s at rest"),
+])
+def test_check_imu_log_at_rest(f, w, match):
+    from covtool.io.imu_log import check_imu_log
+
+    check_imu_log(_rest_log(), period=0.01, align_time=5.0, gravity=9.8)
+    with pytest.raises(InputError, match=r"rest\.csv: " + match):
+        check_imu_log(_rest_log(n=800, f=f, w=w), period=0.01, align_time=5.0, gravity=9.8)

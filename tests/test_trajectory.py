@@ -510,3 +510,245 @@ def test_csv_missing_or_empty_file(tmp_path):
     (tmp_path / "empty.csv").write_text("")
     with pytest.raises(TrajectoryError, match=r"empty\.csv: not a readable CSV file"):
         load_trajectory_csv(tmp_path / "empty.csv")
+
+
+# --------------------------------------------------------------------------
+# issue 9 case 9: longitude, gaps, stationary flags; issue 10 cases 5-6
+# --------------------------------------------------------------------------
+
+_ROW = "0,0,-9.80665,0,0,0"        # f_x..f_z, w_x..w_z of a level, unaccelerated vehicle
+
+
+def _antimeridian_csv(tmp_path, lons=(179.9999, -179.9999, -179.9997)):
+    """Three rows one second apart, heading east at 21.9 m/s across the antimeridian."""
+    header = ",".join(CSV_COLUMNS)
+    rows = [f"{k},10.3,{lon!r},50,0,21.9,0,1,0,0,0,{_ROW}" for k, lon in enumerate(lons)]
+    path = tmp_path / "dateline.csv"
+    path.write_text(header + "\n" + "\n".join(rows) + "\n", encoding="utf-8")
+    return path
+
+
+def test_csv_longitude_interpolates_across_the_antimeridian(tmp_path):
+    """Before: lon 0.0° at t = 0.5 s (the long way round); after: ±180°."""
+    import covtool.strapdown as sd
+    from covtool.trajectory import wrap_longitude
+
+    traj = load_trajectory_csv(_antimeridian_csv(tmp_path))
+    s = traj.sample([0.5, 1.5])
+    # hand value: halfway between 179.9999° and 180.0001° (= −179.9999°) is 180°, then 180.0002°
+    np.testing.assert_allclose(np.degrees(s.lon), [180.0, 180.0002], rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.degrees(wrap_longitude(s.lon)), [-180.0, -179.9998], rtol=0, atol=1e-9)
+    # the step agrees with the east velocity: 21.9 m/s over (R_N + h) cos L
+    _, rn = earth.radii(math.radians(10.3))
+    assert math.degrees(traj.lon[1] - traj.lon[0]) == pytest.approx(
+        math.degrees(21.9 / ((rn + 50.0) * math.cos(math.radians(10.3)))), rel=0.01)
+    # files and reports see the wrapped angle; the Monte Carlo truth and the nav errors see the short way
+    df = s.to_dataframe()
+    assert (df["lon [deg]"] >= -180.0).all() and (df["lon [deg]"] < 180.0).all()
+    truth = sd.truth_state(traj, [0.5])
+    assert abs(math.degrees(truth.lon[0]) - 180.0) < 1e-9
+    nav = truth.replace(lon=truth.lon - 2.0 * math.pi)           # the same place, written the other way
+    assert abs(sd.nav_errors(nav, truth)[0, 1]) < 1e-12
+
+
+def test_csv_longitude_round_trips_wrapped(tmp_path):
+    traj = load_trajectory_csv(_antimeridian_csv(tmp_path))
+    path = tmp_path / "again.csv"
+    save_trajectory_csv(traj, path)
+    text = path.read_text(encoding="utf-8")
+    assert "180.0001" not in text                        # written wrapped
+    back = load_trajectory_csv(path)
+    np.testing.assert_allclose(back.lon, traj.lon, rtol=0, atol=1e-15)
+
+
+def test_wrap_longitude():
+    from covtool.trajectory import wrap_longitude
+
+    x = np.array([0.1, -math.pi, math.pi, 3 * math.pi / 2, -7.0])
+    np.testing.assert_allclose(wrap_longitude(x), [0.1, -math.pi, -math.pi, -math.pi / 2, -7.0 + 2 * math.pi],
+                               atol=1e-15)
+    inside = np.linspace(-math.pi, math.pi, 1001)[:-1]
+    np.testing.assert_array_equal(wrap_longitude(inside), inside)          # bit for bit
+
+
+def test_flight_across_the_antimeridian_navigates_the_short_way():
+    """A declared flight east across 180°: continuous inside, wrapped in files, nav error tiny."""
+    import covtool.strapdown as sd
+    from covtool.flight import Segment, flight
+    from covtool.imu import ideal_increments
+
+    segs = [Segment("stand", 2.0), Segment("fly", 20.0, to_speed=250.0, transition=2.0)]
+    traj = flight(segs, lat=math.radians(60.0), lon=math.radians(179.98), h=1000.0, heading=math.radians(90.0),
+                  dt=0.5)
+    assert traj.lon[-1] > math.pi                                       # crossed, continuously
+    assert np.all(np.diff(traj.lon) >= 0)
+    df = traj.to_dataframe()
+    assert df["lon [deg]"].iloc[-1] < -179.9 and df["lon [deg]"].iloc[0] == pytest.approx(179.98)
+    hist = sd.run(sd.NavState.from_trajectory(traj), ideal_increments(traj, 100.0), 2, every=100)
+    truth = sd.truth_state(traj, hist.t)
+    for k in range(hist.t.size):
+        err = sd.nav_errors(hist.state(k), sd.NavState(truth.t, truth.lat[k:k + 1], truth.lon[k:k + 1],
+                                                         truth.h[k:k + 1], truth.v_n[k:k + 1], truth.q[k:k + 1],
+                                                         np.zeros((1, 3)), np.zeros((1, 3))))
+        _, rn = earth.radii(truth.lat[k])
+        assert abs(err[0, 1]) * rn < 1e-3                               # < 1 mm east
+
+
+def _holey(tmp_path, lv, start, stop, name="holey.csv"):
+    df = lv.to_dataframe()
+    keep = (df["t [s]"] <= start) | (df["t [s]"] >= stop)
+    path = tmp_path / name
+    df[keep].to_csv(path, index=False, float_format="%.17g")
+    return path
+
+
+def test_csv_gap_is_refused_with_file_row_and_gap(tmp_path, lv):
+    """Before: a 100 s hole interpolated silently (pure INS azimuth 9.98′ → 7.06′ at 5 min); after: refused."""
+    path = _holey(tmp_path, lv, 100.0, 200.0)
+    with pytest.raises(TrajectoryError, match=r"holey\.csv: column 't \[s\]': row 102: a gap of 100 s after "
+                                              r"t = 100 s, more than 1\.5 × the file's median step 1 s; 1 gap\(s\) "
+                                              r"in all \(declare \[trajectory\] max_gap"):
+        load_trajectory_csv(path)
+    # one missing row is a gap too
+    with pytest.raises(TrajectoryError, match=r"row 500: a gap of 2 s after t = 498 s"):
+        load_trajectory_csv(_holey(tmp_path, lv, 498.0, 500.0, "one.csv"))
+    # declared: interpolated, and still refused beyond the declared bound
+    back = load_trajectory_csv(path, max_gap=100.0)
+    assert back.n == lv.n - 99
+    with pytest.raises(TrajectoryError, match=r"a gap of 100 s after t = 100 s, more than the declared max_gap 50 s"):
+        load_trajectory_csv(path, max_gap=50.0)
+
+
+def test_csv_gap_refused_by_a_study_before_computing(tmp_path, lv):
+    from covtool.studies import run_study
+
+    path = _holey(tmp_path, lv, 100.0, 200.0)
+    decl = {"study": {"kind": "pure_ins", "name": "h", "duration": "5 min", "dt": "1 s"},
+            "trajectory": {"csv": str(path)}, "truth": {"model": "sdins58"}}
+    with pytest.raises(TrajectoryError, match=r"\[trajectory\]: .*holey\.csv: column 't \[s\]': row 102: a gap "
+                                              r"of 100 s"):
+        run_study(decl)
+    decl["trajectory"]["max_gap"] = "-1 s"
+    with pytest.raises(TrajectoryError, match=r"\[trajectory\]: max_gap: must be positive"):
+        run_study(decl)
+
+
+def test_csv_stationary_flag_must_match_the_motion(tmp_path, lv):
+    """Before: stationary = 1 at 13 m/s accepted (ZUPTs applied); after: refused with the row."""
+    df = lv.to_dataframe()
+    r = int(np.argmax(np.abs(np.linalg.norm(lv.v_n, axis=1) - 13.0) < 0.5))      # a row at ~13 m/s
+    speed = float(np.linalg.norm(lv.v_n[r]))
+    df.loc[r, "stationary"] = 1
+    path = tmp_path / "flag.csv"
+    df.to_csv(path, index=False, float_format="%.17g")
+    with pytest.raises(TrajectoryError, match=rf"flag\.csv: column 'stationary': row {r + 1}: flagged stationary "
+                                              rf"\(1\) while the vehicle moves: speed {speed:.6g} m/s "
+                                              r"\(tolerance 0\.01 m/s\); 1 such row\(s\)"):
+        load_trajectory_csv(path)
+    # turning on the spot: speed 0 but a yaw rate of 0.1 rad/s
+    df = lv.to_dataframe()
+    k = int(np.flatnonzero(df["stationary"] == 1)[5])
+    df.loc[k, ["w_x [rad/s]", "w_y [rad/s]", "w_z [rad/s]"]] = [0.0, 0.0, -0.1]
+    df.to_csv(path, index=False, float_format="%.17g")
+    # at rest the gyros measure the Earth rate [Ω cos L, 0, −Ω sin L]:
+    # |ω_nb| = |(−Ω cos L cos ψ, Ω cos L sin ψ, −0.1 + Ω sin L)| at any heading ψ (level)
+    lat = math.radians(36.37)
+    rate = math.hypot(earth.OMEGA_IE * math.cos(lat), 0.1 - earth.OMEGA_IE * math.sin(lat))
+    with pytest.raises(TrajectoryError, match=rf"row {k + 1}: flagged stationary \(1\) while the vehicle moves: "
+                                              rf"body rate w\.r\.t\. NED {rate:.6g} rad/s \(tolerance 0\.001 rad/s\)"):
+        load_trajectory_csv(path)
+
+
+def _good_lines(lv, n=6):
+    text = lv.sample(lv.t[:n]).to_dataframe()[list(CSV_COLUMNS)].to_csv(index=False, float_format="%.17g")
+    return text.splitlines()
+
+
+@pytest.mark.parametrize("edit, match", [
+    (lambda ls: ls[:4] + [ls[4].rsplit(",", 3)[0]] + ls[5:],
+     r"bad\.csv: column 'w_x \[rad/s\]': row 4: missing: the line has 14 of the 17 cells of the header "
+     r"\(truncated line\?\)"),
+    (lambda ls: ls[:3] + [ls[3] + ",7"] + ls[4:], r"bad\.csv: row 3: the line has 18 cells, the header has 17"),
+    (lambda ls: ls[:3] + [""] + ls[3:], r"bad\.csv: row 3: empty line"),
+    (lambda ls: ls[:2] + [ls[2].replace(",", ";", 1)] + ls[3:],
+     r"bad\.csv: column 'w_z \[rad/s\]': row 2: missing: the line has 16 of the 17"),
+    (lambda ls: ls[:5] + [ls[5].replace("1", "1x", 1)] + ls[6:], r"bad\.csv: column '.*': row 5: '.*1x.*' is not a "
+                                                                   r"number"),
+])
+def test_csv_line_errors_name_file_row_column(tmp_path, lv, edit, match):
+    path = tmp_path / "bad.csv"
+    path.write_text("\n".join(edit(_good_lines(lv))) + "\n", encoding="utf-8")
+    with pytest.raises(TrajectoryError, match=match):
+        load_trajectory_csv(path)
+
+
+def test_csv_truncated_last_line(tmp_path, lv):
+    """Before: a file cut in the middle of its last number was read (issue 10 case 6)."""
+    lines = _good_lines(lv)
+    path = tmp_path / "cut.csv"
+    path.write_text("\n".join(lines)[:-3], encoding="utf-8")
+    with pytest.raises(TrajectoryError, match=r"cut\.csv: row 6: the last line has no line end: the file looks "
+                                              r"truncated"):
+        load_trajectory_csv(path)
+
+
+def test_csv_size_limit_is_checked_before_reading(tmp_path, lv, monkeypatch):
+    """A file over the limit is refused with its size and the limit, before any byte is parsed."""
+    import covtool.io.csv_table as ct
+
+    path = tmp_path / "lv.csv"
+    save_trajectory_csv(lv, path)
+    size = path.stat().st_size
+
+    def no_read(*args, **kwargs):
+        raise AssertionError("the file was read")
+
+    monkeypatch.setattr(ct, "_scan", no_read)
+    with pytest.raises(TrajectoryError, match=rf"lv\.csv: the file is .* \({size} bytes\), larger than the 100 kB "
+                                              r"\(100000 bytes\) covtool reads; split or decimate it"):
+        load_trajectory_csv(path, max_bytes=100_000)
+    monkeypatch.setattr(ct, "MAX_BYTES", 1000)
+    with pytest.raises(TrajectoryError, match=r"larger than the 1 kB \(1000 bytes\) covtool reads"):
+        load_trajectory_csv(path)
+
+
+def test_csv_reader_streams_in_blocks(tmp_path, lv, monkeypatch):
+    """Blocks of a few rows give the same arrays as one block (the reader never holds the text)."""
+    import covtool.io.csv_table as ct
+
+    path = tmp_path / "lv.csv"
+    save_trajectory_csv(lv, path)
+    whole = load_trajectory_csv(path)
+    monkeypatch.setattr(ct, "CHUNK_ROWS", 7)
+    blocks = load_trajectory_csv(path)
+    for key in ("t", "lat", "lon", "h", "v_n", "q_nb", "f_b", "w_ib_b", "distance"):
+        np.testing.assert_array_equal(getattr(blocks, key), getattr(whole, key), err_msg=key)
+    # an error in a late block still names its row
+    lines = path.read_text(encoding="utf-8").splitlines()
+    lines[1234] = lines[1234].replace(",", ",abc", 1)
+    path.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    with pytest.raises(TrajectoryError, match=r"column 'lat \[deg\]': row 1234: 'abc.*' is not a number"):
+        load_trajectory_csv(path)
+
+
+def test_csv_file_level_errors(tmp_path):
+    with pytest.raises(TrajectoryError, match=r"dir\.csv: is a directory, not a CSV file"):
+        (tmp_path / "dir.csv").mkdir()
+        load_trajectory_csv(tmp_path / "dir.csv")
+    (tmp_path / "bin.csv").write_bytes(b"\xff\xfe\x00t [s]\n\x00\x01\n")
+    with pytest.raises(TrajectoryError, match=r"bin\.csv: not a readable CSV file \(not UTF-8 text: byte 0xff at "
+                                              r"byte 0 in the header\)"):
+        load_trajectory_csv(tmp_path / "bin.csv")
+    header = ",".join(CSV_COLUMNS).encode() + b"\n"
+    row = b",".join([b"1"] * 17) + b"\n"                # valid rows fill the first blocks
+    (tmp_path / "latin.csv").write_bytes(header + row * 70000 + b"0,\xe9\n")
+    with pytest.raises(TrajectoryError, match=rf"latin\.csv: not a readable CSV file \(not UTF-8 text: byte 0xe9 at "
+                                              rf"byte {len(header) + len(row) * 70000 + 2} in row 70001\)"):
+        load_trajectory_csv(tmp_path / "latin.csv")
+
+
+def test_csv_longitude_out_of_range(tmp_path):
+    path = _antimeridian_csv(tmp_path, lons=(179.9999, 540.0, 541.0))
+    with pytest.raises(TrajectoryError, match=r"dateline\.csv: column 'lon \[deg\]': row 2: 540 deg is not within "
+                                              r"±360 deg"):
+        load_trajectory_csv(path)

@@ -74,9 +74,11 @@ import numpy as np
 import pandas as pd
 
 from .. import dualnav as dn
+from .. import earth
 from .. import quaternion as quat
 from ..errors import InputError, ModelFileError, StudyFileError
 from ..io.config import check_keys, quantity
+from ..io.imu_log import check_imu_log
 from ..io.names import check_study_name
 from ..results import StudyResult
 
@@ -144,10 +146,9 @@ def gsens_coefficient(value, where) -> float:
     if not isinstance(value, str):
         raise StudyFileError(where, f"{value!r} is not a quantity such as '1000 ppm/g'")
     try:
-        per_g = parse_quantity(f"({value}) * g", "dimensionless", where=where)
+        return parse_quantity(value, "inverse_acceleration", where=where)
     except UnitError:
         raise StudyFileError(where, f"{value!r} is not a scale factor per g (e.g. '1000 ppm/g')") from None
-    return per_g / dn.G0
 
 
 def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
@@ -689,6 +690,9 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         if abs(measured - dt) > 0.01 * dt:
             raise InputError(f"{log.path}: column 't [s]'", f"median sample period {measured:.9g} s does not match "
                              f"the {key} grade's rate {rate:g} Hz ({dt:.9g} s)")
+        gyro_range, accel_range = cfg.grades[key].range
+        check_imu_log(log, period=dt, gyro_range=gyro_range, accel_range=accel_range, align_time=cfg.align_time,
+                      gravity=float(np.linalg.norm(earth.gravity_n(setup.lat, setup.h))), label=key)
         m = cfg.grades[key].to_model()
         bridged[key] = dn.bridge_gaps(log.t, log.dtheta, log.dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
                                       window=cfg.gap_window, trials=cfg.gap_trials, where=log.path)
@@ -703,6 +707,9 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         ("samples not compared (before, after)",
          f"main {r.unused['main'][0]}, {r.unused['main'][1]}; KIMU {r.unused['kimu'][0]}, {r.unused['kimu'][1]}", "",
          "outside the common span or after the last whole comparison interval"),
+        ("clock rates", f"main {dn.ppm_text(r.clock['main'])}, KIMU {dn.ppm_text(r.clock['kimu'])}; mismatch "
+         f"{dn.ppm_text(r.clock['mismatch'])}",
+         "ppm", "measured from the recorded times, against the grades' nominal rates"),
         ("bridged gaps", len(bridged["main"].gaps) + len(bridged["kimu"].gaps), "",
          f"{int(bridged['main'].bridged.sum()) + int(bridged['kimu'].bridged.sum())} samples, policy "
          f"{cfg.gap_policy!r}"),
