@@ -38,7 +38,7 @@ import pandas as pd
 from ..covariance import propagate, propagate_with_filter
 from ..dynamics import error_dynamics
 from ..errors import StudyFileError
-from ..filters import build_filter, default_filter_file, load_filters, zupt_matrices
+from ..filters import build_filter, default_filter_file, ewn_navigation_effect, load_filters, zupt_matrices
 from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics
 from ..results import StudyResult
@@ -160,7 +160,8 @@ class ZuptSetup:
                     self.truth, self.ctx, spec.options)
             fm = build_filter(spec, self.truth, self.ctx, zupt_interval=self.zupt_interval,
                               q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
-                              mean_speed=self.mean_speed, dt_steps=np.diff(self.t))
+                              mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
+                              update_steps=self.update_steps)
             same_method = spec.discretization == self.hdr["discretization"] and (
                 spec.discretization == "van_loan" or spec.taylor_order is None)
             if same_method and fm.F.shape == self.dyn.F.shape and np.array_equal(fm.F, self.dyn.F) \
@@ -260,8 +261,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     summary = summary[order]
 
     hist = pd.concat([history_frame(c, t, m, every) for c, m in metrics.items()], ignore_index=True)
-    ewn = pd.concat([fm.ewn_table for fm in fmodels.values() if len(fm.ewn_table)], ignore_index=True) \
-        if any(len(fm.ewn_table) for fm in fmodels.values()) else pd.DataFrame()
+    ewn = equivalent_noise_table(S, fmodels)
     fstates = []
     for c, fm in fmodels.items():
         sig0 = np.sqrt(np.clip(np.diag(fm.P0), 0, None))
@@ -320,3 +320,25 @@ def dyn_key(options):
     if options is None:
         return (True, True)
     return (options.coriolis, options.couple_vertical)
+
+
+def equivalent_noise_table(S: ZuptSetup, fmodels: dict) -> pd.DataFrame:
+    """The ``equivalent_noise`` sheet: rule per dropped state and what it does to navigation.
+
+    Each filter's rows of :attr:`FilterModel.ewn_table` (rule applied,
+    pointwise overstatement) joined with
+    :func:`covtool.filters.ewn_navigation_effect` (the 1σ each dropped
+    state's noise adds per ZUPT interval in tilt, azimuth, velocity and
+    position, and its share).
+    """
+    frames = []
+    for c, fm in fmodels.items():
+        if not len(fm.ewn_table):
+            continue
+        _, Phi_f, _ = S.filter_model(c)
+        eff = ewn_navigation_effect(fm, Phi_f, S.t, S.nodes.lat, S.nodes.h, S.nodes.q_nb)
+        tab = fm.ewn_table
+        if len(eff):
+            tab = tab.merge(eff, on=["filter", "dropped state"], how="left")
+        frames.append(tab)
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
