@@ -1,0 +1,128 @@
+"""Dropped-state impact table (issue 11, acceptance 4): D'Appolito state deletion.
+
+Oracles: the step-by-step reference propagation (covtool.covariance) of the
+declared filter, and of an independently declared filter with the block put
+back.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_limits
+
+import covtool
+from covtool.covariance import propagate_with_filter
+from covtool.errors import StudyFileError
+from covtool.filters import zupt_matrices
+from covtool.impact import BACK, NOMINAL, NONE, ONLY, CombinedNoise, dropped_blocks, impact_run
+from covtool.metrics import nav_metrics
+
+ROOT = Path(__file__).resolve().parents[1]
+FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
+
+EXTRA = '''
+[[filter]]
+name = "D_bias"
+description = "D with the accelerometer biases put back"
+keep = ["nav", "acc_bias"]
+decouple_vertical = true
+coriolis = false
+'''
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_blas_thread():
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+@pytest.fixture(scope="module")
+def S(tmp_path_factory):
+    from covtool.studies.zupt import setup
+    ff = tmp_path_factory.mktemp("f") / "filters.toml"
+    ff.write_text((ROOT / "models" / "filters" / "zupt_filters.toml").read_text() + EXTRA)
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "11 min"
+    d["output"]["report_times"] = ["11 min"]
+    d["filters"]["file"] = str(ff)
+    d["filters"]["cases"] = ["A", "B1", "C", "D", "D_bias"]
+    return setup(d, path=FLAGSHIP)
+
+
+def _reference(S, name):
+    fm, Phi_f, Qd_f = S.filter_model(name)
+    run = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                S.update_steps, Rf=S.filter_R(name), form=fm.spec.update)
+    return run.P_truth[-1][:10, :10]
+
+
+def _metrics(S, P):
+    k = S.t.size - 1
+    m = nav_metrics(P[None], S.nodes.lat[k:], S.nodes.h[k:], S.nodes.q_nb[k:])
+    return np.array([m["cep"][0], m["alt_pe"][0], m["sigma_azimuth"][0]])
+
+
+@pytest.mark.parametrize("name", ["B1", "D"])
+def test_nominal_member_is_the_declared_filter(S, name):
+    """The embedded 58-state member with the filter's P0 and noise equals the reduced filter's own run."""
+    N = S.t.size - 1
+    r = impact_run(S, name, [N])
+    assert r.variants[0] == (NOMINAL, None) and r.variants[1] == (NONE, None)
+    np.testing.assert_allclose(_metrics(S, r.P[0, -1]), _metrics(S, _reference(S, name)), rtol=1e-8)
+    assert r.noise_check < 1e-10          # Σ per-block composed noise = the filter's own Q_f
+
+
+def test_block_put_back_equals_the_filter_that_keeps_it(S):
+    """D with acc_bias put back equals filter D_bias declared on its own (16 → 13 states, eq (11)-(13) elsewhere)."""
+    N = S.t.size - 1
+    r = impact_run(S, "D", [N])
+    b = r.variants.index((BACK, "acc_bias"))
+    np.testing.assert_allclose(_metrics(S, r.P[b, -1]), _metrics(S, _reference(S, "D_bias")), rtol=1e-7)
+    # and each block appears once alone and once put back
+    blocks = dropped_blocks(S.truth, S.specs["D"].kept)
+    assert [v for v in r.variants if v[0] == ONLY] == [(ONLY, b_) for b_ in blocks]
+    assert [v for v in r.variants if v[0] == BACK] == [(BACK, b_) for b_ in blocks]
+
+
+def test_impact_sheet_in_the_flagship_outputs(S):
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "6 min"
+    d["output"]["report_times"] = ["6 min"]
+    d["filters"]["cases"] = ["A", "D"]
+    r = covtool.run_study(d)
+    imp = r.tables["impact"]
+    assert set(imp["filter"]) == {"D"}
+    nom = imp[imp["variant"] == NOMINAL].iloc[0]
+    summ = r.summary.set_index("case")
+    assert nom["CEP [ft]"] == pytest.approx(summ.loc["D", "CEP [ft]"], rel=1e-8)
+    assert nom["alt PE [ft]"] == pytest.approx(summ.loc["D", "alt PE [ft]"], rel=1e-8)
+    assert "impact_dropped_states" in r.figures
+
+
+@pytest.mark.parametrize("impact,match", [
+    ({"filters": ["E"]}, r"\[impact\] filters: 'E' is not one of the run's cases"),
+    ({"filters": ["A"]}, r"\[impact\] filters: filter 'A' keeps every truth state: it drops nothing"),
+    ({"filters": "B1"}, r"\[impact\] filters: expected a list of filter names"),
+    ({"filtres": ["B1"]}, r"\[impact\].*unknown key 'filtres'"),
+])
+def test_impact_declaration_errors(impact, match):
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "6 min"
+    d["filters"]["cases"] = ["A", "D"]
+    d["impact"] = impact
+    with pytest.raises(StudyFileError, match=match):
+        covtool.run_study(d)
+
+
+def test_combined_noise_supports_only_member_slices():
+    Q = np.arange(2 * 2 * 2, dtype=float).reshape(2, 2, 2)
+    cn = CombinedNoise([(Q, np.array([0, 2]))], np.array([[1.0], [2.0]]), 3)
+    out = cn[:, 1]
+    np.testing.assert_allclose(out[1][np.ix_([0, 2], [0, 2])], 2 * Q[1])
+    assert out[0, 1, 1] == 0.0
+    with pytest.raises(IndexError, match=r"CombinedNoise supports Q\[:, i\] only"):
+        cn[0]
