@@ -90,6 +90,7 @@ def test_block_put_back_equals_the_filter_that_keeps_it(S):
 
 def test_impact_sheet_in_the_flagship_outputs(S):
     d = tomllib.loads(FLAGSHIP.read_text())
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
     d["study"]["duration"] = "6 min"
     d["output"]["report_times"] = ["6 min"]
     d["filters"]["cases"] = ["A", "D"]
@@ -111,7 +112,9 @@ def test_impact_sheet_in_the_flagship_outputs(S):
 ])
 def test_impact_declaration_errors(impact, match):
     d = tomllib.loads(FLAGSHIP.read_text())
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
     d["study"]["duration"] = "6 min"
+    d["output"]["report_times"] = ["6 min"]
     d["filters"]["cases"] = ["A", "D"]
     d["impact"] = impact
     with pytest.raises(StudyFileError, match=match):
