@@ -390,15 +390,12 @@ def tail_integral(col: np.ndarray, dt_steps: np.ndarray, bounds: np.ndarray) -> 
     -------
     ndarray, shape (N, n_f)
     """
-    N = col.shape[0]
-    k = _interval_index(bounds, N)
     w = col * dt_steps[:, None]
     out = np.empty_like(col)
     for i in range(len(bounds) - 1):
         a, b = bounds[i], bounds[i + 1]
         rev = np.cumsum(w[a:b][::-1], axis=0)[::-1]          # ∫ from the step's start to the end
         out[a:b] = rev - 0.5 * w[a:b]
-    del k
     return out
 
 
@@ -516,7 +513,9 @@ class FilterModel:
     P0 : ndarray, shape (n_f, n_f)
     ewn_table : DataFrame
         One row per dropped truth state: block, process, rule applied,
-        q_eq, the pointwise form's overstatement of eq (12)'s matching rule.
+        q_eq, and, for states on eq (12), the pointwise form's overstatement
+        of its matching rule (:func:`pointwise_overstatement`; NaN for the
+        other rules).
     Qc_kept : ndarray, shape (N, n_f, n_f), optional
         The truth's driving noise on the kept states (``Qc`` without the
         equivalent noise).
@@ -612,7 +611,8 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         for j in dropped:
             st = truth.states[j]
             col = dyn.F[:, kidx, j]                                   # F_kept,dropped
-            over, worst = pointwise_overstatement(col, dt_steps, bounds, zupt_interval)
+            over, worst = pointwise_overstatement(col, dt_steps, bounds, zupt_interval) \
+                if uses_constant_rule(st, zupt_interval, mean_speed) else (np.nan, np.nan)
             alpha = np.zeros(len(sens))
             if mode == "matched" and sens and uses_constant_rule(st, zupt_interval, mean_speed):
                 alpha, col = absorbed_coupling(col, B)
@@ -631,7 +631,7 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
                 sources.append(src)
             rows.append({"filter": spec.name, "dropped state": st.name, "block": st.block, "process": st.process,
                          "rule": rule, "mode": mode, "P0 [SI]": st.sigma**2, "q_eq [SI^2 s]": q_eq,
-                         "pointwise / interval-matched [-]": over,
+                         "pointwise / interval-matched (eq (12) states) [-]": over,
                          "pointwise / interval-matched, worst interval [-]": worst,
                          "absorbed by": ", ".join(f"{spec.kept[sens[k]]} ({alpha[k]:+.3g})"
                                                   for k in np.argsort(-np.abs(alpha))[:3] if abs(alpha[k]) > 0)})

@@ -129,3 +129,34 @@ def test_combined_noise_supports_only_member_slices():
     assert out[0, 1, 1] == 0.0
     with pytest.raises(IndexError, match=r"CombinedNoise supports Q\[:, i\] only"):
         cn[0]
+
+
+def test_equivalent_noise_sheet_reports_navigation_errors(S):
+    """Issue 11 item 2: each dropped state's noise in the errors it drives, against an
+    independent composition (covtool.budget.compose_noise, exact per-step Q_d) of that
+    state's noise alone through the filter's Φ_f over each ZUPT interval."""
+    from covtool.budget import compose_noise
+    from covtool.filters import ewn_navigation_effect
+    from covtool.metrics import ned_position_covariance
+    from covtool.quaternion import attitude_error_matrix
+
+    fm, Phi_f, _ = S.filter_model("B1")
+    nodes = S.nodes
+    eff = ewn_navigation_effect(fm, Phi_f, S.t, nodes.lat, nodes.h, nodes.q_nb).set_index("dropped state")
+    b = fm.bounds
+    ends = b[1:]
+    for name in ("grav_xi", "gyro_mis_xz", "acc_mis_xz"):
+        src = next(x for x in fm.ewn_noise if x.name == name)
+        Q = compose_noise(Phi_f, fm.F, [src], np.diff(S.t), b)[0]            # (K, nf, nf) at the interval ends
+        pos = ned_position_covariance(Q[:, :3, :3], nodes.lat[ends], nodes.h[ends])
+        att = attitude_error_matrix(nodes.q_nb[ends]) @ Q[:, 6:10, 6:10] @ np.swapaxes(
+            attitude_error_matrix(nodes.q_nb[ends]), 1, 2)
+        FT, AS = 0.3048, np.pi / 180 / 3600
+        row = eff.loc[name]
+        assert row["vN [ft/s]"] == pytest.approx(np.sqrt(Q[:, 3, 3].mean()) / FT, rel=0.01), name
+        assert row["horizontal position [ft]"] == pytest.approx(
+            np.sqrt((pos[:, 0, 0] + pos[:, 1, 1]).mean()) / FT, rel=0.01), name
+        assert row["tilt E [arcsec]"] == pytest.approx(np.sqrt(att[:, 1, 1].mean()) / AS, rel=0.01, abs=1e-6), name
+    # the gyro misalignments act on the attitude, the accelerometer misalignments on velocity
+    assert eff.loc["gyro_mis_xz", "tilt share [%]"] > 100 * eff.loc["acc_mis_xz", "tilt share [%]"]
+    assert abs(eff["horizontal share [%]"].sum() - 100.0) < 1e-9
