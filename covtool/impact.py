@@ -249,4 +249,32 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     fQ = CombinedNoise(components, np.array(coefs), n)
     res = run_batch(truth_system, P0t, S.H, S.R, np.eye(n), S.update_steps, rec, filt=filt,
                     Pf0=np.array(P0s), Hf=S.H, Rf=S.filter_R(name)[None], filter_Q=fQ, form=spec.update)
+    check_members(res.P_truth, S.nodes.q_nb[res.record_steps], S.t[res.record_steps],
+                  [f"impact: filter {name}: {v}" + (f" ({b})" if b else "") for v, b in variants])
     return ImpactRun(name, variants, res.record_steps, res.P_truth, noise_check)
+
+
+def check_members(P: np.ndarray, q: np.ndarray, t: np.ndarray, labels) -> None:
+    """Check every member's recorded navigation covariance (finite, symmetric, PSD).
+
+    Parameters
+    ----------
+    P : ndarray, shape (B, n_rec, 10, 10)
+    q : ndarray, shape (n_rec, 4)
+        Attitude at the records (checked in physical tilt/azimuth coordinates,
+        where the structurally zero quaternion-norm direction is left out).
+    t : ndarray, shape (n_rec,)
+    labels : list of str
+
+    Raises
+    ------
+    covtool.errors.NumericalError
+        Naming the member and the time.
+    """
+    from .budget import physical_nav
+    from .covariance import check_covariance
+
+    for b, lab in enumerate(labels):
+        Pp = physical_nav(P[b], q)
+        for k in range(Pp.shape[0]):
+            check_covariance(Pp[k], f"{lab}: t = {t[k]:g} s")

@@ -160,3 +160,13 @@ def test_equivalent_noise_sheet_reports_navigation_errors(S):
     # the gyro misalignments act on the attitude, the accelerometer misalignments on velocity
     assert eff.loc["gyro_mis_xz", "tilt share [%]"] > 100 * eff.loc["acc_mis_xz", "tilt share [%]"]
     assert abs(eff["horizontal share [%]"].sum() - 100.0) < 1e-9
+
+
+def test_member_covariances_are_checked():
+    from covtool.errors import NumericalError
+    from covtool.impact import check_members
+    P = np.zeros((1, 1, 10, 10))
+    P[0, 0] = np.eye(10)
+    P[0, 0, 3, 3] = np.nan
+    with pytest.raises(NumericalError, match=r"impact: filter X: nominal: t = 60 s: covariance has non-finite"):
+        check_members(P, np.array([[1.0, 0, 0, 0]]), np.array([60.0]), ["impact: filter X: nominal"])

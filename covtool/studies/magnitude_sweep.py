@@ -54,7 +54,7 @@ from ..budget import compose_noise
 from ..engine import System, events, run_batch
 from ..errors import StudyFileError
 from ..filters import zupt_matrices
-from ..impact import CombinedNoise, _compose_phi, _factor
+from ..impact import CombinedNoise, _compose_phi, _factor, check_members
 from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics
 from ..results import StudyResult
@@ -189,6 +189,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             res = run_batch(tsys, P0s, S.H, S.R, fm.D, S.update_steps, rep, filt=fsys, Pf0=Pf0,
                             Hf=zupt_matrices(fm.names), Rf=S.filter_R(name)[None], filter_Q=filt_Q,
                             truth_Q=truth_Q, form=fm.spec.update)
+            check_members(res.P_truth, nodes.q_nb[rep], t[rep],
+                          [f"magnitude sweep: filter {name}: {g} = {text}" for g, _, text in members])
             results[name] = res
             bar.update(1)
     k_last = -1
