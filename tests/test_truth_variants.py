@@ -51,3 +51,12 @@ def test_base_with_a_base_is_refused(tmp_path):
     (tmp_path / "c.toml").write_text('[model]\nname = "c"\nbase = "a"\n')
     with pytest.raises(ModelFileError, match=r"c.toml: \[model\] base: 'a' has a base itself"):
         load_model(tmp_path / "c.toml")
+
+
+def test_variant_from_a_dict_resolves_its_base():
+    """A declaration passed as a dict is resolved like a file (no silently ignored overrides)."""
+    m = model_from_dict({"model": {"name": "v", "base": "sdins58"},
+                         "override": {"gyro_mis": {"sigma": "7 arcsec"}}}, path="<dict>")
+    s = m.states[m.index["gyro_mis_xz"]]
+    assert s.sigma == pytest.approx(parse_quantity("7 arcsec", "angle"))
+    assert m.states[m.index["acc_mis_xz"]].sigma == pytest.approx(parse_quantity("2 arcsec", "angle"))

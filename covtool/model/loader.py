@@ -207,6 +207,7 @@ def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
     """
     file = str(path)
     check_keys(decl, _TOP_KEYS, file, ModelFileError)
+    decl = resolve_base(decl, file)
     meta = decl.get("model", {})
     check_keys(meta, _MODEL_KEYS, f"{file}: [model]", ModelFileError)
     if "name" not in meta:
@@ -280,7 +281,7 @@ def _check_psd(model: Model, file: str) -> None:
 def load_model(path) -> Model:
     """Load and validate a model file (a ``base`` model's overrides resolved, :func:`resolve_base`)."""
     decl = load_toml(path, ModelFileError)
-    return model_from_dict(resolve_base(decl, str(path)), path=str(path))
+    return model_from_dict(decl, path=str(path))
 
 
 def resolve_base(decl: dict, path: str = "<dict>") -> dict:
