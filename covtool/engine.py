@@ -225,7 +225,7 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
               update_steps, record_steps, *, filt: System | None = None, Pf0: np.ndarray | None = None,
               Hf: np.ndarray | None = None, Rf: np.ndarray | None = None, q_scale=None,
               gains: np.ndarray | None = None, truth_Q: np.ndarray | None = None,
-              form: str = "joseph", keep=slice(0, 10)) -> BatchResult:
+              filter_Q=None, form: str = "joseph", keep=slice(0, 10)) -> BatchResult:
     """Truth covariance of B cases under their filters' gains, batched (eq (6)–(8), (15)–(16)).
 
     Either the filters run alongside (``filt``, ``Pf0``, ``Hf``, ``Rf``, ``q_scale``)
@@ -255,6 +255,9 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
         Fixed gains instead of a running filter.
     truth_Q : ndarray, shape (B, K, n, n), optional
         Per-case truth noise per interval (default: ``truth.Q`` for all).
+    filter_Q : ndarray-like, shape (B, K, n_f, n_f), optional
+        Per-case filter noise per interval, indexed ``filter_Q[:, i]``
+        (default: ``filt.Q`` for all, times ``q_scale``).
     form : {"joseph", "standard"}
         Filter update form.
     keep : slice or index array
@@ -331,5 +334,5 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
             P += truth.Q[i] if truth_Q is None else truth_Q[:, i]
             if running:
                 Pf = sandwich(filt.Phi[i], Pf)
-                Pf += qs[:, None, None] * filt.Q[i]
+                Pf += qs[:, None, None] * (filt.Q[i] if filter_Q is None else filter_Q[:, i])
     return BatchResult(np.array(rec), out_t, out_f, out_g if upd else None, np.array(upd))

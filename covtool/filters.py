@@ -16,7 +16,7 @@ Filter file (``models/filters/*.toml``)::
     # base = "B1"; drop = [...]       # or derive from another filter
     decouple_vertical = false         # B2
     coriolis = true                   # B3: false
-    equivalent_noise = true           # eq (11)-(13) for the dropped states
+    equivalent_noise = "interval"     # eq (11)-(13) for the dropped states (or "pointwise", "matched", false)
     discretization = "taylor"         # eq (6b)-(6d); or "van_loan"
     update = "joseph"                 # or "standard" (eq (8))
     [filter.P0]                       # optional overrides of the kept states' 1σ
@@ -33,7 +33,7 @@ import numpy as np
 import pandas as pd
 
 from .discretize import discretize
-from .dynamics import Context, ErrorDynamics, NavOptions, error_dynamics
+from .dynamics import Context, ErrorDynamics, NavOptions, NoiseSource, error_dynamics
 from .errors import ModelFileError
 from .io.config import check_keys, load_toml
 from .io.names import check_name
@@ -61,14 +61,15 @@ class FilterSpec:
         Kept truth state names, in truth order.
     options : NavOptions
         Simplifications of the navigation block.
-    equivalent_noise : {False, "eq11-13", "matched"}
-        ``"eq11-13"``: every dropped state becomes eq (11)–(13) white noise
-        through its whole coupling (seed 002 as printed).  ``"matched"``: a
-        dropped state on the random-constant rule is first projected onto
+    equivalent_noise : {False, "interval", "pointwise", "matched"}
+        How each dropped state becomes eq (11)–(13) white noise
+        (:func:`build_filter`).  ``"interval"`` (default; ``true`` and
+        ``"eq11-13"`` mean it): the integrated effect over every ZUPT
+        interval of the schedule matches the dropped source's.
+        ``"pointwise"``: the printed PSD through the coupling at every step.
+        ``"matched"``: a dropped random constant is first projected onto
         the kept sensor states (:func:`absorbed_coupling`; the absorbed part
-        widens their P0) and the residual coupling gets eq (12) with Δt_s
-        replaced by the coupling's effective duration in each interval
-        (:func:`effective_duration`).
+        widens their P0) and the residual is matched over each interval.
         ``False``: dropped states are ignored.
     discretization : str
         ``"taylor"`` (eq (6b)–(6d)) or ``"van_loan"``.
@@ -86,7 +87,7 @@ class FilterSpec:
     truth: str
     kept: tuple
     options: NavOptions = NavOptions()
-    equivalent_noise: object = "eq11-13"
+    equivalent_noise: object = "interval"
     discretization: str = "taylor"
     taylor_order: int | None = None
     update: str = "joseph"
@@ -194,12 +195,12 @@ def _spec(f: dict, truth: Model, where: str, path: str) -> FilterSpec:
     for key in ("decouple_vertical", "coriolis"):
         if key in f and not isinstance(f[key], bool):
             raise ModelFileError(f"{where}: {key}", f"{f[key]!r} is not true or false")
-    ewn = f.get("equivalent_noise", "eq11-13")
-    if ewn is True:
-        ewn = "eq11-13"
-    if ewn not in (False, "eq11-13", "matched"):
-        raise ModelFileError(f"{where}: equivalent_noise",
-                             f"{ewn!r} is not one of false, true, \"eq11-13\", \"matched\"")
+    ewn = f.get("equivalent_noise", "interval")
+    if ewn is True or ewn == "eq11-13":
+        ewn = "interval"
+    if ewn is not False and ewn not in EWN_MODES:
+        raise ModelFileError(f"{where}: equivalent_noise", f"{ewn!r} is not one of false, true, \"eq11-13\", "
+                             "\"interval\", \"pointwise\", \"matched\"")
     return FilterSpec(
         name=f["name"], truth=truth.name, kept=kept,
         options=NavOptions(coriolis=f.get("coriolis", True), couple_vertical=not f.get("decouple_vertical", False)),
@@ -212,8 +213,18 @@ def _spec(f: dict, truth: Model, where: str, path: str) -> FilterSpec:
 # equivalent white noise, seed 002 eq (11)-(13)
 # ---------------------------------------------------------------------------
 
+#: ways of applying eq (11)-(13) (``equivalent_noise`` in a filter file); see docs/equivalent_noise.md
+EWN_MODES = ("interval", "pointwise", "matched")
+
+
 def equivalent_white_noise(state, dt_s: float, mean_speed: float | None = None) -> tuple[float, str]:
     """Equivalent white-noise PSD of a dropped state (seed 002, eq (11)–(13)).
+
+    The scalar rule as printed: the PSD for a *constant* unit coupling over
+    one full ZUPT interval.  ``equivalent_noise = "pointwise"`` injects it
+    through the coupling at every step; the default (``"interval"``,
+    :func:`equivalent_noise_source`) applies the same matching rule over
+    each actual ZUPT interval.
 
     Parameters
     ----------
@@ -247,27 +258,244 @@ def equivalent_white_noise(state, dt_s: float, mean_speed: float | None = None) 
       ``Q_eq = σ0² Δt_s + q_rw Δt_s²``.
     """
     P0 = state.sigma**2
-    tau = None
+    regime, tau, kind = ewn_regime(state, dt_s, mean_speed)
+    if regime == "markov":
+        return 2.0 * tau * P0, f"eq (11) {kind}: 2*tau*P0 (tau = {tau:g} s <= dt_s/2)"
+    if regime == "random_walk":
+        return P0 * dt_s + state.rw**2 * dt_s**2, "eq (12)+(13) random walk: sigma0^2*dt_s + q_rw*dt_s^2"
+    if tau is not None:
+        return P0 * dt_s, (f"eq (12) {kind} with tau = {tau:g} s > dt_s/2: constant over a ZUPT interval, "
+                           "P0*dt_s")
+    if kind:
+        return P0 * dt_s, f"eq (12) random constant ({kind}): P0*dt_s"
+    return P0 * dt_s, "eq (12) random constant: P0*dt_s"
+
+
+def ewn_regime(state, dt_s: float, mean_speed: float | None = None) -> tuple[str, float | None, str]:
+    """Which of eq (11)–(13) a dropped state falls under.
+
+    Returns
+    -------
+    regime : {"markov", "constant", "random_walk"}
+        ``"markov"``: eq (11), a Markov source with ``τ ≤ Δt_s/2`` that
+        decorrelates within a ZUPT interval; ``"constant"``: eq (12), a
+        random constant or a Markov source that stays (nearly) constant over
+        an interval; ``"random_walk"``: eq (13).
+    tau : float or None
+        Correlation time (``d / v̄`` for Markov-in-distance states). [s]
+    kind : str
+        Description for the rule text.
+    """
+    tau, kind = None, ""
     if state.process == "markov":
         tau, kind = state.tau, "Markov"
     elif state.process == "markov_distance":
         if not mean_speed:
-            return P0 * dt_s, "eq (12) random constant (vehicle never moves): P0*dt_s"
-        tau, kind = state.distance / mean_speed, f"Markov in distance (tau = d/v_mean = {state.distance / mean_speed:.0f} s)"
-    if tau is not None:
-        if 2.0 * tau <= dt_s:
-            return 2.0 * tau * P0, f"eq (11) {kind}: 2*tau*P0 (tau = {tau:g} s <= dt_s/2)"
-        return P0 * dt_s, (f"eq (12) {kind} with tau = {tau:g} s > dt_s/2: constant over a ZUPT interval, "
-                           "P0*dt_s")
-    if state.process == "random_walk":
-        return P0 * dt_s + state.rw**2 * dt_s**2, "eq (12)+(13) random walk: sigma0^2*dt_s + q_rw*dt_s^2"
-    return P0 * dt_s, "eq (12) random constant: P0*dt_s"
+            return "constant", None, "vehicle never moves"
+        tau = state.distance / mean_speed
+        kind = f"Markov in distance (tau = d/v_mean = {tau:.0f} s)"
+    elif state.process == "random_walk":
+        return "random_walk", None, "random walk"
+    if tau is not None and 2.0 * tau <= dt_s:
+        return "markov", tau, kind
+    return "constant", tau, kind
 
 
 def uses_constant_rule(state, dt_s: float, mean_speed: float | None = None) -> bool:
-    """True if :func:`equivalent_white_noise` treats the state as a random constant (eq (12))."""
-    return equivalent_white_noise(state, dt_s, mean_speed)[1].startswith("eq (12)") and \
-        state.process != "random_walk"
+    """True if the state falls under eq (12), the random-constant rule (:func:`ewn_regime`)."""
+    return ewn_regime(state, dt_s, mean_speed)[0] == "constant"
+
+
+def zupt_intervals(update_steps, t: np.ndarray, interval: float) -> np.ndarray:
+    """Grid indices bounding the ZUPT intervals of a schedule.
+
+    Parameters
+    ----------
+    update_steps : array_like of int
+        Grid indices of the ZUPT updates.
+    t : ndarray, shape (N+1,)
+        Time grid. [s]
+    interval : float
+        Declared ZUPT interval Δt_s (only to tell one stop's window from
+        evenly spaced single updates). [s]
+
+    Returns
+    -------
+    ndarray of int, shape (K+1,)
+        ``0``, the last update of every stop's group, and ``N``: interval
+        ``i`` is the propagation steps ``bounds[i] … bounds[i+1]−1``.
+
+    Notes
+    -----
+    The updates of one stop form a group (a window at ``rate``); an interval
+    runs from the end of one group to the end of the next, so the regular
+    intervals are Δt_s long whatever the window, the first runs from t = 0 to
+    the first stop (``[zupt] first``), and a tail after the last update is an
+    interval of its own.  Groups are separated by gaps larger than 1.5× the
+    smallest gap; if the updates are evenly spaced, each is its own group
+    when the spacing is at least Δt_s/2 (one update per stop), else they
+    are all one window.
+    """
+    t = np.asarray(t, float)
+    N = t.size - 1
+    u = np.unique(np.asarray(update_steps, int))
+    u = u[(u > 0) & (u <= N)]
+    if u.size == 0:
+        return np.array([0, N])
+    gaps = np.diff(t[u])
+    if gaps.size and gaps.max() > 1.5 * gaps.min():
+        brk = gaps > 1.5 * gaps.min()
+    else:
+        brk = gaps >= 0.5 * interval
+    ends = u[np.r_[brk, True]]
+    return np.unique(np.r_[0, ends, N]).astype(int)
+
+
+def _interval_index(bounds: np.ndarray, n_steps: int) -> np.ndarray:
+    """Interval number of every propagation step."""
+    return np.searchsorted(bounds, np.arange(n_steps), side="right") - 1
+
+
+def interval_mean(col: np.ndarray, dt_steps: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Interval-mean coupling and interval length of every step.
+
+    Parameters
+    ----------
+    col : ndarray, shape (N, n_f)
+        Coupling ``c(t)`` of a dropped state into the kept states.
+    dt_steps : ndarray, shape (N,)
+        Step lengths. [s]
+    bounds : ndarray of int
+        :func:`zupt_intervals`.
+
+    Returns
+    -------
+    cbar : ndarray, shape (N, n_f)
+        ``c̄_i = (1/Δt_i) ∫_i c dt`` of the interval each step lies in.
+    dti : ndarray, shape (N,)
+        ``Δt_i`` of that interval. [s]
+    """
+    N = col.shape[0]
+    k = _interval_index(bounds, N)
+    integ = np.zeros((len(bounds) - 1, col.shape[1]))
+    np.add.at(integ, k, col * dt_steps[:, None])
+    length = np.bincount(k, weights=dt_steps, minlength=len(bounds) - 1)
+    safe = np.where(length > 0, length, 1.0)
+    return (integ / safe[:, None])[k], length[k]
+
+
+def tail_integral(col: np.ndarray, dt_steps: np.ndarray, bounds: np.ndarray) -> np.ndarray:
+    """``∫_t^{t_end} c ds`` from each step's mid-point to the end of its interval.
+
+    Returns
+    -------
+    ndarray, shape (N, n_f)
+    """
+    w = col * dt_steps[:, None]
+    out = np.empty_like(col)
+    for i in range(len(bounds) - 1):
+        a, b = bounds[i], bounds[i + 1]
+        rev = np.cumsum(w[a:b][::-1], axis=0)[::-1]          # ∫ from the step's start to the end
+        out[a:b] = rev - 0.5 * w[a:b]
+    return out
+
+
+def pointwise_overstatement(col: np.ndarray, dt_steps: np.ndarray, bounds: np.ndarray,
+                            dt_s: float) -> tuple[float, float]:
+    """How far the pointwise form overstates eq (12)'s matching rule.
+
+    Per interval the pointwise noise integrates to ``P0 Δt_s ∫|c|² dt`` where
+    the rule asks for ``P0 |∫c dt|²``.
+
+    Returns
+    -------
+    overall : float
+        ``Σ_i Δt_s ∫_i |c|² / Σ_i |∫_i c|²`` (inf if the coupling integrates to 0).
+    worst : float
+        Largest ratio of one interval with a non-zero coupling.
+    """
+    N = col.shape[0]
+    k = _interval_index(bounds, N)
+    K = len(bounds) - 1
+    integ = np.zeros((K, col.shape[1]))
+    np.add.at(integ, k, col * dt_steps[:, None])
+    sq = np.bincount(k, weights=np.sum(col**2, axis=1) * dt_steps, minlength=K)
+    num = dt_s * sq
+    den = np.sum(integ**2, axis=1)
+    tot = float(num.sum() / den.sum()) if den.sum() > 0 else (np.inf if num.sum() > 0 else 1.0)
+    on = num > 0
+    with np.errstate(divide="ignore"):
+        r = np.where(den[on] > 0, num[on] / np.where(den[on] > 0, den[on], 1.0), np.inf)
+    return tot, float(r.max()) if r.size else 1.0
+
+
+def equivalent_noise_source(state, col: np.ndarray, dt_steps: np.ndarray, bounds: np.ndarray, *,
+                            dt_s: float, mean_speed: float | None = None,
+                            mode: str = "interval") -> tuple[NoiseSource, str]:
+    """Equivalent white noise of one dropped state as a driving-noise source.
+
+    Parameters
+    ----------
+    state : covtool.model.spec.State
+    col : ndarray, shape (N, n_f)
+        ``F_kept,j(t)``: how the dropped state drives the kept states (for
+        ``"matched"``: the residual after absorption).
+    dt_steps : ndarray, shape (N,)
+        Step lengths. [s]
+    bounds : ndarray of int
+        ZUPT intervals (:func:`zupt_intervals`).
+    dt_s : float
+        Declared ZUPT interval (regime of eq (11); the pointwise PSD). [s]
+    mean_speed : float, optional
+        Mean moving speed (Markov-in-distance states). [m/s]
+    mode : {"interval", "pointwise", "matched"}
+
+    Returns
+    -------
+    source : covtool.dynamics.NoiseSource
+        ``Q_c += G diag(psd) Gᵀ`` with ``G`` of shape ``(N, n_f, k)``.
+    rule : str
+
+    Notes
+    -----
+    Seed 002 eq (12) matches the white noise's integral over a ZUPT interval
+    to that of the dropped random constant, ``P0 (∫c dt)(∫c dt)ᵀ``.  Over
+    interval ``i`` of length Δt_i, a white noise of PSD ``q = P0 Δt_i``
+    injected through the interval-mean coupling ``c̄_i`` integrates to
+    ``q Δt_i c̄_i c̄_iᵀ = P0 (∫_i c)(∫_i c)ᵀ``: the rule holds exactly for any
+    ``c(t)``, and for a constant ``c`` on a full interval this is the
+    printed ``P0 Δt_s c cᵀ``.  Markov sources with ``τ ≤ Δt_s/2``
+    (eq (11)) decorrelate within the interval, so the pointwise
+    ``2τP0 c(t)c(t)ᵀ`` is their local white-noise equivalent.  A random
+    walk (eq (13)) splits into its value at the interval start (variance
+    ``σ0² + q_rw t_a``, eq (12) through ``c̄_i``) and the increment since,
+    whose integrated effect ``∫ C(s) dW`` with ``C(s) = ∫_s^{t_b} c`` is a
+    white noise of PSD ``q_rw`` through ``C``.  Derivation:
+    ``docs/equivalent_noise.md``.
+    """
+    N, nf = col.shape
+    P0 = state.sigma**2
+    if mode == "pointwise":
+        q, rule = equivalent_white_noise(state, dt_s, mean_speed)
+        return NoiseSource(state.name, col[:, :, None].copy(), np.full((N, 1), q)), rule + "; pointwise"
+    regime, tau, kind = ewn_regime(state, dt_s, mean_speed)
+    if regime == "markov":
+        return (NoiseSource(state.name, col[:, :, None].copy(), np.full((N, 1), 2.0 * tau * P0)),
+                f"eq (11) {kind}: 2*tau*P0 through c(t) (tau = {tau:g} s <= dt_s/2: decorrelates within "
+                "the interval)")
+    cbar, dti = interval_mean(col, dt_steps, bounds)
+    if regime == "random_walk":
+        t0 = np.r_[0.0, np.cumsum(dt_steps)][bounds[_interval_index(bounds, N)]]
+        G = np.stack([cbar, tail_integral(col, dt_steps, bounds)], axis=2)
+        psd = np.stack([(P0 + state.rw**2 * t0) * dti, np.full(N, state.rw**2)], axis=1)
+        return (NoiseSource(state.name, G, psd),
+                "eq (12)+(13) random walk, interval-matched: (sigma0^2 + q_rw t_a)*dt_i through the "
+                "interval-mean coupling + q_rw through the tail integral of c")
+    what = "random constant" if tau is None else f"{kind}, tau = {tau:g} s > dt_s/2"
+    if kind == "vehicle never moves":
+        what = "random constant (vehicle never moves)"
+    return (NoiseSource(state.name, cbar[:, :, None], (P0 * dti)[:, None]),
+            f"eq (12) {what}, interval-matched: P0*dt_i through the interval-mean coupling")
 
 
 @dataclass
@@ -285,8 +513,21 @@ class FilterModel:
         Continuous Q including the equivalent white noise.
     P0 : ndarray, shape (n_f, n_f)
     ewn_table : DataFrame
-        One row per dropped truth state: process, rule, q_eq and its
-        time-mean contribution to the filter's Q diagonal.
+        One row per dropped truth state: block, process, rule applied,
+        q_eq, and, for states on eq (12), the pointwise form's overstatement
+        of its matching rule (:func:`pointwise_overstatement`; NaN for the
+        other rules).
+    Qc_kept : ndarray, shape (N, n_f, n_f), optional
+        The truth's driving noise on the kept states (``Qc`` without the
+        equivalent noise).
+    ewn_noise : list of covtool.dynamics.NoiseSource
+        The equivalent noise of each dropped state (name = state name);
+        ``Qc = Qc_kept + Σ G diag(psd) Gᵀ``.
+    ewn_absorb : dict of str to ndarray, shape (n_f,)
+        ``"matched"``: the kept states absorb dropped state j as
+        ``P0 += σ_j² a aᵀ``.
+    bounds : ndarray of int
+        The ZUPT intervals the noise was matched over (:func:`zupt_intervals`).
     """
 
     spec: FilterSpec
@@ -296,6 +537,10 @@ class FilterModel:
     Qc: np.ndarray
     P0: np.ndarray
     ewn_table: pd.DataFrame
+    Qc_kept: np.ndarray | None = None
+    ewn_noise: list = field(default_factory=list)
+    ewn_absorb: dict = field(default_factory=dict)
+    bounds: np.ndarray | None = None
 
     def discretize(self, dt):
         """Φ_f and Q_f by the filter's declared method (eq (6b)–(6d) by default)."""
@@ -304,7 +549,7 @@ class FilterModel:
 
 def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval: float, q0=None,
                  truth_dynamics: ErrorDynamics | None = None, mean_speed: float | None = None,
-                 dt_steps=None) -> FilterModel:
+                 dt_steps=None, update_steps=None) -> FilterModel:
     """Evaluate a filter along a trajectory.
 
     Parameters
@@ -314,7 +559,7 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
     ctx : Context
         Trajectory at the propagation mid-points.
     zupt_interval : float
-        Δt_s of eq (12)–(13). [s]
+        Δt_s of eq (11)–(13). [s]
     q0 : ndarray, shape (4,), optional
         Initial attitude (rotates the δq block of P0).
     truth_dynamics : ErrorDynamics, optional
@@ -322,52 +567,75 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
     mean_speed : float, optional
         Mean moving speed (Markov-in-distance states). [m/s]
     dt_steps : ndarray, shape (N,), optional
-        Step lengths of the grid ``ctx`` was sampled on (``"matched"`` mode). [s]
+        Step lengths of the grid ``ctx`` was sampled on (default 1 s). [s]
+    update_steps : array_like of int, optional
+        The ZUPT schedule (grid indices): eq (11)–(13) is matched over its
+        intervals (:func:`zupt_intervals`).  Without it the intervals are
+        taken as ``[kΔt_s, (k+1)Δt_s)`` from t = 0 (stops at multiples of
+        Δt_s, ``[zupt] first`` = ``interval``).
+
+    Returns
+    -------
+    FilterModel
+
+    Notes
+    -----
+    ``equivalent_noise`` (seed 002 eq (11)–(13), :func:`equivalent_noise_source`):
+    ``"interval"`` (default) matches each dropped state's integrated effect
+    over every ZUPT interval; ``"pointwise"`` injects the printed PSD
+    through ``c(t)`` at every step; ``"matched"`` first folds the part of a
+    random constant the kept sensor states can represent into their P0
+    (:func:`absorbed_coupling`) and matches the residual over each interval.
     """
     if dt_steps is None:
         dt_steps = np.ones(ctx.n)
+    dt_steps = np.asarray(dt_steps, float)
+    t = np.r_[0.0, np.cumsum(dt_steps)]
+    if update_steps is not None:
+        bounds = zupt_intervals(update_steps, t, zupt_interval)
+    else:
+        bounds = np.unique(np.r_[np.searchsorted(t, np.arange(0.0, t[-1], zupt_interval) - 1e-9 * zupt_interval),
+                                 ctx.n]).astype(int)
     dyn = truth_dynamics if truth_dynamics is not None else error_dynamics(truth, ctx, spec.options)
     kidx = truth.idx(spec.kept)
-    dropped = [i for i in range(truth.n) if i not in set(kidx.tolist())]
+    kset = set(kidx.tolist())
+    dropped = [i for i in range(truth.n) if i not in kset]
     F = dyn.F[:, kidx][:, :, kidx]
-    Qc_full = dyn.Qc
-    Qc = Qc_full[:, kidx][:, :, kidx].copy()
-    rows = []
+    Qc_kept = dyn.Qc[:, kidx][:, :, kidx].copy()
+    Qc = Qc_kept.copy()
+    rows, sources, absorb_by = [], [], {}
     absorb = np.zeros((len(kidx), len(kidx)))
-    if spec.equivalent_noise:
+    mode = spec.equivalent_noise
+    if mode:
         sens = [k for k, i in enumerate(kidx) if i >= 10]          # kept sensor/environment states
         B = F[:, :, sens]                                         # (N, n_f, n_s) their couplings
         for j in dropped:
             st = truth.states[j]
-            q_eq, rule = equivalent_white_noise(st, zupt_interval, mean_speed)
             col = dyn.F[:, kidx, j]                                   # F_kept,dropped
+            over, worst = pointwise_overstatement(col, dt_steps, bounds, zupt_interval) \
+                if uses_constant_rule(st, zupt_interval, mean_speed) else (np.nan, np.nan)
             alpha = np.zeros(len(sens))
-            matched = spec.equivalent_noise == "matched" and uses_constant_rule(st, zupt_interval, mean_speed)
-            if matched and sens:
-                alpha, resid = absorbed_coupling(col, B)
-                col = resid
-            if q_eq <= 0 and not alpha.any():
-                continue
-            qt = np.full(col.shape[0], q_eq)
-            if matched:
-                qt = st.sigma**2 * effective_duration(col, dt_steps, zupt_interval)
-                rule += "; matched: dt_s -> (int c)^2/int c^2 per interval"
-            contrib = qt[:, None, None] * col[:, :, None] * col[:, None, :]
-            Qc += contrib
+            if mode == "matched" and sens and uses_constant_rule(st, zupt_interval, mean_speed):
+                alpha, col = absorbed_coupling(col, B)
+            q_eq, _ = equivalent_white_noise(st, zupt_interval, mean_speed)
+            src, rule = equivalent_noise_source(st, col, dt_steps, bounds, dt_s=zupt_interval,
+                                                mean_speed=mean_speed, mode="pointwise" if mode == "pointwise"
+                                                else "interval")
             if alpha.any():
+                rule += "; matched: constant part absorbed by the kept sensor states"
                 a = np.zeros(len(kidx))
                 a[sens] = alpha
                 absorb += st.sigma**2 * np.outer(a, a)
-            mean_diag = np.mean(np.einsum("tii->ti", contrib), axis=0)
-            row = {"filter": spec.name, "dropped state": st.name, "process": st.process, "rule": rule,
-                   "mode": spec.equivalent_noise if spec.equivalent_noise is not True else "eq11-13",
-                   "P0 [SI]": st.sigma**2, "q_eq [SI^2 s]": q_eq,
-                   "absorbed by": ", ".join(f"{spec.kept[sens[k]]} ({alpha[k]:+.3g})"
-                                            for k in np.argsort(-np.abs(alpha))[:3] if abs(alpha[k]) > 0)}
-            for nm, v in zip(spec.kept, mean_diag):
-                if nm in ("dvN", "dvE", "dvD", "dq0", "dq1", "dq2", "dq3", "dh"):
-                    row[f"mean dQ {nm} [SI^2/s]"] = v
-            rows.append(row)
+                absorb_by[st.name] = a
+            if np.any(src.psd > 0) and np.any(src.G != 0):
+                Qc += src.qc()
+                sources.append(src)
+            rows.append({"filter": spec.name, "dropped state": st.name, "block": st.block, "process": st.process,
+                         "rule": rule, "mode": mode, "P0 [SI]": st.sigma**2, "q_eq [SI^2 s]": q_eq,
+                         "pointwise / interval-matched (eq (12) states) [-]": over,
+                         "pointwise / interval-matched, worst interval [-]": worst,
+                         "absorbed by": ", ".join(f"{spec.kept[sens[k]]} ({alpha[k]:+.3g})"
+                                                  for k in np.argsort(-np.abs(alpha))[:3] if abs(alpha[k]) > 0)})
     D = np.zeros((truth.n, len(kidx)))
     D[kidx, np.arange(len(kidx))] = 1.0
     P0t = truth.initial_covariance(q0)
@@ -381,8 +649,106 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         else:
             P0[i, i] = sig**2
     table = pd.DataFrame(rows) if rows else pd.DataFrame(
-        columns=["filter", "dropped state", "process", "rule", "P0 [SI]", "q_eq [SI^2 s]"])
-    return FilterModel(spec, list(spec.kept), D, F, Qc, P0, table)
+        columns=["filter", "dropped state", "block", "process", "rule", "P0 [SI]", "q_eq [SI^2 s]"])
+    return FilterModel(spec, list(spec.kept), D, F, Qc, P0, table, Qc_kept=Qc_kept, ewn_noise=sources,
+                       ewn_absorb=absorb_by, bounds=bounds)
+
+
+def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat, h, q) -> pd.DataFrame:
+    """What each dropped state's equivalent noise does to the navigation errors.
+
+    Each state's equivalent noise is propagated alone through the filter's
+    own dynamics (Φ_f, no updates) over every ZUPT interval, and the
+    covariance it builds up by the interval's end is expressed in the
+    physical errors: position N/E/D, velocity N/E/D, north/east tilt and
+    azimuth (``φ = −2R(q)ᵀδq``, :func:`covtool.quaternion.attitude_error_matrix`).
+
+    Parameters
+    ----------
+    fm : FilterModel
+    Phi_f : ndarray, shape (N, n_f, n_f)
+        The filter's transition matrices.
+    t : ndarray, shape (N+1,)
+        Time grid. [s]
+    lat, h : ndarray, shape (N+1,)
+        Trajectory latitude [rad] and height [m] on the grid.
+    q : ndarray, shape (N+1, 4)
+        Attitude on the grid.
+
+    Returns
+    -------
+    DataFrame
+        One row per dropped state with an equivalent noise: the 1σ it adds
+        per ZUPT interval (RMS over the run's intervals) in ft, ft/s,
+        arcsec and arcmin, and its share of the equivalent noise's
+        horizontal-position, altitude, tilt and azimuth variance.
+
+    Notes
+    -----
+    Within a step the noise is taken to enter, on average, half-way
+    through it (trapezoid rule on ``Φ``): for 1 s steps this is well
+    below 1 % of the interval's accumulation.
+    """
+    from . import earth
+    from .quaternion import attitude_error_matrix
+
+    if not fm.ewn_noise:
+        return pd.DataFrame()
+    if tuple(fm.names[:10]) != NAV_STATES:
+        raise ValueError("the filter's first ten states must be the navigation states")
+    N, nf, _ = Phi_f.shape
+    dt = np.diff(t)
+    cols, owner = [], []
+    for j, src in enumerate(fm.ewn_noise):
+        for c in range(src.G.shape[2]):
+            cols.append((src.G[:, :, c], src.psd[:, c]))
+            owner.append(j)
+    G = np.stack([c[0] for c in cols], axis=2)                  # (N, nf, J')
+    psd = np.stack([c[1] for c in cols], axis=1)                # (N, J')
+    owner = np.array(owner)
+    J = len(fm.ewn_noise)
+    b = fm.bounds
+    K = len(b) - 1
+    var = np.zeros((K, J, 9))
+    rm, rn = earth.radii(np.asarray(lat))
+    for i in range(K):
+        end = b[i + 1]
+        T = np.zeros((9, nf))
+        T[0, 0] = rm[end] + h[end]
+        T[1, 1] = (rn[end] + h[end]) * np.cos(lat[end])
+        T[2, 2] = -1.0
+        T[3:6, 3:6] = np.eye(3)
+        T[6:9, 6:10] = attitude_error_matrix(q[end])
+        M = T
+        acc = np.zeros((9, G.shape[2]))
+        for k in range(end - 1, b[i] - 1, -1):
+            Gk = G[k]
+            Y = M @ (0.5 * (Gk + Phi_f[k] @ Gk))                 # (9, J')
+            acc += Y**2 * (psd[k] * dt[k])[None, :]
+            M = M @ Phi_f[k]
+        for jj in range(J):
+            var[i, jj] = acc[:, owner == jj].sum(axis=1)
+    ms = var.mean(axis=0)                                       # (J, 9) mean variance per interval
+    FT, ARCSEC = 0.3048, np.pi / 180 / 3600
+    tot = ms.sum(axis=0)
+
+    def share(v, total):
+        return 100.0 * v / total if total > 0 else np.nan
+
+    rows = []
+    for jj, src in enumerate(fm.ewn_noise):
+        m = ms[jj]
+        hz, alt, tilt, az = m[0] + m[1], m[2], m[6] + m[7], m[8]
+        rows.append({
+            "filter": fm.spec.name, "dropped state": src.name,
+            "horizontal position [ft]": np.sqrt(hz) / FT, "altitude [ft]": np.sqrt(alt) / FT,
+            "vN [ft/s]": np.sqrt(m[3]) / FT, "vE [ft/s]": np.sqrt(m[4]) / FT, "vD [ft/s]": np.sqrt(m[5]) / FT,
+            "tilt N [arcsec]": np.sqrt(m[6]) / ARCSEC, "tilt E [arcsec]": np.sqrt(m[7]) / ARCSEC,
+            "azimuth [arcmin]": np.sqrt(m[8]) / (60 * ARCSEC),
+            "horizontal share [%]": share(hz, tot[0] + tot[1]), "altitude share [%]": share(alt, tot[2]),
+            "tilt share [%]": share(tilt, tot[6] + tot[7]), "azimuth share [%]": share(az, tot[8]),
+        })
+    return pd.DataFrame(rows)
 
 
 def absorbed_coupling(col: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -420,42 +786,6 @@ def absorbed_coupling(col: np.ndarray, B: np.ndarray) -> tuple[np.ndarray, np.nd
     alpha, *_ = np.linalg.lstsq(A, y, rcond=1e-10)
     resid = col - np.einsum("tfs,s->tf", B, alpha)
     return alpha, resid
-
-
-def effective_duration(col: np.ndarray, dt_steps: np.ndarray, interval: float) -> np.ndarray:
-    """Effective Δt of eq (12) for a time-varying coupling, per ZUPT interval.
-
-    Eq (12) chooses the white-noise PSD so that the integrated effect of a
-    random constant over one ZUPT interval has the right variance:
-    ``P0 (∫c dt)² = q ∫c² dt``.  For a constant coupling ``c`` that gives
-    ``q = P0 Δt_s`` (eq (12) as printed); in general
-    ``q = P0 · ‖∫c dt‖² / ∫‖c‖² dt`` (Cauchy–Schwarz: ≤ ``P0 Δt_s``), e.g. the
-    21 s of a turn for a gyro misalignment driven by the yaw rate.
-
-    Parameters
-    ----------
-    col : ndarray, shape (N, n_f)
-        Coupling ``c(t)`` of a dropped state into the kept states.
-    dt_steps : ndarray, shape (N,)
-    interval : float
-        ZUPT interval Δt_s. [s]
-
-    Returns
-    -------
-    ndarray, shape (N,)
-        Δt_eff for the interval each step belongs to. [s]
-    """
-    t_end = np.cumsum(dt_steps)
-    k = np.floor((t_end - 0.5 * dt_steps) / interval).astype(int)
-    scale = np.sqrt(np.mean(col**2, axis=0))
-    c = col / np.where(scale > 0, scale, 1.0)
-    out = np.zeros(col.shape[0])
-    for kk in np.unique(k):
-        m = k == kk
-        num = np.sum(np.sum(c[m] * dt_steps[m, None], axis=0) ** 2)
-        den = np.sum(np.sum(c[m] ** 2, axis=1) * dt_steps[m])
-        out[m] = num / den if den > 0 else 0.0
-    return out
 
 
 def zupt_matrices(names) -> np.ndarray:

@@ -293,7 +293,42 @@ def test_composed_source_noise_sums_to_the_composed_total():
 # physics of the pure-INS ranking
 
 
-def test_pure_ins_ranking_follows_the_closed_forms():
+@pytest.fixture(scope="module")
+def pure30():
+    """Pure INS, 30 min, default truth, block resolution (2 s steps)."""
+    d = decl("30 min", ("pure_ins",))
+    d["study"]["dt"] = "2 s"
+    d["zupt"]["rate"] = "0.5 Hz"
+    return covtool.run_study(d)
+
+
+#: sensor-error blocks of sdins58 (seed 002 eq (3), (5)); the rest are navigation errors and gravity
+SENSOR_BLOCKS = ("acc_bias", "gyro_bias", "acc_sf", "gyro_sf", "acc_mis", "acc_markov", "acc_asym",
+                 "gyro_markov", "gyro_mis", "gyro_gs", "gyro_aniso", "acc_ad")
+BIAS_SF = ("acc_bias", "gyro_bias", "acc_sf", "gyro_sf")
+
+
+def test_pure_ins_budget_ranks_biases_and_scale_factors_first(pure30):
+    """Issue 11 acceptance 2 (seed 002 Fig 4, §3.1.1): among the systematic sensor errors of the
+    default (calibrated) truth, biases and scale factors are the major sources of the pure-INS
+    error on the route, horizontally and in altitude.
+
+    The largest sensor-error source is a bias or a scale factor, and the bias and
+    scale-factor blocks together carry more variance than every other sensor block
+    together (the white ARW/VRW noises, which no filter state can carry, excluded).
+    """
+    for e in ("horizontal", "altitude"):
+        b = pure30.tables[f"budget_{e}"]
+        b = b[b["t [min]"] == 30.0]
+        sensor = b[b["source"].isin([f"initial {x}" for x in SENSOR_BLOCKS] +
+                                    [f"{x} noise" for x in SENSOR_BLOCKS])]
+        top = sensor.iloc[0]["source"]
+        assert any(top == f"initial {x}" for x in BIAS_SF), (e, top)
+        is_bsf = sensor["source"].isin([f"initial {x}" for x in BIAS_SF])
+        assert sensor.loc[is_bsf, "share [%]"].sum() > sensor.loc[~is_bsf, "share [%]"].sum(), e
+
+
+def test_pure_ins_ranking_follows_the_closed_forms(pure30):
     """Pure INS, 30 min on the land-vehicle route (seed 002 Fig 4's question).
 
     Expectations from physics, before looking at the output:
@@ -308,10 +343,7 @@ def test_pure_ins_ranking_follows_the_closed_forms():
       anomaly (25 mGal); the first two in the ratio (35 ppm g / 30 µg)².
     * azimuth: ψ0 = 9.97′ against ≤ 0.75′ of z-gyro drift in 30 min.
     """
-    d = decl("30 min", ("pure_ins",))
-    d["study"]["dt"] = "2 s"
-    d["zupt"]["rate"] = "0.5 Hz"
-    r = covtool.run_study(d)
+    r = pure30
     S = r.data["setup"]
     lat, h = S.nodes.lat[0], S.nodes.h[0]
     rm, rn = earth.radii(lat)

@@ -55,8 +55,8 @@ _BLOCK_KEYS = {"kind", "name", "names", "sigma", "unit", "process", "tau", "dist
 _BOARD_KEYS = {"sf", "n_t", "n_e_ratio"}
 _NAV_KEYS = {"kind", "name", "position_sigma", "velocity_sigma", "quaternion_sigma",
              "angle_random_walk", "velocity_random_walk", "source"}
-_TOP_KEYS = {"model", "block", "correlation"}
-_MODEL_KEYS = {"name", "description", "source"}
+_TOP_KEYS = {"model", "block", "correlation", "override"}
+_MODEL_KEYS = {"name", "description", "source", "base"}
 
 DEFAULT_UNITS = {
     "acceleration": "ug", "angular_rate": "deg/h", "dimensionless": "ppm", "angle": "arcsec",
@@ -207,6 +207,7 @@ def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
     """
     file = str(path)
     check_keys(decl, _TOP_KEYS, file, ModelFileError)
+    decl = resolve_base(decl, file)
     meta = decl.get("model", {})
     check_keys(meta, _MODEL_KEYS, f"{file}: [model]", ModelFileError)
     if "name" not in meta:
@@ -280,9 +281,80 @@ def _check_psd(model: Model, file: str) -> None:
 
 
 def load_model(path) -> Model:
-    """Load and validate a model file."""
+    """Load and validate a model file (a ``base`` model's overrides resolved, :func:`resolve_base`)."""
     decl = load_toml(path, ModelFileError)
     return model_from_dict(decl, path=str(path))
+
+
+def resolve_base(decl: dict, path: str = "<dict>") -> dict:
+    """A model declared as overrides of another: the merged declaration.
+
+    ::
+
+        [model]
+        name = "sdins58_uncalibrated"
+        base = "sdins58"              # library name, or a path relative to this file
+        [override.acc_mis]            # a block of the base, by name
+        sigma = "10 arcsec"           # replaces these keys of the block
+        source = "..."
+
+    Parameters
+    ----------
+    decl : dict
+        A model declaration; returned unchanged if ``[model]`` has no ``base``.
+    path : str
+        File it was read from (names it in errors, anchors a relative base).
+
+    Returns
+    -------
+    dict
+        The base's declaration with this model's ``[model]`` table, each
+        overridden block's keys replaced, and its own ``[[correlation]]``
+        appended.
+
+    Raises
+    ------
+    ModelFileError
+        Unknown base, a base that has a base itself, an override of a block
+        the base does not have, or of its ``kind``/``name``.
+    """
+    meta = decl.get("model", {})
+    if not isinstance(meta, dict) or "base" not in meta:
+        if "override" in decl:
+            raise ModelFileError(f"{path}: override", "overrides need [model] base = \"<model>\"")
+        return decl
+    from pathlib import Path
+
+    from .library import resolve_model_path
+
+    here = Path(path).parent if path != "<dict>" else None
+    bpath = resolve_model_path(meta["base"], here if here is not None else None, base_dir=here)
+    base = load_toml(bpath, ModelFileError)
+    if "base" in base.get("model", {}):
+        raise ModelFileError(f"{path}: [model] base", f"{meta['base']!r} has a base itself (one level only)")
+    merged = copy.deepcopy(base)
+    merged["model"] = {k: v for k, v in meta.items() if k != "base"}
+    merged["model"].setdefault("source", f"{meta['base']} with overrides")
+    names = []
+    for b in merged.get("block", []):
+        kind = b.get("kind")
+        names.append(b.get("name", "nav" if kind == "navigation" else BLOCK_KINDS[kind].prefix
+                           if kind in BLOCK_KINDS else kind))
+    for bname, ov in (decl.get("override") or {}).items():
+        w = f"{path}: [override.{bname}]"
+        if bname not in names:
+            raise ModelFileError(w, f"base model {meta['base']!r} has no block {bname!r} "
+                                 f"(blocks: {', '.join(names)})")
+        if not isinstance(ov, dict):
+            raise ModelFileError(w, "expected a table of block keys")
+        for key in ("kind", "name"):
+            if key in ov:
+                raise ModelFileError(f"{w} {key}", "the kind and name of a base block cannot be overridden")
+        merged["block"][names.index(bname)].update(copy.deepcopy(ov))
+    merged["correlation"] = merged.get("correlation", []) + copy.deepcopy(decl.get("correlation", []))
+    if not merged["correlation"]:
+        merged.pop("correlation")
+    return merged
 
 
 def dump_model(model: Model) -> str:

@@ -24,6 +24,7 @@ RUNNERS = {
     "trade_grid": "covtool.studies.trade",
     "monte_carlo": "covtool.studies.monte_carlo",
     "dual_imu": "covtool.studies.dual_imu",
+    "magnitude_sweep": "covtool.studies.magnitude_sweep",
 }
 
 

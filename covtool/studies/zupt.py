@@ -23,6 +23,9 @@ Study file::
     duration = "30 s"        # measurement window ending at each k·interval
     rate = "1 Hz"            # updates per second inside the window
     sigma = "0.01 ft/s"      # true ZUPT noise 1σ per axis (R); filters may assume another
+
+    [impact]                 # dropped-state impact table (covtool.impact)
+    filters = ["B1", "C", "D"]   # default: every reduced filter of the run; [] for none
 """
 
 from __future__ import annotations
@@ -38,7 +41,7 @@ import pandas as pd
 from ..covariance import propagate, propagate_with_filter
 from ..dynamics import error_dynamics
 from ..errors import StudyFileError
-from ..filters import build_filter, default_filter_file, load_filters, zupt_matrices
+from ..filters import build_filter, default_filter_file, ewn_navigation_effect, load_filters, zupt_matrices
 from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics
 from ..results import StudyResult
@@ -160,7 +163,8 @@ class ZuptSetup:
                     self.truth, self.ctx, spec.options)
             fm = build_filter(spec, self.truth, self.ctx, zupt_interval=self.zupt_interval,
                               q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
-                              mean_speed=self.mean_speed, dt_steps=np.diff(self.t))
+                              mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
+                              update_steps=self.update_steps)
             same_method = spec.discretization == self.hdr["discretization"] and (
                 spec.discretization == "van_loan" or spec.taylor_order is None)
             if same_method and fm.F.shape == self.dyn.F.shape and np.array_equal(fm.F, self.dyn.F) \
@@ -219,7 +223,8 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=()) -
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     """Run the filter-order trade; see the module docstring."""
     t_start = time.perf_counter()
-    S = setup(decl, path=path, progress=progress)
+    S = setup(decl, path=path, progress=progress, extra_sections=("impact",))
+    imp_filters = impact_filters(decl, S)
     hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth
     Phi, Qd, P0, H, R, upd = S.Phi, S.Qd, S.P0, S.H, S.R, S.update_steps
     cases, every, rtimes, ffile = S.cases, S.every, S.report_times, S.filter_file
@@ -260,8 +265,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     summary = summary[order]
 
     hist = pd.concat([history_frame(c, t, m, every) for c, m in metrics.items()], ignore_index=True)
-    ewn = pd.concat([fm.ewn_table for fm in fmodels.values() if len(fm.ewn_table)], ignore_index=True) \
-        if any(len(fm.ewn_table) for fm in fmodels.values()) else pd.DataFrame()
+    ewn = equivalent_noise_table(S, fmodels)
     fstates = []
     for c, fm in fmodels.items():
         sig0 = np.sqrt(np.clip(np.diag(fm.P0), 0, None))
@@ -275,6 +279,13 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
               "filter_states": pd.DataFrame(fstates)}
     if len(ewn):
         tables["equivalent_noise"] = ewn
+    figures = {}
+    t_imp = time.perf_counter()
+    if imp_filters:
+        with progress_bar(len(imp_filters), "dropped-state impact", progress) as bar:
+            tables["impact"] = impact_table(S, imp_filters, metrics, bar)
+        figures["impact_dropped_states"] = impact_figure(tables["impact"], S.report_times[-1])
+    t_imp = time.perf_counter() - t_imp
     upd_t = t[upd]
     zupt_marks = np.unique(np.round(upd_t[np.r_[True, np.diff(upd_t) > 2 * hdr["dt"]]]))
 
@@ -300,12 +311,13 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
     provenance = {"truth_model": truth.name, "truth_model_file": truth.path, "truth_model_sha256": truth.sha256,
                   "filter_file": str(ffile), "zupt_updates": int(len(upd)), "zupt_interval_s": dt_s,
-                  "zupt_sigma_m_s": zsig, "mean_moving_speed_m_s": mean_speed, "compute_seconds": f"{elapsed:.2f}"}
+                  "zupt_sigma_m_s": zsig, "mean_moving_speed_m_s": mean_speed, "compute_seconds": f"{elapsed:.2f}",
+                  "impact_compute_seconds": f"{t_imp:.2f}"}
     import hashlib
     provenance["filter_file_sha256"] = hashlib.sha256(Path(ffile).read_bytes()).hexdigest()
     return StudyResult(
         name=hdr["name"], kind="zupt_filter_order", tables=tables,
-        figures={"fig6_horizontal_cep": fig("horizontal"), "fig7_altitude_pe": fig("altitude")},
+        figures={"fig6_horizontal_cep": fig("horizontal"), "fig7_altitude_pe": fig("altitude"), **figures},
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}}, provenance=provenance,
         charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [ft]"], "title": "CEP (all cases, stacked rows)",
                  "y_title": "ft", "anchor": "S2"}],
@@ -320,3 +332,132 @@ def dyn_key(options):
     if options is None:
         return (True, True)
     return (options.coriolis, options.couple_vertical)
+
+
+def equivalent_noise_table(S: ZuptSetup, fmodels: dict) -> pd.DataFrame:
+    """The ``equivalent_noise`` sheet: rule per dropped state and what it does to navigation.
+
+    Each filter's rows of :attr:`FilterModel.ewn_table` (rule applied,
+    pointwise overstatement) joined with
+    :func:`covtool.filters.ewn_navigation_effect` (the 1σ each dropped
+    state's noise adds per ZUPT interval in tilt, azimuth, velocity and
+    position, and its share).
+    """
+    frames = []
+    for c, fm in fmodels.items():
+        if not len(fm.ewn_table):
+            continue
+        _, Phi_f, _ = S.filter_model(c)
+        eff = ewn_navigation_effect(fm, Phi_f, S.t, S.nodes.lat, S.nodes.h, S.nodes.q_nb)
+        tab = fm.ewn_table
+        if len(eff):
+            tab = tab.merge(eff, on=["filter", "dropped state"], how="left")
+        frames.append(tab)
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def impact_filters(decl: dict, S: ZuptSetup) -> list[str]:
+    """Validated ``[impact] filters``: reduced filters of the run (default: all of them).
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key, not a list, a filter not among the run's cases, or a
+        filter that drops no truth state.
+    """
+    cfg = decl.get("impact", {})
+    w = f"{S.where}: [impact]"
+    if not isinstance(cfg, dict):
+        raise StudyFileError(w, f"expected a table, got {type(cfg).__name__}")
+    check_keys(cfg, {"filters"}, w, StudyFileError)
+    reduced = [c for c in S.cases if S.specs[c].n < S.truth.n]
+    if "filters" not in cfg:
+        return reduced
+    fl = cfg["filters"]
+    if not isinstance(fl, list) or not all(isinstance(x, str) for x in fl):
+        raise StudyFileError(f"{w} filters", "expected a list of filter names")
+    for x in fl:
+        if x not in S.cases:
+            raise StudyFileError(f"{w} filters", f"{x!r} is not one of the run's cases ({', '.join(S.cases)})")
+        if x not in reduced:
+            raise StudyFileError(f"{w} filters", f"filter {x!r} keeps every truth state: it drops nothing")
+    return list(fl)
+
+
+def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None) -> pd.DataFrame:
+    """The ``impact`` sheet: every reduced filter × dropped block (D'Appolito state deletion).
+
+    For each filter (:func:`covtool.impact.impact_run`, one batched pass
+    per filter against one shared truth) and report time: the true CEP,
+    altitude PE and azimuth of the nominal filter, without equivalent
+    noise, with eq (11)–(13) noise from each dropped block alone, and with
+    each dropped block put back as filter states; ratios to the nominal
+    and to filter A when it is in the run.
+    """
+    from ..engine import System, events
+    from ..impact import impact_run
+
+    N = S.t.size - 1
+    rep = sorted({int(np.argmin(np.abs(S.t - tr))) for tr in S.report_times})
+    ev = events(N, S.update_steps, rep)
+    truth_sys = System.from_steps(S.Phi, S.Qd, ev)
+    nodes = S.nodes
+    rows = []
+    for name in names:
+        r = impact_run(S, name, rep, truth_system=truth_sys)
+        rs = r.record_steps
+        ms = [nav_metrics(r.P[b], nodes.lat[rs], nodes.h[rs], nodes.q_nb[rs]) for b in range(len(r.variants))]
+        nstates = {b: sum(1 for s in S.truth.states if s.block == b) for _, b in r.variants if b}
+        for k, step in enumerate(rs):
+            nom = ms[0]
+            for (variant, block), m in zip(r.variants, ms):
+                row = {"filter": name, "t [min]": S.t[step] / 60.0, "variant": variant,
+                       "block": block or "", "block states": nstates.get(block, 0),
+                       "CEP [ft]": m["cep"][k] / FT, "alt PE [ft]": m["alt_pe"][k] / FT,
+                       "azimuth 1sigma [arcmin]": m["sigma_azimuth"][k] / ARCMIN,
+                       "CEP / nominal [-]": m["cep"][k] / nom["cep"][k],
+                       "alt PE / nominal [-]": m["alt_pe"][k] / nom["alt_pe"][k],
+                       "azimuth / nominal [-]": m["sigma_azimuth"][k] / nom["sigma_azimuth"][k]}
+                if "A" in metrics:
+                    row["CEP / A [-]"] = m["cep"][k] / metrics["A"]["cep"][step]
+                    row["alt PE / A [-]"] = m["alt_pe"][k] / metrics["A"]["alt_pe"][step]
+                row["filter noise vs its own Q_f (max rel.)"] = r.noise_check
+                rows.append(row)
+        if bar is not None:
+            bar.update(1)
+    return pd.DataFrame(rows)
+
+
+def impact_figure(table: pd.DataFrame, t_report: float):
+    """Figure maker: per filter, CEP and altitude PE with each dropped block's noise alone / put back."""
+    def make():
+        import matplotlib.pyplot as plt
+        tab = table[np.isclose(table["t [min]"], t_report / 60.0)]
+        names = list(dict.fromkeys(tab["filter"]))
+        fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.2 + 2.6 * len(names)), squeeze=False)
+        for r, name in enumerate(names):
+            g = tab[tab["filter"] == name]
+            nom = g[g["variant"] == "nominal"].iloc[0]
+            none = g[g["variant"] == "no equivalent noise"].iloc[0]
+            blocks = list(dict.fromkeys(g.loc[g["block"] != "", "block"]))
+            y = np.arange(len(blocks))
+            for c, col in enumerate(("CEP [ft]", "alt PE [ft]")):
+                ax = axes[r, c]
+                only = [g[(g["block"] == b) & (g["variant"] == "noise from block only")][col].iloc[0] for b in blocks]
+                back = [g[(g["block"] == b) & (g["variant"] == "block put back")][col].iloc[0] for b in blocks]
+                ax.barh(y - 0.2, only, 0.4, label="(a) eq (11)-(13) noise of this block only")
+                ax.barh(y + 0.2, back, 0.4, label="(b) this block put back into the filter")
+                ax.axvline(nom[col], color="k", lw=1.2, label="nominal (all dropped blocks as noise)")
+                ax.axvline(none[col], color="0.5", lw=1.0, ls="--", label="no equivalent noise")
+                ax.set_yticks(y)
+                ax.set_yticklabels(blocks, fontsize=8)
+                ax.invert_yaxis()
+                ax.set_xlabel(f"true {col} at {t_report / 60:g} min")
+                ax.set_title(f"filter {name}: {col.split(' [')[0]}")
+                ax.grid(True, axis="x", alpha=0.3)
+        h, lab = axes[0, 0].get_legend_handles_labels()
+        fig.legend(h, lab, loc="lower center", ncol=4, fontsize=8)
+        fig.suptitle("Dropped-state impact (D'Appolito state deletion, seed 002 ref [13])")
+        fig.tight_layout(rect=(0, 0.03, 1, 0.98))
+        return fig
+    return make

@@ -1,0 +1,294 @@
+"""Truth-magnitude sweep: where the reduced filters stop being near-optimal.
+
+Sweeps the 1σ of groups of truth states (e.g. the accelerometer and gyro
+misalignments and the gravity deflections) and reports, per filter, the true
+30-min errors and their ratio to the optimal filter A.  The truth and every
+filter follow the swept magnitude (the designer knows the IMU: filter A's
+P0 and Q, and the reduced filters' equivalent noise, seed 002 eq (11)–(13),
+all change with it).
+
+Study file::
+
+    [study]
+    kind = "magnitude_sweep"
+    duration = "30 min"
+    dt = "1 s"
+
+    [trajectory]
+    builtin = "land_vehicle"
+
+    [truth]
+    model = "sdins58"
+
+    [filters]
+    cases = ["A", "B1", "B2", "B3", "C", "D"]   # must include "A" (the reference)
+
+    [zupt]                         # as zupt_filter_order
+    interval = "5 min"
+    duration = "0 s"
+
+    [sweep]
+    values = ["0.5 arcsec", "1 arcsec", "2 arcsec", "5 arcsec", "10 arcsec", "20 arcsec"]
+    threshold = 1.5                # CEP / CEP_A that counts as "near-optimal"
+
+    [[sweep.group]]
+    name = "gyro misalignment"
+    states = ["gyro_mis"]          # blocks or states, swept together, the others as declared
+
+How it is computed: the truth Φ and F do not depend on the magnitudes, and
+the truth P0, the truth noise (gravity's Markov driving noise ∝ σ²), the
+filters' P_f(0) and their equivalent noise (∝ P0) are linear in the swept
+variances.  Each noise source is composed once (:func:`covtool.budget.compose_noise`)
+and every sweep point is a member of one batched engine call per filter
+(:func:`covtool.engine.run_batch`) with its own combination.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pandas as pd
+
+from ..budget import compose_noise
+from ..engine import System, events, run_batch
+from ..errors import StudyFileError
+from ..filters import zupt_matrices
+from ..impact import CombinedNoise, _compose_phi, _factor, check_members
+from ..io.config import check_keys, quantity
+from ..metrics import nav_metrics
+from ..results import StudyResult
+from .common import ARCMIN, FT, progress_bar
+from .zupt import setup
+
+
+def sweep_options(decl: dict, where: str, truth) -> dict:
+    """Validate ``[sweep]``: values, threshold and the groups of states.
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key, missing or empty ``values``/``group``, a group with an
+        unknown state or block, states of different dimensions, a value of
+        the wrong dimension or negative, a state declared with σ = 0 (its
+        sources cannot be scaled), or a threshold ≤ 1.
+    """
+    w = f"{where}: [sweep]"
+    cfg = decl.get("sweep")
+    if not isinstance(cfg, dict):
+        raise StudyFileError(w, "missing [sweep] table (values = [...], [[sweep.group]] ...)")
+    check_keys(cfg, {"values", "threshold", "group"}, w, StudyFileError)
+    groups = cfg.get("group")
+    if not isinstance(groups, list) or not groups:
+        raise StudyFileError(f"{w} group", "declare at least one [[sweep.group]] with name and states")
+    thr = cfg.get("threshold", 1.5)
+    if isinstance(thr, bool) or not isinstance(thr, (int, float)) or not thr > 1:
+        raise StudyFileError(f"{w} threshold", f"{thr!r} is not a number greater than 1")
+    vals = cfg.get("values")
+    if not isinstance(vals, list) or not vals:
+        raise StudyFileError(f"{w} values", "expected a non-empty list of magnitudes")
+    out = []
+    for k, g in enumerate(groups):
+        gw = f"{w} group {k + 1}"
+        if not isinstance(g, dict):
+            raise StudyFileError(gw, "expected a table with name and states")
+        check_keys(g, {"name", "states"}, gw, StudyFileError)
+        if not isinstance(g.get("name"), str) or not isinstance(g.get("states"), list) or not g["states"]:
+            raise StudyFileError(gw, "needs name = \"...\" and states = [...] (blocks or states)")
+        try:
+            names = truth.states_of(g["states"])
+        except KeyError as exc:
+            raise StudyFileError(f"{gw} states", f"unknown state or block {exc.args[0]!r} of truth model "
+                                 f"{truth.name!r}") from None
+        sts = [truth.states[truth.index[n]] for n in names]
+        dims = {s.dimension for s in sts}
+        if len(dims) != 1:
+            raise StudyFileError(f"{gw} states", f"states of different dimensions ({', '.join(sorted(dims))}) "
+                                 "cannot share one swept magnitude")
+        for s in sts:
+            if s.sigma == 0:
+                raise StudyFileError(f"{gw} states", f"state {s.name!r} is declared with sigma 0; give it a "
+                                     "non-zero sigma to sweep it")
+        dim = dims.pop()
+        mags = [quantity(v, dim, f"{w} values", StudyFileError, nonnegative=True) for v in vals]
+        out.append({"name": g["name"], "states": names, "values": np.array(mags), "text": list(vals),
+                    "unit_text": vals[0].split()[-1] if isinstance(vals[0], str) and " " in vals[0] else ""})
+    return {"groups": out, "threshold": float(thr)}
+
+
+def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+    """Run a magnitude sweep; see the module docstring."""
+    t_start = time.perf_counter()
+    where = str(path) if path else "<study>"
+    S = setup(decl, path=path, progress=progress, extra_sections=("sweep",))
+    opts = sweep_options(decl, where, S.truth)
+    if "A" not in S.cases:
+        raise StudyFileError(f"{where}: [filters] cases", "a magnitude sweep needs filter \"A\" (the optimal "
+                             "reference of the ratios)")
+    truth, t, nodes = S.truth, S.t, S.nodes
+    N = t.size - 1
+    dt = np.diff(t)
+    rep = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
+    ev = events(N, S.update_steps, rep)
+    tsys = System.from_steps(S.Phi, S.Qd, ev)
+    ix = truth.index
+    sig = np.array([s.sigma for s in truth.states])
+    # members: (group, value); scale of each truth state's sigma per member
+    members, scale = [], []
+    for g in opts["groups"]:
+        gi = np.array([ix[n] for n in g["states"]])
+        for v, text in zip(g["values"], g["text"]):
+            s = np.ones(truth.n)
+            s[gi] = v / sig[gi]
+            members.append((g["name"], float(v), text))
+            scale.append(s)
+    scale = np.array(scale)                                   # (B, n)
+    B = len(members)
+    # truth: P0 and the driving noise of every state scale with sigma^2 (arw, vrw unchanged)
+    P0s = scale[:, :, None] * S.P0[None] * scale[:, None, :]
+    swept = sorted({i for g in opts["groups"] for i in (ix[n] for n in g["states"])})
+    names_sw = {truth.states[i].name for i in swept}
+    own = [src for src in S.dyn.noise if src.name in names_sw]
+    rest = [src for src in S.dyn.noise if src.name not in names_sw]
+    allrows = np.arange(truth.n)
+    tfac = [_factor("rest", rest, allrows)] + [_factor(src.name, [src], allrows) for src in own]
+    Qt = compose_noise(S.Phi, S.dyn.F, tfac, dt, ev)
+    tcoef = np.ones((B, len(tfac)))
+    for k, src in enumerate(own, start=1):
+        tcoef[:, k] = scale[:, ix[src.name]] ** 2
+    truth_Q = CombinedNoise([(Qt[k], allrows) for k in range(len(tfac))], tcoef, truth.n)
+    rows = []
+    results = {}
+    with progress_bar(len(S.cases), "filters", progress) as bar:
+        for name in S.cases:
+            fm, Phi_f, _ = S.filter_model(name)
+            kidx = truth.idx(fm.names)
+            dyn = S._dyn_cache.get(_key(fm.spec.options), S.dyn)
+            fown = [src for src in dyn.noise if src.name in names_sw]
+            frest = [src for src in dyn.noise if src.name not in names_sw]
+            fac = [_factor("rest", frest, kidx)] + [_factor(src.name, [src], kidx) for src in fown]
+            coef_idx = [None] + [ix[src.name] for src in fown]
+            for src in fm.ewn_noise:
+                fac.append(_factor(f"ewn {src.name}", [src], np.arange(src.G.shape[1])))
+                coef_idx.append(ix[src.name])
+            QF = compose_noise(Phi_f, fm.F, fac, dt, ev)
+            fcoef = np.ones((B, len(fac)))
+            for k, i in enumerate(coef_idx):
+                if i is not None:
+                    fcoef[:, k] = scale[:, i] ** 2
+            nf = len(kidx)
+            filt_Q = CombinedNoise([(QF[k], np.arange(nf)) for k in range(len(fac))], fcoef, nf)
+            # filter P0: kept states scale like the truth's; absorbed ("matched") parts with their source
+            P0n = fm.P0 - sum((sig[ix[nm]] ** 2 * np.outer(a, a) for nm, a in fm.ewn_absorb.items()),
+                              np.zeros((nf, nf)))
+            sk = scale[:, kidx]
+            Pf0 = sk[:, :, None] * P0n[None] * sk[:, None, :]
+            for nm, a in fm.ewn_absorb.items():
+                Pf0 += (scale[:, ix[nm]] * sig[ix[nm]])[:, None, None] ** 2 * np.outer(a, a)[None]
+            fsys = System(ev, _compose_phi(Phi_f, ev), np.zeros((len(ev) - 1, 0, 0)))
+            res = run_batch(tsys, P0s, S.H, S.R, fm.D, S.update_steps, rep, filt=fsys, Pf0=Pf0,
+                            Hf=zupt_matrices(fm.names), Rf=S.filter_R(name)[None], filter_Q=filt_Q,
+                            truth_Q=truth_Q, form=fm.spec.update)
+            check_members(res.P_truth, nodes.q_nb[rep], t[rep],
+                          [f"magnitude sweep: filter {name}: {g} = {text}" for g, _, text in members])
+            results[name] = res
+            bar.update(1)
+    k_last = -1
+    lat, h, q = nodes.lat[rep], nodes.h[rep], nodes.q_nb[rep]
+    mets = {name: [nav_metrics(res.P_truth[b], lat, h, q) for b in range(B)] for name, res in results.items()}
+    for b, (gname, v, text) in enumerate(members):
+        a = mets["A"][b]
+        for name in S.cases:
+            m = mets[name][b]
+            rows.append({"group": gname, "magnitude": text, "magnitude [SI]": v, "filter": name,
+                         "states": S.specs[name].n,
+                         "CEP [ft]": m["cep"][k_last] / FT, "alt PE [ft]": m["alt_pe"][k_last] / FT,
+                         "azimuth 1sigma [arcmin]": m["sigma_azimuth"][k_last] / ARCMIN,
+                         "CEP / A [-]": m["cep"][k_last] / a["cep"][k_last],
+                         "alt PE / A [-]": m["alt_pe"][k_last] / a["alt_pe"][k_last]})
+    sweep = pd.DataFrame(rows)
+    thresholds = threshold_table(sweep, opts["threshold"], [g["name"] for g in opts["groups"]],
+                                 [c for c in S.cases if c != "A"], truth, opts)
+    elapsed = time.perf_counter() - t_start
+    provenance = {"truth_model": truth.name, "truth_model_file": truth.path, "truth_model_sha256": truth.sha256,
+                  "filter_file": str(S.filter_file), "zupt_updates": int(len(S.update_steps)),
+                  "threshold CEP / A": opts["threshold"], "members per filter": B,
+                  "compute_seconds": f"{elapsed:.2f}"}
+    return StudyResult(
+        name=S.hdr["name"], kind="magnitude_sweep", tables={"summary": thresholds, "sweep": sweep},
+        figures={"magnitude_sweep": _figure(sweep, opts, truth)},
+        resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
+        data={"setup": S, "results": results, "members": members, "metrics": mets, "report_steps": rep})
+
+
+def _key(options):
+    from .zupt import dyn_key
+    return dyn_key(options)
+
+
+def threshold_table(sweep: pd.DataFrame, thr: float, groups, filters, truth, opts) -> pd.DataFrame:
+    """Per group and filter: the magnitude at which CEP / CEP_A first reaches ``thr``.
+
+    The crossing is interpolated linearly in log(magnitude) between the two
+    swept points that bracket it; a filter that stays below (above) the
+    threshold over the whole sweep is reported as beyond (below) its range.
+    """
+    rows = []
+    for gi, g in enumerate(groups):
+        decl_sig = {truth.states[truth.index[n]].sigma for n in opts["groups"][gi]["states"]}
+        for f in filters:
+            s = sweep[(sweep["group"] == g) & (sweep["filter"] == f)].sort_values("magnitude [SI]")
+            x, r = s["magnitude [SI]"].to_numpy(), s["CEP / A [-]"].to_numpy()
+            above = np.flatnonzero(r >= thr)
+            row = {"group": g, "filter": f, "threshold CEP / A": thr,
+                   "declared magnitude [SI]": ", ".join(f"{v:.4g}" for v in sorted(decl_sig)),
+                   "CEP / A at smallest [-]": r[0], "CEP / A at largest [-]": r[-1]}
+            if above.size == 0:
+                row["crossing [SI]"] = np.inf
+                row["crossing"] = f"beyond the sweep (> {s['magnitude'].iloc[-1]})"
+            elif above[0] == 0:
+                row["crossing [SI]"] = 0.0
+                row["crossing"] = f"below the sweep (<= {s['magnitude'].iloc[0]})"
+            else:
+                i = above[0]
+                lx = np.log(x[i - 1]) + (thr - r[i - 1]) / (r[i] - r[i - 1]) * (np.log(x[i]) - np.log(x[i - 1]))
+                row["crossing [SI]"] = float(np.exp(lx))
+                unit = opts["groups"][gi]["unit_text"]
+                if unit:
+                    from ..units import from_si
+                    row["crossing"] = f"{float(from_si(np.exp(lx), unit)):.3g} {unit}"
+                else:
+                    row["crossing"] = f"{np.exp(lx):.4g}"
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _figure(sweep: pd.DataFrame, opts: dict, truth):
+    def make():
+        import matplotlib.pyplot as plt
+        from ..units import from_si
+        groups = opts["groups"]
+        fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 4.2), squeeze=False, sharey=True)
+        for ax, g in zip(axes[0], groups):
+            unit = g["unit_text"]
+            s = sweep[sweep["group"] == g["name"]]
+            for f in dict.fromkeys(s["filter"]):
+                if f == "A":
+                    continue
+                gg = s[s["filter"] == f].sort_values("magnitude [SI]")
+                x = [float(from_si(v, unit)) if unit else v for v in gg["magnitude [SI]"]]
+                ax.plot(x, gg["CEP / A [-]"], marker="o", ms=3, label=f)
+            ax.axhline(opts["threshold"], color="k", ls="--", lw=1, label=f"{opts['threshold']:g} x A")
+            dsig = truth.states[truth.index[g["states"][0]]].sigma
+            ax.axvline(float(from_si(dsig, unit)) if unit else dsig, color="0.5", ls=":", lw=1,
+                       label="declared")
+            ax.set_xscale("log")
+            ax.set_xlabel(f"{g['name']} 1sigma [{unit}]" if unit else g["name"])
+            ax.set_title(g["name"])
+            ax.grid(True, which="both", alpha=0.3)
+        axes[0, 0].set_ylabel("true CEP / CEP of optimal filter A at the report time")
+        axes[0, -1].legend(fontsize=8)
+        fig.suptitle("Where the reduced filters stop being within the threshold of the optimal filter")
+        fig.tight_layout()
+        return fig
+    return make

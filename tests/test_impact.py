@@ -1,0 +1,172 @@
+"""Dropped-state impact table (issue 11, acceptance 4): D'Appolito state deletion.
+
+Oracles: the step-by-step reference propagation (covtool.covariance) of the
+declared filter, and of an independently declared filter with the block put
+back.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+from threadpoolctl import threadpool_limits
+
+import covtool
+from covtool.covariance import propagate_with_filter
+from covtool.errors import StudyFileError
+from covtool.filters import zupt_matrices
+from covtool.impact import BACK, NOMINAL, NONE, ONLY, CombinedNoise, dropped_blocks, impact_run
+from covtool.metrics import nav_metrics
+
+ROOT = Path(__file__).resolve().parents[1]
+FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
+
+EXTRA = '''
+[[filter]]
+name = "D_bias"
+description = "D with the accelerometer biases put back"
+keep = ["nav", "acc_bias"]
+decouple_vertical = true
+coriolis = false
+'''
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_blas_thread():
+    with threadpool_limits(limits=1, user_api="blas"):
+        yield
+
+
+@pytest.fixture(scope="module")
+def S(tmp_path_factory):
+    from covtool.studies.zupt import setup
+    ff = tmp_path_factory.mktemp("f") / "filters.toml"
+    ff.write_text((ROOT / "models" / "filters" / "zupt_filters.toml").read_text() + EXTRA)
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "11 min"
+    d["output"]["report_times"] = ["11 min"]
+    d["filters"]["file"] = str(ff)
+    d["filters"]["cases"] = ["A", "B1", "C", "D", "D_bias"]
+    return setup(d, path=FLAGSHIP)
+
+
+def _reference(S, name):
+    fm, Phi_f, Qd_f = S.filter_model(name)
+    run = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                S.update_steps, Rf=S.filter_R(name), form=fm.spec.update)
+    return run.P_truth[-1][:10, :10]
+
+
+def _metrics(S, P):
+    k = S.t.size - 1
+    m = nav_metrics(P[None], S.nodes.lat[k:], S.nodes.h[k:], S.nodes.q_nb[k:])
+    return np.array([m["cep"][0], m["alt_pe"][0], m["sigma_azimuth"][0]])
+
+
+@pytest.mark.parametrize("name", ["B1", "D"])
+def test_nominal_member_is_the_declared_filter(S, name):
+    """The embedded 58-state member with the filter's P0 and noise equals the reduced filter's own run."""
+    N = S.t.size - 1
+    r = impact_run(S, name, [N])
+    assert r.variants[0] == (NOMINAL, None) and r.variants[1] == (NONE, None)
+    np.testing.assert_allclose(_metrics(S, r.P[0, -1]), _metrics(S, _reference(S, name)), rtol=1e-8)
+    assert r.noise_check < 1e-10          # Σ per-block composed noise = the filter's own Q_f
+
+
+def test_block_put_back_equals_the_filter_that_keeps_it(S):
+    """D with acc_bias put back equals filter D_bias declared on its own (16 → 13 states, eq (11)-(13) elsewhere)."""
+    N = S.t.size - 1
+    r = impact_run(S, "D", [N])
+    b = r.variants.index((BACK, "acc_bias"))
+    np.testing.assert_allclose(_metrics(S, r.P[b, -1]), _metrics(S, _reference(S, "D_bias")), rtol=1e-7)
+    # and each block appears once alone and once put back
+    blocks = dropped_blocks(S.truth, S.specs["D"].kept)
+    assert [v for v in r.variants if v[0] == ONLY] == [(ONLY, b_) for b_ in blocks]
+    assert [v for v in r.variants if v[0] == BACK] == [(BACK, b_) for b_ in blocks]
+
+
+def test_impact_sheet_in_the_flagship_outputs(S):
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["study"]["duration"] = "6 min"
+    d["output"]["report_times"] = ["6 min"]
+    d["filters"]["cases"] = ["A", "D"]
+    r = covtool.run_study(d)
+    imp = r.tables["impact"]
+    assert set(imp["filter"]) == {"D"}
+    nom = imp[imp["variant"] == NOMINAL].iloc[0]
+    summ = r.summary.set_index("case")
+    assert nom["CEP [ft]"] == pytest.approx(summ.loc["D", "CEP [ft]"], rel=1e-8)
+    assert nom["alt PE [ft]"] == pytest.approx(summ.loc["D", "alt PE [ft]"], rel=1e-8)
+    assert "impact_dropped_states" in r.figures
+
+
+@pytest.mark.parametrize("impact,match", [
+    ({"filters": ["E"]}, r"\[impact\] filters: 'E' is not one of the run's cases"),
+    ({"filters": ["A"]}, r"\[impact\] filters: filter 'A' keeps every truth state: it drops nothing"),
+    ({"filters": "B1"}, r"\[impact\] filters: expected a list of filter names"),
+    ({"filtres": ["B1"]}, r"\[impact\].*unknown key 'filtres'"),
+])
+def test_impact_declaration_errors(impact, match):
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["study"]["duration"] = "6 min"
+    d["output"]["report_times"] = ["6 min"]
+    d["filters"]["cases"] = ["A", "D"]
+    d["impact"] = impact
+    with pytest.raises(StudyFileError, match=match):
+        covtool.run_study(d)
+
+
+def test_combined_noise_supports_only_member_slices():
+    Q = np.arange(2 * 2 * 2, dtype=float).reshape(2, 2, 2)
+    cn = CombinedNoise([(Q, np.array([0, 2]))], np.array([[1.0], [2.0]]), 3)
+    out = cn[:, 1]
+    np.testing.assert_allclose(out[1][np.ix_([0, 2], [0, 2])], 2 * Q[1])
+    assert out[0, 1, 1] == 0.0
+    with pytest.raises(IndexError, match=r"CombinedNoise supports Q\[:, i\] only"):
+        cn[0]
+
+
+def test_equivalent_noise_sheet_reports_navigation_errors(S):
+    """Issue 11 item 2: each dropped state's noise in the errors it drives, against an
+    independent composition (covtool.budget.compose_noise, exact per-step Q_d) of that
+    state's noise alone through the filter's Φ_f over each ZUPT interval."""
+    from covtool.budget import compose_noise
+    from covtool.filters import ewn_navigation_effect
+    from covtool.metrics import ned_position_covariance
+    from covtool.quaternion import attitude_error_matrix
+
+    fm, Phi_f, _ = S.filter_model("B1")
+    nodes = S.nodes
+    eff = ewn_navigation_effect(fm, Phi_f, S.t, nodes.lat, nodes.h, nodes.q_nb).set_index("dropped state")
+    b = fm.bounds
+    ends = b[1:]
+    for name in ("grav_xi", "gyro_mis_xz", "acc_mis_xz"):
+        src = next(x for x in fm.ewn_noise if x.name == name)
+        Q = compose_noise(Phi_f, fm.F, [src], np.diff(S.t), b)[0]            # (K, nf, nf) at the interval ends
+        pos = ned_position_covariance(Q[:, :3, :3], nodes.lat[ends], nodes.h[ends])
+        att = attitude_error_matrix(nodes.q_nb[ends]) @ Q[:, 6:10, 6:10] @ np.swapaxes(
+            attitude_error_matrix(nodes.q_nb[ends]), 1, 2)
+        FT, AS = 0.3048, np.pi / 180 / 3600
+        row = eff.loc[name]
+        assert row["vN [ft/s]"] == pytest.approx(np.sqrt(Q[:, 3, 3].mean()) / FT, rel=0.01), name
+        assert row["horizontal position [ft]"] == pytest.approx(
+            np.sqrt((pos[:, 0, 0] + pos[:, 1, 1]).mean()) / FT, rel=0.01), name
+        assert row["tilt E [arcsec]"] == pytest.approx(np.sqrt(att[:, 1, 1].mean()) / AS, rel=0.01, abs=1e-6), name
+    # the gyro misalignments act on the attitude, the accelerometer misalignments on velocity
+    assert eff.loc["gyro_mis_xz", "tilt share [%]"] > 100 * eff.loc["acc_mis_xz", "tilt share [%]"]
+    assert abs(eff["horizontal share [%]"].sum() - 100.0) < 1e-9
+
+
+def test_member_covariances_are_checked():
+    from covtool.errors import NumericalError
+    from covtool.impact import check_members
+    P = np.zeros((1, 1, 10, 10))
+    P[0, 0] = np.eye(10)
+    P[0, 0, 3, 3] = np.nan
+    with pytest.raises(NumericalError, match=r"impact: filter X: nominal: t = 60 s: covariance has non-finite"):
+        check_members(P, np.array([[1.0, 0, 0, 0]]), np.array([60.0]), ["impact: filter X: nominal"])
