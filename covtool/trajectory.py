@@ -62,7 +62,7 @@ from scipy.integrate import solve_ivp
 from . import earth
 from . import quaternion as quat
 from .errors import TrajectoryError
-from .io.config import check_keys, quantity
+from .io.config import check_keys, quantity, resolve_input
 from .io.csv_table import read_numeric_csv
 
 __all__ = [
@@ -936,11 +936,8 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
         return from_segments(cfg["segment"], cfg["initial"], dt=dt, name=name or "segments", where=where)
     if source == "csv":
         _check_keys(cfg, ("csv", "name"), where)
-        if not isinstance(cfg["csv"], str):
-            raise TrajectoryError(f"{where}: csv", f"{cfg['csv']!r} is not a file name")
-        path = Path(cfg["csv"])
-        if not path.is_absolute() and base_dir is not None:
-            path = Path(base_dir) / path
+        # relative to the study file that names it, never the current directory
+        path = resolve_input(cfg["csv"], base_dir, f"{where}: csv", TrajectoryError, must_exist=False)
         try:
             traj = load_trajectory_csv(path)
         except TrajectoryError as exc:
