@@ -62,7 +62,7 @@ from scipy.integrate import solve_ivp
 from . import earth
 from . import quaternion as quat
 from .errors import TrajectoryError
-from .io.config import check_keys, quantity, resolve_input
+from .io.config import check_keys, integer, quantity, resolve_input
 from .io.csv_table import read_numeric_csv
 
 __all__ = [
@@ -956,9 +956,11 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
         if key not in cfg:
             continue
         if dim == "int":
-            params[key] = cfg[key]
+            params[key] = integer(cfg[key], f"{w}: {key}", TrajectoryError, limit=key)
         else:
             params[key] = _q(cfg[key], dim, f"{w}: {key}")
+    if "lon" in params and not abs(params["lon"]) <= math.pi:
+        raise TrajectoryError(f"{w}: lon", f"{cfg['lon']!r} is not within ±180 deg")
     if builtin == "static":
         for key in ("lat", "lon", "h"):
             if key not in params:
