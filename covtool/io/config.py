@@ -158,7 +158,7 @@ def number(value, where: str, error=InputError, *, lo: float | None = None, hi: 
         raise error(where, f"{value!r} is not a number")
     x = float(value)
     if not math.isfinite(x):
-        raise error(where, f"{value!r} is not a finite number")
+        raise error(where, f"{value!r} is not finite")
     bad = (lo is not None and (x < lo or (lo_open and x == lo))) or \
           (hi is not None and (x > hi or (hi_open and x == hi)))
     if bad:

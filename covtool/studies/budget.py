@@ -57,7 +57,7 @@ from ..filters import zupt_matrices
 from ..io.config import check_keys, choice, integer, names, table
 from ..metrics import cep, ned_position_covariance
 from ..results import StudyResult
-from .common import ARCMIN, FT, memory_estimate, progress_bar, resource_provenance, study_header, study_inputs
+from .common import ARCMIN, FT, memory_estimate, noise_columns, progress_bar, resource_provenance, study_header, study_inputs
 from .zupt import setup
 
 PURE = "pure_ins"
@@ -111,7 +111,8 @@ def _memory(decl: dict, where: str, resolution: str, pure: bool):
     from .nav_covariance import output_options
     from .zupt import zupt_options, zupt_update_count
 
-    def memory(steps, n, filters, dynamics):
+    def memory(steps, truth, filters, dynamics):
+        n = truth.n
         hdr = study_header(decl, where)
         every, rtimes = output_options(decl, where, hdr["duration"])
         updates = zupt_update_count(zupt_options(decl.get("zupt", {}), where, hdr["dt"], hdr["duration"]),
@@ -120,7 +121,7 @@ def _memory(decl: dict, where: str, resolution: str, pure: bool):
         sources = n + 4 if resolution == "state" else 24          # noise sources + initial errors
         # compose_noise's stack and its running sum, then one case's per-source covariances
         extra = 2 * sources * events * n * n * 8 + 3 * sources * n * n * 8
-        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, extra=extra)
+        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, extra=extra, noise=noise_columns(truth))
     return memory
 
 

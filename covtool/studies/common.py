@@ -153,8 +153,8 @@ def study_inputs(path, decl: dict, truth: Model | None = None, filter_file=None)
 # ---------------------------------------------------------------------------
 
 _F8 = 8                 # bytes of one float64
-#: float64 per grid step for the trajectory samples and the mid-point context
-_GRID_FLOATS = 120
+#: float64 per grid step outside the matrices: trajectory samples, mid-point context, metrics, history table
+_GRID_FLOATS = 800
 
 
 def steps_of(duration: float, dt: float) -> int:
@@ -162,12 +162,18 @@ def steps_of(duration: float, dt: float) -> int:
     return int(math.ceil(duration / dt - 1e-9))
 
 
-def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histories=(), extra: float = 0.0,
-                    parallel: int = 1) -> dict:
+def noise_columns(model: Model) -> int:
+    """Columns of the noise-source matrices G of ``model``: ARW and VRW (3 each), one per driven state."""
+    return 6 + sum(1 for st in model.states if st.process not in ("constant", "navigation"))
+
+
+def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histories=(), noise: int | None = None,
+                    extra: float = 0.0, parallel: int = 1) -> dict:
     """Peak memory of a study on the propagation grid (an upper estimate).
 
     This is the one place that knows what the covariance code keeps for a
     whole grid; change it together with :func:`truth_system`,
+    :func:`discretize_chunked`,
     :meth:`covtool.studies.zupt.ZuptSetup.filter_system`,
     :func:`covtool.covariance.propagate` and
     :func:`~covtool.covariance.propagate_with_filter`.
@@ -186,6 +192,9 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
     histories : sequence of int
         State counts of the ``(N+1)·m²`` covariance histories held at once
         (``propagate``: the truth; ``propagate_with_filter``: truth and filter).
+    noise : int, optional
+        Noise-source columns of the truth model (:func:`noise_columns`;
+        default ``n``).
     extra : float
         Kind-specific bytes outside these arrays (a composed noise stack, a
         batch of cases).
@@ -199,27 +208,34 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
 
     Notes
     -----
-    Per step and double: the truth keeps F, Q_c, the noise-source matrices G
-    (at most n columns), Φ and Q_d (5 n²); every other truth dynamics
-    another F, Q_c, G (3 n²); every filter F_f, Q_c,f, Φ_f, Q_d,f (4 n_f²)
-    and the (N, n_f, n) slice of F it is cut from while it is built; every
-    history (N+1) m².  Measured against ``tracemalloc`` peaks of the shipped
-    studies the estimate is high by 5-10 %.
+    Per step, in doubles: the truth keeps F, Q_c, Φ, Q_d (4 n²) and the
+    noise-source matrices G (n × columns); every other truth dynamics
+    another F, Q_c, G; every filter F_f, Q_c,f, Φ_f, Q_d,f (4 n_f²) and,
+    while it is built, the (N, n_f, n) slice of F it is cut from; every
+    history (N+1) m².  Van Loan works on :data:`DISCRETIZE_CHUNK` steps of
+    2n × 2n at a time (about five such stacks inside ``expm``), freed
+    before the histories are allocated, so only the larger of the two
+    counts.  Against ``tracemalloc`` peaks of the shipped studies the
+    estimate is high by 5-15 % (``tests/test_input_validation.py`` keeps it
+    an upper bound within 30 %).
     """
     N = int(steps)
+    c = n if noise is None else int(noise)
     parts = {
-        "truth F, Q_c, G, Phi, Q_d": 5 * N * n * n * _F8,
+        "truth F, Q_c, G, Phi, Q_d": (4 * n * n + n * c) * N * _F8,
+        "discretisation workspace": 5 * DISCRETIZE_CHUNK * (2 * n) ** 2 * _F8,
         "trajectory and grid": _GRID_FLOATS * (N + 1) * _F8,
     }
     if dynamics > 1:
-        parts["other truth dynamics"] = 3 * (dynamics - 1) * N * n * n * _F8
+        parts["other truth dynamics"] = (dynamics - 1) * (2 * n * n + n * c) * N * _F8
     if len(filters):
         parts["filter F, Q_c, Phi, Q_d"] = sum(4 * N * m * m * _F8 for m in filters) + N * max(filters) * n * _F8
     if len(histories):
         parts["covariance histories"] = sum((N + 1) * m * m * _F8 for m in histories)
     if extra:
         parts["other"] = float(extra)
-    total = sum(parts.values())
+    # the Van Loan workspace is freed before the histories are allocated
+    total = sum(parts.values()) - min(parts["discretisation workspace"], parts.get("covariance histories", 0.0))
     if parallel > 1:
         parts = {k: v * parallel for k, v in parts.items()}
         total *= parallel
@@ -377,7 +393,12 @@ def midpoint_context(traj, t: np.ndarray) -> Context:
     return Context.from_trajectory(traj.sample(tm))
 
 
-def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="discretising", chunk=150):
+#: steps discretised at once by :func:`discretize_chunked` (bounds its workspace)
+DISCRETIZE_CHUNK = 150
+
+
+def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="discretising",
+                       chunk=DISCRETIZE_CHUNK):
     """Discretise in chunks (bounded memory) with a progress bar.
 
     BLAS is limited to one thread: for these 58–116-wide matrices OpenBLAS's

@@ -78,6 +78,7 @@ from .. import quaternion as quat
 from ..errors import InputError, ModelFileError, StudyFileError
 from ..io.config import check_keys, choice, integer, names, number, quantity, string, table
 from ..results import StudyResult
+from .common import input_file
 
 COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
 #: display units of the difference components
@@ -550,7 +551,8 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     return StudyResult(
         name=cfg.name, kind="dual_imu", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl.get("study", {}), "name": cfg.name}},
-        provenance={"main_grade": cfg.grades["main"].path, "kimu_grade": cfg.grades["kimu"].path,
+        provenance={**input_file("main_grade", cfg.grades["main"].path),
+                    **input_file("kimu_grade", cfg.grades["kimu"].path),
                     "main_model_sha256": setup.main_model.sha256, "kimu_model_sha256": setup.kimu_model.sha256,
                     "joint_states": ref.model.n, "epochs": ref.t.size, "compute_seconds": f"{elapsed:.2f}"},
         data={"fault_free": free, "fault": fault, "trajectory": traj, "config": cfg, "setup": setup},
@@ -719,7 +721,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         name=f"dualnav_{Path(main_log.path).stem}", kind="dualnav", tables=tables,
         figures=_figures(cfg, [r], [], estimates=False, labels=("logs", "")),
         resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},
-        provenance={"main_grade": cfg.grades["main"].path, "kimu_grade": cfg.grades["kimu"].path,
-                    "compute_seconds": f"{elapsed:.2f}"},
+        provenance={**input_file("main_grade", cfg.grades["main"].path),
+                    **input_file("kimu_grade", cfg.grades["kimu"].path), "compute_seconds": f"{elapsed:.2f}"},
         data={"run": r, "bridged": bridged, "config": cfg},
     )

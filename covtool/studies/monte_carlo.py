@@ -68,7 +68,7 @@ from ..montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilte
                           horizontal_dof, inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
 from ..results import StudyResult
 from ..strapdown import MAX_SAMPLES, NAV_STATES
-from .common import ARCMIN, FT, memory_estimate, resource_provenance, study_header, study_inputs
+from .common import ARCMIN, FT, memory_estimate, noise_columns, resource_provenance, study_header, study_inputs
 from .zupt import setup
 
 MC_KEYS = ("runs", "runs_per_chunk", "seed", "imu_rate", "samples_per_step", "confidence", "nees_every",
@@ -132,10 +132,12 @@ def mc_options(decl: dict, where: str) -> dict:
     return o
 
 
-def _memory(steps, n, filters, dynamics):
+def _memory(steps, truth, filters, dynamics):
     """The setup, and one case at a time: truth and filter histories and the feedback filter's own P."""
+    n = truth.n
     worst = max(filters, default=n)
-    return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=[n, worst, worst])
+    return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=[n, worst, worst],
+                           noise=noise_columns(truth))
 
 
 def _chunks(runs: int, per: int) -> list[int]:

@@ -35,7 +35,7 @@ from ..errors import StudyFileError
 from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics
 from ..results import StudyResult
-from .common import (check_memory, history_frame, load_truth, memory_estimate, report_times, resource_provenance,
+from .common import (check_memory, history_frame, load_truth, memory_estimate, noise_columns, report_times, resource_provenance,
                      steps_of, study_header, study_inputs, summary_row, time_grid, truth_system)
 
 
@@ -69,7 +69,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     every, rtimes = output_options(decl, where, hdr["duration"])
     t0 = time.perf_counter()
     truth = load_truth(decl, where, base_dir)
-    est = check_memory(memory_estimate(steps_of(hdr["duration"], hdr["dt"]), truth.n, histories=[truth.n]),
+    est = check_memory(memory_estimate(steps_of(hdr["duration"], hdr["dt"]), truth.n, histories=[truth.n],
+                                       noise=noise_columns(truth)),
                        where, hdr["max_memory"], "a larger [study] dt or a shorter duration")
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"])

@@ -73,7 +73,7 @@ from ..io.config import LIMITS, boolean, check_keys, choice, integer, names, num
 from ..metrics import nav_metrics
 from ..results import StudyResult
 from ..sensitivity import PARAMETERS, fit_loglog, scale_grid, sensitivity_figures, sweep_cases, run_sweep
-from .common import ARCMIN, FT, memory_estimate, progress_bar, resource_provenance, study_inputs
+from .common import ARCMIN, FT, memory_estimate, noise_columns, progress_bar, resource_provenance, study_inputs
 from .zupt import setup
 
 SWEEP_KEYS = {"parameters", "scales", "fit_degree", "discretization"}
@@ -140,9 +140,9 @@ def cost_options(cfg: dict, where: str) -> dict:
     return {"measure": measure, "repeats": rep, "taylor_order": order, "paper_seconds": dict(paper)}
 
 
-def _memory(steps, n, filters, dynamics):
+def _memory(steps, truth, filters, dynamics):
     """A sweep holds the setup (truth and every filter system) and only report-time results."""
-    return memory_estimate(steps, n, filters=filters, dynamics=dynamics)
+    return memory_estimate(steps, truth.n, filters=filters, dynamics=dynamics, noise=noise_columns(truth))
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:

@@ -81,7 +81,7 @@ from ..io.config import LIMITS, boolean, check_keys, number, quantity, string, t
 from ..metrics import nav_metrics
 from ..results import StudyResult
 from ..units import DIMENSIONS
-from .common import (FT, ARCMIN, check_memory, load_truth, memory_estimate, resource_provenance, steps_of,
+from .common import (FT, ARCMIN, check_memory, load_truth, memory_estimate, noise_columns, resource_provenance, steps_of,
                      study_header, study_inputs, summary_row, time_grid)
 from .nav_covariance import load_trajectory, output_options
 from .zupt import _filters_file, filter_cases, filter_dynamics, setup, zupt_schedule
@@ -353,6 +353,7 @@ class TradePlan:
         updates = max(self.updates.values(), default=0)
         extra = per * (6 * n * n + 6 * nf * nf + 3 * updates * nf) * 8
         return memory_estimate(steps, n, filters=list(self.states.values()), dynamics=self.dynamics,
+                               noise=noise_columns(self.truth_decl),
                                extra=extra, parallel=max(1, min(workers, len(self.chunks))))
 
     def manifest(self, decl: dict) -> dict:

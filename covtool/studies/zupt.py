@@ -43,6 +43,7 @@ from ..io.config import boolean, check_keys, names, quantity, resolve_input, tab
 from ..metrics import nav_metrics
 from ..results import StudyResult
 from .common import (ARCMIN, FT, check_memory, discretize_chunked, history_frame, load_truth, memory_estimate,
+                     noise_columns,
                      progress_bar, resource_provenance, steps_of, study_header, study_inputs, summary_row, time_grid,
                      truth_system)
 from .nav_covariance import load_trajectory, output_options
@@ -244,7 +245,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
     Parameters
     ----------
     memory : callable, optional
-        ``memory(steps, n, filter_sizes, dynamics) -> dict`` from
+        ``memory(steps, truth, filter_sizes, dynamics) -> dict`` from
         :func:`covtool.studies.common.memory_estimate`: what the calling
         study holds at its peak.  Checked against the memory limit before
         anything is built; ``None`` skips the check (a worker of a plan
@@ -270,7 +271,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
     cases = filter_cases(fcfg, specs, ffile, where)
     est = {}
     if memory is not None:
-        est = check_memory(memory(steps_of(hdr["duration"], hdr["dt"]), truth.n, [specs[c].n for c in cases],
+        est = check_memory(memory(steps_of(hdr["duration"], hdr["dt"]), truth, [specs[c].n for c in cases],
                                   filter_dynamics(specs, cases)), where, hdr["max_memory"], shrink)
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"])
@@ -288,9 +289,11 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
 
 def order_memory(pure: bool):
     """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter)."""
-    def memory(steps, n, filters, dynamics):
+    def memory(steps, truth, filters, dynamics):
+        n = truth.n
         hist = ([n] if pure else []) + [m for nf in filters for m in (n, nf)]
-        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=hist)
+        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=hist,
+                               noise=noise_columns(truth))
     return memory
 
 
