@@ -306,10 +306,10 @@ def resolve_input(value, base_dir, where: str, error=InputError, *, what: str = 
         p = (Path(base_dir) if base_dir is not None else Path.cwd()) / p
     p = Path(os.path.abspath(p))
     if must_exist and not p.is_file():
-        raise error(where, f"no such {what} {str(p)!r}" + (f" ({value!r} is resolved against "
-                                                              f"{str(Path(p).parent)!r}, the directory of the "
-                                                              "file that names it)" if not Path(value).is_absolute()
-                                                              and base_dir is not None else ""))
+        why = ""
+        if not Path(value).expanduser().is_absolute() and base_dir is not None:
+            why = f" ({value!r} is resolved against {os.path.abspath(base_dir)!r}, the directory of the file that names it)"
+        raise error(where, f"no such {what} {str(p)!r}{why}")
     return p
 
 
