@@ -54,7 +54,7 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     for k, v in overrides.items():
         study[k] = v
     kind = study["kind"]
-    if kind not in RUNNERS:
+    if not isinstance(kind, str) or kind not in RUNNERS:
         raise StudyFileError(f"{where}: [study]", f"unknown kind {kind!r} (one of: {', '.join(sorted(RUNNERS))})")
     module = importlib.import_module(RUNNERS[kind])
     accepts = inspect.signature(module.run).parameters
