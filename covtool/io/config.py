@@ -1,7 +1,13 @@
-"""TOML loading and small validation helpers shared by model and study files.
+"""TOML loading and the typed field helpers every parser uses.
 
-Each helper takes ``where`` (``"<file>: <section>"``) and an exception class so
-that every message names the file, the field and the problem.
+Each helper takes ``where`` (``"<file>: <section> <key>"``) and an exception
+class so that every message names the file, the field and the problem:
+:func:`integer`, :func:`number`, :func:`boolean`, :func:`string`,
+:func:`choice`, :func:`names`, :func:`quantity` (finite SI values from
+datasheet strings), :func:`quantities`, :func:`quantity_list`, :func:`table`.
+:data:`LIMITS` holds the upper limit of every count, rate and order with
+its reason.  :func:`resolve_input` resolves a file named in another file
+against that file's directory.
 """
 
 from __future__ import annotations
@@ -70,13 +76,6 @@ class Bound:
     hi: float | None
     reason: str = ""
 
-    def text(self) -> str:
-        if self.lo is not None and self.hi is not None:
-            return f"{_g(self.lo)}..{_g(self.hi)}"
-        if self.lo is not None:
-            return f">= {_g(self.lo)}"
-        return f"<= {_g(self.hi)}"
-
 
 def _g(x) -> str:
     return f"{x:,}".replace(",", "_") if isinstance(x, int) and abs(x) >= 10_000 else f"{x:g}"
@@ -108,17 +107,11 @@ LIMITS: dict[str, Bound] = {
     "kimu_ratio": Bound(1, 1_000, "KIMU samples per main-IMU sample"),
     "imu_rate": Bound(1e-3, 1e5, "no strapdown IMU outputs faster than 100 kHz, and the simulator "
                                   "generates every sample"),
-    "zupt_updates": Bound(1, 10_000_000, "each ZUPT is one Kalman update per filter case"),
     "report_times": Bound(1, 10_000, "each report time is one summary row per case"),
     "filter_scale": Bound(1e-6, 1e6, "six decades either side of the nominal filter; further out the gains "
                                      "have long saturated (K -> 0 or K -> the inverse of H)"),
     "grade_scale": Bound(1e-6, 1e6, "six decades either side of the truth model's sensor errors"),
 }
-
-
-def bound(name: str) -> Bound:
-    """The :data:`LIMITS` entry ``name``."""
-    return LIMITS[name]
 
 
 def _range_problem(value, lo, hi, why: str, kind: str) -> str:

@@ -129,10 +129,10 @@ def cost_options(cfg: dict, where: str) -> dict:
     measure = boolean(cfg.get("measure", True), f"{w} measure", StudyFileError)
     rep = integer(cfg.get("repeats", 7), f"{w} repeats", StudyFileError, limit="repeats")
     order = cfg.get("taylor_order", "auto")
-    if order != "auto":
-        if isinstance(order, str):
-            raise StudyFileError(f"{w} taylor_order", f"{order!r} is not 'auto' or an integer in 2..40")
-        order = integer(order, f"{w} taylor_order", StudyFileError, limit="taylor_order")
+    lim = LIMITS["taylor_order"]
+    if order != "auto" and (type(order) is not int or not lim.lo <= order <= lim.hi):
+        raise StudyFileError(f"{w} taylor_order", f"{order!r} is not 'auto' or an integer in {lim.lo}..{lim.hi} "
+                             f"({lim.reason})")
     paper = table(cfg.get("paper_seconds", dict(flops.PAPER_TABLE4_SECONDS)), f"{w} paper_seconds",
                   StudyFileError)
     for k, v in paper.items():

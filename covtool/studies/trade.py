@@ -283,7 +283,7 @@ class TradePlan:
             boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
         self.filter_file = _filters_file(fcfg, where, base_dir)
         specs = load_filters(self.filter_file, truth)
-        self.filters = filter_cases(fcfg, specs, self.filter_file, where)
+        self.filters = filter_cases(fcfg, specs, self.filter_file, where, nonempty=True)
         self.states = {c: specs[c].n for c in self.filters}
         n_cases = len(self.grades) * len(self.intervals) * len(self.filters) * len(self.sigmas) * \
             len(self.p0_scales) * len(self.q_scales) * len(self.r_scales)

@@ -142,11 +142,14 @@ def _filters_file(cfg, where, base_dir) -> Path:
     return resolve_input(cfg["file"], base_dir, f"{where}: [filters] file", StudyFileError, what="filter file")
 
 
-def filter_cases(fcfg: dict, specs: dict, ffile, where: str) -> list:
-    """``[filters] cases``: declared filter names, each once (default: every filter)."""
+def filter_cases(fcfg: dict, specs: dict, ffile, where: str, *, nonempty: bool = False) -> list:
+    """``[filters] cases``: declared filter names, each once (default: every filter).
+
+    An empty list is allowed unless ``nonempty`` (a pure-INS-only run).
+    """
     if "cases" not in fcfg:
         return list(specs)
-    return names(fcfg["cases"], f"{where}: [filters] cases", StudyFileError, known=list(specs),
+    return names(fcfg["cases"], f"{where}: [filters] cases", StudyFileError, known=list(specs), nonempty=nonempty,
                  what="filter")
 
 
