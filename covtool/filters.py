@@ -10,7 +10,8 @@ Filter file (``models/filters/*.toml``)::
 
     [[filter]]
     name = "B1"
-    truth = "sdins58"                 # the truth model it is a projection of
+    truth = "sdins58"                 # the truth model it is a projection of: a library name, or a
+                                      # path relative to this file ("../sdins58.toml")
     description = "22 states, eq (14)"
     keep = ["nav", "acc_bias", "gyro_bias", "acc_sf", "gyro_sf"]   # blocks or states
     # base = "B1"; drop = [...]       # or derive from another filter
