@@ -350,6 +350,12 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         return _compose_noise(Phi, F, factors, dt, ev, chunk, tol)
 
 
+#: bytes the per-source series of :func:`compose_noise` may hold at once
+COMPOSE_WORKSPACE = 32e6
+#: (chunk, k, n, n)-sized stacks alive at once inside :func:`discretize_noise` and the reduction
+_STACKS = 6
+
+
 def _compose_noise(Phi, F, factors, dt, ev, chunk, tol):
     N, n, _ = Phi.shape
     J = len(factors)
@@ -364,6 +370,8 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk, tol):
     psd = np.concatenate([f.psd for f in factors], axis=1)
     acc = np.zeros((J, n, n))
     i = 0
+    # the series' stacks are (chunk, k, n, n) and (chunk, k, n, terms): bound them by COMPOSE_WORKSPACE
+    chunk = max(1, min(chunk, int(COMPOSE_WORKSPACE // (_STACKS * 8 * G.shape[2] * n * n))))
     for a in range(0, N, chunk):
         b = min(N, a + chunk)
         Qk = discretize_noise(F[a:b], G[a:b], psd[a:b], dt[a:b], tol=tol)   # (c, k, n, n)

@@ -44,6 +44,7 @@ import numpy as np
 from . import earth
 from . import quaternion as quat
 from .errors import TrajectoryError
+from .io.config import LIMITS, quantity
 from .trajectory import Trajectory, inverse_mechanization
 from .trajectory import _check_keys as _check  # validation helpers shared with trajectories
 from .trajectory import _q
@@ -705,11 +706,15 @@ def flight_from_config(cfg: dict, *, where: str, dt: float, name: str | None = N
             for key in ("kind", "axis", "amplitude", "frequency"):
                 if key not in tc:
                     raise TrajectoryError(wt, f"missing required key {key!r}")
-            if tc["kind"] not in _TONE_DIMS:
+            if not isinstance(tc["kind"], str) or tc["kind"] not in _TONE_DIMS:
                 raise TrajectoryError(f"{wt}: kind", f"{tc['kind']!r} is not 'angular' or 'linear'")
+            # the increment quadrature takes nodes in proportion to the highest tone frequency
+            lim = LIMITS["imu_rate"]
+            freq = quantity(tc["frequency"], "frequency", f"{wt}: frequency", TrajectoryError, positive=True,
+                            hi=lim.hi, why="the IMU increments are integrated through every tone cycle")
             tones.append(VibrationTone(tc["kind"], tc["axis"], _q(tc["amplitude"], _TONE_DIMS[tc["kind"]],
                                                                    f"{wt}: amplitude"),
-                                       _q(tc["frequency"], "frequency", f"{wt}: frequency"),
+                                       freq,
                                        _q(tc.get("phase", 0.0), "angle", f"{wt}: phase")))
         vibration.append(VibrationInterval(vv["start"], vv["duration"], vv.get("ramp", 1.0), tuple(tones)))
     return flight(segments, lat=iv["lat"], lon=iv["lon"], h=iv["h"], heading=iv.get("heading", 0.0),

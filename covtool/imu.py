@@ -51,6 +51,7 @@ from __future__ import annotations
 
 import copy
 import math
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -58,13 +59,13 @@ import numpy as np
 import tomli_w
 
 from . import quaternion as quat
-from .errors import ModelFileError, UnitError
-from .io.config import as_list, check_keys, load_toml
+from .errors import ModelFileError
+from .io.config import LIMITS, as_list, check_keys, is_library_name, load_toml, quantity, resolve_input, string
+from .io.config import table as as_table
 from .io.names import check_name
 from .model.blocks import BLOCK_KINDS, gravity_sensitivity
 from .model.loader import model_from_dict
 from .model.spec import Model
-from .units import parse_quantity
 
 __all__ = [
     "ImuRecord", "ideal_increments", "ImuGrade", "load_imu_grade", "imu_grade_from_dict", "dump_imu_grade",
@@ -342,13 +343,6 @@ def list_imu_grades(directory=None) -> list[str]:
     return sorted(p.stem for p in imu_grade_dir(directory).glob("*.toml"))
 
 
-def _quantity(value, dim, where):
-    try:
-        return parse_quantity(value, dim, where=where)
-    except UnitError as exc:
-        raise ModelFileError(exc.where, exc.problem) from None
-
-
 def imu_grade_from_dict(decl: dict, *, path: str = "<dict>") -> ImuGrade:
     """Validate a grade declaration.
 
@@ -385,16 +379,19 @@ def imu_grade_from_dict(decl: dict, *, path: str = "<dict>") -> ImuGrade:
     if not isinstance(name, str) or not name:
         raise ModelFileError(f"{file}: [imu] name", "missing or not a non-empty string")
     check_name(name, f"{file}: [imu] name", ModelFileError, what="IMU grade name")
+    for key in ("description", "source"):
+        if key in meta:
+            string(meta[key], f"{file}: [imu] {key}", ModelFileError)
     rate = None
     if "rate" in meta:
-        rate = _quantity(meta["rate"], "frequency", f"{file}: [imu] rate")
-        if not rate > 0:
-            raise ModelFileError(f"{file}: [imu] rate", f"{meta['rate']!r} must be positive")
+        lim = LIMITS["imu_rate"]
+        rate = quantity(meta["rate"], "frequency", f"{file}: [imu] rate", ModelFileError, positive=True,
+                        hi=lim.hi, why=lim.reason)
     sources = {}
     parsed = {}
     for sensor, keys in (("gyro", GYRO_KEYS), ("accel", ACCEL_KEYS)):
-        table = decl.get(sensor, {})
         where = f"{file}: [{sensor}]"
+        table = as_table(decl.get(sensor, {}), where, ModelFileError)
         check_keys(table, set(keys) | {"source"}, where, ModelFileError)
         out = {}
         for key, (dim, count) in keys.items():
@@ -407,11 +404,8 @@ def imu_grade_from_dict(decl: dict, *, path: str = "<dict>") -> ImuGrade:
                 vals = [table[key]]
             else:
                 vals = as_list(table[key], count, w, ModelFileError)
-            si = tuple(_quantity(v, dim, w) for v in vals)
-            if any(x < 0 for x in si):
-                raise ModelFileError(w, f"{table[key]!r} is negative")
-            if key in _POSITIVE and not all(x > 0 for x in si):
-                raise ModelFileError(w, f"{table[key]!r} must be positive")
+            si = tuple(quantity(v, dim, w, ModelFileError, nonnegative=True, positive=key in _POSITIVE)
+                       for v in vals)
             out[key] = si
         if ("bias_instability" in out) != ("bias_instability_tau" in out):
             raise ModelFileError(f"{file}: [{sensor}]", "give 'bias_instability' together with "
@@ -427,23 +421,30 @@ def imu_grade_from_dict(decl: dict, *, path: str = "<dict>") -> ImuGrade:
                     sources, copy.deepcopy(decl))
 
 
-def load_imu_grade(name_or_path, directory=None) -> ImuGrade:
-    """Load a grade by name (``"kimu"``) or path.
+def load_imu_grade(name_or_path, directory=None, *, base_dir=None) -> ImuGrade:
+    """Load a grade by library name (``"kimu"``) or by path.
+
+    A bare name (no suffix, no separator) is looked up in the grade library
+    (:func:`imu_grade_dir`); anything else is a path, relative to
+    ``base_dir`` (the directory of the file that names it; the current
+    directory when none does).
 
     Raises
     ------
     ModelFileError
         No such grade (naming where it looked), or an invalid file.
     """
-    p = Path(name_or_path)
-    if p.suffix == ".toml" and p.is_file():
-        path = p
-    else:
+    if isinstance(name_or_path, Path):
+        name_or_path = str(name_or_path)
+    if isinstance(name_or_path, str) and is_library_name(name_or_path):
         path = imu_grade_dir(directory) / f"{name_or_path}.toml"
         if not path.is_file():
             known = ", ".join(list_imu_grades(directory)) or "none"
             raise ModelFileError(str(name_or_path), f"no such IMU grade (looked in {path.parent}; "
                                  f"known: {known})")
+        path = Path(os.path.abspath(path))
+    else:
+        path = resolve_input(name_or_path, base_dir, str(name_or_path), ModelFileError, what="IMU grade file")
     return imu_grade_from_dict(load_toml(path, ModelFileError), path=str(path))
 
 

@@ -62,7 +62,7 @@ from scipy.integrate import solve_ivp
 from . import earth
 from . import quaternion as quat
 from .errors import TrajectoryError
-from .io.config import check_keys, quantity
+from .io.config import check_keys, integer, quantity, resolve_input
 from .io.csv_table import read_numeric_csv
 
 __all__ = [
@@ -985,15 +985,12 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
         return from_segments(cfg["segment"], cfg["initial"], dt=dt, name=name or "segments", where=where)
     if source == "csv":
         _check_keys(cfg, ("csv", "name", "max_gap"), where)
-        if not isinstance(cfg["csv"], str):
-            raise TrajectoryError(f"{where}: csv", f"{cfg['csv']!r} is not a file name")
         max_gap = None
         if "max_gap" in cfg:
             max_gap = _q(cfg["max_gap"], "time", f"{where}: max_gap")
             _positive(max_gap, f"{where}: max_gap")
-        path = Path(cfg["csv"])
-        if not path.is_absolute() and base_dir is not None:
-            path = Path(base_dir) / path
+        # relative to the study file that names it, never the current directory
+        path = resolve_input(cfg["csv"], base_dir, f"{where}: csv", TrajectoryError, must_exist=False)
         try:
             traj = load_trajectory_csv(path, max_gap=max_gap)
         except TrajectoryError as exc:
@@ -1012,9 +1009,11 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
         if key not in cfg:
             continue
         if dim == "int":
-            params[key] = cfg[key]
+            params[key] = integer(cfg[key], f"{w}: {key}", TrajectoryError, limit=key)
         else:
             params[key] = _q(cfg[key], dim, f"{w}: {key}")
+    if "lon" in params and not abs(params["lon"]) <= math.pi:
+        raise TrajectoryError(f"{w}: lon", f"{cfg['lon']!r} is not within ±180 deg")
     if builtin == "static":
         for key in ("lat", "lon", "h"):
             if key not in params:

@@ -88,6 +88,7 @@ DIMENSIONS: dict[str, tuple[str, tuple[int, ...]]] = {
     "g_sensitivity": ("rad/s/(m/s**2)", (1,)),
     "g2_sensitivity": ("rad/s/(m/s**2)**2", (1,)),
     "inverse_acceleration": ("s**2/m", (0,)),   # a scale factor per g: '1000 ppm/g'
+    "memory": ("bit", (0,)),                    # a memory limit ('6 GB', '512 MiB'); pint's base is the bit
 }
 
 _RADIAN = "radian"

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy import stats
 
 import covtool
 from covtool import montecarlo as mc
@@ -398,14 +397,14 @@ def test_validation_study_declares_the_acceptance_case():
     ({"monte_carlo": None}, r"missing \[monte_carlo\] table"),
     ({"monte_carlo": {}}, "missing required key 'runs'"),
     ({"monte_carlo": {"runs": 10, "bogus": 1}}, "unknown key 'bogus'"),
-    ({"monte_carlo": {"runs": 1}}, r"runs: 1 is not an integer >= 2"),
+    ({"monte_carlo": {"runs": 1}}, r"runs: 1 is not an integer in 2\.\.10_000"),
     ({"monte_carlo": {"runs": 10.5}}, "runs: 10.5 is not an integer"),
     ({"monte_carlo": {"runs": 10, "runs_per_chunk": 0}}, "runs_per_chunk: 0 is not an integer"),
-    ({"monte_carlo": {"runs": 10, "samples_per_step": 7}}, r"samples_per_step: 7 is not an integer 1\.\.6"),
+    ({"monte_carlo": {"runs": 10, "samples_per_step": 7}}, r"samples_per_step: 7 is not an integer in 1\.\.6"),
     ({"monte_carlo": {"runs": 10, "imu_rate": "100 m/s"}}, "imu_rate"),
     ({"monte_carlo": {"runs": 10, "imu_rate": "90 Hz"}}, "puts 90 samples into one grid step"),
     ({"monte_carlo": {"runs": 10, "imu_rate": "100.5 Hz"}}, "must be a whole multiple of samples_per_step"),
-    ({"monte_carlo": {"runs": 10, "confidence": 1.5}}, "confidence: 1.5 is not a number between 0 and 1"),
+    ({"monte_carlo": {"runs": 10, "confidence": 1.5}}, "confidence: 1.5 is not a number > 0 and < 1"),
     ({"monte_carlo": {"runs": 10, "sensor_noise": "yes"}}, "sensor_noise: 'yes' is not true or false"),
     ({"monte_carlo": {"runs": 10, "nees_every": "-1 s"}}, "nees_every: '-1 s' must be positive"),
     ({"monte_carlo": {"runs": 10, "process_dt": "3 m"}}, "process_dt"),

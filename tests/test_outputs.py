@@ -233,7 +233,7 @@ def test_every_shipped_name_is_accepted():
     (lambda d: d["model"].update(name="=4+4"), r"\[model\] name: '=4\+4' is not a valid model name"),
     (lambda d: d["model"].update(name=5), r"\[model\] name: 5 is not a string"),
     (lambda d: d["block"][1].update(names=['=HYPERLINK("http://x","y")', "=1+1", "@SUM(1,2)"]),
-     r"block 'acc_bias': names: '=HYPERLINK.*is not a valid state name"),
+     r"names: '=HYPERLINK.*is not a valid state name"),
     (lambda d: d["block"][1].update(name="acc bias"), r"block 2 \(acc bias\): name: 'acc bias' is not a valid block"),
     (lambda d: d["block"][0].update(name="=nav"), r"block 1 \(=nav\): name: '=nav' is not a valid block name"),
     (lambda d: d["block"][1].update(name="a" * 64), r"is not a valid state name"),   # 64 + '_x' > 64

@@ -92,7 +92,7 @@ def test_only_and_override_select_error_sources():
     (lambda d: d["truth"].update(override={"acc_bias_x": {"sigma": "20 deg"}}),
      r"\[truth.override.acc_bias_x\] sigma: '20 deg' is not an acceleration"),
     (lambda d: d["study"].update(kind="puer_ins"), r"unknown kind 'puer_ins'"),
-    (lambda d: d["study"].update(discretization="euler"), r"'euler' is not 'van_loan' or 'taylor'"),
+    (lambda d: d["study"].update(discretization="euler"), r"discretization: 'euler' is not one of: 'van_loan', 'taylor'"),
 ])
 def test_study_file_errors(mutate, match):
     d = short()

@@ -341,7 +341,7 @@ SEG = [{"kind": "stand", "duration": "90 s"}]
     ({}, r"give exactly one of .* \(got none\)"),
     ({"builtin": "land_vehicle", "stop_duration": "90 m"}, "stop_duration: '90 m' is not a time"),
     ({"builtin": "land_vehicle", "stop_duration": "-90 s"}, "stop_duration: must be positive"),
-    ({"builtin": "land_vehicle", "cycles": "6"}, "cycles: '6' is not a positive integer"),
+    ({"builtin": "land_vehicle", "cycles": "6"}, "cycles: '6' is not an integer in 1..1000"),
     ({"builtin": "land_vehicle", "lat": "90 deg"}, "lat: 90 deg is not within"),
     ({"builtin": "land_vehicle", "speed": "9 furlongs"}, "unknown key 'speed'"),
     ({"builtin": "static", "lat": "45 deg", "lon": "0 deg"}, "static': missing required key 'h'"),

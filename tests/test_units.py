@@ -39,6 +39,8 @@ HAND = {
     "deg/h/g": (DEG / 3600 / G, "g_sensitivity"),
     "deg/h/g**2": (DEG / 3600 / G**2, "g2_sensitivity"),
     "min": (60.0, "time"),
+    "GB": (8e9, "memory"),               # the unit layer's memory is in bits (pint's base)
+    "MiB": (8 * 2.0**20, "memory"),
     "h": (3600.0, "time"),
     "s": (1.0, "time"),
     "km": (1000.0, "length"),

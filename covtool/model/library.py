@@ -8,17 +8,19 @@ from pathlib import Path
 import pandas as pd
 
 from ..errors import ModelFileError
+from ..io.config import is_library_name, resolve_input
 from .loader import load_model
 
 
 def default_model_dir() -> Path:
-    """The ``models/`` directory: ``$COVTOOL_MODELS``, else ``./models``, else the repo's."""
+    """The model library: ``$COVTOOL_MODELS``, else the ``models/`` shipped with covtool.
+
+    Never the current directory: a study must give the same answer
+    wherever it is run from.
+    """
     env = os.environ.get("COVTOOL_MODELS")
     if env:
         return Path(env)
-    cwd = Path.cwd() / "models"
-    if cwd.is_dir():
-        return cwd
     return Path(__file__).resolve().parents[2] / "models"
 
 
@@ -28,26 +30,44 @@ def model_files(directory=None) -> list[Path]:
     return sorted(p for p in d.glob("*.toml"))
 
 
-def resolve_model_path(name_or_path, directory=None, *, base_dir=None) -> Path:
-    """Find a model by name (``sdins58``) or path (``models/sdins58.toml``)."""
-    p = Path(name_or_path)
-    candidates = []
-    if p.suffix == ".toml":
-        candidates += [p] + ([Path(base_dir) / p] if base_dir else [])
-        candidates += [Path(base_dir) / ".." / p] if base_dir else []
-    d = Path(directory) if directory else default_model_dir()
-    candidates.append(d / f"{name_or_path}.toml")
-    if base_dir:
-        candidates.append(Path(base_dir).parent / "models" / f"{name_or_path}.toml")
-    for c in candidates:
+def resolve_model_path(name_or_path, directory=None, *, base_dir=None, where=None) -> Path:
+    """Absolute path of a model given by library name or by path.
+
+    Parameters
+    ----------
+    name_or_path : str or Path
+        A bare library name (``"sdins58"``: no suffix, no separator) is
+        looked up in ``directory`` (default :func:`default_model_dir`).
+        Anything else is a path; a relative one resolves against
+        ``base_dir``, the directory of the file that names it (the current
+        directory only when no file names it: the command line, a dict).
+    where : str, optional
+        Error-message location (default: the name itself).
+
+    Raises
+    ------
+    ModelFileError
+        No such model, naming where it looked.
+    """
+    w = where or str(name_or_path)
+    if isinstance(name_or_path, Path):
+        name_or_path = str(name_or_path)
+    if not isinstance(name_or_path, str) or not name_or_path.strip():
+        raise ModelFileError(w, f"{name_or_path!r} is not a model name or file")
+    if is_library_name(name_or_path):
+        d = Path(directory) if directory else default_model_dir()
+        c = d / f"{name_or_path}.toml"
         if c.is_file():
-            return c
-    raise ModelFileError(str(name_or_path), f"no such model (looked in {d})")
+            return Path(os.path.abspath(c))
+        known = ", ".join(p.stem for p in model_files(d)) or "none"
+        raise ModelFileError(w, f"no such model {name_or_path!r} in the library {str(d)!r} (known: {known}); "
+                             "a file needs a path, e.g. 'm.toml'")
+    return resolve_input(name_or_path, base_dir, w, ModelFileError, what="model file")
 
 
-def load_model_by_name(name_or_path, directory=None, *, base_dir=None):
-    """Load a library model by name or path."""
-    return load_model(resolve_model_path(name_or_path, directory, base_dir=base_dir))
+def load_model_by_name(name_or_path, directory=None, *, base_dir=None, where=None):
+    """Load a library model by name or path (see :func:`resolve_model_path`)."""
+    return load_model(resolve_model_path(name_or_path, directory, base_dir=base_dir, where=where))
 
 
 def list_models(directory=None) -> pd.DataFrame:

@@ -44,10 +44,10 @@ import re
 import numpy as np
 import tomli_w
 
-from ..errors import ModelFileError, UnitError
-from ..io.config import as_list, check_keys, load_toml
+from ..errors import ModelFileError
+from ..io.config import as_list, check_keys, choice, load_toml, number, quantity, string
+from ..units import DIMENSIONS, is_unit
 from ..io.names import check_name
-from ..units import DIMENSIONS, is_unit, parse_quantity
 from .blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
 from .spec import PROCESSES, Model, State
 
@@ -65,6 +65,9 @@ DEFAULT_UNITS = {
 }
 _NUM = re.compile(r"^\s*[-+]?(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?\s*(.*)$")
 
+#: process parameter -> the only process that uses it
+_PROCESS_KEYS = {"tau": "markov", "distance": "markov_distance", "rw": "random_walk"}
+
 # dimension of the random-walk intensity (root-PSD) for a state dimension
 _RW_DIM = {"angular_rate": "rate_random_walk", "acceleration": "acceleration_random_walk",
            "velocity": "velocity_random_walk", "angle": "angle_random_walk"}
@@ -79,29 +82,25 @@ def _unit_of(text, dimension: str) -> str:
 
 
 def _sigma(value, dim, where) -> float:
-    try:
-        x = parse_quantity(value, dim, where=where)
-    except UnitError as exc:
-        raise ModelFileError(exc.where, exc.problem) from None
-    if x < 0:
-        raise ModelFileError(where, f"{value!r} is negative; a standard deviation must be >= 0")
+    """A finite standard deviation >= 0 (quaternion components also <= 1)."""
+    x = quantity(value, dim, where, ModelFileError, nonnegative=True)
+    if dim == "quaternion" and x > 1.0:
+        raise ModelFileError(where, f"{value!r} is above 1; a unit quaternion's component cannot exceed 1")
     return x
 
 
 def _positive(value, dim, where) -> float:
-    try:
-        x = parse_quantity(value, dim, where=where)
-    except UnitError as exc:
-        raise ModelFileError(exc.where, exc.problem) from None
-    if not x > 0:
-        raise ModelFileError(where, f"{value!r} must be positive")
-    return x
+    return quantity(value, dim, where, ModelFileError, positive=True)
+
+
+def _source(b: dict, where: str) -> str:
+    return string(b.get("source", ""), f"{where}: source", ModelFileError)
 
 
 def _nav_states(b: dict, where: str) -> tuple[list[State], float, float]:
     check_keys(b, _NAV_KEYS, where, ModelFileError)
-    src = b.get("source", "")
-    check_name(b.get("name", "nav"), f"{where}: name", ModelFileError, what="block name")
+    src = _source(b, where)
+    block_name = check_name(b.get("name", "nav"), f"{where}: name", ModelFileError, what="block name")
     pos = as_list(b.get("position_sigma", 0.0), 3, f"{where}: position_sigma", ModelFileError)
     vel = as_list(b.get("velocity_sigma", 0.0), 3, f"{where}: velocity_sigma", ModelFileError)
     qs = as_list(b.get("quaternion_sigma", 0.0), 4, f"{where}: quaternion_sigma", ModelFileError)
@@ -110,7 +109,7 @@ def _nav_states(b: dict, where: str) -> tuple[list[State], float, float]:
     for k, (name, sym, dim, meaning, v) in enumerate(zip(NAV_STATES, NAV_SYMBOLS, NAV_DIMS, NAV_MEANING, values)):
         w = f"{where.split(':')[0]}: state {name!r}: sigma"
         sig = _sigma(v, dim, w)
-        states.append(State(name, sym, b.get("name", "nav"), "navigation", meaning, dim,
+        states.append(State(name, sym, block_name, "navigation", meaning, dim,
                             _unit_of(v, dim) if dim != "quaternion" else _unit_of(v, dim),
                             sig, "navigation", source=src))
     arw = _sigma(b.get("angle_random_walk", 0.0), "angle_random_walk", f"{where}: angle_random_walk")
@@ -129,12 +128,18 @@ def _block_states(b: dict, where: str, file: str) -> list[State]:
         names = [f"{prefix}_{s}" for s in bk.suffixes]
     else:
         names = as_list(names, n, f"{where}: names", ModelFileError)
-    process = b.get("process", "constant")
-    if process not in PROCESSES:
-        raise ModelFileError(f"{where}: process", f"unknown process {process!r} (one of: {', '.join(PROCESSES)})")
+        for nm in names:
+            check_name(nm, f"{where}: names", ModelFileError, what="state name")
+    process = choice(b.get("process", "constant"), PROCESSES, f"{where}: process", ModelFileError)
     if process not in bk.processes:
         raise ModelFileError(f"{where}: process", f"{process!r} is not allowed for kind {kind!r} "
                              f"(allowed: {', '.join(bk.processes)})")
+    # a parameter of another process would be silently ignored: refuse it, naming the process
+    for key, needs in _PROCESS_KEYS.items():
+        if key in b and process != needs:
+            raise ModelFileError(f"{where}: {key}", f"'{key}' applies only to process {needs!r}; the states "
+                                 f"{', '.join(names)} follow process {process!r}")
+    source = _source(b, where)
     if "board" in b:
         if kind != "ad_reset_velocity":
             raise ModelFileError(f"{where}: board", "'board' parameters apply only to kind 'ad_reset_velocity'")
@@ -152,7 +157,7 @@ def _block_states(b: dict, where: str, file: str) -> list[State]:
         sw = f"{file}: state {name!r}"
         sigma = _sigma(sig[k], dim, f"{sw}: sigma")
         unit = units[k] if units[k] is not None else _unit_of(sig[k], dim)
-        if units[k] is not None and not is_unit(unit, dim):
+        if units[k] is not None and (not isinstance(unit, str) or not is_unit(unit, dim)):
             raise ModelFileError(f"{sw}: unit", f"{unit!r} is not a unit of {dim.replace('_', ' ')}")
         tau = dist = None
         rw = 0.0
@@ -169,7 +174,7 @@ def _block_states(b: dict, where: str, file: str) -> list[State]:
         axis = bk.suffixes[k]
         meaning = bk.meaning.format(axis=axis)
         out.append(State(name, bk.symbols[k], prefix, kind, meaning, dim, unit, sigma, process,
-                         tau=tau, distance=dist, rw=rw, source=b.get("source", "")))
+                         tau=tau, distance=dist, rw=rw, source=source))
     return out
 
 
@@ -189,11 +194,11 @@ def _board_sigma(board: dict, where: str) -> str:
         if k not in board:
             raise ModelFileError(where, f"missing required key {k!r}")
     sf = _positive(board["sf"], "velocity", f"{where}: sf")
-    n_t, ratio = board["n_t"], board["n_e_ratio"]
-    for k, v in (("n_t", n_t), ("n_e_ratio", ratio)):
-        if not isinstance(v, (int, float)) or isinstance(v, bool) or not v > 0:
-            raise ModelFileError(f"{where}: {k}", f"{v!r} must be a positive number")
-    sigma = velocity_error_sigma(sf, float(n_t), float(ratio) * float(n_t))
+    n_t = number(board["n_t"], f"{where}: n_t", ModelFileError, lo=0.0, lo_open=True)
+    # N_e/N_t: the relative count error the software assumes; at 1 the assumed count is zero
+    ratio = number(board["n_e_ratio"], f"{where}: n_e_ratio", ModelFileError, lo=0.0, hi=1.0, lo_open=True,
+                   hi_open=True)
+    sigma = velocity_error_sigma(sf, n_t, ratio * n_t)
     return f"{sigma * 1e3!r} mm/s"
 
 
@@ -213,6 +218,9 @@ def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
     if "name" not in meta:
         raise ModelFileError(f"{file}: [model]", "missing required key 'name'")
     check_name(meta["name"], f"{file}: [model] name", ModelFileError, what="model name")
+    for key in ("description", "source"):
+        if key in meta:
+            string(meta[key], f"{file}: [model] {key}", ModelFileError)
     blocks = decl.get("block", [])
     if not isinstance(blocks, list) or not blocks:
         raise ModelFileError(file, "no [[block]] declared")
@@ -226,6 +234,8 @@ def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
         where = f"{file}: block {i + 1} ({b.get('name', kind)})"
         if kind is None:
             raise ModelFileError(where, "missing required key 'kind'")
+        if not isinstance(kind, str):
+            raise ModelFileError(f"{where}: kind", f"{kind!r} is not a block kind (a string)")
         if kind == "navigation":
             if seen_nav:
                 raise ModelFileError(where, "a model has exactly one navigation block")
@@ -246,17 +256,28 @@ def model_from_dict(decl: dict, *, path: str = "<dict>") -> Model:
             raise ModelFileError(f"{file}: state {s.name!r}", "duplicate state name")
         seen[s.name] = s
     corr = []
-    for i, c in enumerate(decl.get("correlation", [])):
+    correlations = decl.get("correlation", [])
+    if not isinstance(correlations, list):
+        raise ModelFileError(f"{file}: correlation", "expected an array of tables [[correlation]]")
+    pairs = set()
+    for i, c in enumerate(correlations):
         where = f"{file}: correlation {i + 1}"
         check_keys(c, {"states", "rho"}, where, ModelFileError)
         pair = c.get("states")
         if not isinstance(pair, list) or len(pair) != 2:
             raise ModelFileError(f"{where}: states", "expected a list of two state names")
         for nm in pair:
-            if nm not in seen:
+            if not isinstance(nm, str) or nm not in seen:
                 raise ModelFileError(f"{where}: states", f"unknown state {nm!r}")
-        rho = c.get("rho")
-        if not isinstance(rho, (int, float)) or isinstance(rho, bool) or not -1.0 <= rho <= 1.0:
+        if pair[0] == pair[1]:
+            raise ModelFileError(f"{where}: states", f"{pair[0]!r} twice; a state's correlation with itself is 1")
+        if frozenset(pair) in pairs:
+            raise ModelFileError(f"{where}: states", f"the pair {pair[0]!r}, {pair[1]!r} is correlated twice")
+        pairs.add(frozenset(pair))
+        if "rho" not in c:
+            raise ModelFileError(where, "missing required key 'rho'")
+        rho = c["rho"]
+        if isinstance(rho, bool) or not isinstance(rho, (int, float)) or not -1.0 <= rho <= 1.0:
             raise ModelFileError(f"{where}: rho", f"{rho!r} is not a correlation coefficient in [-1, 1]")
         corr.append((pair[0], pair[1], float(rho)))
     digest = hashlib.sha256(tomli_w.dumps(decl).encode()).hexdigest()

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import copy
 import importlib
+import os
 import inspect
 from pathlib import Path
 
@@ -54,7 +55,7 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     for k, v in overrides.items():
         study[k] = v
     kind = study["kind"]
-    if kind not in RUNNERS:
+    if not isinstance(kind, str) or kind not in RUNNERS:
         raise StudyFileError(f"{where}: [study]", f"unknown kind {kind!r} (one of: {', '.join(sorted(RUNNERS))})")
     module = importlib.import_module(RUNNERS[kind])
     accepts = inspect.signature(module.run).parameters
@@ -69,5 +70,36 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     # parallelism comes from processes (covtool.parallel) instead.
     from threadpoolctl import threadpool_limits
     with threadpool_limits(limits=1, user_api="blas"):
-        return module.run(decl, path=path, progress=progress, **options)
+        result = module.run(decl, path=path, progress=progress, **options)
+    if path is not None:
+        result.resolved = absolute_paths(result.resolved, path.parent)
+    return result
+
+
+def absolute_paths(decl: dict, base_dir) -> dict:
+    """A copy of a study declaration with its input-file paths made absolute.
+
+    Relative paths resolve against ``base_dir`` (the study file's
+    directory), as the runners resolve them, so that the resolved study
+    written beside the results re-runs from anywhere.  Library names
+    (``"sdins58"``) stay names.
+    """
+    from ..io.config import is_library_name
+
+    out = copy.deepcopy(decl)
+
+    def fix(tab, key, library):
+        v = tab.get(key) if isinstance(tab, dict) else None
+        if isinstance(v, str) and v.strip() and not (library and is_library_name(v)):
+            p = Path(v).expanduser()
+            tab[key] = str(Path(os.path.abspath(p if p.is_absolute() else Path(base_dir) / p)))
+
+    fix(out.get("truth"), "model", True)
+    fix(out.get("filters"), "file", False)
+    fix(out.get("trajectory"), "csv", False)
+    imu = out.get("imu")
+    if isinstance(imu, dict):
+        for key in ("main", "kimu"):
+            fix(imu.get(key), "grade", True)
+    return out
 

@@ -28,7 +28,7 @@ from .. import __version__
 from ..board import adreset, alignment as align
 from ..board import output_filter as of
 from ..errors import StudyFileError
-from ..io.config import check_keys, quantity, require
+from ..io.config import check_keys, number, quantity, require, string
 from ..io.names import check_study_name
 from ..results import StudyResult
 from ..units import from_si
@@ -42,12 +42,8 @@ _ROUNDINGS = ("floor", "round", "ceil")
 # --------------------------------------------------------------------------- parsing
 
 
-def _number(value, where: str, *, positive=False, finite=True) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise StudyFileError(where, f"{value!r} is not a number")
-    x = float(value)
-    if finite and not math.isfinite(x):
-        raise StudyFileError(where, f"{value!r} is not finite")
+def _number(value, where: str, *, positive=False) -> float:
+    x = number(value, where, StudyFileError)
     if positive and not x > 0:
         raise StudyFileError(where, f"{value!r} must be positive")
     return x
@@ -108,7 +104,8 @@ def parse(decl: dict, path: Path | None) -> dict:
     check_keys(study, {"kind", "name", "title", "description"}, w, StudyFileError)
     require(study, "name", w, StudyFileError)
     p["name"] = check_study_name(study, f, StudyFileError, default="ad_reset")
-    p["title"] = str(study.get("title", p["name"]))
+    p["title"] = string(study.get("title", p["name"]), f"{w} title", StudyFileError)
+    string(study.get("description", ""), f"{w} description", StudyFileError)
 
     w = f"{f}: [board]"
     board = require(decl, "board", f, StudyFileError)
@@ -180,7 +177,7 @@ def parse(decl: dict, path: Path | None) -> dict:
     p["pre_fc"] = quantity(require(pre, "cutoff", ww, StudyFileError), "frequency", f"{ww} cutoff",
                            StudyFileError, positive=True)
     p["pre_order"] = pre.get("order", 1)
-    if p["pre_order"] not in (1, 2):
+    if type(p["pre_order"]) is not int or p["pre_order"] not in (1, 2):
         raise StudyFileError(f"{ww} order", f"{p['pre_order']!r} must be 1 or 2")
     if not p["pre_fc"] < p["f_nav"] / 2:
         raise StudyFileError(f"{ww} cutoff", "must be below half the navigation rate")
@@ -192,10 +189,12 @@ def parse(decl: dict, path: Path | None) -> dict:
     p["fig4"] = _range(require(sw, "fig4", w, StudyFileError), "acceleration", f"{w} fig4")
     p["fig5"] = _range(require(sw, "fig5", w, StudyFileError), "acceleration", f"{w} fig5")
     fig3 = require(sw, "fig3", w, StudyFileError)
-    if not isinstance(fig3, list) or len(fig3) != 2 or not all(isinstance(v, (int, float)) for v in fig3) \
-            or not 2 <= fig3[0] < fig3[1]:
+    if not isinstance(fig3, list) or len(fig3) != 2:
         raise StudyFileError(f"{w} fig3", f"expected [low, high] pulse periods in samples, low >= 2, got {fig3!r}")
-    p["fig3"] = (float(fig3[0]), float(fig3[1]))
+    lo3, hi3 = (number(v, f"{w} fig3", StudyFileError) for v in fig3)
+    if not 2 <= lo3 < hi3 <= 1e6:
+        raise StudyFileError(f"{w} fig3", f"expected [low, high] pulse periods in samples, low >= 2, got {fig3!r}")
+    p["fig3"] = (lo3, hi3)
     pts = sw.get("points", 60)
     if isinstance(pts, bool) or not isinstance(pts, int) or not 5 <= pts <= 2000:
         raise StudyFileError(f"{w} points", f"{pts!r} must be an integer in [5, 2000]")

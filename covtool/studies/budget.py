@@ -54,10 +54,10 @@ from ..budget import (ERRORS, MEASUREMENT, RESOLUTIONS, compose_noise, budget_so
 from ..engine import System, events, run_batch
 from ..errors import StudyFileError
 from ..filters import zupt_matrices
-from ..io.config import check_keys
+from ..io.config import check_keys, choice, integer, names, table
 from ..metrics import cep, ned_position_covariance
 from ..results import StudyResult
-from .common import ARCMIN, FT, progress_bar
+from .common import ARCMIN, FT, memory_estimate, noise_columns, progress_bar, resource_provenance, study_header, study_inputs
 from .zupt import setup
 
 PURE = "pure_ins"
@@ -76,15 +76,11 @@ def budget_options(decl: dict, where: str) -> dict:
     StudyFileError
         Unknown key, unknown resolution, or ``top`` not a positive integer.
     """
-    cfg = decl.get("budget", {})
     w = f"{where}: [budget]"
+    cfg = table(decl.get("budget", {}), w, StudyFileError)
     check_keys(cfg, {"resolution", "top"}, w, StudyFileError)
-    res = cfg.get("resolution", "block")
-    if res not in RESOLUTIONS:
-        raise StudyFileError(f"{w} resolution", f"{res!r} is not one of: {', '.join(RESOLUTIONS)}")
-    top = cfg.get("top", 8)
-    if isinstance(top, bool) or not isinstance(top, int) or top < 1:
-        raise StudyFileError(f"{w} top", f"{top!r} is not a positive integer")
+    res = choice(cfg.get("resolution", "block"), tuple(RESOLUTIONS), f"{w} resolution", StudyFileError)
+    top = integer(cfg.get("top", 8), f"{w} top", StudyFileError, limit="budget_top")
     return {"resolution": res, "top": top}
 
 
@@ -106,15 +102,27 @@ def budget_cases(decl: dict, where: str) -> tuple[list | None, bool]:
                              "cases = [\"pure_ins\", ...]")
     if "cases" not in fcfg:
         return None, True
-    cases = fcfg["cases"]
-    if not isinstance(cases, list) or not cases or not all(isinstance(c, str) for c in cases):
-        raise StudyFileError(f"{w} cases", "expected a non-empty list of case names (filters or \"pure_ins\")")
-    seen = set()
-    for c in cases:
-        if c in seen:
-            raise StudyFileError(f"{w} cases", f"case {c!r} is listed twice")
-        seen.add(c)
+    cases = names(fcfg["cases"], f"{w} cases", StudyFileError, what="case (a filter or \"pure_ins\")")
     return [c for c in cases if c != PURE], PURE in cases
+
+
+def _memory(decl: dict, where: str, resolution: str, pure: bool):
+    """What a budget holds: the setup, and per source its noise composed over the event grid (J, K, n, n)."""
+    from .nav_covariance import output_options
+    from .zupt import zupt_options, zupt_update_count
+
+    def memory(steps, truth, filters, dynamics):
+        n = truth.n
+        hdr = study_header(decl, where)
+        every, rtimes = output_options(decl, where, hdr["duration"])
+        updates = zupt_update_count(zupt_options(decl.get("zupt", {}), where, hdr["dt"], hdr["duration"]),
+                                    hdr["duration"])
+        events = min(steps, updates + int(hdr["duration"] / every) + len(rtimes) + 2)
+        sources = n + 4 if resolution == "state" else 24          # noise sources + initial errors
+        # compose_noise's stack and its running sum, then one case's per-source covariances
+        extra = 2 * sources * events * n * n * 8 + 3 * sources * n * n * 8
+        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, extra=extra, noise=noise_columns(truth))
+    return memory
 
 
 def record_steps(t: np.ndarray, every: float, report_times) -> np.ndarray:
@@ -134,7 +142,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     decl_z = copy.deepcopy(decl)
     if fcases is not None:
         decl_z.setdefault("filters", {})["cases"] = fcases
-    S = setup(decl_z, path=path, progress=progress, extra_sections=("budget",))
+    S = setup(decl_z, path=path, progress=progress, extra_sections=("budget",),
+              memory=_memory(decl_z, where, opts["resolution"], want_pure))
     cases = ([PURE] if want_pure else []) + list(S.cases)
     truth_model, t, nodes = S.truth, S.t, S.nodes
     N = t.size - 1
@@ -162,7 +171,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                   "truth_model_sha256": truth_model.sha256, "filter_file": str(S.filter_file),
                   "resolution": opts["resolution"], "sources": len(sources), "zupt_updates": int(len(S.update_steps)),
                   "per-source Q_d sum vs study Q_d (composed, max relative)": f"{q_check:.3g}",
-                  "compute_seconds": f"{elapsed:.2f}"}
+                  **resource_provenance(S.resources), "compute_seconds": f"{elapsed:.2f}"}
+    provenance.update(study_inputs(path, decl, truth_model, S.filter_file))
     for c in cases:
         provenance[f"{c}: sum-to-total residual (same Q_d)"] = f"{residuals[c]['same']:.3g}"
         provenance[f"{c}: sum vs nominal run residual"] = f"{residuals[c]['nominal']:.3g}"

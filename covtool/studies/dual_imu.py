@@ -77,10 +77,11 @@ from .. import dualnav as dn
 from .. import earth
 from .. import quaternion as quat
 from ..errors import InputError, ModelFileError, StudyFileError
-from ..io.config import check_keys, quantity
+from ..io.config import check_keys, choice, integer, names, number, quantity, string, table
 from ..io.imu_log import check_imu_log
 from ..io.names import check_study_name
 from ..results import StudyResult
+from .common import input_file
 
 COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
 #: display units of the difference components
@@ -120,9 +121,7 @@ class DualConfig:
 
 
 def _axis(value, where):
-    if value not in ("x", "y", "z"):
-        raise StudyFileError(where, f"{value!r} is not 'x', 'y' or 'z'")
-    return "xyz".index(value)
+    return "xyz".index(choice(value, ("x", "y", "z"), where, StudyFileError))
 
 
 def _candidate(text, where):
@@ -130,12 +129,6 @@ def _candidate(text, where):
         raise StudyFileError(where, f"{text!r} is not 'gyro axis/accel axis', e.g. 'z/x'")
     g, a = text.split("/")
     return (_axis(g.strip(), where), _axis(a.strip(), where))
-
-
-def _int(value, where, minimum):
-    if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise StudyFileError(where, f"{value!r} is not an integer >= {minimum}")
-    return int(value)
 
 
 def gsens_coefficient(value, where) -> float:
@@ -162,23 +155,23 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
     from ..imu import load_imu_grade
 
     check_keys(decl, _TOP, where, StudyFileError)
-    st = decl.get("study", {})
+    st = table(decl.get("study", {}), f"{where}: [study]", StudyFileError)
     check_keys(st, {"kind", "name", "description"}, f"{where}: [study]", StudyFileError)
     name = check_study_name(st, where, StudyFileError, default="dual_imu")
-    imu = decl.get("imu", {})
+    string(st.get("description", ""), f"{where}: [study] description", StudyFileError)
+    imu = table(decl.get("imu", {}), f"{where}: [imu]", StudyFileError)
     check_keys(imu, {"main", "kimu"}, f"{where}: [imu]", StudyFileError)
     grades, mounting = {}, {}
     defaults = {"main": "main_imu", "kimu": "kimu"}
     ratio = 4
     for key in ("main", "kimu"):
-        t = imu.get(key, {})
         w = f"{where}: [imu.{key}]"
+        t = table(imu.get(key, {}), w, StudyFileError)
         check_keys(t, {"grade", "mounting", "ratio"} if key == "kimu" else {"grade", "mounting"}, w, StudyFileError)
-        g = t.get("grade", defaults[key])
-        if isinstance(g, str) and base_dir is not None and g.endswith(".toml") and not Path(g).is_absolute():
-            g = str(Path(base_dir) / g)
+        g = string(t.get("grade", defaults[key]), f"{w} grade", StudyFileError, nonempty=True)
         try:
-            grades[key] = load_imu_grade(g)
+            # a library name, or a path relative to the study file
+            grades[key] = load_imu_grade(g, base_dir=base_dir)
         except ModelFileError as exc:
             raise StudyFileError(f"{w} grade", str(exc)) from None
         if grades[key].rate is None:
@@ -189,13 +182,13 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
         ang = [quantity(v, "angle", f"{w} mounting[{i}]", StudyFileError) for i, v in enumerate(m)]
         mounting[key] = np.asarray(quat.from_euler(*ang), float)
         if key == "kimu" and "ratio" in t:
-            ratio = _int(t["ratio"], f"{w} ratio", 1)
+            ratio = integer(t["ratio"], f"{w} ratio", StudyFileError, limit="kimu_ratio")
     r_rates = grades["kimu"].rate / grades["main"].rate
     if abs(r_rates - ratio) > 1e-9 * ratio:
         raise StudyFileError(f"{where}: [imu.kimu] ratio", f"{ratio} does not match the grades' rates "
                              f"({grades['kimu'].rate:g} Hz / {grades['main'].rate:g} Hz = {r_rates:g})")
-    al = decl.get("alignment", {})
     w = f"{where}: [alignment]"
+    al = table(decl.get("alignment", {}), w, StudyFileError)
     check_keys(al, {"duration", "heading_sigma", "lat", "lon", "h", "heading"}, w, StudyFileError)
     align = quantity(al.get("duration", "10 s"), "time", f"{w} duration", StudyFileError, positive=True)
     hsig = quantity(al.get("heading_sigma", "0.1 deg"), "angle", f"{w} heading_sigma", StudyFileError,
@@ -204,8 +197,13 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
     for key, dim in (("lat", "angle"), ("lon", "angle"), ("h", "length"), ("heading", "angle")):
         if key in al:
             initial[key] = quantity(al[key], dim, f"{w} {key}", StudyFileError)
-    cp = decl.get("comparison", {})
+    if "lat" in initial and not abs(initial["lat"]) < np.radians(89.9):
+        raise StudyFileError(f"{w} lat", f"{al['lat']!r} is not within ±89.9 deg (the NED frame is singular at "
+                             "the poles)")
+    if "lon" in initial and not abs(initial["lon"]) <= np.pi:
+        raise StudyFileError(f"{w} lon", f"{al['lon']!r} is not within ±180 deg")
     w = f"{where}: [comparison]"
+    cp = table(decl.get("comparison", {}), w, StudyFileError)
     check_keys(cp, {"interval", "model_step", "components", "noise"}, w, StudyFileError)
     interval = quantity(cp.get("interval", "1 s"), "time", f"{w} interval", StudyFileError, positive=True)
     step = quantity(cp.get("model_step", "0.04 s"), "time", f"{w} model_step", StudyFileError, positive=True)
@@ -218,12 +216,10 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
     if n_step % 2 or n_int % n_step:
         raise StudyFileError(f"{w} model_step", f"{step:g} s must be an even number of main samples and divide "
                              f"the interval {interval:g} s")
-    comps = cp.get("components", ["velocity", "attitude"])
-    if not isinstance(comps, list) or not comps or any(c not in COMPONENT_GROUPS for c in comps):
-        raise StudyFileError(f"{w} components", f"{comps!r}: expected a non-empty list of "
-                             f"{', '.join(COMPONENT_GROUPS)}")
+    comps = names(cp.get("components", ["velocity", "attitude"]), f"{w} components", StudyFileError,
+                  known=list(COMPONENT_GROUPS), what="component")
     components = tuple(sorted({i for c in comps for i in COMPONENT_GROUPS[c]}))
-    nz = cp.get("noise", {})
+    nz = table(cp.get("noise", {}), f"{w} noise", StudyFileError)
     check_keys(nz, set(COMPONENT_GROUPS), f"{w} noise", StudyFileError)
     dims = {"position": "length", "velocity": "velocity", "attitude": "angle"}
     dflt = {"position": "1 mm", "velocity": "0.1 mm/s", "attitude": "2 urad"}
@@ -231,16 +227,15 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
     for key, idx in COMPONENT_GROUPS.items():
         noise[list(idx)] = quantity(nz.get(key, dflt[key]), dims[key], f"{w} noise.{key}", StudyFileError,
                                     nonnegative=True)
-    mo = decl.get("monitor", {})
     w = f"{where}: [monitor]"
+    mo = table(decl.get("monitor", {}), w, StudyFileError)
     check_keys(mo, {"window", "false_alarm", "candidates"}, w, StudyFileError)
     window = quantity(mo.get("window", "10 s"), "time", f"{w} window", StudyFileError, positive=True)
     if round(window / interval) < 1 or abs(round(window / interval) * interval - window) > 1e-6 * interval:
         raise StudyFileError(f"{w} window", f"{window:g} s is not a whole number of comparison intervals "
                              f"({interval:g} s)")
-    fa = mo.get("false_alarm", 0.01)
-    if isinstance(fa, bool) or not isinstance(fa, (int, float)) or not 0 < fa < 1:
-        raise StudyFileError(f"{w} false_alarm", f"{fa!r} is not a probability in (0, 1)")
+    fa = number(mo.get("false_alarm", 0.01), f"{w} false_alarm", StudyFileError, lo=0.0, hi=1.0, lo_open=True,
+                hi_open=True, why="a probability")
     cands = mo.get("candidates", "all")
     if cands == "all":
         candidates = tuple((i, j) for i in range(3) for j in range(3))
@@ -250,25 +245,23 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
             raise StudyFileError(f"{w} candidates", "lists a candidate twice")
     else:
         raise StudyFileError(f"{w} candidates", f"{cands!r}: expected 'all' or a list such as ['z/x']")
-    gp = decl.get("gaps", {})
     w = f"{where}: [gaps]"
+    gp = table(decl.get("gaps", {}), w, StudyFileError)
     check_keys(gp, {"policy", "window", "trials"}, w, StudyFileError)
-    policy = gp.get("policy", "interpolate")
-    if policy not in dn.GAP_POLICIES:
-        raise StudyFileError(f"{w} policy", f"{policy!r} is not one of {', '.join(dn.GAP_POLICIES)}")
-    gwin = _int(gp.get("window", 10), f"{w} window", 1)
-    trials = _int(gp.get("trials", 8), f"{w} trials", 0)
-    sim = decl.get("simulation", {})
+    policy = choice(gp.get("policy", "interpolate"), tuple(dn.GAP_POLICIES), f"{w} policy", StudyFileError)
+    gwin = integer(gp.get("window", 10), f"{w} window", StudyFileError, limit="gap_window")
+    trials = integer(gp.get("trials", 8), f"{w} trials", StudyFileError, limit="gap_trials")
     w = f"{where}: [simulation]"
+    sim = table(decl.get("simulation", {}), w, StudyFileError)
     check_keys(sim, {"runs", "fault_runs", "batch", "seed", "fault", "gap"}, w, StudyFileError)
-    runs = _int(sim.get("runs", 100), f"{w} runs", 0)
-    fruns = _int(sim.get("fault_runs", 20), f"{w} fault_runs", 0)
-    batch = _int(sim.get("batch", 50), f"{w} batch", 1)
-    seed = _int(sim.get("seed", 1), f"{w} seed", 0)
+    runs = integer(sim.get("runs", 100), f"{w} runs", StudyFileError, limit="dual_runs")
+    fruns = integer(sim.get("fault_runs", 20), f"{w} fault_runs", StudyFileError, limit="dual_runs")
+    batch = integer(sim.get("batch", 50), f"{w} batch", StudyFileError, limit="dual_batch")
+    seed = integer(sim.get("seed", 1), f"{w} seed", StudyFileError, limit="seed")
     fault = None
     if "fault" in sim:
-        f = sim["fault"]
         wf = f"{where}: [simulation.fault]"
+        f = table(sim["fault"], wf, StudyFileError)
         check_keys(f, {"gyro", "accel", "coefficient"}, wf, StudyFileError)
         for key in ("gyro", "accel", "coefficient"):
             if key not in f:
@@ -286,8 +279,7 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
     for k, g in enumerate(glist):
         wg = f"{where}: [[simulation.gap]][{k}]"
         check_keys(g, {"imu", "start", "duration"}, wg, StudyFileError)
-        if g.get("imu") not in ("main", "kimu"):
-            raise StudyFileError(f"{wg} imu", f"{g.get('imu')!r} is not 'main' or 'kimu'")
+        choice(g.get("imu"), ("main", "kimu"), f"{wg} imu", StudyFileError)
         for key in ("start", "duration"):
             if key not in g:
                 raise StudyFileError(wg, f"missing required key {key!r}")
@@ -561,7 +553,8 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     return StudyResult(
         name=cfg.name, kind="dual_imu", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl.get("study", {}), "name": cfg.name}},
-        provenance={"main_grade": cfg.grades["main"].path, "kimu_grade": cfg.grades["kimu"].path,
+        provenance={**input_file("main_grade", cfg.grades["main"].path),
+                    **input_file("kimu_grade", cfg.grades["kimu"].path),
                     "main_model_sha256": setup.main_model.sha256, "kimu_model_sha256": setup.kimu_model.sha256,
                     "joint_states": ref.model.n, "epochs": ref.t.size, "compute_seconds": f"{elapsed:.2f}"},
         data={"fault_free": free, "fault": fault, "trajectory": traj, "config": cfg, "setup": setup},
@@ -736,7 +729,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         name=f"dualnav_{Path(main_log.path).stem}", kind="dualnav", tables=tables,
         figures=_figures(cfg, [r], [], estimates=False, labels=("logs", "")),
         resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},
-        provenance={"main_grade": cfg.grades["main"].path, "kimu_grade": cfg.grades["kimu"].path,
-                    "compute_seconds": f"{elapsed:.2f}"},
+        provenance={**input_file("main_grade", cfg.grades["main"].path),
+                    **input_file("kimu_grade", cfg.grades["kimu"].path), "compute_seconds": f"{elapsed:.2f}"},
         data={"run": r, "bridged": bridged, "config": cfg},
     )

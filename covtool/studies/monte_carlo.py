@@ -62,32 +62,19 @@ from .. import __version__
 from ..covariance import propagate, propagate_with_filter
 from ..errors import StudyFileError
 from ..filters import zupt_matrices
-from ..io.config import check_keys, quantity
+from ..io.config import LIMITS, boolean, check_keys, integer, number, quantity
 from ..metrics import nav_metrics, ned_position_covariance
 from ..montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, expected_nees,
                           horizontal_dof, inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
 from ..results import StudyResult
 from ..strapdown import MAX_SAMPLES, NAV_STATES
-from .common import ARCMIN, FT, study_header
+from .common import ARCMIN, FT, memory_estimate, noise_columns, resource_provenance, study_header, study_inputs
 from .zupt import setup
 
 MC_KEYS = ("runs", "runs_per_chunk", "seed", "imu_rate", "samples_per_step", "confidence", "nees_every",
            "sensor_noise", "measurement_noise", "process_dt")
 #: the compared quantities: label, unit of the tables, factor from SI
 COMPARED = (("horizontal", "m", 1.0), ("altitude", "m", 1.0), ("azimuth", "arcmin", ARCMIN))
-
-
-def _int(v, w, lo, hi=None):
-    if isinstance(v, bool) or not isinstance(v, int) or v < lo or (hi is not None and v > hi):
-        rng = f"{lo}..{hi}" if hi is not None else f">= {lo}"
-        raise StudyFileError(w, f"{v!r} is not an integer {rng}")
-    return int(v)
-
-
-def _bool(v, w):
-    if not isinstance(v, bool):
-        raise StudyFileError(w, f"{v!r} is not true or false")
-    return v
 
 
 def mc_options(decl: dict, where: str) -> dict:
@@ -110,24 +97,27 @@ def mc_options(decl: dict, where: str) -> dict:
         raise StudyFileError(w, "missing required key 'runs' (the number of Monte Carlo runs)")
     hdr = study_header(decl, where)
     o = {
-        "runs": _int(cfg["runs"], f"{w} runs", 2),
-        "runs_per_chunk": _int(cfg.get("runs_per_chunk", 50), f"{w} runs_per_chunk", 1),
-        "seed": _int(cfg.get("seed", 1), f"{w} seed", 0),
+        "runs": integer(cfg["runs"], f"{w} runs", StudyFileError, limit="mc_runs"),
+        "runs_per_chunk": integer(cfg.get("runs_per_chunk", 50), f"{w} runs_per_chunk", StudyFileError,
+                                  limit="mc_runs_per_chunk"),
+        "seed": integer(cfg.get("seed", 1), f"{w} seed", StudyFileError, limit="seed"),
         "imu_rate": quantity(cfg.get("imu_rate", "100 Hz"), "frequency", f"{w} imu_rate", StudyFileError,
-                             positive=True),
-        "samples_per_step": _int(cfg.get("samples_per_step", 4), f"{w} samples_per_step", 1, MAX_SAMPLES),
-        "sensor_noise": _bool(cfg.get("sensor_noise", True), f"{w} sensor_noise"),
-        "measurement_noise": _bool(cfg.get("measurement_noise", True), f"{w} measurement_noise"),
+                             positive=True, hi=LIMITS["imu_rate"].hi, why=LIMITS["imu_rate"].reason),
+        "samples_per_step": integer(cfg.get("samples_per_step", 4), f"{w} samples_per_step", StudyFileError,
+                                    lo=1, hi=MAX_SAMPLES),
+        "sensor_noise": boolean(cfg.get("sensor_noise", True), f"{w} sensor_noise", StudyFileError),
+        "measurement_noise": boolean(cfg.get("measurement_noise", True), f"{w} measurement_noise", StudyFileError),
         "process_dt": quantity(cfg.get("process_dt", "0.1 s"), "time", f"{w} process_dt", StudyFileError,
                                positive=True),
     }
-    c = cfg.get("confidence", 0.95)
-    if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 < c < 1.0:
-        raise StudyFileError(f"{w} confidence", f"{c!r} is not a number between 0 and 1")
-    o["confidence"] = float(c)
+    o["confidence"] = number(cfg.get("confidence", 0.95), f"{w} confidence", StudyFileError, lo=0.0, hi=1.0,
+                             lo_open=True, hi_open=True)
     every = (decl.get("output") or {}).get("history_every", "10 s")
     o["nees_every"] = quantity(cfg.get("nees_every", every), "time", f"{w} nees_every", StudyFileError,
                                positive=True)
+    if o["process_dt"] * o["imu_rate"] < 1 - 1e-9:
+        raise StudyFileError(f"{w} process_dt", f"{o['process_dt']:g} s is shorter than one IMU sample "
+                             f"({1 / o['imu_rate']:g} s); the sensor errors are injected per sample")
     steps = hdr["duration"] / hdr["dt"]
     if abs(steps - round(steps)) > 1e-9 * max(1.0, steps):
         raise StudyFileError(f"{where}: [study] duration", f"{hdr['duration']:g} s is not a whole number of grid "
@@ -140,6 +130,14 @@ def mc_options(decl: dict, where: str) -> dict:
     o["samples_per_grid_step"] = int(round(spr))
     o["navigation_rate"] = o["imu_rate"] / o["samples_per_step"]
     return o
+
+
+def _memory(steps, truth, filters, dynamics):
+    """The setup, and one case at a time: truth and filter histories and the feedback filter's own P."""
+    n = truth.n
+    worst = max(filters, default=n)
+    return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=[n, worst, worst],
+                           noise=noise_columns(truth))
 
 
 def _chunks(runs: int, per: int) -> list[int]:
@@ -189,13 +187,12 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     opt = mc_options(decl, where)
-    S = setup(decl, path=path, progress=progress, extra_sections=("monte_carlo",))
+    S = setup(decl, path=path, progress=progress, extra_sections=("monte_carlo",), memory=_memory,
+              shrink="a larger [study] dt, a shorter duration or fewer [filters] cases")
     t, nodes, truth = S.t, S.nodes, S.truth
     dt = float(t[1] - t[0])
     fcfg = decl.get("filters", {})
     pure = fcfg.get("pure_ins", True)
-    if not isinstance(pure, bool):
-        raise StudyFileError(f"{where}: [filters] pure_ins", f"{pure!r} is not true or false")
     if not pure and not S.cases:
         raise StudyFileError(f"{where}: [filters]", "nothing to run: no filter cases and pure_ins = false")
 
@@ -393,7 +390,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     figures = {f"mc_{c}": _case_figure(c, t, band[c], zupt_marks, N, conf) for c in names}
     figures["mc_ratio"] = _ratio_figure(names, t, band, N, conf)
     figures["mc_nees"] = _nees_figure(names, t, nees_stats, N, conf)
-    provenance = {"truth_model": truth.name, "truth_model_sha256": truth.sha256, "filter_file": str(S.filter_file),
+    provenance = {**study_inputs(path, decl, truth, S.filter_file), **resource_provenance(S.resources),
+                  "truth_model": truth.name, "truth_model_sha256": truth.sha256,
                   "runs": N, "chunks": len(sizes), "seed": opt["seed"], "imu_rate_hz": opt["imu_rate"],
                   "samples_per_step": opt["samples_per_step"], "backend": stats["backend"],
                   "chunks_computed": stats["computed"], "chunks_reused": stats["reused"],

@@ -35,8 +35,8 @@ from ..errors import StudyFileError
 from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics
 from ..results import StudyResult
-from .common import (history_frame, load_truth, report_times, study_header, summary_row, time_grid,
-                     truth_system)
+from .common import (check_memory, history_frame, load_truth, memory_estimate, noise_columns, report_times, resource_provenance,
+                     steps_of, study_header, study_inputs, summary_row, time_grid, truth_system)
 
 
 def load_trajectory(decl, where, base_dir, dt, duration=None):
@@ -54,6 +54,7 @@ def load_trajectory(decl, where, base_dir, dt, duration=None):
 def output_options(decl, where, duration):
     out = decl.get("output", {})
     check_keys(out, {"history_every", "report_times"}, f"{where}: [output]", StudyFileError)
+    # any spacing is bounded: the history never holds more rows than grid steps
     every = quantity(out.get("history_every", "10 s"), "time", f"{where}: [output] history_every",
                      StudyFileError, positive=True)
     return every, report_times(out, where, duration)
@@ -67,8 +68,11 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     hdr = study_header(decl, where)
     every, rtimes = output_options(decl, where, hdr["duration"])
     t0 = time.perf_counter()
-    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     truth = load_truth(decl, where, base_dir)
+    est = check_memory(memory_estimate(steps_of(hdr["duration"], hdr["dt"]), truth.n, histories=[truth.n],
+                                       noise=noise_columns(truth)),
+                       where, hdr["max_memory"], "a larger [study] dt or a shorter duration")
+    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"])
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
     nodes = traj.sample(t)
@@ -109,8 +113,9 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     return StudyResult(
         name=hdr["name"], kind="pure_ins", tables=tables, figures={"pure_ins_errors": fig_position},
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}},
-        provenance={"truth_model": truth.name, "truth_model_file": truth.path, "truth_model_sha256": truth.sha256,
-                    "states": truth.n, "steps": len(t) - 1, "compute_seconds": f"{elapsed:.2f}"},
+        provenance={**study_inputs(path, decl, truth), "truth_model": truth.name,
+                    "truth_model_sha256": truth.sha256, "states": truth.n, **resource_provenance(est),
+                    "compute_seconds": f"{elapsed:.2f}"},
         charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [m]", "sigma_D [m]"],
                  "title": "Pure INS position error", "y_title": "[m]", "anchor": "R2"}],
         data={"t": t, "P": P, "metrics": m, "trajectory": nodes, "model": truth},

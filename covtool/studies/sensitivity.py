@@ -59,9 +59,7 @@ Loan truth to about 1e-11 (tested to 1e-8).
 
 from __future__ import annotations
 
-import hashlib
 import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -71,11 +69,11 @@ from .. import flops
 from ..engine import System, events
 from ..errors import StudyFileError
 from ..filters import zupt_matrices
-from ..io.config import check_keys
+from ..io.config import LIMITS, boolean, check_keys, choice, integer, names, number, table
 from ..metrics import nav_metrics
 from ..results import StudyResult
 from ..sensitivity import PARAMETERS, fit_loglog, scale_grid, sensitivity_figures, sweep_cases, run_sweep
-from .common import ARCMIN, FT, progress_bar
+from .common import ARCMIN, FT, memory_estimate, noise_columns, progress_bar, resource_provenance, study_inputs
 from .zupt import setup
 
 SWEEP_KEYS = {"parameters", "scales", "fit_degree", "discretization"}
@@ -86,73 +84,65 @@ PARAM_LABEL = {"P0": "P_f(0)", "Q": "Q_f", "R": "R_f"}
 TAYLOR_STRIDE = 10
 
 
-def _is_int(v) -> bool:
-    return isinstance(v, int) and not isinstance(v, bool)
-
-
-def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
+def _scale_end(v, w) -> float:
+    b = LIMITS["filter_scale"]
+    return number(v, w, StudyFileError, lo=b.lo, hi=b.hi, why=b.reason)
 
 
 def sweep_options(cfg: dict, where: str) -> dict:
     """Validate ``[sweep]`` and return its resolved options."""
     w = f"{where}: [sweep]"
+    table(cfg, w, StudyFileError)
     check_keys(cfg, SWEEP_KEYS, w, StudyFileError)
-    params = cfg.get("parameters", list(PARAMETERS))
-    if not isinstance(params, list) or not params:
-        raise StudyFileError(f"{w} parameters", f"expected a non-empty list of {', '.join(PARAMETERS)}")
-    for p in params:
-        if p not in PARAMETERS:
-            raise StudyFileError(f"{w} parameters", f"unknown parameter {p!r} (one of: {', '.join(PARAMETERS)})")
-    if len(set(params)) != len(params):
-        raise StudyFileError(f"{w} parameters", "a parameter is listed twice")
-    sc = cfg.get("scales", {"from": 0.01, "to": 100, "per_decade": 4})
+    params = names(cfg.get("parameters", list(PARAMETERS)), f"{w} parameters", StudyFileError,
+                   known=list(PARAMETERS), what="parameter")
+    sc = table(cfg.get("scales", {"from": 0.01, "to": 100, "per_decade": 4}), f"{w} scales", StudyFileError)
     check_keys(sc, {"from", "to", "per_decade"}, f"{w} scales", StudyFileError)
     for k in ("from", "to", "per_decade"):
         if k not in sc:
             raise StudyFileError(f"{w} scales", f"missing key {k!r}")
-    for k in ("from", "to"):
-        if not _is_number(sc[k]) or not sc[k] > 0:
-            raise StudyFileError(f"{w} scales {k}", f"{sc[k]!r} is not a positive number")
-    if not _is_int(sc["per_decade"]) or sc["per_decade"] < 1:
-        raise StudyFileError(f"{w} scales per_decade", f"{sc['per_decade']!r} is not a positive integer")
+    lo, hi = _scale_end(sc["from"], f"{w} scales from"), _scale_end(sc["to"], f"{w} scales to")
+    per = integer(sc["per_decade"], f"{w} scales per_decade", StudyFileError, limit="per_decade")
+    points = per * np.log10(hi / lo) + 1 if hi >= lo else 0
+    if points > LIMITS["sweep_points"].hi:
+        raise StudyFileError(f"{w} scales", f"{points:.0f} scales; at most {LIMITS['sweep_points'].hi:g} "
+                             f"({LIMITS['sweep_points'].reason})")
     try:
-        scales = scale_grid(float(sc["from"]), float(sc["to"]), sc["per_decade"])
+        scales = scale_grid(lo, hi, per)
     except ValueError as exc:
         raise StudyFileError(f"{w} scales", str(exc)) from None
-    deg = cfg.get("fit_degree", 5)
-    if not _is_int(deg) or deg < 0:
-        raise StudyFileError(f"{w} fit_degree", f"{deg!r} is not a non-negative integer")
+    deg = integer(cfg.get("fit_degree", 5), f"{w} fit_degree", StudyFileError, limit="fit_degree")
     if scales.size < deg + 2:
         raise StudyFileError(f"{w} fit_degree", f"a degree-{deg} fit needs at least {deg + 2} scales "
                              f"(the grid has {scales.size}); add points per decade or lower the degree")
-    disc = cfg.get("discretization", "declared")
-    if disc not in ("declared", "van_loan", "taylor"):
-        raise StudyFileError(f"{w} discretization", f"{disc!r} is not 'declared', 'van_loan' or 'taylor'")
-    return {"parameters": tuple(params), "scales": scales, "per_decade": sc["per_decade"], "fit_degree": deg,
+    disc = choice(cfg.get("discretization", "declared"), ("declared", "van_loan", "taylor"),
+                  f"{w} discretization", StudyFileError)
+    return {"parameters": tuple(params), "scales": scales, "per_decade": per, "fit_degree": deg,
             "discretization": disc}
 
 
 def cost_options(cfg: dict, where: str) -> dict:
     """Validate ``[cost]`` (filter names are checked after setup)."""
     w = f"{where}: [cost]"
+    table(cfg, w, StudyFileError)
     check_keys(cfg, COST_KEYS, w, StudyFileError)
-    measure = cfg.get("measure", True)
-    if not isinstance(measure, bool):
-        raise StudyFileError(f"{w} measure", f"{measure!r} is not true or false")
-    rep = cfg.get("repeats", 7)
-    if not _is_int(rep) or rep < 1:
-        raise StudyFileError(f"{w} repeats", f"{rep!r} is not a positive integer")
+    measure = boolean(cfg.get("measure", True), f"{w} measure", StudyFileError)
+    rep = integer(cfg.get("repeats", 7), f"{w} repeats", StudyFileError, limit="repeats")
     order = cfg.get("taylor_order", "auto")
-    if order != "auto" and (not _is_int(order) or order < 2):
-        raise StudyFileError(f"{w} taylor_order", f"{order!r} is not 'auto' or an integer ≥ 2")
-    paper = cfg.get("paper_seconds", dict(flops.PAPER_TABLE4_SECONDS))
-    if not isinstance(paper, dict):
-        raise StudyFileError(f"{w} paper_seconds", f"expected a table of filter = seconds, got {paper!r}")
+    lim = LIMITS["taylor_order"]
+    if order != "auto" and (type(order) is not int or not lim.lo <= order <= lim.hi):
+        raise StudyFileError(f"{w} taylor_order", f"{order!r} is not 'auto' or an integer in {lim.lo}..{lim.hi} "
+                             f"({lim.reason})")
+    paper = table(cfg.get("paper_seconds", dict(flops.PAPER_TABLE4_SECONDS)), f"{w} paper_seconds",
+                  StudyFileError)
     for k, v in paper.items():
-        if not _is_number(v) or not v > 0:
-            raise StudyFileError(f"{w} paper_seconds {k}", f"{v!r} is not a positive number of seconds")
+        number(v, f"{w} paper_seconds {k}", StudyFileError, lo=0.0, lo_open=True)
     return {"measure": measure, "repeats": rep, "taylor_order": order, "paper_seconds": dict(paper)}
+
+
+def _memory(steps, truth, filters, dynamics):
+    """A sweep holds the setup (truth and every filter system) and only report-time results."""
+    return memory_estimate(steps, truth.n, filters=filters, dynamics=dynamics, noise=noise_columns(truth))
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
@@ -161,12 +151,12 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     where = str(path) if path else "<study>"
     sw = sweep_options(decl.get("sweep", {}), where)
     co = cost_options(decl.get("cost", {}), where)
-    if "pure_ins" in decl.get("filters", {}):
+    if isinstance(decl.get("filters", {}), dict) and "pure_ins" in decl.get("filters", {}):
         raise StudyFileError(f"{where}: [filters] pure_ins", "not used by a zupt_sensitivity study; remove it")
     timing = {}
     with threadpool_limits(limits=1, user_api="blas"):
         tic = time.perf_counter()
-        S = setup(decl, path=path, progress=progress, extra_sections=("sweep", "cost"))
+        S = setup(decl, path=path, progress=progress, extra_sections=("sweep", "cost"), memory=_memory)
         timing["setup (trajectory, truth Phi/Qd)"] = time.perf_counter() - tic
         for k in co["paper_seconds"]:
             if k not in S.specs:
@@ -232,9 +222,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
               "sensitivity_ratio": ratio_df, "cost": cost_df, "cost_scaling": scaling_df, **chart_sheets}
     tables["timing"] = pd.DataFrame({"phase": list(timing), "wall time [s]": list(timing.values())})
     provenance = {
-        "truth_model": S.truth.name, "truth_model_file": S.truth.path, "truth_model_sha256": S.truth.sha256,
-        "filter_file": str(S.filter_file),
-        "filter_file_sha256": hashlib.sha256(Path(S.filter_file).read_bytes()).hexdigest(),
+        **study_inputs(path, decl, S.truth, S.filter_file), "truth_model": S.truth.name,
+        "truth_model_sha256": S.truth.sha256, **resource_provenance(S.resources),
         "zupt_updates": int(len(S.update_steps)), "zupt_interval_s": S.zupt_interval,
         "zupt_sigma_m_s": S.zupt_sigma, "truth_discretization": S.hdr["discretization"],
         "filter_discretization": sw["discretization"],

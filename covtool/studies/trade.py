@@ -66,6 +66,7 @@ import copy
 import hashlib
 import itertools
 import math
+import os
 import time
 from pathlib import Path
 
@@ -76,14 +77,15 @@ from .. import __version__
 from ..engine import System, events, run_batch
 from ..errors import InputError, StudyFileError
 from ..filters import load_filters, zupt_matrices
-from ..io.config import check_keys, quantity
+from ..io.config import LIMITS, boolean, check_keys, number, quantity, string, table
 from ..io.names import check_name
 from ..metrics import nav_metrics
 from ..results import StudyResult
 from ..units import DIMENSIONS
-from .common import FT, ARCMIN, load_truth, study_header, summary_row, time_grid
+from .common import (FT, ARCMIN, check_memory, load_truth, memory_estimate, noise_columns, resource_provenance, steps_of,
+                     study_header, study_inputs, summary_row, time_grid)
 from .nav_covariance import load_trajectory, output_options
-from .zupt import _filters_file, setup, zupt_schedule
+from .zupt import _filters_file, filter_cases, filter_dynamics, setup, zupt_schedule
 
 #: truth-model block kinds a grade does not scale (they are not IMU errors)
 UNSCALED_KINDS = ("navigation", "gravity_disturbance")
@@ -150,42 +152,49 @@ def grade_truth(truth_decl: dict, grade: dict, model) -> dict:
 
 def _axis(cfg: dict, key: str, where: str, default, parse):
     vals = cfg.get(key, default)
+    w = f"{where}: [grid] {key}"
     if not isinstance(vals, list) or not vals:
-        raise StudyFileError(f"{where}: [grid] {key}", "expected a non-empty list")
-    out = [parse(v, f"{where}: [grid] {key}[{i}]") for i, v in enumerate(vals)]
+        raise StudyFileError(w, "expected a non-empty list")
+    lim = LIMITS["grid_axis"]
+    if len(vals) > lim.hi:
+        raise StudyFileError(w, f"{len(vals)} values; at most {lim.hi:g} ({lim.reason})")
+    out = [parse(v, f"{w}[{i}]") for i, v in enumerate(vals)]
     if len(set(out)) != len(out):
-        raise StudyFileError(f"{where}: [grid] {key}", f"repeated values in {vals!r}")
+        raise StudyFileError(w, f"repeated values in {vals!r}")
     return vals, out
 
 
 def _scale(v, w):
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not v > 0 or not math.isfinite(v):
-        raise StudyFileError(w, f"{v!r} is not a positive number")
-    return float(v)
+    b = LIMITS["filter_scale"]
+    return number(v, w, StudyFileError, lo=b.lo, hi=b.hi, why=b.reason)
 
 
 def _grades(decl: dict, where: str) -> list[dict]:
     gs = decl.get("grade", [{"name": "nominal", "scale": 1.0}])
     if not isinstance(gs, list) or not gs:
         raise StudyFileError(f"{where}: [[grade]]", "expected an array of tables ([[grade]] name = ..., scale = ...)")
-    out, names = [], set()
+    lim = LIMITS["grid_axis"]
+    if len(gs) > lim.hi:
+        raise StudyFileError(f"{where}: [[grade]]", f"{len(gs)} grades; at most {lim.hi:g} ({lim.reason})")
+    out, seen = [], set()
     for i, g in enumerate(gs):
         w = f"{where}: [[grade]] #{i + 1}"
-        if not isinstance(g, dict):
-            raise StudyFileError(w, "expected a table")
+        table(g, w, StudyFileError)
         check_keys(g, set(GRADE_KEYS), w, StudyFileError)
-        name = g.get("name")
-        if not isinstance(name, str) or not name:
+        if "name" not in g:
             raise StudyFileError(w, "missing 'name' (a non-empty string)")
-        check_name(name, f"{w} name", StudyFileError, what="grade name")
-        if name in names:
+        name = check_name(g["name"], f"{w} name", StudyFileError, what="grade name")
+        if name in seen:
             raise StudyFileError(f"{w} name", f"grade {name!r} is declared twice")
-        names.add(name)
+        seen.add(name)
         ov = g.get("override", {})
         if not isinstance(ov, dict) or not all(isinstance(v, dict) for v in ov.values()):
             raise StudyFileError(f"{w} override", "expected a table of state tables, e.g. "
                                  "override = {gyro_bias_z = {sigma = \"1 deg/h\"}}")
-        out.append({**g, "scale": _scale(g.get("scale", 1.0), f"{w} scale"), "description": g.get("description", "")})
+        b = LIMITS["grade_scale"]
+        scale = number(g.get("scale", 1.0), f"{w} scale", StudyFileError, lo=b.lo, hi=b.hi, why=b.reason)
+        out.append({**g, "scale": scale,
+                    "description": string(g.get("description", ""), f"{w} description", StudyFileError)})
     return out
 
 
@@ -269,18 +278,23 @@ class TradePlan:
         # truth model, filters, grades: validated here so that workers never fail on input
         truth = load_truth(decl, where, base_dir)
         self.truth_sha256 = truth.sha256
-        fcfg = decl.get("filters", {})
+        fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
         check_keys(fcfg, {"file", "cases", "pure_ins"}, f"{where}: [filters]", StudyFileError)
+        if "pure_ins" in fcfg:
+            boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
         self.filter_file = _filters_file(fcfg, where, base_dir)
         specs = load_filters(self.filter_file, truth)
-        self.filters = fcfg.get("cases", list(specs))
-        if not isinstance(self.filters, list) or not self.filters:
-            raise StudyFileError(f"{where}: [filters] cases", "expected a non-empty list of filter names")
-        for c in self.filters:
-            if c not in specs:
-                raise StudyFileError(f"{where}: [filters] cases", f"unknown filter {c!r} (declared in "
-                                     f"{self.filter_file}: {', '.join(specs)})")
+        self.filters = filter_cases(fcfg, specs, self.filter_file, where, nonempty=True)
         self.states = {c: specs[c].n for c in self.filters}
+        n_cases = len(self.grades) * len(self.intervals) * len(self.filters) * len(self.sigmas) * \
+            len(self.p0_scales) * len(self.q_scales) * len(self.r_scales)
+        lim = LIMITS["grid_cases"]
+        if n_cases > lim.hi:
+            raise StudyFileError(f"{where}: [grid]", f"{n_cases:,} cases; at most {lim.hi:,} ({lim.reason}); "
+                                 "split the grid into several studies")
+        self.n_truth = truth.n
+        self.dynamics = filter_dynamics(specs, self.filters)
+        self.truth_decl = truth
         self.grade_truth = []
         for g in self.grades:
             td = grade_truth(decl.get("truth", {}), g, truth)
@@ -293,6 +307,7 @@ class TradePlan:
         # one trajectory and ZUPT schedule per interval (cheap; the Φ, Q_d are built by the workers)
         t = time_grid(self.hdr["duration"], self.hdr["dt"])
         self.decls = {}
+        self.updates = {}
         for ii, (text, s) in enumerate(zip(self.interval_text, self.intervals)):
             sub = system_decl(decl, self.grade_truth[0], text, s, self.cruise_speed, self.hdr["duration"], where)
             try:
@@ -300,7 +315,7 @@ class TradePlan:
                 if tr.t[-1] < self.hdr["duration"] - 1e-9:
                     raise StudyFileError(f"{where}: [study] duration",
                                          f"{self.hdr['duration']:g} s is longer than the trajectory ({tr.t[-1]:g} s)")
-                zupt_schedule(sub["zupt"], where, t, tr)
+                self.updates[text] = len(zupt_schedule(sub["zupt"], where, t, tr)[0])
             except InputError as exc:
                 raise StudyFileError(f"{where}: [grid] zupt_interval = {text!r}", str(exc)) from None
             for gi, g in enumerate(self.grades):
@@ -324,6 +339,23 @@ class TradePlan:
                 self.chunks.append({"key": f"g{gi:02d}-i{ii:02d}", "decl": self.decls[(gi, ii)],
                                     "path": str(self.path) if self.path else None, "cases": cases})
         self.n_cases = n
+
+    def memory(self, workers: int) -> dict:
+        """Peak memory of the grid: one (grade, interval) system per worker at a time.
+
+        A chunk builds the truth and every filter system on the full grid
+        and runs each filter's cases in one batch (per case the truth and
+        filter covariances and the gains of every update).
+        """
+        steps = steps_of(self.hdr["duration"], self.hdr["dt"])
+        n = self.n_truth
+        per = len(self.sigmas) * len(self.p0_scales) * len(self.q_scales) * len(self.r_scales)
+        nf = max(self.states.values())
+        updates = max(self.updates.values(), default=0)
+        extra = per * (6 * n * n + 6 * nf * nf + 3 * updates * nf) * 8
+        return memory_estimate(steps, n, filters=list(self.states.values()), dynamics=self.dynamics,
+                               noise=noise_columns(self.truth_decl),
+                               extra=extra, parallel=max(1, min(workers, len(self.chunks))))
 
     def manifest(self, decl: dict) -> dict:
         """What identifies this sweep for a resumed run."""
@@ -440,6 +472,9 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
     t_start = time.perf_counter()
     plan = TradePlan(decl, path)
+    est = check_memory(plan.memory(_local_workers(backend)), plan.where, plan.hdr["max_memory"],
+                       "a larger [study] dt, a shorter duration, fewer [grid] values per interval or fewer "
+                       "--workers")
     rs = ResultStore(store, plan.manifest(decl), resume=resume) if store is not None else None
     own = backend is None or isinstance(backend, str)
     be = make_backend(backend)
@@ -455,7 +490,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     tables = {"summary": summary, **pivot_tables(summary, plan), "grades": _grade_table(plan),
               "grid": _grid_table(plan)}
     timing = pd.DataFrame([{"chunk": c["key"], **res["timing"]} for c, res in zip(plan.chunks, results)])
-    provenance = {"truth_model_sha256": plan.truth_sha256, "filter_file": str(plan.filter_file),
+    provenance = {**study_inputs(path, decl, plan.truth_decl, plan.filter_file), **resource_provenance(est),
+                  "truth_model_sha256": plan.truth_sha256,
                   "cases": plan.n_cases, "chunks": len(plan.chunks), "backend": stats["backend"],
                   "chunks_computed": stats["computed"], "chunks_reused": stats["reused"],
                   "compute_seconds": f"{elapsed:.2f}",
@@ -469,6 +505,17 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         resolved={**decl, "study": {**decl["study"], "name": plan.hdr["name"]}}, provenance=provenance,
         data={"plan": plan, "stats": stats, "timing": timing},
     )
+
+
+def _local_workers(backend) -> int:
+    """Worker processes on this machine that each hold one chunk (a remote Dask cluster: none here)."""
+    if backend is None or backend == "serial":
+        return 1
+    if isinstance(backend, str):
+        return os.cpu_count() or 1
+    if hasattr(backend, "client") and getattr(backend, "_cluster", None) is None:
+        return 1
+    return int(getattr(backend, "workers", 1) or 1)
 
 
 def nominal(summary: pd.DataFrame, plan: TradePlan) -> pd.DataFrame:

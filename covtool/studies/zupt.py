@@ -42,12 +42,65 @@ from ..covariance import propagate, propagate_with_filter
 from ..dynamics import error_dynamics
 from ..errors import StudyFileError
 from ..filters import build_filter, default_filter_file, ewn_navigation_effect, load_filters, zupt_matrices
-from ..io.config import check_keys, quantity
+from ..io.config import boolean, check_keys, names, quantity, resolve_input, table
 from ..metrics import nav_metrics
 from ..results import StudyResult
-from .common import (ARCMIN, FT, discretize_chunked, history_frame, load_truth, progress_bar, study_header,
-                     summary_row, time_grid, truth_system)
+from .common import (ARCMIN, FT, check_memory, discretize_chunked, history_frame, load_truth, memory_estimate,
+                     noise_columns,
+                     progress_bar, resource_provenance, steps_of, study_header, study_inputs, summary_row, time_grid,
+                     truth_system)
 from .nav_covariance import load_trajectory, output_options
+
+
+ZUPT_KEYS = {"interval", "duration", "rate", "sigma", "first"}
+
+
+def zupt_options(cfg: dict, where: str, dt: float, duration: float) -> dict:
+    """Validate ``[zupt]`` against the grid step ``dt`` and the study ``duration`` [s].
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key, bad unit or sign, a window not shorter than the
+        interval, an interval shorter than ``dt``, a rate above ``1/dt``
+        (at most one update per propagation step) or a first ZUPT after the
+        end of the study.
+    """
+    w = f"{where}: [zupt]"
+    table(cfg, w, StudyFileError)
+    check_keys(cfg, ZUPT_KEYS, w, StudyFileError)
+    o = {
+        "interval": quantity(cfg.get("interval", "5 min"), "time", f"{w} interval", StudyFileError, positive=True),
+        "duration": quantity(cfg.get("duration", "30 s"), "time", f"{w} duration", StudyFileError,
+                             nonnegative=True),
+        "rate": quantity(cfg.get("rate", "1 Hz"), "frequency", f"{w} rate", StudyFileError, positive=True),
+        # σ = 0 makes S = H P_f Hᵀ + R of eq (7) singular once P_f's velocity block is (a previous
+        # exact ZUPT leaves it zero): the gain is undefined, so the noise must be positive
+        "sigma": quantity(cfg.get("sigma", "0.01 ft/s"), "velocity", f"{w} sigma", StudyFileError, positive=True),
+    }
+    o["first"] = quantity(cfg.get("first", cfg.get("interval", "5 min")), "time", f"{w} first", StudyFileError,
+                          positive=True)
+    if o["duration"] >= o["interval"]:
+        raise StudyFileError(f"{w} duration", f"the ZUPT window ({o['duration']:g} s) must be shorter than the "
+                             "interval")
+    if o["interval"] < dt * (1 - 1e-9):
+        raise StudyFileError(f"{w} interval", f"{o['interval']:g} s is shorter than the propagation step dt = "
+                             f"{dt:g} s")
+    if o["rate"] * dt > 1 + 1e-9:
+        raise StudyFileError(f"{w} rate", f"{o['rate']:g} Hz is more than one update per propagation step "
+                             f"(dt = {dt:g} s, at most {1 / dt:g} Hz)")
+    if o["first"] > duration + 1e-9:
+        raise StudyFileError(f"{w} first", f"the first ZUPT ({o['first']:g} s) is after the end of the study "
+                             f"({duration:g} s): nothing would be aided")
+    return o
+
+
+def zupt_update_count(o: dict, duration: float) -> int:
+    """Number of ZUPT updates of validated :func:`zupt_options` ``o`` in a study of ``duration`` [s]."""
+    if o["first"] > duration + 1e-9:
+        return 0
+    windows = int(np.floor((duration - o["first"]) / o["interval"] + 1e-9)) + 1
+    return windows * (int(np.floor(o["duration"] * o["rate"] + 1e-9)) + 1)
 
 
 def zupt_schedule(cfg: dict, where: str, t: np.ndarray, traj) -> tuple[np.ndarray, float, float]:
@@ -56,30 +109,23 @@ def zupt_schedule(cfg: dict, where: str, t: np.ndarray, traj) -> tuple[np.ndarra
     Raises
     ------
     StudyFileError
-        Bad keys or units, update times off the grid, or an update outside the
-        trajectory's stationary intervals (the message names the time and the
-        nearest stationary interval).
+        Bad keys, units or ranges (:func:`zupt_options`), update times off
+        the grid, or an update outside the trajectory's stationary intervals
+        (the message names the time and the nearest stationary interval).
     """
     w = f"{where}: [zupt]"
-    check_keys(cfg, {"interval", "duration", "rate", "sigma", "first"}, w, StudyFileError)
-    interval = quantity(cfg.get("interval", "5 min"), "time", f"{w} interval", StudyFileError, positive=True)
-    dur = quantity(cfg.get("duration", "30 s"), "time", f"{w} duration", StudyFileError, nonnegative=True)
-    rate = quantity(cfg.get("rate", "1 Hz"), "frequency", f"{w} rate", StudyFileError, positive=True)
-    sigma = quantity(cfg.get("sigma", "0.01 ft/s"), "velocity", f"{w} sigma", StudyFileError, positive=True)
-    first = quantity(cfg.get("first", cfg.get("interval", "5 min")), "time", f"{w} first", StudyFileError,
-                     positive=True)
-    if dur >= interval:
-        raise StudyFileError(f"{w} duration", f"the ZUPT window ({dur:g} s) must be shorter than the interval")
+    dt = t[1] - t[0]
+    o = zupt_options(cfg, where, dt, t[-1])
+    interval, dur, rate, sigma, first = o["interval"], o["duration"], o["rate"], o["sigma"], o["first"]
     ends = np.arange(first, t[-1] + 1e-9, interval)
     times = []
     for e in ends:
         n = int(np.floor(dur * rate + 1e-9))
         times.extend(e - np.arange(n, -1, -1) / rate)
     times = np.array(times)
-    dt = t[1] - t[0]
     idx = np.round(times / dt).astype(int)
-    if np.any(np.abs(idx * dt - times) > 1e-6 * dt) or np.any(idx >= t.size):
-        bad = times[np.argmax(np.abs(idx * dt - times))]
+    if np.any(np.abs(idx * dt - times) > 1e-6 * dt) or np.any(idx >= t.size) or np.any(idx < 0):
+        bad = times[np.argmax(np.abs(idx * dt - times) + (idx < 0) * dt)]
         raise StudyFileError(f"{w} rate", f"update time {bad:g} s is not on the {dt:g} s propagation grid; "
                              "choose a rate that divides 1/dt")
     stat = traj.stationary_mask(times)
@@ -95,12 +141,24 @@ def zupt_schedule(cfg: dict, where: str, t: np.ndarray, traj) -> tuple[np.ndarra
 def _filters_file(cfg, where, base_dir) -> Path:
     if "file" not in cfg:
         return default_filter_file()
-    p = Path(cfg["file"])
-    if not p.is_absolute() and base_dir is not None:
-        p = Path(base_dir) / p
-    if not p.is_file():
-        raise StudyFileError(f"{where}: [filters] file", f"no such file {str(p)!r}")
-    return p
+    # relative to the study file that names it, never the current directory
+    return resolve_input(cfg["file"], base_dir, f"{where}: [filters] file", StudyFileError, what="filter file")
+
+
+def filter_cases(fcfg: dict, specs: dict, ffile, where: str, *, nonempty: bool = False) -> list:
+    """``[filters] cases``: declared filter names, each once (default: every filter).
+
+    An empty list is allowed unless ``nonempty`` (a pure-INS-only run).
+    """
+    if "cases" not in fcfg:
+        return list(specs)
+    return names(fcfg["cases"], f"{where}: [filters] cases", StudyFileError, known=list(specs), nonempty=nonempty,
+                 what="filter")
+
+
+def filter_dynamics(specs: dict, cases) -> int:
+    """Distinct truth dynamics the cases need (the truth's own and one per other NavOptions)."""
+    return len({dyn_key(None)} | {dyn_key(specs[c].options) for c in cases})
 
 
 @dataclass
@@ -133,6 +191,7 @@ class ZuptSetup:
     filter_file: Path
     every: float
     report_times: list
+    resources: dict = field(default_factory=dict)
     _dyn_cache: dict = field(default_factory=dict)
     _filters: dict = field(default_factory=dict)
 
@@ -186,29 +245,44 @@ class ZuptSetup:
         return np.eye(3) * (zs if zs is not None else self.zupt_sigma) ** 2
 
 
-def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=()) -> ZuptSetup:
-    """Validate a ZUPT study declaration and build the shared truth system."""
+def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), memory=None,
+          shrink: str = "a larger [study] dt, a shorter duration or fewer [filters] cases") -> ZuptSetup:
+    """Validate a ZUPT study declaration and build the shared truth system.
+
+    Parameters
+    ----------
+    memory : callable, optional
+        ``memory(steps, truth, filter_sizes, dynamics) -> dict`` from
+        :func:`covtool.studies.common.memory_estimate`: what the calling
+        study holds at its peak.  Checked against the memory limit before
+        anything is built; ``None`` skips the check (a worker of a plan
+        that was checked as a whole).
+    shrink : str
+        The options that shrink the study, for the refusal message.
+    """
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
     check_keys(decl, {"study", "trajectory", "truth", "filters", "zupt", "output", *extra_sections}, where,
                StudyFileError)
     hdr = study_header(decl, where)
     every, rtimes = output_options(decl, where, hdr["duration"])
-    fcfg = decl.get("filters", {})
+    fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
     check_keys(fcfg, {"file", "cases", "pure_ins"}, f"{where}: [filters]", StudyFileError)
-    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
+    if "pure_ins" in fcfg:
+        boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
+    zupt_options(table(decl.get("zupt", {}), f"{where}: [zupt]", StudyFileError), where, hdr["dt"],
+                 hdr["duration"])
     truth = load_truth(decl, where, base_dir)
-    t = time_grid(hdr["duration"], hdr["dt"])
-    upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
     ffile = _filters_file(fcfg, where, base_dir)
     specs = load_filters(ffile, truth)
-    cases = fcfg.get("cases", list(specs))
-    if not isinstance(cases, list):
-        raise StudyFileError(f"{where}: [filters] cases", "expected a list of filter names")
-    for c in cases:
-        if c not in specs:
-            raise StudyFileError(f"{where}: [filters] cases", f"unknown filter {c!r} (declared in {ffile}: "
-                                 f"{', '.join(specs)})")
+    cases = filter_cases(fcfg, specs, ffile, where)
+    est = {}
+    if memory is not None:
+        est = check_memory(memory(steps_of(hdr["duration"], hdr["dt"]), truth, [specs[c].n for c in cases],
+                                  filter_dynamics(specs, cases)), where, hdr["max_memory"], shrink)
+    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
+    t = time_grid(hdr["duration"], hdr["dt"])
+    upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
     nodes = traj.sample(t)
     P0 = truth.initial_covariance(nodes.q_nb[0])
@@ -217,13 +291,34 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=()) -
     H = zupt_matrices(truth.names)
     R = np.eye(3) * zsig**2
     return ZuptSetup(hdr, where, t, nodes, truth, ctx, dyn, Phi, Qd, P0, H, R, upd, dt_s, zsig, specs, cases,
-                     mean_speed, ffile, every, rtimes)
+                     mean_speed, ffile, every, rtimes, est)
+
+
+def order_memory(pure: bool, impact: bool = True):
+    """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter).
+
+    With the dropped-state impact table (``impact``) it also holds, per
+    filter in turn, the truth transition under the filter's options and
+    the per-source noise series (:data:`covtool.budget.COMPOSE_WORKSPACE`).
+    """
+    from ..budget import COMPOSE_WORKSPACE
+
+    def memory(steps, truth, filters, dynamics):
+        n = truth.n
+        hist = ([n] if pure else []) + [m for nf in filters for m in (n, nf)]
+        extra = COMPOSE_WORKSPACE + 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
+        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=hist,
+                               noise=noise_columns(truth), extra=extra)
+    return memory
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     """Run the filter-order trade; see the module docstring."""
     t_start = time.perf_counter()
-    S = setup(decl, path=path, progress=progress, extra_sections=("impact",))
+    pure = (decl.get("filters") or {}).get("pure_ins", True) if isinstance(decl.get("filters", {}), dict) else True
+    imp = decl.get("impact")
+    S = setup(decl, path=path, progress=progress, extra_sections=("impact",),
+              memory=order_memory(pure is not False, not (isinstance(imp, dict) and imp.get("filters") == [])))
     imp_filters = impact_filters(decl, S)
     hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth
     Phi, Qd, P0, H, R, upd = S.Phi, S.Qd, S.P0, S.H, S.R, S.update_steps
@@ -309,12 +404,10 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             return fig
         return make
 
-    provenance = {"truth_model": truth.name, "truth_model_file": truth.path, "truth_model_sha256": truth.sha256,
-                  "filter_file": str(ffile), "zupt_updates": int(len(upd)), "zupt_interval_s": dt_s,
-                  "zupt_sigma_m_s": zsig, "mean_moving_speed_m_s": mean_speed, "compute_seconds": f"{elapsed:.2f}",
-                  "impact_compute_seconds": f"{t_imp:.2f}"}
-    import hashlib
-    provenance["filter_file_sha256"] = hashlib.sha256(Path(ffile).read_bytes()).hexdigest()
+    provenance = {**study_inputs(path, decl, truth, ffile), "truth_model": truth.name,
+                  "truth_model_sha256": truth.sha256, "zupt_updates": int(len(upd)), "zupt_interval_s": dt_s,
+                  "zupt_sigma_m_s": zsig, "mean_moving_speed_m_s": mean_speed, **resource_provenance(S.resources),
+                  "compute_seconds": f"{elapsed:.2f}", "impact_compute_seconds": f"{t_imp:.2f}"}
     return StudyResult(
         name=hdr["name"], kind="zupt_filter_order", tables=tables,
         figures={"fig6_horizontal_cep": fig("horizontal"), "fig7_altitude_pe": fig("altitude"), **figures},
