@@ -88,6 +88,7 @@ def call_limited(fn: Callable[[Any], Any], item: Any) -> Any:
     """
     from threadpoolctl import threadpool_limits
 
+    _thread_tqdm_lock()
     try:
         with threadpool_limits(limits=1, user_api="blas"):
             return fn(item)
@@ -97,6 +98,20 @@ def call_limited(fn: Callable[[Any], Any], item: Any) -> Any:
         except Exception:
             raise WorkerError(f"{type(exc).__name__}: {exc}") from None
         raise
+
+
+def _thread_tqdm_lock() -> None:
+    """Give tqdm a thread lock unless it already has a lock.
+
+    tqdm's default lock is a multiprocessing RLock, a named semaphore that a
+    terminated worker never unregisters (the resource tracker then warns of
+    a leak at exit); bars in a chunk are off, and one process needs no
+    inter-process lock.
+    """
+    from tqdm import tqdm
+
+    if "_lock" not in vars(tqdm):
+        tqdm.set_lock(threading.RLock())
 
 
 #: exit status of a worker whose parent died (seen only by a debugger: nobody waits for it)
@@ -122,16 +137,13 @@ def _init_worker(lifeline=None) -> None:
 
     SIGINT is ignored: a terminal's Ctrl-C reaches the whole process group,
     and only the parent decides what to stop (it terminates the workers).
-    The parent spawns workers with SIGINT blocked (:func:`_sigint_blocked`),
-    so a Ctrl-C during their start-up is discarded here, not raised.
+    The parent spawns workers with SIGINT ignored already
+    (:func:`_children_ignore_sigint`); this covers other start methods.
     """
     from threadpoolctl import threadpool_limits
-    from tqdm import tqdm
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # tqdm's default lock is a multiprocessing RLock, a named semaphore that a terminated worker
-    # never unregisters (the resource tracker then warns of a leak); a worker's bars are off anyway
-    tqdm.set_lock(threading.RLock())
+    _thread_tqdm_lock()
     if hasattr(signal, "pthread_sigmask"):
         signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     if lifeline is not None:
@@ -141,21 +153,28 @@ def _init_worker(lifeline=None) -> None:
 
 
 @contextlib.contextmanager
-def _sigint_blocked():
-    """Block SIGINT in this thread while worker processes are spawned.
+def _children_ignore_sigint():
+    """Spawn child processes that ignore SIGINT from their first instruction.
 
-    A spawned child inherits the signal mask through ``exec``, so it cannot
-    receive a Ctrl-C before :func:`_init_worker` ignores it.  A SIGINT that
-    arrives meanwhile stays pending and is delivered on exit (not lost).
+    A terminal's Ctrl-C goes to the whole foreground process group; only
+    this process should act on it (it stops the workers).  A SIG_IGN
+    disposition survives ``fork`` and ``exec`` and Python keeps it at
+    start-up (a blocked signal mask does not survive a spawn), so SIGINT is
+    ignored here while children are spawned.  It is also blocked meanwhile:
+    Linux never discards a blocked signal, so a Ctrl-C in this window stays
+    pending and is raised once the handler is back.
     """
     if not hasattr(signal, "pthread_sigmask") or threading.current_thread() is not threading.main_thread():
         yield
         return
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        if old is not None:
+            signal.signal(signal.SIGINT, old)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 # --------------------------------------------------------------------------
@@ -255,7 +274,7 @@ class ProcessBackend(SerialBackend):
         from concurrent.futures.process import BrokenProcessPool
 
         pool = self._executor()
-        with _sigint_blocked():                              # workers are spawned by submit
+        with _children_ignore_sigint():                      # workers are spawned by submit
             pending = {pool.submit(call_limited, fn, item): i for i, item in enumerate(items)}
         try:
             while pending:
@@ -361,8 +380,13 @@ class DaskBackend(SerialBackend):
             kw = {"n_workers": workers or os.cpu_count() or 1, "threads_per_worker": 1, "processes": True,
                   "dashboard_address": None}
             kw.update(cluster_kwargs)
-            self._cluster = LocalCluster(**kw)
-            self.client = Client(self._cluster)
+            with _children_ignore_sigint():                  # the cluster starts its worker processes here
+                self._cluster = LocalCluster(**kw)
+                try:
+                    self.client = Client(self._cluster)
+                except BaseException:
+                    self._cluster.close()
+                    raise
         else:
             try:
                 self.client = Client(address, timeout=timeout)
