@@ -144,8 +144,6 @@ def _init_worker(lifeline=None) -> None:
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     _thread_tqdm_lock()
-    if hasattr(signal, "pthread_sigmask"):
-        signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     if lifeline is not None:
         threading.Thread(target=_watch_parent, args=(lifeline,), name="covtool-parent-watchdog",
                          daemon=True).start()
@@ -239,7 +237,8 @@ class ProcessBackend(SerialBackend):
     a check for a parent that died before the ``prctl`` call; the pipe has
     none of these problems.  Once the workers are gone, the
     ``multiprocessing`` resource tracker sees EOF on its own pipe (held by
-    the parent and the workers) and exits as well.
+    the parent and the workers) and exits as well.  The watchdog needs the
+    ``spawn`` start method: a forked worker would inherit the write end.
     """
 
     name = "processes"
@@ -259,15 +258,13 @@ class ProcessBackend(SerialBackend):
             from concurrent.futures import ProcessPoolExecutor
 
             ctx = multiprocessing.get_context(self.start_method)
-            self._lifeline = ctx.Pipe(duplex=False)          # (read end for the workers, write end kept here)
+            args = ()
+            if self.start_method == "spawn":             # a forked worker would inherit the write end too
+                self._lifeline = ctx.Pipe(duplex=False)  # (read end for the workers, write end kept here)
+                args = (self._lifeline[0],)
             self._pool = ProcessPoolExecutor(max_workers=self.workers, mp_context=ctx, initializer=_init_worker,
-                                             initargs=(self._lifeline[0],))
+                                             initargs=args)
         return self._pool
-
-    def pids(self) -> list[int]:
-        """Process ids of the live worker processes."""
-        procs = getattr(self._pool, "_processes", None) or {}
-        return [p.pid for p in list(procs.values()) if p.pid is not None]
 
     def imap_unordered(self, fn, items):
         from concurrent.futures import FIRST_COMPLETED, wait
@@ -562,24 +559,26 @@ class DirLock:
 
     def _lock_file(self) -> tuple[int, dict]:
         """Open and flock the lock file; return its fd and the previous holder record."""
-        import fcntl
-
+        try:
+            import fcntl
+        except ImportError:                    # not POSIX
+            fcntl = None
         for _ in range(100):
             fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
             try:
+                if fcntl is None:
+                    raise OSError("no flock")
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
                 holder = self._read(fd)
                 os.close(fd)
-                raise OutputLockedError(str(self.dir), f"in use by another covtool run ({_holder_text(holder)}); "
-                                        "wait for it to finish or choose another --out") from None
-            except OSError:                    # no flock on this file system: the PID decides alone
+                raise self._busy(holder) from None
+            except OSError:                    # no flock here: the PID decides alone
                 holder = self._read(fd)
                 if holder.get("host") == socket.gethostname() and holder.get("pid") != os.getpid() \
                         and _pid_alive(holder.get("pid")):
                     os.close(fd)
-                    raise OutputLockedError(str(self.dir), f"in use by another covtool run ({_holder_text(holder)}); "
-                                            "wait for it to finish or choose another --out") from None
+                    raise self._busy(holder) from None
                 return fd, holder
             # the previous owner unlinks the file on release: make sure we locked the file at the path
             try:
@@ -590,6 +589,10 @@ class DirLock:
                 return fd, self._read(fd)
             os.close(fd)
         raise OutputLockedError(str(self.dir), f"cannot lock {self.path} (it keeps being replaced)")
+
+    def _busy(self, holder: dict) -> OutputLockedError:
+        return OutputLockedError(str(self.dir), f"in use by another covtool run ({_holder_text(holder)}); "
+                                 "wait for it to finish or choose another --out")
 
     @staticmethod
     def _read(fd: int) -> dict:

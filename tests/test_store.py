@@ -344,3 +344,24 @@ def test_lock_errors(tmp_path, monkeypatch):
     monkeypatch.setattr(os, "stat", moved)
     with pytest.raises(OutputLockedError, match=r"cannot lock .*\.covtool\.lock \(it keeps being replaced\)"):
         DirLock(tmp_path / "d").acquire()
+
+
+def test_without_flock_the_pid_decides(tmp_path, monkeypatch):
+    """A file system without flock (ENOLCK): a live PID of this host holds the lock, a dead one does not."""
+    import errno
+    import fcntl
+
+    def no_flock(fd, op):
+        raise OSError(errno.ENOLCK, "No locks available")
+
+    monkeypatch.setattr(fcntl, "flock", no_flock)
+    live = os.getppid()
+    (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": live, "host": socket.gethostname(), "started": "now"}))
+    with pytest.raises(OutputLockedError, match=rf"in use by another covtool run \(PID {live} on host "):
+        DirLock(tmp_path).acquire()
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    (tmp_path / LOCK_NAME).write_text(json.dumps({"pid": int(dead.stdout), "host": socket.gethostname()}))
+    notes = []
+    with DirLock(tmp_path, report=notes.append):
+        assert json.loads((tmp_path / LOCK_NAME).read_text())["pid"] == os.getpid()
+    assert len(notes) == 1 and "that process is no longer running" in notes[0]
