@@ -3,7 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import os
+import signal
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -25,22 +28,29 @@ def _output_dir(args) -> Path:
 
 def _cmd_run(args) -> int:
     from .io.writers import write_outputs
+    from .parallel import DirLock
     from .studies import run_study
 
     t0 = time.perf_counter()
     out = _output_dir(args)
-    backend = None
-    if args.workers is not None or args.scheduler is not None:
-        from .parallel import make_backend
+    args.store_dir = out / "cases"                        # named in the interrupt message
+    # one run at a time per output directory: outputs and the result store are written by one process
+    with DirLock(out, command=f"covtool run {args.study}"):
+        backend = None
+        try:
+            if args.workers is not None or args.scheduler is not None:
+                from .parallel import make_backend
 
-        backend = make_backend(workers=args.workers, scheduler=args.scheduler)
-    try:
-        result = run_study(args.study, progress=not args.quiet, backend=backend, store=out / "cases",
-                           resume=args.resume)
-    finally:
+                backend = make_backend(workers=args.workers, scheduler=args.scheduler)
+            result = run_study(args.study, progress=not args.quiet, backend=backend, store=out / "cases",
+                               resume=args.resume)
+        except BaseException:
+            if backend is not None:
+                backend.abort()                          # never wait for running chunks on an error
+            raise
         if backend is not None:
             backend.close()
-    files = write_outputs(result, out, figures=not args.no_figures)
+        files = write_outputs(result, out, figures=not args.no_figures)
     dt = time.perf_counter() - t0
     if not args.quiet:
         s = result.summary
@@ -114,17 +124,63 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+class Interrupted(KeyboardInterrupt):
+    """SIGINT or SIGTERM received (raised in the main thread)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _on_signal(signum, frame):
+    """First SIGINT/SIGTERM: unwind (the ``finally`` blocks stop the workers).
+
+    A second one while unwinding exits at once: the workers then die with
+    this process (their watchdog, :class:`covtool.parallel.ProcessBackend`)
+    and the store holds only whole chunks.
+    """
+    for s in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(s, _on_second_signal)
+    raise Interrupted(signum)
+
+
+def _on_second_signal(signum, frame):
+    print(f"covtool: {signal.Signals(signum).name} again; exiting at once", file=sys.stderr, flush=True)
+    os._exit(128 + signum)
+
+
+def _interrupt_message(args, signum: int) -> str:
+    name = signal.Signals(signum).name
+    store = getattr(args, "store_dir", None)
+    if store is not None and Path(store).is_dir():
+        return (f"covtool: interrupted by {name}; the chunks finished so far are kept in {store} "
+                "(continue with --resume); earlier outputs are untouched")
+    return f"covtool: interrupted by {name}; earlier outputs are untouched"
+
+
 def main(argv=None) -> int:
-    """Entry point of the ``covtool`` command."""
+    """Entry point of the ``covtool`` command.
+
+    Returns the exit status: 0, 2 for an input error, 128 + the signal
+    number after SIGINT (130) or SIGTERM (143), with one line on stderr.
+    """
     args = build_parser().parse_args(argv)
+    handlers = {}
+    if threading.current_thread() is threading.main_thread():
+        for s in (signal.SIGINT, signal.SIGTERM):
+            handlers[s] = signal.signal(s, _on_signal)
     try:
         return args.func(args)
     except CovtoolError as exc:
         print(f"covtool: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print("covtool: interrupted; earlier outputs are untouched", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
+        print(_interrupt_message(args, signum), file=sys.stderr)
+        return 128 + signum
+    finally:
+        for s, h in handlers.items():
+            signal.signal(s, h)
 
 
 if __name__ == "__main__":

@@ -1,14 +1,22 @@
 """Backends give identical results; a killed sweep resumes with no case lost or computed twice.
 
+A damaged store is verified, reported and recomputed; a second run into the
+same OUT is refused; SIGINT/SIGTERM stop the workers promptly and a killed
+parent leaves no worker behind (the store-level units are in test_store.py).
+
 Also the engine's rank-m update forms (covtool.engine._joseph) against the
 product forms they replace.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+import re
+import shutil
 import signal
+import socket
 import subprocess
 import sys
 import threading
@@ -18,14 +26,15 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import psutil
 import pytest
 import tomli_w
 
 from covtool.cli import main
 from covtool.covariance import propagate_with_filter
 from covtool.engine import System, _joseph, events, run_batch
-from covtool.parallel import (DaskBackend, ProcessBackend, ResultStore, SerialBackend, StoreError, WorkerError,
-                              call_limited, make_backend, run_chunks)
+from covtool.parallel import (LOCK_NAME, DaskBackend, ProcessBackend, ResultStore, SerialBackend, StoreError,
+                              WorkerError, _record_hash, call_limited, fingerprint, make_backend, run_chunks)
 
 ROOT = Path(__file__).resolve().parents[1]
 TRADE = ROOT / "studies" / "trade_grid.toml"
@@ -159,39 +168,242 @@ def test_dask_local_cluster_identical_to_in_process(study, reference, tmp_path):
     assert prov["backend"].startswith("dask at tcp://127.0.0.1") and "(2 workers)" in prov["backend"]
 
 
-def test_kill_and_resume_loses_and_repeats_nothing(study, reference, tmp_path):
-    """kill -9 after two chunks are stored, then --resume: same workbook, every case stored exactly once."""
+def _start(study: Path, out: Path, *extra: str) -> tuple[subprocess.Popen, Path]:
+    """``covtool run`` in its own session (as a terminal's foreground job); stderr to a file.
+
+    A file, not a pipe: an orphaned worker holding a pipe would block the read.
+    """
+    err = out.with_name(out.name + ".stderr")
+    with open(err, "wb") as fh:
+        proc = subprocess.Popen([sys.executable, "-m", "covtool", "run", str(study), "--out", str(out), "--quiet",
+                                 "--no-figures", *extra], start_new_session=True, stdout=subprocess.DEVNULL,
+                                stderr=fh, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    return proc, err
+
+
+def _wait_for_chunks(proc: subprocess.Popen, cases: Path, n: int, err: Path) -> None:
+    deadline = time.monotonic() + 120
+    while len(list(cases.glob("chunk-*.json"))) < n:
+        assert proc.poll() is None, err.read_text()
+        assert time.monotonic() < deadline, f"fewer than {n} chunks stored within 120 s"
+        time.sleep(0.01)
+
+
+def _running(procs) -> list[int]:
+    """PIDs of the processes still running (a zombie has exited)."""
+    alive = []
+    for p in procs:
+        try:
+            if p.is_running() and p.status() != psutil.STATUS_ZOMBIE:
+                alive.append(p.pid)
+        except psutil.NoSuchProcess:
+            pass
+    return alive
+
+
+def _wait_gone(procs, timeout: float) -> list[int]:
+    """Wait up to ``timeout`` s for ``procs`` to end; return the PIDs still running."""
+    deadline = time.monotonic() + timeout
+    while _running(procs) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return _running(procs)
+
+
+def _kill_all(procs) -> None:
+    """Clean up after a failed test: the processes it started, by PID."""
+    for p in procs:
+        with contextlib.suppress(psutil.NoSuchProcess):
+            p.kill()
+
+
+def _journal(cases: Path) -> list[dict]:
+    return [json.loads(line) for line in (cases / "journal.jsonl").read_text().splitlines() if line.strip()]
+
+
+def _journal_counts(cases: Path) -> dict:
+    """How often each case was stored ("stored" and "recovered" journal events)."""
+    counts = {}
+    for r in _journal(cases):
+        if r["event"] in ("stored", "recovered"):
+            for c in r["cases"]:
+                counts[c] = counts.get(c, 0) + 1
+    return counts
+
+
+def test_kill_and_resume_loses_and_repeats_nothing(study, reference, tmp_path, capsys):
+    """kill -9 after two chunks are stored, then --resume: same workbook, every case stored exactly once.
+
+    The killed run's lock is stale (its PID is dead): the resumed run takes it over with a note.
+    """
     out = tmp_path / "killed"
     cases = out / "cases"
-    proc = subprocess.Popen([sys.executable, "-m", "covtool.cli", "run", str(study), "--out", str(out), "--quiet",
-                             "--no-figures"], start_new_session=True, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE)
+    proc, err = _start(study, out)
     try:
-        deadline = time.monotonic() + 120
-        while len(list(cases.glob("chunk-*.json"))) < 2:
-            assert proc.poll() is None, proc.stderr.read().decode()
-            assert time.monotonic() < deadline, "no chunk stored within 120 s"
-            time.sleep(0.01)
+        _wait_for_chunks(proc, cases, 2, err)
         os.killpg(proc.pid, signal.SIGKILL)
     finally:
         proc.wait(timeout=30)
     stored = len(list(cases.glob("chunk-*.json")))
     assert 2 <= stored < 6, stored                          # interrupted part-way
     assert not (out / "trade_grid.xlsx").exists()
+    assert json.loads((out / LOCK_NAME).read_text())["pid"] == proc.pid
 
     assert main(["run", str(study), "--out", str(out), "--quiet", "--no-figures", "--resume"]) == 0
+    notes = capsys.readouterr().err
+    assert f"{out / LOCK_NAME}: took over a stale lock (PID {proc.pid} on host {socket.gethostname()}" in notes
+    assert "that process is no longer running)" in notes and "not used" not in notes
     assert_same_outputs(reference, out)
     store_cases = json.loads((cases / "manifest.json").read_text())["cases"]
-    journal = [json.loads(line) for line in (cases / "journal.jsonl").read_text().splitlines() if line.strip()]
-    counts = {}
-    for r in journal:
-        for c in r["cases"]:
-            counts[c] = counts.get(c, 0) + 1
+    counts = _journal_counts(cases)
     assert sorted(counts) == list(range(store_cases)) == list(range(24))
     assert set(counts.values()) == {1}                     # no case lost, none computed twice
-    assert len({r["run"] for r in journal}) == 2            # the killed run and the resumed one
+    assert len({r["run"] for r in _journal(cases)}) == 2            # the killed run and the resumed one
     prov = pd.read_excel(out / "trade_grid.xlsx", sheet_name="provenance").set_index("key")["value"]
     assert int(prov["chunks_reused"]) == stored and int(prov["chunks_computed"]) == 6 - stored
+    assert not (out / LOCK_NAME).exists()
+
+
+def test_damaged_store_is_verified_reported_and_recomputed(study, reference, tmp_path, capsys):
+    """Swapped, hand-edited, foreign, truncated and binary chunks and a non-UTF-8 journal line, then --resume.
+
+    Before: the swapped chunk gave 24 rows of 20 distinct cases, the edited CEP went into the summary,
+    the others a traceback.  Now each is reported in one line and recomputed; the outputs equal an
+    uninterrupted run's and every case appears exactly once.
+    """
+    out = tmp_path / "damaged"
+    shutil.copytree(reference, out)
+    cases = out / "cases"
+    ch = {k: cases / f"chunk-{k}.json" for k in ("g00-i00", "g00-i01", "g00-i02", "g01-i00", "g01-i01", "g01-i02")}
+    ch["g00-i01"].write_bytes(ch["g00-i00"].read_bytes())                      # cp chunk-g00-i00 chunk-g00-i01
+    rec = json.loads(ch["g00-i02"].read_text())
+    assert rec["result"]["rows"][0]["CEP [ft]"] != 1.0
+    rec["result"]["rows"][0]["CEP [ft]"] = 1.0                                 # a hand edit
+    ch["g00-i02"].write_text(json.dumps(rec))
+    d = small_decl()                                                            # another study's chunk ...
+    d["grid"]["q_scale"] = [1.0, 2.0]
+    from covtool.studies.trade import TradePlan
+    other = TradePlan(d, study)
+    rec = json.loads(ch["g01-i00"].read_text())
+    rec["plan"] = fingerprint(other.manifest(d))
+    for row in rec["result"]["rows"]:
+        row["Q scale"] = 2.0 if row["Q scale"] == 3.0 else row["Q scale"]
+    rec["sha256"] = _record_hash(rec)                                          # ... internally consistent
+    ch["g01-i00"].write_text(json.dumps(rec))
+    ch["g01-i01"].write_bytes(ch["g01-i01"].read_bytes()[:700])                # truncated
+    ch["g01-i02"].write_bytes(os.urandom(64) + b"\xff\xfe")                    # binary
+    with open(cases / "journal.jsonl", "ab") as fh:
+        fh.write(b'{"event": "stored", "key": "g00-i00", "cases": [0, 1, 2, 3], "run": "\xe9t\xe9"}\n')
+
+    assert main(["run", str(study), "--out", str(out), "--quiet", "--no-figures", "--resume"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    rej = f"not used, moved to {cases / 'rejected'}/; recomputing it"
+    assert err[0].startswith(f"covtool: {cases / 'journal.jsonl'}: line 7: not UTF-8 text; ignored")
+    assert err[1:] == [
+        f"covtool: {ch['g00-i01']}: holds chunk 'g00-i00', not 'g00-i01' (a copy of another chunk); {rej}",
+        f"covtool: {ch['g00-i02']}: content hash mismatch (edited or corrupted); {rej}",
+        f"covtool: {ch['g01-i00']}: written for another study (its plan key differs from this study's); {rej}",
+        f"covtool: {ch['g01-i01']}: not valid JSON (truncated or corrupted); {rej}",
+        f"covtool: {ch['g01-i02']}: not UTF-8 text (binary or corrupted); {rej}"]
+    assert_same_outputs(reference, out)
+    summary = pd.read_csv(out / "summary.csv")
+    assert sorted(summary["case"]) == list(range(24))                          # every case exactly once
+    prov = pd.read_excel(out / "trade_grid.xlsx", sheet_name="provenance").set_index("key")["value"]
+    assert (int(prov["chunks_reused"]), int(prov["chunks_computed"])) == (1, 5)
+    assert prov["result_store_checks"].startswith("1 chunks verified and reused, 5 rejected, 5 computed; ")
+    counts = _journal_counts(cases)                                            # stored by the reference run,
+    assert counts == {c: 1 if c < 4 else 2 for c in range(24)}                 # and again if rejected
+    assert len(list((cases / "rejected").glob("chunk-*"))) == 5
+
+
+def _interrupt_mid_run(study: Path, out: Path, sig: int, second_run=None) -> int:
+    """Start a --workers 2 run, signal it after its first chunk; check the exit; return the chunks stored.
+
+    SIGINT goes to the whole process group (Ctrl-C in a terminal), SIGTERM to the parent only.
+    ``second_run(pid)`` is called while the run is going.
+    """
+    proc, err = _start(study, out, "--workers", "2")
+    kids = []
+    try:
+        _wait_for_chunks(proc, out / "cases", 1, err)
+        kids = psutil.Process(proc.pid).children(recursive=True)
+        assert len(kids) >= 3, kids                          # two workers and the resource tracker
+        if second_run is not None:
+            second_run(proc.pid)
+        if sig == signal.SIGINT:
+            os.killpg(proc.pid, sig)
+        else:
+            os.kill(proc.pid, sig)
+        assert proc.wait(timeout=10) == 128 + sig
+        assert _wait_gone(kids, 10) == []
+    finally:
+        _kill_all(kids + [psutil.Process(proc.pid)] if proc.poll() is None else kids)
+        proc.wait()
+    assert err.read_text().splitlines() == [
+        f"covtool: interrupted by {signal.Signals(sig).name}; the chunks finished so far are kept in {out / 'cases'} "
+        "(continue with --resume); earlier outputs are untouched"]
+    stored = len(list((out / "cases").glob("chunk-*.json")))
+    assert 1 <= stored < 6, stored                           # stopped mid-run
+    assert not list((out / "cases").glob(".*.tmp")) and not list(out.glob(".staging-*"))
+    assert not (out / LOCK_NAME).exists()
+    return stored
+
+
+def test_sigint_with_workers_stops_promptly_and_leaves_a_resumable_store(study, reference, tmp_path, capsys):
+    """Ctrl-C with --workers 2 mid-run.
+
+    Before: "interrupted; earlier outputs are untouched", then a hang in 3 of 6 tries
+    (ProcessPoolExecutor.shutdown waiting for its workers).  Now: exit 130 within 10 s with one
+    line, no child process left, only whole chunks stored, and --resume completes the run.
+    """
+    out = tmp_path / "int"
+    stored = _interrupt_mid_run(study, out, signal.SIGINT)
+    assert main(["run", str(study), "--out", str(out), "--quiet", "--no-figures", "--resume"]) == 0
+    assert capsys.readouterr().err == ""                     # every stored chunk verified, nothing to report
+    assert_same_outputs(reference, out)
+    assert _journal_counts(out / "cases") == {c: 1 for c in range(24)}
+    prov = pd.read_excel(out / "trade_grid.xlsx", sheet_name="provenance").set_index("key")["value"]
+    assert int(prov["chunks_reused"]) == stored
+
+
+def test_sigterm_with_workers_stops_promptly_and_a_second_run_is_refused(study, tmp_path, capsys):
+    """SIGTERM to the parent with --workers 2; meanwhile a second run into the same OUT.
+
+    Before: both workers and the resource tracker stayed alive; two runs into one OUT mixed their
+    chunks.  Now: exit 143 within 10 s with one line and no child left; the second run is refused
+    with a message naming the first run's PID, and leaves its files alone.
+    """
+    out = tmp_path / "term"
+
+    def second_run(pid):
+        before = sorted(p.name for p in (out / "cases").iterdir())
+        assert main(["run", str(study), "--out", str(out), "--quiet", "--no-figures"]) == 2
+        assert re.fullmatch(rf"covtool: error: {re.escape(str(out))}: in use by another covtool run \(PID {pid} on "
+                            rf"host {re.escape(socket.gethostname())}, started [^,]+, covtool run "
+                            rf"{re.escape(str(study))}\); wait for it to finish or choose another --out\n",
+                            capsys.readouterr().err)
+        assert not (out / "cases.previous").exists()           # the running run's store was not touched
+        assert set(before) <= {p.name for p in (out / "cases").iterdir()}
+
+    _interrupt_mid_run(study, out, signal.SIGTERM, second_run)
+
+
+def test_kill_9_of_the_parent_leaves_no_worker(study, tmp_path):
+    """Before: both workers (~300 MB each) and the resource tracker stayed alive.  Now they end with it."""
+    out = tmp_path / "orphans"
+    proc, err = _start(study, out, "--workers", "2")
+    kids = []
+    try:
+        _wait_for_chunks(proc, out / "cases", 1, err)
+        kids = psutil.Process(proc.pid).children(recursive=True)
+        assert len(kids) >= 3, kids
+        proc.kill()                                          # SIGKILL to the parent alone
+        proc.wait(timeout=10)
+        assert _wait_gone(kids, 10) == []
+    finally:
+        _kill_all(kids)
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait()
 
 
 def test_resume_refuses_a_store_of_another_study(study, reference, tmp_path):
@@ -231,32 +443,38 @@ def _fails(x):
     raise _Unpicklable("holds a lock")
 
 
+def _dies(x):
+    os._exit(3)
+
+
 def test_store_reconciles_torn_journal_and_unjournaled_chunks(tmp_path):
-    st = ResultStore(tmp_path / "s", {"a": 1})
-    st.save("k0", [0, 1], {"y": 1.5})
-    st.save("k1", [2], {"y": 2.5})
+    with ResultStore(tmp_path / "s", {"a": 1}) as st:
+        st.save("k0", [0, 1], {"y": 1.5})
+        st.save("k1", [2], {"y": 2.5})
     j = tmp_path / "s" / "journal.jsonl"
     lines = j.read_text().splitlines()
     j.write_text(lines[0] + "\n" + lines[1][:10])         # k1's line torn by a kill
-    st2 = ResultStore(tmp_path / "s", {"a": 1}, resume=True)
-    assert st2.keys() == {"k0", "k1"}
-    assert st2.case_counts() == {0: 1, 1: 1, 2: 1}
-    assert [r["event"] for r in st2.journal()] == ["stored", "recovered"]
-    res, stats = run_chunks(_square, [1.0, 2.0, 3.0], ["k0", "k1", "k2"], [[0, 1], [2], [3]], store=st2)
-    assert res == [{"y": 1.5}, {"y": 2.5}, {"y": 9.0}] and (stats["computed"], stats["reused"]) == (1, 2)
-    ResultStore(tmp_path / "s", {"a": 1})                    # without resume: afresh
-    assert not list((tmp_path / "s").glob("chunk-*"))
+    notes = []
+    with ResultStore(tmp_path / "s", {"a": 1}, resume=True, report=notes.append) as st2:
+        assert st2.keys() == {"k0", "k1"}
+        assert notes == [f"{j}: line 2: torn (a run was killed while writing it); ignored (chunk files are verified "
+                         f"on their own; the damaged journal is kept in {j.parent / 'rejected'}/"
+                         f"journal.jsonl.{st2.run_id})"]
+        res, stats = run_chunks(_square, [1.0, 2.0, 3.0], ["k0", "k1", "k2"], [[0, 1], [2], [3]], store=st2)
+        assert res == [{"y": 1.5}, {"y": 2.5}, {"y": 9.0}] and (stats["computed"], stats["reused"]) == (1, 2)
+        assert st2.case_counts() == {0: 1, 1: 1, 2: 1, 3: 1}
+        assert [r["event"] for r in st2.journal()] == ["stored", "recovered", "stored"]
+    with ResultStore(tmp_path / "s", {"a": 1}, report=notes.append):   # without resume: afresh ...
+        assert not list((tmp_path / "s").glob("chunk-*"))
+    assert sorted(p.name for p in (tmp_path / "s.previous").glob("chunk-*")) == [   # ... the old one set aside
+        "chunk-k0.json", "chunk-k1.json", "chunk-k2.json"]
 
 
 def test_store_errors(tmp_path):
-    ResultStore(tmp_path / "s", {"a": 1})
+    with ResultStore(tmp_path / "s", {"a": 1}):
+        pass
     with pytest.raises(StoreError, match=r"was written for a different sweep \(differs in: a\)"):
         ResultStore(tmp_path / "s", {"a": 2}, resume=True)
-    (tmp_path / "s" / "manifest.json").write_text("{not json")
-    with pytest.raises(StoreError, match=r"manifest.json: unreadable manifest"):
-        ResultStore(tmp_path / "s", {"a": 1}, resume=True)
-    with pytest.raises(ValueError, match="chunk keys are not unique"):
-        run_chunks(_square, [1, 2], ["k", "k"], [[0], [1]])
 
 
 def test_backend_errors():
@@ -279,6 +497,10 @@ def test_process_backend_maps_and_reraises(tmp_path):
         assert got == {0: {"y": 1.0}, 1: {"y": 4.0}, 2: {"y": 9.0}}
         with pytest.raises(WorkerError, match="holds a lock"):
             dict(be.imap_unordered(_fails, [1]))
+    with ProcessBackend(1) as be:
+        with pytest.raises(WorkerError, match=r"a worker process died while running a chunk \(killed, or out of "
+                                              r"memory\?\); the chunks stored so far are kept: use --resume"):
+            dict(be.imap_unordered(_dies, [1]))
 
 
 def test_cli_rejects_bad_worker_count(study, capsys):

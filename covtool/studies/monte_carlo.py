@@ -50,10 +50,8 @@ every finished chunk is stored and ``--resume`` reuses it.
 
 from __future__ import annotations
 
-import hashlib
 import math
 import time
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -182,7 +180,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     resume : bool
         Reuse the chunks already in ``store``.
     """
-    from ..parallel import ResultStore, make_backend, run_chunks
+    from ..parallel import ResultStore, file_sha256, make_backend, run_chunks
+    from .trade import _store_checks, trajectory_csv_sha256
 
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
@@ -246,17 +245,22 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     if store is not None:
         manifest = {"kind": "monte_carlo", "covtool_version": __version__, "study": decl,
                     "truth_model_sha256": truth.sha256,
-                    "filter_file_sha256": hashlib.sha256(Path(S.filter_file).read_bytes()).hexdigest(),
+                    "filter_file_sha256": file_sha256(S.filter_file),
+                    "trajectory_csv_sha256": trajectory_csv_sha256(decl, path.parent if path else None),
                     "chunks": keys, "runs": sizes}
         rs = ResultStore(store, manifest, resume=resume)
     own = backend is None or isinstance(backend, str)
-    be = make_backend(backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"))
     try:
-        results, stats = run_chunks(simulate_chunk, tasks, keys, run_ids, backend=be, store=rs, progress=progress,
-                                    desc="Monte Carlo runs")
+        be = make_backend(backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"))
+        try:
+            results, stats = run_chunks(simulate_chunk, tasks, keys, run_ids, backend=be, store=rs,
+                                        progress=progress, desc="Monte Carlo runs")
+        finally:
+            if own:
+                be.close()
     finally:
-        if own:
-            be.close()
+        if rs is not None:
+            rs.close()
     names = [c.name for c in cases]
     sums = {}
     for res in results:
@@ -396,7 +400,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                   "samples_per_step": opt["samples_per_step"], "backend": stats["backend"],
                   "chunks_computed": stats["computed"], "chunks_reused": stats["reused"],
                   "compute_seconds": f"{elapsed:.2f}", "monte_carlo_seconds": f"{stats['seconds']:.2f}",
-                  "result_store": str(store) if store is not None else ""}
+                  "result_store": str(store) if store is not None else "",
+                  "result_store_checks": _store_checks(rs, stats)}
     return StudyResult(
         name=S.hdr["name"], kind="monte_carlo", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,

@@ -63,7 +63,6 @@ differs).
 from __future__ import annotations
 
 import copy
-import hashlib
 import itertools
 import math
 import os
@@ -80,6 +79,7 @@ from ..filters import load_filters, zupt_matrices
 from ..io.config import LIMITS, boolean, check_keys, number, quantity, string, table
 from ..io.names import check_name
 from ..metrics import nav_metrics
+from ..parallel import file_sha256
 from ..results import StudyResult
 from ..units import DIMENSIONS
 from .common import (FT, ARCMIN, check_memory, load_truth, memory_estimate, noise_columns, resource_provenance, steps_of,
@@ -358,11 +358,31 @@ class TradePlan:
                                extra=extra, parallel=max(1, min(workers, len(self.chunks))))
 
     def manifest(self, decl: dict) -> dict:
-        """What identifies this sweep for a resumed run."""
+        """What identifies this sweep for a resumed run (its fingerprint is the plan key).
+
+        The study declaration, the truth model, the filter file and a
+        trajectory CSV (by SHA-256), the covtool version and the chunk plan.
+        """
         return {"kind": "trade_grid", "covtool_version": __version__, "study": decl,
                 "truth_model_sha256": self.truth_sha256,
-                "filter_file_sha256": hashlib.sha256(Path(self.filter_file).read_bytes()).hexdigest(),
+                "filter_file_sha256": file_sha256(self.filter_file),
+                "trajectory_csv_sha256": trajectory_csv_sha256(decl, self.path.parent if self.path else None),
                 "chunks": [c["key"] for c in self.chunks], "cases": self.n_cases}
+
+
+def trajectory_csv_sha256(decl: dict, base_dir) -> str:
+    """SHA-256 of the study's ``[trajectory] csv`` file (``""`` without one).
+
+    The path is resolved as :func:`covtool.trajectory.trajectory_from_config`
+    resolves it (relative to the study file's directory).
+    """
+    traj = decl.get("trajectory")
+    if not isinstance(traj, dict) or not isinstance(traj.get("csv"), str):
+        return ""
+    path = Path(traj["csv"])
+    if not path.is_absolute() and base_dir is not None:
+        path = Path(base_dir) / path
+    return file_sha256(path)
 
 
 # --------------------------------------------------------------------------
@@ -477,14 +497,18 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                        "--workers")
     rs = ResultStore(store, plan.manifest(decl), resume=resume) if store is not None else None
     own = backend is None or isinstance(backend, str)
-    be = make_backend(backend)
     try:
-        results, stats = run_chunks(compute_chunk, plan.chunks, [c["key"] for c in plan.chunks],
-                                    [[k["case"] for k in c["cases"]] for c in plan.chunks],
-                                    backend=be, store=rs, progress=progress, desc="trade grid")
+        be = make_backend(backend)
+        try:
+            results, stats = run_chunks(compute_chunk, plan.chunks, [c["key"] for c in plan.chunks],
+                                        [[k["case"] for k in c["cases"]] for c in plan.chunks],
+                                        backend=be, store=rs, progress=progress, desc="trade grid")
+        finally:
+            if own:
+                be.close()
     finally:
-        if own:
-            be.close()
+        if rs is not None:
+            rs.close()
     elapsed = time.perf_counter() - t_start
     summary = pd.DataFrame([row for res in results for row in res["rows"]])
     tables = {"summary": summary, **pivot_tables(summary, plan), "grades": _grade_table(plan),
@@ -498,7 +522,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                   "chunk_seconds_total": f"{timing['total'].sum():.2f}",
                   "filters_reusing_truth_phi_qd": ", ".join(sorted({f for r in results
                                                                    for f in r.get("reused_truth_phi", [])})) or "none",
-                  "result_store": str(store) if store is not None else ""}
+                  "result_store": str(store) if store is not None else "",
+                  "result_store_checks": _store_checks(rs, stats)}
     return StudyResult(
         name=plan.hdr["name"], kind="trade_grid", tables=tables,
         figures={"trade_grid": lambda: trade_figure(summary, plan)},
@@ -516,6 +541,15 @@ def _local_workers(backend) -> int:
     if hasattr(backend, "client") and getattr(backend, "_cluster", None) is None:
         return 1
     return int(getattr(backend, "workers", 1) or 1)
+
+
+def _store_checks(rs, stats: dict) -> str:
+    """Provenance line of the result store's verification (notes joined)."""
+    if rs is None:
+        return ""
+    head = (f"{stats['reused']} chunks verified and reused, {stats['rejected']} rejected, "
+            f"{stats['computed']} computed")
+    return "; ".join([head] + rs.notes)
 
 
 def nominal(summary: pd.DataFrame, plan: TradePlan) -> pd.DataFrame:
