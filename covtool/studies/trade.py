@@ -80,7 +80,7 @@ from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics
 from ..results import StudyResult
 from ..units import DIMENSIONS
-from .common import FT, ARCMIN, load_truth, study_header, summary_row, time_grid
+from .common import FT, ARCMIN, check_step_motion, load_truth, study_header, summary_row, time_grid
 from .nav_covariance import load_trajectory, output_options
 from .zupt import _filters_file, setup, zupt_schedule
 
@@ -301,6 +301,7 @@ class TradePlan:
                 zupt_schedule(sub["zupt"], where, t, tr)
             except InputError as exc:
                 raise StudyFileError(f"{where}: [grid] zupt_interval = {text!r}", str(exc)) from None
+            check_step_motion(tr, t, where)
             for gi, g in enumerate(self.grades):
                 self.decls[(gi, ii)] = system_decl(decl, self.grade_truth[gi], text, s, self.cruise_speed,
                                                    self.hdr["duration"], where)

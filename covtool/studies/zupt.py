@@ -168,7 +168,8 @@ class ZuptSetup:
                 self._filters[ckey] = (fm, self.Phi, self.Qd, True)
             else:
                 Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(self.t), spec.discretization,
-                                                 spec.taylor_order)
+                                                 spec.taylor_order, what=f"{spec.path}: filter {name!r}",
+                                                 times=self.t[:-1])
                 self._filters[ckey] = (fm, Phi_f, Qd_f, False)
         return self._filters[ckey]
 
@@ -205,7 +206,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=()) -
         if c not in specs:
             raise StudyFileError(f"{where}: [filters] cases", f"unknown filter {c!r} (declared in {ffile}: "
                                  f"{', '.join(specs)})")
-    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
+    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
     P0 = truth.initial_covariance(nodes.q_nb[0])
     moving = t[-1] - t[0] - sum(max(0.0, min(b, t[-1]) - max(a, t[0])) for a, b in traj.stationary)
