@@ -528,20 +528,6 @@ def _measurement_rows(lat, h, q):
     return Hm
 
 
-def _exp_and_integral(A, h):
-    """``[[e^{Ah}, ∫_0^h e^{Au} du], [0, I]]`` of a stack, shape (N, 2k, 2k).
-
-    The exponential of ``[[A, I], [0, 0]] h`` by
-    :func:`covtool.discretize.taylor` (exact for any ``h``, its convergence
-    checked).
-    """
-    N, k, _ = A.shape
-    M = np.zeros((N, 2 * k, 2 * k))
-    M[:, :k, :k] = A
-    M[:, :k, k:] = np.eye(k)
-    return taylor(M, np.zeros_like(M), h, what="dual-IMU fault response")[0]
-
-
 def _discretize(F, Qc, dt, Fc=None, chunk=200, nav=10):
     """Φ, Q_d and the fault response of every step, exploiting the structure.
 
@@ -567,23 +553,16 @@ def _discretize(F, Qc, dt, Fc=None, chunk=200, nav=10):
     -----
     A grade model is ``F = [[A, B], [0, D]]``: the navigation block ``A``
     driven by sensor states that are random constants, random walks or
-    first-order Markov (``D`` diagonal, independent noise).  Then ``Φ`` and
-    ``Q_d`` come from :func:`covtool.discretize.block_triangular` (exact,
-    products by blocks) and the fault response, ``∫_0^Δ Φ(Δ−u) F_c du =
-    Ψ F_c`` with ``Ψ = ∫_0^Δ e^{Au} du`` (the sensor rows of ``Φ(u)`` do not
-    feed the navigation block back), from one 20×20 exponential.  Any other
-    structure falls back to the exact discretisation of the whole system
-    augmented with the faults.
+    first-order Markov (``D`` diagonal, independent noise).  The faults are
+    more random constants (zero rows, no noise), so the system augmented
+    with them keeps that form and :func:`covtool.discretize.block_triangular`
+    gives ``Φ``, ``Q_d`` and the fault response ``Γ = ∫_0^Δ Φ(Δ−u) F_c du``
+    (the fault columns of the augmented ``Φ``) exactly, with its products
+    done by blocks.  Any other structure falls back to the exact
+    discretisation of the whole augmented system.
     """
     N, n, _ = F.shape
     nc = 0 if Fc is None else Fc.shape[-1]
-    what = "dual-IMU linear model"
-    if is_block_triangular(F, Qc, nav) and (Fc is None or not np.any(Fc[:, nav:])):
-        Phi, Qd = block_triangular(F, Qc, dt, nav, what=what)
-        Gam = np.zeros((N, n, nc))
-        if nc:
-            Gam[:, :nav] = _exp_and_integral(F[:, :nav, :nav], dt)[:, :nav, nav:] @ Fc[:, :nav]
-        return Phi, Qd, Gam
     if nc:
         Fa = np.zeros((N, n + nc, n + nc))
         Fa[:, :n, :n] = F
@@ -592,11 +571,15 @@ def _discretize(F, Qc, dt, Fc=None, chunk=200, nav=10):
         Qa[:, :n, :n] = Qc
     else:
         Fa, Qa = F, Qc
-    Phi = np.empty_like(Fa)
-    Qd = np.empty_like(Fa)
-    for a in range(0, N, chunk):
-        b = min(N, a + chunk)
-        Phi[a:b], Qd[a:b] = taylor(Fa[a:b], Qa[a:b], dt, what=what)
+    what = "dual-IMU linear model"
+    if is_block_triangular(Fa, Qa, nav):
+        Phi, Qd = block_triangular(Fa, Qa, dt, nav, what=what)
+    else:
+        Phi = np.empty_like(Fa)
+        Qd = np.empty_like(Fa)
+        for a in range(0, N, chunk):
+            b = min(N, a + chunk)
+            Phi[a:b], Qd[a:b] = taylor(Fa[a:b], Qa[a:b], dt, what=what)
     return Phi[:, :n, :n], Qd[:, :n, :n], Phi[:, :n, n:]
 
 
