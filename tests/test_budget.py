@@ -309,8 +309,10 @@ def test_pure_ins_ranking_follows_the_closed_forms():
     * azimuth: ψ0 = 9.97′ against ≤ 0.75′ of z-gyro drift in 30 min.
     """
     d = decl("30 min", ("pure_ins",))
+    # 2 s steps: turns at 2.5°/s keep them within the 5.7° per step that holding F constant allows
     d["study"]["dt"] = "2 s"
     d["zupt"]["rate"] = "0.5 Hz"
+    d["trajectory"]["turn_rate"] = "2.5 deg/s"
     r = covtool.run_study(d)
     S = r.data["setup"]
     lat, h = S.nodes.lat[0], S.nodes.h[0]
