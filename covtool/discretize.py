@@ -73,7 +73,7 @@ from .errors import InputError, NumericalError
 THETA = 0.5
 #: unit round-off: the adaptive series stops when its tail is below this fraction of the sum
 UNIT_ROUNDOFF = 2.0**-53
-#: terms of the adaptive base-step series never needed (``νh ≤ θ`` needs ≤ 20); reaching it is an error
+#: cap of the adaptive base-step series: ``νh ≤ θ`` gains a factor ≥ 10 per term, so reaching it is an error
 MAX_TERMS = 40
 #: largest fixed order accepted (terms beyond ~30 are below round-off for any step the criterion accepts)
 MAX_ORDER = 100
@@ -89,7 +89,7 @@ class StepInfo:
     ----------
     terms : ndarray of int, shape (N,)
         Terms ``N_t`` of the series eq (6b)–(6d) at the base step
-        (``i = 0 … N_t−1``); 0 for Van Loan's exponential.
+        (``i = 0 … N_t−1``).
     squarings : ndarray of int, shape (N,)
         ``s``: the step was computed over ``Δt/2^s`` and doubled ``s`` times.
     norm_dt : ndarray, shape (N,)
@@ -103,11 +103,6 @@ class StepInfo:
 
 # ---------------------------------------------------------------------------
 # helpers
-
-
-def _norm1(X):
-    """Matrix 1-norm of each matrix of a stack."""
-    return np.abs(X).sum(axis=-2).max(axis=-1)
 
 
 def _step_where(what, k, dt, times):
@@ -208,11 +203,15 @@ def reach(B: np.ndarray, seed: np.ndarray) -> np.ndarray:
     return R[:, :, 0] if vec else R
 
 
-def _q_floor(Qw, rch):
-    """``2⁻⁵³`` of the smallest variance a noise reaches (floored at 1e-16 of the trace)."""
+def _q_tail_ok(Qt, Qw, rch, r):
+    """Tail of ``Q_d`` below ``2⁻⁵³ √(Q_ii Q_jj)`` element by element (see :func:`_series`)."""
     dg = np.einsum("kii->ki", Qw)
-    qmin = np.where(rch, dg, np.inf).min(axis=1)
-    return UNIT_ROUNDOFF * np.maximum(np.where(np.isfinite(qmin), qmin, 0.0), 1e-16 * dg.sum(axis=1))
+    tr = dg.sum(axis=1, keepdims=True)
+    started = np.all(~rch | (dg > 0), axis=1)
+    s = np.sqrt(np.where(rch, np.maximum(dg, 1e-32 * tr), 1.0))
+    X = np.abs(Qt) / s[:, :, None] / s[:, None, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return started & (X.max(axis=(1, 2)) * r / (1.0 - r) <= UNIT_ROUNDOFF)
 
 
 def _series(B, Qb, h, nu, order=None):
@@ -224,11 +223,11 @@ def _series(B, Qb, h, nu, order=None):
     * Φ, column by column: ``T_{i+1} = (Bh/(i+1)) T_i`` so the tail of
       column ``j`` is at most ``‖T_i e_j‖ r/(1−r)``, ``r = a/(i+1)``,
       ``a = νh ≥ ‖Bh‖₂``, and ``‖Φ e_j‖ ≥ 2 − e^a``;
-    * Q_d, element by element in correlation scaling: the Frobenius norm of
-      its tail is at most ``‖term_i‖ r/(1−r)``, ``r = 2a/(i+1)``
-      (``‖C_i‖ ≤ 2‖B‖₂‖C_{i−1}‖``), below ``2⁻⁵³`` of the smallest variance
-      that the noise reaches (:func:`reach`; floored at 1e-16 of the
-      trace), so ``|ΔQ_ij| ≤ 2⁻⁵³ √(Q_ii Q_jj)``.
+    * Q_d, element by element in correlation scaling: every state the noise
+      reaches (:func:`reach`) has a variance, and the last term times
+      ``r/(1−r)``, ``r = 2a/(i+1)``, is below ``2⁻⁵³ √(Q_ii Q_jj)``
+      (``‖C_i‖ ≤ 2‖B‖₂‖C_{i−1}‖``: the norm of the tail is so bounded, and
+      each element's terms decay with it once the element has started).
     """
     N, n, _ = B.shape
     Phi = np.broadcast_to(np.eye(n), B.shape).copy()
@@ -263,7 +262,7 @@ def _series(B, Qb, h, nu, order=None):
             rp, rq = ai / (i + 1), 2.0 * ai / (i + 1)
             with np.errstate(divide="ignore", invalid="ignore"):
                 ok = ((rq < 1.0) & (_colmax(T) * rp / (1.0 - rp) <= phi_floor[idx])
-                      & (_fro(Qt) * rq / (1.0 - rq) <= _q_floor(Qw, rch[idx])))
+                      & _q_tail_ok(Qt, Qw, rch[idx], rq))
             if ok.any():
                 fin = idx[ok]
                 Phi[fin], Q[fin], terms[fin], done[fin] = Pw[ok], Qw[ok], i + 1, True
@@ -438,13 +437,17 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
         rp, rq = ai / (i + 1), 2.0 * ai / (i + 1)
         col = np.maximum(np.einsum("kij,kij->kj", TA, TA).max(axis=1),
                          (np.einsum("kij,kij->kj", TM, TM) + TD**2).max(axis=1, initial=0.0))
-        nQ = np.sqrt(np.einsum("kij,kij->k", QtA, QtA) + 2 * np.einsum("kij,kij->k", QtX, QtX)
-                     + np.einsum("ki,ki->k", QtS, QtS))
         dg = np.concatenate([np.einsum("kii->ki", work[3]), work[5]], axis=1)
-        qmin = np.where(rch[idx], dg, np.inf).min(axis=1)
-        qfl = UNIT_ROUNDOFF * np.maximum(np.where(np.isfinite(qmin), qmin, 0.0), 1e-16 * dg.sum(axis=1))
+        rc = rch[idx]
+        started = np.all(~rc | (dg > 0), axis=1)
+        sd = np.sqrt(np.where(rc, np.maximum(dg, 1e-32 * dg.sum(axis=1, keepdims=True)), 1.0))
+        sa, ss = sd[:, :k], sd[:, k:]
+        X = np.maximum((np.abs(QtA) / sa[:, :, None] / sa[:, None, :]).max(axis=(1, 2)),
+                       (np.abs(QtX) / sa[:, :, None] / ss[:, None, :]).max(axis=(1, 2), initial=0.0))
+        X = np.maximum(X, (np.abs(QtS) / ss**2).max(axis=1, initial=0.0))
         with np.errstate(divide="ignore", invalid="ignore"):
-            ok = (rq < 1.0) & (np.sqrt(col) * rp / (1.0 - rp) <= phi_floor[idx]) & (nQ * rq / (1.0 - rq) <= qfl)
+            ok = ((rq < 1.0) & (np.sqrt(col) * rp / (1.0 - rp) <= phi_floor[idx]) & started
+                  & (X * rq / (1.0 - rq) <= UNIT_ROUNDOFF))
         if ok.any():
             fin = idx[ok]
             for x, y in zip(out, work):

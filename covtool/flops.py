@@ -231,9 +231,9 @@ def taylor_terms(F, Qc, dt) -> int:
     if info.squarings.any():
         k = int(np.argmax(info.squarings))
         raise InputError("taylor_order = \"auto\"",
-                         f"at step {k} (νΔt = {info.norm_dt[k]:.3g} > {discretize.THETA:g}) the adaptive series is summed over "
-                         f"Δt/{2 ** int(info.squarings[k])} and squared, which the one-cycle FLOP count does not "
-                         "describe; give the number of terms N_t")
+                         f"at step {k} (νΔt = {info.norm_dt[k]:.3g} > {discretize.THETA:g}) the adaptive series is "
+                         f"summed over Δt/{2 ** int(info.squarings[k])} and squared, which the one-cycle FLOP count "
+                         "does not describe; give the number of terms N_t")
     return int(info.terms.max())
 
 
