@@ -371,3 +371,32 @@ def test_non_finite_input_is_refused():
         van_loan(F[:1], np.ones((1, 1, 1)), -1.0)
     with pytest.raises(ValueError, match="not block triangular"):
         block_triangular(np.array([[[0.0, 1.0], [1.0, 0.0]]]), np.zeros((1, 2, 2)), 1.0, 1)
+
+
+def test_every_guard_names_the_step(monkeypatch):
+    """Non-PSD Q_d, a series that stops short, bad shapes and non-finite noise: each refused by name."""
+    from covtool import discretize as dz
+
+    Q = np.zeros((3, 2, 2))
+    Q[:] = np.eye(2)
+    Q[2] = [[1.0, 2.0], [2.0, 1.0]]                      # correlation 2: eigenvalue −1
+    with pytest.raises(NumericalError, match=r"sys: step 2 \(t = 20 s, Δt = 10 s\): Q_d is not positive "
+                                             r"semi-definite \(smallest eigenvalue of its correlation matrix -1\)"):
+        dz.check_qd(Q, "sys", dt=np.full(3, 10.0), times=np.array([0.0, 10.0, 20.0]))
+    Q[2] = [[-1.0, 0.0], [0.0, 1.0]]
+    with pytest.raises(NumericalError, match=r"step 2 \(Δt = nan s\): Q_d is not positive semi-definite"):
+        dz.check_qd(Q)
+    monkeypatch.setattr(dz, "MAX_TERMS", 3)
+    with pytest.raises(NumericalError, match=r"step 0 \(Δt = 0.5 s\): the series of eq \(6b\)-\(6d\) did not "
+                                             r"converge in 3 terms at νh = 0.5"):
+        dz.taylor(np.full((1, 1, 1), -1.0), np.ones((1, 1, 1)), 0.5)
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match=r"F must have shape \(N, n, n\), got \(2, 2\)"):
+        van_loan(np.eye(2), np.eye(2), 1.0)
+    with pytest.raises(NumericalError, match=r"budget: step 0 \(Δt = 1 s\): G has non-finite entries"):
+        per_source(np.full((1, 1, 1), -1.0), np.full((1, 1, 1), np.inf), np.ones((1, 1)), 1.0, what="budget")
+    with pytest.raises(NumericalError, match=r"budget: step 0 \(Δt = 800 s\): Q_d overflows \(νΔt = 800\)"):
+        per_source(np.full((1, 1, 1), 1.0), np.ones((1, 1, 1)), np.ones((1, 1)), 800.0, what="budget")
+    # representable: Q_d = (e^{2Δt} − 1)/2 for ẋ = x + w
+    Qs = per_source(np.full((1, 1, 1), 1.0), np.ones((1, 1, 1)), np.ones((1, 1)), 300.0)
+    assert Qs[0, 0, 0, 0] == pytest.approx(math.expm1(600.0) / 2, rel=1e-12)
