@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from .discretize import per_source
 from .dynamics import NoiseSource, attitude_errors
 from .engine import System, run_batch, sandwich
 from .metrics import ned_position_covariance
@@ -257,70 +258,21 @@ def budget_sources(model, noise, q0, R=None, *, resolution: str = "block") -> tu
 # discretisation and composition of the per-source noise
 
 
-def _hilbert(m: int) -> np.ndarray:
-    a = np.arange(m)
-    return 1.0 / (a[:, None] + a[None, :] + 1.0)
+def discretize_noise(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str = "",
+                     times=None) -> np.ndarray:
+    """Exact ``Q_d`` of each column of a low-rank ``Q_c``, any step.
 
-
-def discretize_noise(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, tol: float = 1e-17,
-                     max_terms: int = 40) -> np.ndarray:
-    """Taylor-series ``Q_d`` of each column of a low-rank ``Q_c``.
-
-    Parameters
-    ----------
-    F : ndarray, shape (N, n, n)
-    G : ndarray, shape (N, n, k)
-    psd : ndarray, shape (N, k)
-    dt : float or ndarray, shape (N,)
-        Step lengths. [s]
-    tol : float
-        A term is dropped once every row of ``F^a G Δt^a/a!`` is below
-        ``tol`` times the largest earlier term of that row.
-    max_terms : int
+    :func:`covtool.discretize.per_source` (see there).
 
     Returns
     -------
     ndarray, shape (N, k, n, n)
-        ``Q_d`` of each column ``G[:, :, p]`` with PSD ``psd[:, p]``; they sum
-        to the ``Q_d`` of ``Q_c = G diag(psd) Gᵀ``.
-
-    Notes
-    -----
-    ``Q_d = ∫₀^Δt e^{Fs} G W Gᵀ e^{Fᵀs} ds`` (the Van Loan integral).  With
-    ``Ŷ_a = F^a G Δt^a / a!`` and ``e^{Fs} G = Σ_a Ŷ_a (s/Δt)^a``::
-
-        Q_d = Δt Σ_{a,b} Ŷ_a W Ŷ_bᵀ / (a + b + 1)
-
-    which collects the terms of seed 002 eq (6c)–(6d) (``C_{i−1} Δt^i/i!``
-    with ``C_{i−1} = Σ_{a+b=i−1} binom(i−1, a) F^a Q_c Fᵀ^b``) by source
-    column instead of by order.  It is linear in ``W`` term by term, costs
-    ``n × k`` products instead of ``n × n`` per order, and, the coefficient
-    matrix being a Hilbert (Gram) matrix, is positive semi-definite for
-    any truncation.  Converged to round-off it equals Van Loan's ``Q_d``.
     """
-    F = np.asarray(F, float)
-    N, n, _ = F.shape
-    dt = np.broadcast_to(np.asarray(dt, float), (N,))[:, None, None]
-    Y = np.asarray(G, float).copy()
-    terms = [Y]
-    rowmax = np.max(np.abs(Y), axis=0)                 # (n, k)
-    for a in range(1, max_terms):
-        Y = (F @ Y) * (dt / a)
-        mag = np.max(np.abs(Y), axis=0)
-        terms.append(Y)
-        if not np.any(mag > tol * rowmax):
-            break
-        rowmax = np.maximum(rowmax, mag)
-    m = len(terms)
-    Z = np.stack(terms, axis=-1).transpose(0, 2, 1, 3)  # (N, k, n, m)
-    ZC = Z @ _hilbert(m)
-    Q = ZC @ np.swapaxes(Z, -1, -2)                      # (N, k, n, n)
-    Q *= (psd * dt[:, :, 0])[:, :, None, None]
-    return 0.5 * (Q + np.swapaxes(Q, -1, -2))
+    return per_source(F, G, psd, dt, what=what, times=times)
 
 
 def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100,
-                  tol: float = 1e-17, blas_threads: int | None = 1) -> np.ndarray:
+                  blas_threads: int | None = 1) -> np.ndarray:
     """Per-source noise composed over the event intervals.
 
     Parameters
@@ -333,8 +285,6 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         Event grid (:func:`covtool.engine.events`).
     chunk : int
         Steps discretised at once (bounds the memory).
-    tol : float
-        Convergence of the series (:func:`discretize_noise`).
     blas_threads : int or None
         BLAS thread limit, as :func:`covtool.engine.run_batch` (n ≤ 58
         matrices gain nothing from more threads).
@@ -347,7 +297,7 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         computes it for the total.
     """
     with threadpool_limits(limits=blas_threads, user_api="blas"):
-        return _compose_noise(Phi, F, factors, dt, ev, chunk, tol)
+        return _compose_noise(Phi, F, factors, dt, ev, chunk)
 
 
 #: bytes the per-source series of :func:`compose_noise` may hold at once
@@ -356,7 +306,7 @@ COMPOSE_WORKSPACE = 32e6
 _STACKS = 6
 
 
-def _compose_noise(Phi, F, factors, dt, ev, chunk, tol):
+def _compose_noise(Phi, F, factors, dt, ev, chunk):
     N, n, _ = Phi.shape
     J = len(factors)
     K = len(ev) - 1
@@ -374,7 +324,7 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk, tol):
     chunk = max(1, min(chunk, int(COMPOSE_WORKSPACE // (_STACKS * 8 * G.shape[2] * n * n))))
     for a in range(0, N, chunk):
         b = min(N, a + chunk)
-        Qk = discretize_noise(F[a:b], G[a:b], psd[a:b], dt[a:b], tol=tol)   # (c, k, n, n)
+        Qk = discretize_noise(F[a:b], G[a:b], psd[a:b], dt[a:b], what="error budget: per-source Q_d")   # (c, k, n, n)
         Qj = np.add.reduceat(Qk, starts, axis=1)                              # (c, J, n, n)
         for s in range(a, b):
             acc = sandwich(Phi[s], acc) + Qj[s - a]

@@ -48,7 +48,7 @@ from threadpoolctl import threadpool_limits
 from . import earth
 from . import quaternion as quat
 from . import strapdown as sd
-from .discretize import van_loan
+from .discretize import block_triangular, is_block_triangular, taylor
 from .dynamics import Context, error_dynamics
 from .errors import InputError, NumericalError
 from .imu import ImuRecord, SensorErrors
@@ -528,33 +528,6 @@ def _measurement_rows(lat, h, q):
     return Hm
 
 
-def _exp_and_integral(A, h, tol=1e-17, max_terms=40):
-    """``[[e^{Ah}, ∫_0^h e^{Au} du], [0, I]]`` of a stack, shape (N, 2k, 2k).
-
-    A Taylor series with the terms summed until they fall below ``tol``:
-    the navigation block is nearly nilpotent (its large entries, the
-    attitude→velocity coupling ``f``, are not fed back), so a few terms
-    suffice where a Padé exponential of the badly scaled matrix would
-    square many times.
-    """
-    N, k, _ = A.shape
-    Ah = A * h
-    term = np.broadcast_to(np.eye(k), (N, k, k)).copy()
-    Phi = term.copy()
-    S = term.copy()
-    for i in range(1, max_terms):
-        term = term @ Ah / i
-        Phi += term
-        S += term / (i + 1)
-        if np.max(np.abs(term)) < tol:
-            break
-    out = np.zeros((N, 2 * k, 2 * k))
-    out[:, :k, :k] = Phi
-    out[:, :k, k:] = S * h
-    out[:, k:, k:] = np.eye(k)
-    return out
-
-
 def _discretize(F, Qc, dt, Fc=None, chunk=200, nav=10):
     """Φ, Q_d and the fault response of every step, exploiting the structure.
 
@@ -567,7 +540,7 @@ def _discretize(F, Qc, dt, Fc=None, chunk=200, nav=10):
     Fc : ndarray, shape (N, n, n_c), optional
         Columns of constant augmented states (faults), navigation rows only.
     chunk : int
-        Steps of the general Van Loan fallback at once.
+        Steps of the general fallback at once.
     nav : int
         Navigation states (the first ones).
 
@@ -579,53 +552,35 @@ def _discretize(F, Qc, dt, Fc=None, chunk=200, nav=10):
     Notes
     -----
     A grade model is ``F = [[A, B], [0, D]]``: the navigation block ``A``
-    driven by sensor states that are random constants or first-order Markov
-    (``D`` diagonal).  Then ``Φ_A = e^{AΔ}`` and ``Ψ = ∫_0^Δ e^{Au} du`` come
-    from one 20×20 exponential, ``Φ_B = Ψ B e^{DΔ/2}`` (the Markov decay
-    within the step at its mid-value, relative error ~(Δ/τ)²/24), the fault
-    response ``Ψ F_c``, and ``Q_d = ∫_0^Δ Φ(u) Q_c Φ(u)ᵀ du`` by Simpson's
-    rule with ``Φ(Δ/2)`` (exact to third order in Δ).  Any other structure
-    falls back to the Van Loan exponential of the whole system.
+    driven by sensor states that are random constants, random walks or
+    first-order Markov (``D`` diagonal, independent noise).  The faults are
+    more random constants (zero rows, no noise), so the system augmented
+    with them keeps that form and :func:`covtool.discretize.block_triangular`
+    gives ``Φ``, ``Q_d`` and the fault response ``Γ = ∫_0^Δ Φ(Δ−u) F_c du``
+    (the fault columns of the augmented ``Φ``) exactly, with its products
+    done by blocks.  Any other structure falls back to the exact
+    discretisation of the whole augmented system.
     """
     N, n, _ = F.shape
     nc = 0 if Fc is None else Fc.shape[-1]
-    D = F[:, nav:, nav:]
-    d = np.diagonal(D, axis1=1, axis2=2)
-    structured = (not np.any(F[:, nav:, :nav]) and np.allclose(D, d[:, :, None] * np.eye(n - nav), atol=0.0)
-                  and (Fc is None or not np.any(Fc[:, nav:])))
-    if not structured:
-        if nc:
-            Fa = np.zeros((N, n + nc, n + nc))
-            Fa[:, :n, :n] = F
-            Fa[:, :n, n:] = Fc
-            Qa = np.zeros_like(Fa)
-            Qa[:, :n, :n] = Qc
-        else:
-            Fa, Qa = F, Qc
+    if nc:
+        Fa = np.zeros((N, n + nc, n + nc))
+        Fa[:, :n, :n] = F
+        Fa[:, :n, n:] = Fc
+        Qa = np.zeros_like(Fa)
+        Qa[:, :n, :n] = Qc
+    else:
+        Fa, Qa = F, Qc
+    what = "dual-IMU linear model"
+    if is_block_triangular(Fa, Qa, nav):
+        Phi, Qd = block_triangular(Fa, Qa, dt, nav, what=what)
+    else:
         Phi = np.empty_like(Fa)
         Qd = np.empty_like(Fa)
         for a in range(0, N, chunk):
             b = min(N, a + chunk)
-            Phi[a:b], Qd[a:b] = van_loan(Fa[a:b], Qa[a:b], dt)
-        return Phi[:, :n, :n], Qd[:, :n, :n], Phi[:, :n, n:]
-    Eh = _exp_and_integral(F[:, :nav, :nav], 0.5 * dt)
-    E = Eh @ Eh
-
-    def full(E, h):
-        P = np.zeros((N, n, n))
-        P[:, :nav, :nav] = E[:, :nav, :nav]
-        P[:, :nav, nav:] = (E[:, :nav, nav:] @ F[:, :nav, nav:]) * np.exp(0.5 * h * d)[:, None, :]
-        idx = np.arange(nav, n)
-        P[:, idx, idx] = np.exp(h * d)
-        return P
-
-    Phi_h, Phi = full(Eh, 0.5 * dt), full(E, dt)
-    Qd = dt / 6.0 * (Qc + 4.0 * Phi_h @ Qc @ np.swapaxes(Phi_h, 1, 2) + Phi @ Qc @ np.swapaxes(Phi, 1, 2))
-    Qd = 0.5 * (Qd + np.swapaxes(Qd, 1, 2))
-    Gam = np.zeros((N, n, nc))
-    if nc:
-        Gam[:, :nav] = E[:, :nav, nav:] @ Fc[:, :nav]
-    return Phi, Qd, Gam
+            Phi[a:b], Qd[a:b] = taylor(Fa[a:b], Qa[a:b], dt, what=what)
+    return Phi[:, :n, :n], Qd[:, :n, :n], Phi[:, :n, n:]
 
 
 @_serial_blas

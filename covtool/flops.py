@@ -48,6 +48,9 @@ import timeit
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from . import discretize
+from .errors import InputError
+
 #: Seed 002 Table 4: time of one filter cycle on an 8 MHz 8086/8087. [s]
 PAPER_TABLE4_SECONDS = {"A": 22.62, "B3": 0.74, "C": 0.29, "D": 0.08}
 #: and the filter orders of Table 1
@@ -198,38 +201,40 @@ def _autorange(timer, min_time):
         number *= 2 if t > 0.2 * min_time else 10
 
 
-def taylor_terms(F, Qc, dt, *, tol: float = 1e-16, max_terms: int = 40) -> int:
+def taylor_terms(F, Qc, dt) -> int:
     """Number of terms covtool's adaptive eq (6b)–(6d) series takes.
 
-    The stopping rule of :func:`covtool.discretize.taylor` (next Φ term below
-    ``tol`` and next Q term below ``tol`` relative to max|Qc|, over every
-    step of the stack).
+    The most over the steps of the stack, from
+    :func:`covtool.discretize.taylor_terms` (the series stops when its
+    tail is provably below 2⁻⁵³ of the sum).
 
     Parameters
     ----------
     F, Qc : ndarray, shape (N, n, n)
     dt : float or ndarray, shape (N,)
+        Step lengths. [s]
 
     Returns
     -------
     int
         N_t (terms ``i = 0 … N_t−1``).
+
+    Raises
+    ------
+    InputError
+        A step the series only reaches by scaling and squaring (``νΔt`` above
+        :data:`covtool.discretize.THETA`): one on-board cycle of
+        :func:`cycle_flops` has no squarings, so its count would be wrong;
+        give the number of terms explicitly.
     """
-    F = np.asarray(F, float)
-    N, n, _ = F.shape
-    dt = np.broadcast_to(np.asarray(dt, float), (N,))[:, None, None]
-    term = np.broadcast_to(np.eye(n), F.shape).copy()
-    C = np.asarray(Qc, float).copy()
-    qs = np.max(np.abs(C)) or 1.0
-    coef = dt.copy()
-    for i in range(1, max_terms):
-        term = term @ F * (dt / i)
-        FC = F @ C
-        C = FC + np.swapaxes(FC, 1, 2)
-        coef = coef * dt / (i + 1)
-        if np.max(np.abs(term)) < tol and np.max(np.abs(C * coef)) < tol * qs:
-            return i + 1
-    return max_terms
+    info = discretize.taylor_terms(F, Qc, dt)
+    if info.squarings.any():
+        k = int(np.argmax(info.squarings))
+        raise InputError("taylor_order = \"auto\"",
+                         f"at step {k} (νΔt = {info.norm_dt[k]:.3g} > {discretize.THETA:g}) the adaptive series is "
+                         f"summed over Δt/{2 ** int(info.squarings[k])} and squared, which the one-cycle FLOP count "
+                         "does not describe; give the number of terms N_t")
+    return int(info.terms.max())
 
 
 def power_law(n, y) -> tuple[float, float]:

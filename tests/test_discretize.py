@@ -36,8 +36,9 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from covtool.discretize import discretize, taylor, van_loan
+from covtool.discretize import THETA, block_triangular, discretize, per_source, taylor, taylor_terms, van_loan
 from covtool.dynamics import Context, error_dynamics
+from covtool.errors import InputError, NumericalError
 from covtool.model.loader import load_model
 from covtool.trajectory import land_vehicle
 
@@ -88,7 +89,11 @@ def _q_error(A, B):
 
 @pytest.mark.parametrize("dt", [0.1, 1.0, 30.0])
 def test_scalar_ou_closed_form(dt):
-    """Van Loan = e^{−aΔt}, q(1 − e^{−2aΔt})/2a; Taylor(n) = the n-term partial sums (1e-14)."""
+    """Van Loan = e^{−aΔt}, q(1 − e^{−2aΔt})/2a; Taylor(n) = the n-term partial sums (1e-14).
+
+    A truncated series with 2aΔt ≥ n is refused (module notes): at Δt = 30 s,
+    aΔt = 1.5, so n ≤ 3; n = 3 would give Q_d = qΔt(1 − 2aΔt/2) < 0.
+    """
     a, q = 0.05, 3.0
     F = np.full((1, 1, 1), -a)
     Qc = np.full((1, 1, 1), q)
@@ -96,6 +101,10 @@ def test_scalar_ou_closed_form(dt):
     assert Phi[0, 0, 0] == pytest.approx(math.exp(-a * dt), rel=1e-14)
     assert Qd[0, 0, 0] == pytest.approx(q * (1 - math.exp(-2 * a * dt)) / (2 * a), rel=1e-13)
     for n in (1, 2, 3, 6):
+        if 2 * a * dt >= n:
+            with pytest.raises(InputError, match=rf"the {n}-term Taylor series of eq \(6b\)-\(6d\) diverges at step 0"):
+                taylor(F, Qc, dt, order=n)
+            continue
         Phi_t, Qd_t = taylor(F, Qc, dt, order=n)
         phi_sum = sum((-a * dt) ** i / math.factorial(i) for i in range(n))
         # eq (6d) for a scalar: C_i = 2F C_{i−1} = (−2a)^i q
@@ -128,18 +137,22 @@ def test_taylor_recursion_is_the_van_loan_integrand_series():
 # --------------------------------------------------------------------------
 
 
-def test_van_loan_matches_taylor_at_1s(dyn):
-    """Van Loan = Taylor (default order) at Δt = 1 s to 1e-10 for Φ and Q_d.
+def test_exact_methods_match_the_long_truncated_series_at_1s(dyn):
+    """The exact path = the unscaled 30-term series of eq (6b)–(6d) at Δt = 1 s.
 
-    Measured: Φ 2.3e-11 (element-wise; the worst is a third-order chain entry
-    ∂δl/∂gyro_markov_x ≈ 8.5e-12), Q_d 3.4e-12 (correlation-scaled).
+    At 1 s the 58-state model has νΔt ≤ 0.14 (no squaring), so the
+    truncated series with 30 terms is converged far below round-off: it
+    checks the adaptive stopping rule (11 terms) independently.  Measured:
+    Φ 1e-15 (element-wise), Q_d 3e-16 (correlation-scaled).  ``van_loan``,
+    ``taylor`` and the dispatcher give the same numbers.
     """
     F, Qc = dyn
     Phi_v, Qd_v = van_loan(F, Qc, 1.0)
-    Phi_t, Qd_t = taylor(F, Qc, 1.0)
-    assert _phi_error(Phi_t, Phi_v) <= AGREE
-    assert _q_error(Qd_t, Qd_v) <= AGREE
-    # and through the dispatcher the studies use
+    Phi_t, Qd_t, info = taylor(F, Qc, 1.0, info=True)
+    Phi_30, Qd_30 = taylor(F, Qc, 1.0, order=30)
+    assert np.all(info.squarings == 0) and info.terms.max() < 30
+    assert _phi_error(Phi_v, Phi_30) <= AGREE and _q_error(Qd_v, Qd_30) <= AGREE
+    assert np.array_equal(Phi_v, Phi_t) and np.array_equal(Qd_v, Qd_t)
     Phi_d, Qd_d = discretize(F, Qc, 1.0, "taylor")
     assert np.array_equal(Phi_d, Phi_t) and np.array_equal(Qd_d, Qd_t)
 
@@ -229,3 +242,161 @@ def test_taylor_error_order_follows_the_number_of_terms(dyn, order):
         Phi_t, _ = taylor(F, Qc, dt, order=order)
         errs.append(np.max(np.abs(Phi_t - Phi_v)))
     assert errs[1] / errs[0] == pytest.approx(2.0**order, rel=0.03)
+
+
+# --------------------------------------------------------------------------
+# any step: Gauss–Markov closed forms, divergent series, unstable modes
+# --------------------------------------------------------------------------
+
+TAU = 20.0
+SIGMA = 1.0
+
+
+def _gm_closed_form(x):
+    """v' = b, b' = −b/τ + w (Q_c = 2σ²/τ) over Δt = xτ, in 50-digit arithmetic.
+
+    Φ_bb = e^{−x}, Φ_vb = τ(1 − e^{−x}); Q_bb = σ²(1 − e^{−2x}),
+    Q_vb = σ²τ(1 − e^{−x})², Q_vv = σ²τ²(2x − 3 + 4e^{−x} − e^{−2x})
+    (the last cancels badly in double precision for small x).
+    """
+    import mpmath as mp
+
+    with mp.workdps(50):
+        x = mp.mpf(x)
+        e1, e2 = mp.exp(-x), mp.exp(-2 * x)
+        phi = [[1, TAU * (1 - e1)], [0, e1]]
+        q = [[SIGMA**2 * TAU**2 * (2 * x - 3 + 4 * e1 - e2), SIGMA**2 * TAU * (1 - e1) ** 2],
+             [SIGMA**2 * TAU * (1 - e1) ** 2, SIGMA**2 * (1 - e2)]]
+        return (np.array([[float(v) for v in r] for r in phi]), np.array([[float(v) for v in r] for r in q]))
+
+
+GM_F = np.array([[[0.0, 1.0], [0.0, -1.0 / TAU]]])
+GM_QC = np.array([[[0.0, 0.0], [0.0, 2 * SIGMA**2 / TAU]]])
+
+
+@pytest.mark.parametrize("x", [0.01, 0.1, 1.0, 30.0, 45.0, 1000.0])
+def test_gauss_markov_closed_form_any_step(x):
+    """Every exact discretiser = the Gauss–Markov closed forms, Δt/τ = 0.01 … 1000.
+
+    Issue 9 case 1: the old Van Loan exponential gave Q_vv = 3.55e11 at
+    Δt/τ = 30 and −7.2e25 at 45 (closed form 22 800 and 34 800).  Required
+    1e-12 relative on every element (measured ≤ 4e-15).
+    """
+    Phi_r, Q_r = _gm_closed_form(x)
+    dt = x * TAU
+    results = {"van_loan": van_loan(GM_F, GM_QC, dt), "taylor": taylor(GM_F, GM_QC, dt),
+               "block_triangular": block_triangular(GM_F, GM_QC, dt, 1)}
+    Qs = per_source(GM_F, np.array([[[0.0], [1.0]]]), np.array([[2 * SIGMA**2 / TAU]]), dt)
+    for name, (Phi, Qd) in results.items():
+        np.testing.assert_allclose(Phi[0], Phi_r, rtol=1e-12, atol=0, err_msg=name)
+        np.testing.assert_allclose(Qd[0], Q_r, rtol=1e-12, atol=0, err_msg=name)
+    np.testing.assert_allclose(Qs[0, 0], Q_r, rtol=1e-12, atol=0, err_msg="per_source")
+    if x in (30.0, 45.0):
+        assert Q_r[0, 0] == pytest.approx(400.0 * (2 * x - 3), rel=1e-12)    # 22 800, 34 800
+
+
+@pytest.mark.parametrize("dt", [8.0, 10.0, 20.0, 1e4])
+def test_adaptive_taylor_converges_for_any_step(dt):
+    """taylor(F = −1, Q_c = 2) = 1 − e^{−2Δt} (issue 9 case 2: 2.29, 9035, 7.5e15 before).
+
+    It reports its terms and squarings: νΔt = Δt, so s = ⌈log₂(Δt/θ)⌉
+    halvings, and at νh ≤ 0.5 the base series needs at most 20 terms.
+    """
+    Phi, Qd, info = taylor(np.full((1, 1, 1), -1.0), np.full((1, 1, 1), 2.0), dt, info=True)
+    assert Qd[0, 0, 0] == pytest.approx(-math.expm1(-2 * dt), rel=1e-13)
+    assert Phi[0, 0, 0] == pytest.approx(math.exp(-dt), rel=1e-11, abs=0.0)
+    assert info.squarings[0] == math.ceil(math.log2(dt / THETA))
+    assert 5 <= info.terms[0] <= 20
+    assert taylor_terms(np.full((1, 1, 1), -1.0), np.full((1, 1, 1), 2.0), dt).terms[0] == info.terms[0]
+
+
+def test_truncated_series_refused_where_it_diverges():
+    """A fixed order N_t is refused when 2νΔt ≥ N_t, naming filter, step and what to change.
+
+    Markov state τ = 10 s at Δt = 5 min (issue 9 case 2): νΔt = 30.
+    """
+    F = np.full((3, 1, 1), -0.1)
+    Qc = np.full((3, 1, 1), 2 * (100e-6 * 9.80665) ** 2 / 10)
+    with pytest.raises(InputError, match=r"filters.toml: filter 'B1': taylor_order: the 3-term Taylor series .* "
+                                         r"diverges at step 0 \(t = 0 s, Δt = 300 s\): νΔt = 30 ≥ N_t/2 = 1.5 .*"
+                                         r"use dt < 15 s, taylor_order ≥ 61, or the exact discretisation"):
+        taylor(F, Qc, 300.0, order=3, what="filters.toml: filter 'B1'", times=np.array([0.0, 300, 600]))
+    # just inside the criterion: accepted (2 · 0.1 · 14.9 = 2.98 < 3), and the partial sums are returned
+    Phi, _ = taylor(F, Qc, 14.9, order=3)
+    assert Phi[0, 0, 0] == pytest.approx(1 - 1.49 + 1.49**2 / 2, rel=1e-14)
+    for bad in (0, -1, 101, 2.5, "x", True):
+        with pytest.raises(InputError, match=r"taylor_order: .* is not an integer from 1 to 100"):
+            taylor(F, Qc, 1.0, order=bad)
+
+
+def test_unstable_vertical_channel_exact_or_refused():
+    """δḣ = δv, δv̇ = ω²δh (ω² = 2g/R): cosh/sinh exact while representable, else refused.
+
+    Q_d of a white acceleration (PSD q) on δv:
+    Q_hh = q (sinh(2ωΔt)/(2ω) − Δt)/(2ω²).  Required 1e-11 at ωΔt = 50
+    and 300 (e^300 = 2e130); at ωΔt = 800, e^800 overflows: NumericalError.
+    """
+    w = math.sqrt(2 * 9.80665 / 6.371e6)
+    F = np.array([[[0.0, 1.0], [w * w, 0.0]]])
+    q = 1e-6
+    Qc = np.array([[[0.0, 0.0], [0.0, q]]])
+    for wt in (50.0, 300.0):
+        dt = wt / w
+        Phi, Qd = van_loan(F, Qc, dt)
+        np.testing.assert_allclose(Phi[0], [[math.cosh(wt), math.sinh(wt) / w], [w * math.sinh(wt), math.cosh(wt)]],
+                                   rtol=1e-11)
+        assert Qd[0, 0, 0] == pytest.approx(q * (math.sinh(2 * wt) / (2 * w) - dt) / (2 * w * w), rel=1e-11)
+    with pytest.raises(NumericalError, match=r"vertical: step 0 \(t = 0 s, Δt = 455951 s\): Φ or Q_d "
+                                             r"overflows \(νΔt = "):
+        van_loan(F, Qc, 800 / w, what="vertical", times=np.array([0.0]))
+
+
+def test_schuler_oscillator_long_steps():
+    """δẍ = −ω_s² δx: Φ = rotation by ω_sΔt, exact (1e-10) over steps of up to 200 periods."""
+    w = math.sqrt(9.80665 / 6.371e6)
+    F = np.array([[[0.0, 1.0], [-w * w, 0.0]]])
+    for wt in (0.3, 30.0, 1256.0):
+        Phi, _ = taylor(F, np.zeros_like(F), wt / w)
+        S = np.diag([w, 1.0])                     # ω_s δx, δẋ: Φ is a plane rotation
+        np.testing.assert_allclose(S @ Phi[0] @ np.linalg.inv(S),
+                                   [[math.cos(wt), math.sin(wt)], [-math.sin(wt), math.cos(wt)]], rtol=0, atol=1e-10)
+
+
+def test_non_finite_input_is_refused():
+    F = np.full((2, 1, 1), -1.0)
+    F[1, 0, 0] = np.nan
+    with pytest.raises(NumericalError, match=r"truth: step 1 \(Δt = 1 s\): F has non-finite entries"):
+        van_loan(F, np.ones((2, 1, 1)), 1.0, what="truth")
+    with pytest.raises(ValueError, match=r"step 0 \(Δt = -1 s\): the step must be finite and non-negative"):
+        van_loan(F[:1], np.ones((1, 1, 1)), -1.0)
+    with pytest.raises(ValueError, match="not block triangular"):
+        block_triangular(np.array([[[0.0, 1.0], [1.0, 0.0]]]), np.zeros((1, 2, 2)), 1.0, 1)
+
+
+def test_every_guard_names_the_step(monkeypatch):
+    """Non-PSD Q_d, a series that stops short, bad shapes and non-finite noise: each refused by name."""
+    from covtool import discretize as dz
+
+    Q = np.zeros((3, 2, 2))
+    Q[:] = np.eye(2)
+    Q[2] = [[1.0, 2.0], [2.0, 1.0]]                      # correlation 2: eigenvalue −1
+    with pytest.raises(NumericalError, match=r"sys: step 2 \(t = 20 s, Δt = 10 s\): Q_d is not positive "
+                                             r"semi-definite \(smallest eigenvalue of its correlation matrix -1\)"):
+        dz.check_qd(Q, "sys", dt=np.full(3, 10.0), times=np.array([0.0, 10.0, 20.0]))
+    Q[2] = [[-1.0, 0.0], [0.0, 1.0]]
+    with pytest.raises(NumericalError, match=r"step 2 \(Δt = nan s\): Q_d is not positive semi-definite"):
+        dz.check_qd(Q)
+    monkeypatch.setattr(dz, "MAX_TERMS", 3)
+    with pytest.raises(NumericalError, match=r"step 0 \(Δt = 0.5 s\): the series of eq \(6b\)-\(6d\) did not "
+                                             r"converge in 3 terms at νh = 0.5"):
+        dz.taylor(np.full((1, 1, 1), -1.0), np.ones((1, 1, 1)), 0.5)
+    monkeypatch.undo()
+    with pytest.raises(ValueError, match=r"F must have shape \(N, n, n\), got \(2, 2\)"):
+        van_loan(np.eye(2), np.eye(2), 1.0)
+    with pytest.raises(NumericalError, match=r"budget: step 0 \(Δt = 1 s\): G has non-finite entries"):
+        per_source(np.full((1, 1, 1), -1.0), np.full((1, 1, 1), np.inf), np.ones((1, 1)), 1.0, what="budget")
+    with pytest.raises(NumericalError, match=r"budget: step 0 \(Δt = 800 s\): Q_d overflows \(νΔt = 800\)"):
+        per_source(np.full((1, 1, 1), 1.0), np.ones((1, 1, 1)), np.ones((1, 1)), 800.0, what="budget")
+    # representable: Q_d = (e^{2Δt} − 1)/2 for ẋ = x + w
+    Qs = per_source(np.full((1, 1, 1), 1.0), np.ones((1, 1, 1)), np.ones((1, 1)), 300.0)
+    assert Qs[0, 0, 0, 0] == pytest.approx(math.expm1(600.0) / 2, rel=1e-12)

@@ -9,6 +9,8 @@ cycle against covtool's own Taylor discretisation, gain and update.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -202,21 +204,34 @@ def test_leading_term_is_cubic():
 def test_taylor_terms_is_the_adaptive_series_length():
     """taylor_terms is the length of the adaptive eq (6b)-(6d) series.
 
-    taylor(order=taylor_terms(...)) reproduces it bit for bit.
+    On steps the series reaches without squaring (νΔt ≤ θ), taylor(order=N_t)
+    with that step's N_t reproduces the adaptive result bit for bit; a step
+    that needs squaring is refused (one on-board cycle has no squarings).
     """
+    from covtool.discretize import THETA, taylor_terms
+    from covtool.errors import InputError
+
     rng = np.random.default_rng(2)
-    F = 0.3 * rng.standard_normal((4, 6, 6))
+    F = 0.03 * rng.standard_normal((4, 6, 6))
     L = rng.standard_normal((4, 6, 6))
     Qc = L @ np.swapaxes(L, 1, 2)
-    k = flops.taylor_terms(F, Qc, 1.0)
-    Pa, Qa = taylor(F, Qc, 1.0)
-    Pk, Qk = taylor(F, Qc, 1.0, order=k)
-    np.testing.assert_array_equal(Pa, Pk)
-    np.testing.assert_array_equal(Qa, Qk)
-    # scalar closed form: the series stops after the first term a^i/i! below 1e-16
-    a = 0.5
-    i = next(i for i in range(1, 40) if a**i / np.prod(np.arange(1.0, i + 1)) < 1e-16)
+    info = taylor_terms(F, Qc, 1.0)
+    assert not info.squarings.any()
+    assert flops.taylor_terms(F, Qc, 1.0) == info.terms.max()
+    for j in range(4):
+        Pa, Qa = taylor(F[j:j + 1], Qc[j:j + 1], 1.0)
+        Pk, Qk = taylor(F[j:j + 1], Qc[j:j + 1], 1.0, order=int(info.terms[j]))
+        np.testing.assert_array_equal(Pa, Pk)
+        np.testing.assert_array_equal(Qa, Qk)
+    # scalar closed form of the stopping rule: the first i with a^i/i! · r/(1 − r) ≤ 2^-53 (2 − e^a), r = a/(i+1)
+    a = 0.4
+    i = next(i for i in range(1, 40)
+             if a**i / math.factorial(i) * (a / (i + 1)) / (1 - a / (i + 1)) <= 2.0**-53 * (2 - math.exp(a)))
     assert flops.taylor_terms(np.full((1, 1, 1), a), np.zeros((1, 1, 1)), 1.0) == i + 1
+    assert a <= THETA
+    with pytest.raises(InputError, match=r'taylor_order = "auto": at step 0 \(νΔt = 4 > 0.5\) the adaptive series '
+                                         r"is summed over Δt/8 and squared"):
+        flops.taylor_terms(np.full((1, 1, 1), -4.0), np.ones((1, 1, 1)), 1.0)
 
 
 def test_power_law_recovers_exponent():

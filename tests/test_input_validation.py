@@ -355,7 +355,7 @@ def test_imu_grade_fields(decl, match):
     (lambda d: d["study"].update(duration=math.nan), r"\[study\] duration: nan is not finite"),
     (lambda d: d["study"].update(duration="0 s"), r"\[study\] duration: '0 s' must be positive"),
     (lambda d: d["study"].update(dt="-1 s"), r"\[study\] dt: '-1 s' must be positive"),
-    (lambda d: d["study"].update(dt="10 min"), r"\[study\] dt: 600 s is longer than the study \(360 s\)"),
+    (lambda d: d["study"].update(dt="10 min"), r"\[study\] dt: '10 min' is longer than the duration \(360 s\)"),
     (lambda d: d["study"].update(description=1), r"\[study\] description: 1 is not a string"),
     (lambda d: d["study"].update(max_memory="lots"), r"\[study\] max_memory: 'lots' is not a memory size"),
     (lambda d: d.update(study="pure_ins"), r"missing \[study\] table with a .kind. key"),

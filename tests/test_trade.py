@@ -24,9 +24,14 @@ TRADE = ROOT / "studies" / "trade_grid.toml"
 
 
 def small_decl() -> dict:
-    """8 min, 2 s steps; 2 grades x 2 intervals x 2 filters x 2 Q scales = 16 cases in 4 chunks."""
+    """8 min, 2 s steps; 2 grades x 2 intervals x 2 filters x 2 Q scales = 16 cases in 4 chunks.
+
+    The turns are 45° at 2.5°/s, so that a 2 s step turns by 5° (within the 5.7° per step that holding F
+    constant allows, covtool.studies.common.check_step_motion).
+    """
     d = tomllib.loads(TRADE.read_text())
     d["study"].update(duration="8 min", dt="2 s")
+    d["trajectory"].update(turn_rate="2.5 deg/s", turn_angle="45 deg")
     d["output"]["report_times"] = ["8 min"]
     d["zupt"]["rate"] = "0.5 Hz"
     d["filters"] = {"cases": ["B1", "D"]}

@@ -74,7 +74,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                        where, hdr["max_memory"], "a larger [study] dt or a shorter duration")
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"])
-    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
+    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
     P0 = truth.initial_covariance(nodes.q_nb[0])
     P = propagate(Phi, Qd, P0)

@@ -82,7 +82,7 @@ from ..metrics import nav_metrics
 from ..parallel import file_sha256
 from ..results import StudyResult
 from ..units import DIMENSIONS
-from .common import (FT, ARCMIN, check_memory, load_truth, memory_estimate, noise_columns, resource_provenance, steps_of,
+from .common import (FT, ARCMIN, check_memory, check_step_motion, load_truth, memory_estimate, noise_columns, resource_provenance, steps_of,
                      study_header, study_inputs, summary_row, time_grid)
 from .nav_covariance import load_trajectory, output_options
 from .zupt import _filters_file, filter_cases, filter_dynamics, setup, zupt_schedule
@@ -318,6 +318,7 @@ class TradePlan:
                 self.updates[text] = len(zupt_schedule(sub["zupt"], where, t, tr)[0])
             except InputError as exc:
                 raise StudyFileError(f"{where}: [grid] zupt_interval = {text!r}", str(exc)) from None
+            check_step_motion(tr, t, where)
             for gi, g in enumerate(self.grades):
                 self.decls[(gi, ii)] = system_decl(decl, self.grade_truth[gi], text, s, self.cruise_speed,
                                                    self.hdr["duration"], where)

@@ -231,7 +231,8 @@ class ZuptSetup:
                 self._filters[ckey] = (fm, self.Phi, self.Qd, True)
             else:
                 Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(self.t), spec.discretization,
-                                                 spec.taylor_order)
+                                                 spec.taylor_order, what=f"{spec.path}: filter {name!r}",
+                                                 times=self.t[:-1])
                 self._filters[ckey] = (fm, Phi_f, Qd_f, False)
         return self._filters[ckey]
 
@@ -281,9 +282,9 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
         est = check_memory(memory(steps_of(hdr["duration"], hdr["dt"]), truth, [specs[c].n for c in cases],
                                   filter_dynamics(specs, cases)), where, hdr["max_memory"], shrink)
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
-    t = time_grid(hdr["duration"], hdr["dt"])
+    t = time_grid(hdr["duration"], hdr["dt"], where)
     upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
-    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
+    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
     P0 = truth.initial_covariance(nodes.q_nb[0])
     moving = t[-1] - t[0] - sum(max(0.0, min(b, t[-1]) - max(a, t[0])) for a, b in traj.stationary)
