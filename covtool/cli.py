@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 from pathlib import Path
 
-from .errors import CovtoolError
+from .errors import CovtoolError, CovtoolWarning
 
 
 #: longer summaries are abbreviated on the console (the files hold every row)
@@ -26,11 +27,18 @@ def _cmd_run(args) -> int:
 
         backend = make_backend(workers=args.workers, scheduler=args.scheduler)
     try:
-        result = run_study(args.study, progress=not args.quiet, backend=backend, store=out / "cases",
-                           resume=args.resume)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", CovtoolWarning)
+            result = run_study(args.study, progress=not args.quiet, backend=backend, store=out / "cases",
+                               resume=args.resume)
     finally:
         if backend is not None:
             backend.close()
+    for w in caught:      # one line each (validity, flagged cases); other warnings as Python shows them
+        if issubclass(w.category, CovtoolWarning):
+            print(f"covtool: warning: {w.message}", file=sys.stderr)
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
     files = write_outputs(result, out, figures=not args.no_figures)
     dt = time.perf_counter() - t0
     if not args.quiet:
