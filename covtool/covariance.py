@@ -277,7 +277,7 @@ def check_covariance(P: np.ndarray, what: str, tol: float = PSD_TOL, *, names=No
         One covariance or a stack (history, batch of cases).
     what : str
         Names the case and the step, e.g.
-        ``"filter B1: truth covariance after the eq (16) update"``.
+        ``"filter B1: truth after the eq (16) update"``.
     tol : float
         PSD tolerance on the correlation matrix (:data:`PSD_TOL`).
     names : sequence of str, optional
@@ -334,7 +334,7 @@ def check_finite(A: np.ndarray, what: str, *, names=None, times=None) -> None:
     A : ndarray, shape (..., n, k)
         E.g. a stack of transition matrices Φ or gains.
     what : str
-        Names the matrix, e.g. ``"pure INS: transition Φ"``.
+        Names the matrix, e.g. ``"pure INS: Φ of the step"``.
     names : sequence of str, optional
         Names of the rows.
     times : array_like, shape (A.shape[0],), optional
@@ -383,13 +383,13 @@ def check_system(what: str, Phi=None, Qd=None, *, P0=None, R=None, names=None, t
         From :func:`check_finite` / :func:`check_covariance`.
     """
     if P0 is not None:
-        check_covariance(P0, f"{what}: initial covariance P0", names=names)
+        check_covariance(P0, f"{what}: P0", names=names)
     if Phi is not None:
-        check_finite(Phi, f"{what}: transition matrix Φ of the step", names=names, times=times)
+        check_finite(Phi, f"{what}: Φ of the step", names=names, times=times)
     if Qd is not None:
-        check_covariance(Qd, f"{what}: process noise Q_d of the step", names=names, times=times)
+        check_covariance(Qd, f"{what}: Q_d of the step", names=names, times=times)
     if R is not None:
-        check_covariance(R, f"{what}: measurement noise R", names=measurement_names)
+        check_covariance(R, f"{what}: R", names=measurement_names)
 
 
 def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = True, label: str = "pure INS",
@@ -435,7 +435,7 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
             P = Phi[k] @ P @ Phi[k].T + Qd[k]
             out[k + 1] = P = symmetrize(P)
     if check:
-        check_covariance(out, f"{label}: covariance", names=names, times=times)
+        check_covariance(out, label, names=names, times=times)
     return out
 
 
@@ -653,8 +653,8 @@ def _check_run(label, PT, PF, prior_t, prior_f, form, names, filter_names, times
     """Check a reference run's histories and priors; raise for the earliest bad one."""
     stages = []
     steps = np.array(sorted(prior_t), int)
-    for hist, priors, what, nm in ((PT, prior_t, "truth covariance", names),
-                                   (PF, prior_f, "filter covariance", filter_names)):
+    for hist, priors, what, nm in ((PT, prior_t, "truth", names),
+                                   (PF, prior_f, "filter", filter_names)):
         st = covariance_status(hist, groups=scale_groups(nm))
         bad = np.flatnonzero(~st.ok)
         if bad.size:

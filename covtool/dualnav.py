@@ -515,7 +515,7 @@ class DifferenceModel:
                 out[j] = self.H[j] @ P @ self.H[j].T + self.R
                 if j < self.t.size - 1:
                     P = symmetrize(self.Phi[j] @ P @ self.Phi[j].T + self.Qd[j])
-        check_covariance(out, "dual-IMU open-loop difference covariance", times=self.t,
+        check_covariance(out, "dual-IMU open-loop difference", times=self.t,
                          names=[DIFF_NAMES[c] for c in self.components])
         return out
 
@@ -838,9 +838,9 @@ class Whitener:
     def __init__(self, model: DifferenceModel, n_runs: int):
         J1, m, nc = model.t.size, model.m, len(model.candidates)
         what = "dual-IMU whitener"
-        check_covariance(model.P0, f"{what}: initial covariance P0", names=model.names)
-        check_finite(model.Phi, f"{what}: transition Φ of the epoch interval", names=model.names, times=model.t)
-        check_covariance(model.Qd, f"{what}: process noise Q_d of the epoch interval", names=model.names,
+        check_covariance(model.P0, f"{what}: P0", names=model.names)
+        check_finite(model.Phi, f"{what}: Φ of the epoch interval", names=model.names, times=model.t)
+        check_covariance(model.Qd, f"{what}: Q_d of the epoch interval", names=model.names,
                          times=model.t)
         check_covariance(model.R, f"{what}: comparison noise R")
         self.model = model
@@ -885,7 +885,7 @@ class Whitener:
         return v
 
     def _check(self, j: int, step: str) -> None:
-        check_covariance(self.P, f"dual-IMU whitener: covariance {step} at "
+        check_covariance(self.P, f"dual-IMU whitener: {step} at "
                          f"{time_text(float(self.model.t[j]))}", names=self.model.names)
 
     def take_navigation(self):

@@ -113,7 +113,7 @@ def cep(P2: np.ndarray) -> np.ndarray:
         hi = np.where(f < 0, hi, r)
         if np.all((np.abs(f) < 1e-14) | (hi - lo <= 1e-13 * hi)):
             break
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             r_new = r - f / _circle_density(r, a, b)
         # Newton while it stays inside the bracket and early on; the circle density
         # is a narrow spike for very elongated ellipses, so fall back to bisection

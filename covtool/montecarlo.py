@@ -197,10 +197,10 @@ class FeedbackFilter:
                     if k < N:
                         Pf = symmetrize(Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k])
         except NumericalError as exc:
-            check_covariance(P[:k], f"{label}: covariance", names=names, times=times)
+            check_covariance(P[:k], label, names=names, times=times)
             when = time_text(float(times[k])) if times is not None else f"step {k}"
             raise NumericalError(f"{label}: gain at {when}: {exc}") from None
-        check_covariance(P, f"{label}: covariance", names=names, times=times)
+        check_covariance(P, label, names=names, times=times)
         return cls(name, names, gains, P)
 
 

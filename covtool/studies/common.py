@@ -175,7 +175,7 @@ def initial_covariance(truth: Model, nodes, where: str) -> np.ndarray:
         (:func:`covtool.metrics.validity`), e.g. an initial azimuth 1σ of 83°.
     """
     P0 = truth.initial_covariance(nodes.q_nb[0])
-    check_covariance(P0, f"{where}: truth model {truth.name!r}: initial covariance P0", names=truth.names)
+    check_covariance(P0, f"{where}: truth model {truth.name!r}: P0", names=truth.names)
     m = nav_metrics(P0[None], nodes.lat[:1], nodes.h[:1], nodes.q_nb[:1])
     first = first_invalid(m, [0.0])
     if first:
