@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from .covariance import symmetrize
 from .dynamics import NoiseSource, attitude_errors
 from .engine import System, run_batch, sandwich
 from .metrics import ned_position_covariance
@@ -177,7 +178,7 @@ def split_initial(model, groups: dict, q0=None) -> tuple[list, np.ndarray | None
     cross = None
     if crossing:
         cross = P0 - sum(P for _, P in pieces)
-        cross = 0.5 * (cross + cross.T)
+        cross = symmetrize(cross)
     return pieces, cross
 
 
@@ -316,7 +317,7 @@ def discretize_noise(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, tol: 
     ZC = Z @ _hilbert(m)
     Q = ZC @ np.swapaxes(Z, -1, -2)                      # (N, k, n, n)
     Q *= (psd * dt[:, :, 0])[:, :, None, None]
-    return 0.5 * (Q + np.swapaxes(Q, -1, -2))
+    return symmetrize(Q)
 
 
 def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100,
@@ -371,7 +372,7 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk, tol):
         for s in range(a, b):
             acc = sandwich(Phi[s], acc) + Qj[s - a]
             if s + 1 == ev[i + 1]:
-                out[:, i] = 0.5 * (acc + np.swapaxes(acc, 1, 2))
+                out[:, i] = symmetrize(acc)
                 acc = np.zeros((J, n, n))
                 i += 1
     return out

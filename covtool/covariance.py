@@ -18,13 +18,14 @@ from .errors import NumericalError
 
 
 #: tolerance of the PSD test: the smallest eigenvalue of the correlation matrix
-#: ``C = S⁻¹ P S⁻¹`` (``S = diag √|P_ii|``) must be ≥ −PSD_TOL.  ``C`` has a unit
-#: diagonal, so this is relative to the σ's of the states involved and free of units.
-#: Round-off alone stays far inside: an eigenvalue of ``C`` is computed to
-#: ``≈ n ε ‖C‖ ≤ n² ε ≈ 7e-13`` (n = 58) and the shipped studies' histories reach
-#: −3e-14 at worst (seed 002 quaternion-norm direction ``q·δq = 0``, which is a
-#: true zero eigenvalue); 1e-9 is a thousand times above both and a thousand
-#: times below anything reported (four to six significant digits).
+#: ``C = S⁻¹ P S⁻¹`` (``S = diag √|P_ii|``, one σ for the quaternion error, see
+#: :func:`scale_groups`) must be ≥ −PSD_TOL.  ``C`` has a unit diagonal, so this is
+#: relative to the σ's of the states involved and free of units.  Round-off alone
+#: stays far inside: an eigenvalue of ``C`` is computed to ``≈ n ε ‖C‖ ≤ n² ε ≈ 7e-13``
+#: (n = 58), and every covariance of the shipped studies (pure INS, filter order,
+#: equivalent-noise modes, sensitivity sweep, both budgets, their inputs Q_d) reaches
+#: −2.7e-15 at worst (−1e-13 for 6 h of pure INS); 1e-9 is over a thousand times
+#: above both and a thousand times below anything reported (four to six digits).
 PSD_TOL = 1e-9
 #: tolerance of the symmetry test on ``|C_ij − C_ji|`` (same scaling as PSD_TOL)
 SYM_TOL = 1e-9

@@ -90,7 +90,7 @@ def compose(Phi: np.ndarray, Qd: np.ndarray, ev: np.ndarray) -> tuple[np.ndarray
             A = Phi[k] @ A
             Q = Phi[k] @ Q @ Phi[k].T + Qd[k]
         Pc[i] = A
-        Qc[i] = 0.5 * (Q + Q.T)
+        Qc[i] = symmetrize(Q)
     return Pc, Qc
 
 
