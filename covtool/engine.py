@@ -343,7 +343,7 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
     running = filt is not None
     if check:
         if P0.ndim == 3:
-            st = covariance_status(P0, groups=scale_groups(names))
+            st = covariance_status(P0, groups=scale_groups(names, n))
             bad = ~st.ok & ~(np.isin(st.code, (NOT_PSD, NEGATIVE_VARIANCE)) & ~psd_mask)   # signed pieces
             if bad.any():
                 b = int(np.flatnonzero(bad)[0])
@@ -397,7 +397,7 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
         scale = None
         if scaled and scale_case is not None:
             scale = np.sqrt(np.clip(np.diagonal(M[scale_case], axis1=-2, axis2=-1), 0.0, None))
-        st = covariance_status(M, scale=scale, groups=scale_groups(nm))
+        st = covariance_status(M, scale=scale, groups=scale_groups(nm, M.shape[-1]))
         bad = ~st.ok & ~dead
         if psd is not None:                                            # signed pieces may be indefinite
             bad &= ~(np.isin(st.code, (NOT_PSD, NEGATIVE_VARIANCE)) & ~psd)
@@ -476,7 +476,7 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
                         # per-case noise (a budget's per-source Q_d): relative to the total's, as the covariances
                         scale = (None if scale_case is None else
                                  np.sqrt(np.clip(np.diagonal(Qi[scale_case], axis1=-2, axis2=-1), 0.0, None)))
-                        st = covariance_status(Qi, scale=scale, groups=scale_groups(names))
+                        st = covariance_status(Qi, scale=scale, groups=scale_groups(names, n))
                         if not st.ok.all():
                             b = int(np.flatnonzero(~st.ok)[0])
                             raise NumericalError(f"{label} {case_at((b,))}: truth Q_d of the interval from {when(int(k))}: "

@@ -31,7 +31,7 @@ import numpy as np
 from scipy.special import erf
 
 from . import earth
-from .covariance import covariance_status, symmetrize
+from .covariance import covariance_status, running_scale, symmetrize
 from .dynamics import attitude_errors
 
 #: probable-error factor: P(|x| < 0.6745 σ) = 0.5 for a normal variable
@@ -145,10 +145,10 @@ def cep_approx(P2: np.ndarray) -> np.ndarray:
     return np.where(valid, 0.589 * (np.sqrt(w[..., 0]) + np.sqrt(w[..., 1])), np.nan)
 
 
-def _valid(P, groups=()):
+def _valid(P, groups=(), scale=None):
     """``(P with invalid matrices zeroed, valid mask)`` (:func:`covariance_status`)."""
     P = np.asarray(P, float)
-    valid = covariance_status(P, groups=groups).ok
+    valid = covariance_status(P, groups=groups, scale=scale).ok
     if not valid.all():
         P = np.where(valid[..., None, None], P, 0.0)
     return P, valid
@@ -197,9 +197,14 @@ def nav_metrics(P: np.ndarray, lat, h, q, distance=None) -> dict:
         ``sigma_azimuth`` [rad]; ``cep`` [m], ``cep_rule`` [m], ``alt_pe`` [m],
         ``sigma_horizontal`` (RMS radial) [m]; ``cep_pct_distance`` [%].
         Every metric is NaN at the times where the navigation block
-        ``P[:, :10, :10]`` is not finite, symmetric and PSD.
+        ``P[:, :10, :10]`` is not finite, symmetric and PSD (its states
+        scaled by the largest σ they have had in ``P``, so along a history
+        a σ swinging through zero is not taken for round-off trouble).
     """
-    P, valid = _valid(np.asarray(P, float)[:, :10, :10], [np.arange(6, 10)])   # δq0…δq3 (scale_groups)
+    P = np.asarray(P, float)[:, :10, :10]
+    # δq0…δq3 scaled together, each state by the largest σ it has had (covtool.covariance.running_scale):
+    # the upstream guard has judged every covariance by its own σ; this catches what it did not see
+    P, valid = _valid(P, [np.arange(6, 10)], running_scale(P))
     Pn = ned_position_covariance(P[:, :3, :3], lat, h)
     Pphi = attitude_errors(P[:, 6:10, 6:10], q)
     sd = lambda M, i: np.sqrt(np.clip(M[:, i, i], 0.0, None))  # noqa: E731

@@ -129,6 +129,27 @@ def test_quaternion_error_block_is_scaled_as_one_rotation():
     check_covariance(P, "x", names=names)                                     # names give the grouping
 
 
+def test_pure_propagation_is_judged_at_the_scale_its_states_have_had():
+    """A rank-1 oscillation, u = (cos kθ, sin kθ), P_k = u uᵀ (θ = 1 rad, no noise): exactly PSD.
+
+    Near kθ = 113π (k = 355) sin kθ = 3e-5 and P_22 ≈ 9e-10 is formed by cancellation of O(1)
+    terms: judged by its own σ the correlation eigenvalue is −1.8e-7 (beyond PSD_TOL); judged by
+    the largest σ the state has had (1) it is round-off, and the propagation passes the guard.
+    The entries themselves match the closed form to 1e-12.
+    """
+    from covtool.covariance import running_scale
+    N = 400
+    R = np.array([[np.cos(1.0), -np.sin(1.0)], [np.sin(1.0), np.cos(1.0)]])
+    Phi = np.broadcast_to(R, (N, 2, 2)).copy()
+    P = propagate(Phi, np.zeros((N, 2, 2)), np.diag([1.0, 0.0]), names=["x", "y"], times=np.arange(N + 1.0))
+    k = np.arange(N + 1)
+    u = np.stack([np.cos(k), np.sin(k)], -1)
+    np.testing.assert_allclose(P, u[:, :, None] * u[:, None, :], atol=1e-12)
+    own = covariance_status(P)
+    assert np.flatnonzero(~own.ok).tolist() == [355] and own.value[355] < -PSD_TOL
+    assert covariance_status(P, scale=running_scale(P)).ok.all()
+
+
 # --------------------------------------------------------------------------
 # case 5: every path checks its covariance
 # --------------------------------------------------------------------------
@@ -571,3 +592,87 @@ def test_trade_grid_flags_a_diverging_case(monkeypatch):
     assert "after the" in s.loc[1e308, "status"] and "covariance has a non-finite entry" in s.loc[1e308, "status"]
     for col in ("CEP [ft]", "CEP [m]", "alt PE [ft]", "azimuth 1sigma [arcmin]", "filter-claimed CEP [ft]"):
         assert np.isnan(s.loc[1e308, col]), col
+
+
+# --------------------------------------------------------------------------
+# the remaining refusals of the kernel
+# --------------------------------------------------------------------------
+
+def test_kalman_gain_refuses_a_singular_or_non_finite_innovation_covariance():
+    from covtool.covariance import kalman_gain
+    H = np.array([[1.0, 0.0]])
+    np.testing.assert_allclose(kalman_gain(np.eye(2), H, np.eye(1)), [[0.5], [0.0]], rtol=1e-15)   # P Hᵀ/(1+1)
+    with pytest.raises(NumericalError, match=r"^innovation covariance H P Hᵀ \+ R is singular$"):
+        kalman_gain(np.zeros((2, 2)), H, np.zeros((1, 1)))
+    with pytest.raises(NumericalError, match=r"^innovation covariance H P Hᵀ \+ R is not finite$"):
+        kalman_gain(np.diag([np.inf, 1.0]), H, np.eye(1))
+
+
+def test_a_singular_gain_is_named_with_its_filter_and_time():
+    """R = 0 and a filter that knows its measured state exactly: S = 0 at the second update."""
+    from covtool.montecarlo import FeedbackFilter
+    N = 4
+    Phi = np.broadcast_to(np.eye(2), (N, 2, 2)).copy()
+    Qd = np.zeros((N, 2, 2))
+    H = np.array([[1.0, 0.0]])
+    t = np.arange(N + 1.0)
+    with pytest.raises(NumericalError, match=r"^filter F: gain at t = 3\.0 s: innovation covariance H P Hᵀ \+ R is "
+                                             r"singular$"):
+        propagate_with_filter(Phi, Qd, np.eye(2), Phi, Qd, np.eye(2), H, H, np.eye(2), np.zeros((1, 1)), [1, 3],
+                              label="filter F", times=t)
+    names = ("dL", "dl", "dh", "dvN", "dvE", "dvD", "dq0", "dq1", "dq2", "dq3")
+    Phi10 = np.broadcast_to(np.eye(10), (N, 10, 10)).copy()
+    with pytest.raises(NumericalError, match=r"^Monte Carlo filter F: gain at t = 3\.0 s: innovation covariance"):
+        FeedbackFilter.design("F", names, Phi10, np.zeros((N, 10, 10)), np.eye(10), np.zeros((3, 3)), [1, 3],
+                              times=t)
+    ev = events(N, [1, 3], [N])
+    sysm = System.from_steps(Phi, Qd, ev)
+    with pytest.raises(NumericalError, match=r"^sweep: innovation covariance H P_f Hᵀ \+ R_f is singular at "
+                                             r"t = 3\.0 s$"):
+        run_batch(sysm, np.eye(2), H, np.zeros((1, 1)), np.eye(2), [1, 3], [N], filt=sysm, Pf0=np.eye(2)[None],
+                  Hf=H, Rf=np.zeros((1, 1, 1)), label="sweep", times=t)
+
+
+def test_engine_refuses_bad_options():
+    Phi, Qd, t = _system()
+    ev = events(6, [], [6])
+    sysm = System.from_steps(Phi, Qd, ev)
+    H = np.zeros((1, 3))
+    with pytest.raises(ValueError, match=r"^on_invalid must be 'raise' or 'flag', got 'skip'$"):
+        run_batch(sysm, np.eye(3), H, np.eye(1), np.eye(3), [], [6], gains=np.zeros((1, 0, 3, 1)), on_invalid="skip")
+    with pytest.raises(NumericalError, match=r"^batch: Q_f scale .* is not finite and non-negative$"):
+        run_batch(sysm, np.eye(3), H, np.eye(1), np.eye(3), [], [6], filt=sysm, Pf0=np.eye(3)[None], Hf=H,
+                  Rf=np.eye(1)[None], q_scale=np.array([-1.0]))
+    with pytest.raises(NumericalError, match=r"^batch: fixed gain \(matrix \(0, 0\)\): non-finite entry \(nan\) in "
+                                             r"the row of state #0$"):
+        run_batch(System.from_steps(Phi, Qd, events(6, [2], [6])), np.eye(3), H, np.eye(1), np.eye(3), [2], [6],
+                  gains=np.full((1, 1, 3, 1), np.nan))
+
+
+def test_check_finite_names_the_matrix_time_and_row():
+    from covtool.covariance import check_finite
+    A = np.zeros((3, 2, 2))
+    A[2, 1, 0] = np.inf
+    with pytest.raises(NumericalError, match=r"^truth: Φ of the step at t = 20\.0 s: non-finite entry \(inf\) in the "
+                                             r"row of state 'y'$"):
+        check_finite(A, "truth: Φ of the step", names=["x", "y"], times=[0.0, 10.0, 20.0])
+
+
+def test_covariance_status_refuses_a_non_square_array():
+    with pytest.raises(ValueError, match=r"^a covariance must have shape \(\.\.\., n, n\), got \(2, 3\)$"):
+        covariance_status(np.zeros((2, 3)))
+
+
+def test_sweep_fit_leaves_out_flagged_cases():
+    """A flagged (NaN) point is left out of the log-log fit; too few points give a NaN fit, not an error."""
+    from covtool.sensitivity import fit_loglog
+    from covtool.studies.sensitivity import _fit, _ratio
+    s = np.array([0.01, 0.1, 1.0, 10.0, 100.0])
+    e = 3.0 * s ** 0.25
+    e_bad = e.copy()
+    e_bad[-1] = np.nan
+    f = _fit(s, e_bad, 1)
+    np.testing.assert_allclose(f.coef, fit_loglog(s[:-1], e[:-1], 1).coef, rtol=1e-14)
+    np.testing.assert_allclose(f.coef, [np.log10(3.0), 0.25], rtol=1e-12)
+    assert np.all(np.isnan(_fit(s, np.full(5, np.nan), 1).coef))
+    assert np.isnan(_ratio(np.nan, 2.0)) and _ratio(1.0, 0.0) == np.inf and _ratio(1.0, 2.0) == 0.5
