@@ -278,7 +278,7 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
         every record step and after every ``SYMMETRIZE_EVERY``-th and the
         last update (when they are symmetrised; a message names the time of
         the check and of the previous one).  Cost: a batched Cholesky
-        factorisation per check (about 9 % of the shipped sweep's CPU time).
+        factorisation per check (about 10 % of the shipped sweep's CPU time).
     on_invalid : {"raise", "flag"}
         What a covariance that fails the guard during the run does:
         ``"raise"`` a :class:`NumericalError`; ``"flag"`` the case

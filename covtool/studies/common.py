@@ -141,13 +141,21 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
     return Phi, Qd
 
 
-def truth_system(model: Model, traj, t: np.ndarray, method: str, *, options=NavOptions(), progress=False):
-    """Truth Φ, Q_d along the grid, plus the mid-point context and dynamics."""
+def truth_system(model: Model, traj, t: np.ndarray, method: str, *, options=NavOptions(), progress=False,
+                 where: str = "<study>"):
+    """Truth Φ, Q_d along the grid, plus the mid-point context and dynamics.
+
+    Raises
+    ------
+    NumericalError
+        Φ or Q_d of a step is not finite (Q_d: symmetric, PSD), naming the
+        study ``where``, the step's time and the state.
+    """
     ctx = midpoint_context(traj, t)
     dyn = error_dynamics(model, ctx, options)
     Phi, Qd = discretize_chunked(dyn.F, dyn.Qc, np.diff(t), method, progress=progress, desc="truth Φ, Q")
     # guarded once here; the runs that share them are told so (system_checked)
-    check_system(f"truth model {model.name!r}", Phi, Qd, names=model.names, times=t)
+    check_system(f"{where}: truth model {model.name!r}", Phi, Qd, names=model.names, times=t)
     return ctx, dyn, Phi, Qd
 
 

@@ -70,7 +70,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     truth = load_truth(decl, where, base_dir)
     t = time_grid(hdr["duration"], hdr["dt"])
-    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
+    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
     P0 = initial_covariance(truth, nodes, where)
     P = propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names, times=t, system_checked=True)

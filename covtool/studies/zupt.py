@@ -207,7 +207,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=()) -
         if c not in specs:
             raise StudyFileError(f"{where}: [filters] cases", f"unknown filter {c!r} (declared in {ffile}: "
                                  f"{', '.join(specs)})")
-    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress)
+    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
     P0 = initial_covariance(truth, nodes, where)
     moving = t[-1] - t[0] - sum(max(0.0, min(b, t[-1]) - max(a, t[0])) for a, b in traj.stationary)
