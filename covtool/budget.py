@@ -41,6 +41,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from .discretize import per_source
+from .covariance import symmetrize
 from .dynamics import NoiseSource, attitude_errors
 from .engine import System, run_batch, sandwich
 from .metrics import ned_position_covariance
@@ -178,7 +179,7 @@ def split_initial(model, groups: dict, q0=None) -> tuple[list, np.ndarray | None
     cross = None
     if crossing:
         cross = P0 - sum(P for _, P in pieces)
-        cross = 0.5 * (cross + cross.T)
+        cross = symmetrize(cross)
     return pieces, cross
 
 
@@ -329,7 +330,7 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk):
         for s in range(a, b):
             acc = sandwich(Phi[s], acc) + Qj[s - a]
             if s + 1 == ev[i + 1]:
-                out[:, i] = 0.5 * (acc + np.swapaxes(acc, 1, 2))
+                out[:, i] = symmetrize(acc)
                 acc = np.zeros((J, n, n))
                 i += 1
     return out
@@ -389,7 +390,8 @@ class BudgetRun:
 
 def run_budget(truth: System, sources: list, Qn: np.ndarray, P0: np.ndarray, H: np.ndarray, R: np.ndarray,
                D: np.ndarray, gains: np.ndarray | None, update_steps, record_steps, *,
-               keep=slice(0, 10), blas_threads: int | None = 1) -> BudgetRun:
+               keep=slice(0, 10), blas_threads: int | None = 1, label: str = "error budget", names=None,
+               times=None) -> BudgetRun:
     """Every source alone, and the total, in one batched pass.
 
     Parameters
@@ -411,10 +413,22 @@ def run_budget(truth: System, sources: list, Qn: np.ndarray, P0: np.ndarray, H: 
         Event indices of ``truth.ev``.
     keep : slice or index array
         Recorded sub-block (default: the navigation states).
+    label : str
+        Names the budget in messages; ``names`` (truth state names) and
+        ``times`` (grid times [s]) name the state and the time.
 
     Returns
     -------
     BudgetRun
+
+    Raises
+    ------
+    NumericalError
+        A source's input (P0 piece, per-source Q_d, R) or its contribution
+        is not finite and symmetric, or not PSD (every source but the
+        cross-covariance piece, which may be indefinite, and the total),
+        naming the source, the time and the state
+        (:func:`covtool.engine.run_batch`).
     """
     n = truth.n
     m = H.shape[0]
@@ -438,8 +452,10 @@ def run_budget(truth: System, sources: list, Qn: np.ndarray, P0: np.ndarray, H: 
     Rs[-1] = R
     arrays.append(Qn.sum(axis=0) if len(Qn) else None)
     K = len(truth.ev) - 1
+    psd = np.array([s.kind != CORRELATION for s in sources] + [True])
     res = run_batch(truth, P0s, H, Rs, D, upd, record_steps, gains=gains, truth_Q=MemberNoise(arrays, K, n),
-                    keep=keep, blas_threads=blas_threads)
+                    keep=keep, blas_threads=blas_threads, label=label, cases=[s.name for s in sources] + ["total"],
+                    names=names, times=times, psd_cases=psd, scale_case=len(sources))
     return BudgetRun(list(sources), res.record_steps, res.P_truth[:-1], res.P_truth[-1])
 
 

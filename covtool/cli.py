@@ -8,9 +8,10 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from pathlib import Path
 
-from .errors import CovtoolError
+from .errors import CovtoolError, CovtoolWarning
 
 
 #: longer summaries are abbreviated on the console (the files hold every row)
@@ -42,14 +43,21 @@ def _cmd_run(args) -> int:
                 from .parallel import make_backend
 
                 backend = make_backend(workers=args.workers, scheduler=args.scheduler)
-            result = run_study(args.study, progress=not args.quiet, backend=backend, store=out / "cases",
-                               resume=args.resume)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", CovtoolWarning)
+                result = run_study(args.study, progress=not args.quiet, backend=backend, store=out / "cases",
+                                   resume=args.resume)
         except BaseException:
             if backend is not None:
                 backend.abort()                          # never wait for running chunks on an error
             raise
         if backend is not None:
             backend.close()
+        for w in caught:      # one line each (validity, flagged cases); other warnings as Python shows them
+            if issubclass(w.category, CovtoolWarning):
+                print(f"covtool: warning: {w.message}", file=sys.stderr)
+            else:
+                warnings.showwarning(w.message, w.category, w.filename, w.lineno)
         files = write_outputs(result, out, figures=not args.no_figures)
     dt = time.perf_counter() - t0
     if not args.quiet:

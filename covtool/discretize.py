@@ -214,10 +214,13 @@ def _q_tail_ok(Qt, Qw, rch, r):
         return started & (X.max(axis=(1, 2)) * r / (1.0 - r) <= UNIT_ROUNDOFF)
 
 
-def _series(B, Qb, h, nu, order=None):
+def _series(B, Qb, h, nu, order=None, minus_identity=False):
     """Partial sums of eq (6b)–(6d) for ``B h``; adaptive when ``order`` is None.
 
-    Returns ``Φ, Q_d, terms, converged``.  In the adaptive case a step stops
+    Returns ``Φ, Q_d, terms, converged`` (``Φ − I`` instead of ``Φ`` with
+    ``minus_identity``: the squaring of :func:`_finish` keeps it apart from
+    the identity so that the small increments of a very short base step are
+    not rounded away).  In the adaptive case a step stops
     once the bound of its remaining tail is below ``2⁻⁵³`` of the sum:
 
     * Φ, column by column: ``T_{i+1} = (Bh/(i+1)) T_i`` so the tail of
@@ -230,7 +233,8 @@ def _series(B, Qb, h, nu, order=None):
       each element's terms decay with it once the element has started).
     """
     N, n, _ = B.shape
-    Phi = np.broadcast_to(np.eye(n), B.shape).copy()
+    eye = np.broadcast_to(np.eye(n), B.shape)
+    Phi = np.zeros_like(B) if minus_identity else eye.copy()
     Q = np.zeros_like(B)
     adaptive = order is None
     last = MAX_TERMS if adaptive else order
@@ -240,7 +244,7 @@ def _series(B, Qb, h, nu, order=None):
         return Phi, Q, terms, np.ones(N, bool)
     idx = np.arange(N)                                  # steps still summing
     Bw, hw = B, h[:, None, None]
-    T = Phi.copy()
+    T = eye.copy()
     C = Qb.copy()
     coef = hw.copy()                                    # h^i / i!
     Pw, Qw = Phi.copy(), Q.copy()
@@ -278,16 +282,47 @@ def _series(B, Qb, h, nu, order=None):
     return Phi, Q, terms, done
 
 
-def _square(Phi, Qd, s):
-    """Double the steps ``s`` times: ``Φ ← Φ²``, ``Q ← Φ Q Φᵀ + Q``."""
+def _square(E, Qd, s):
+    """Double the steps ``s`` times: ``Φ ← Φ²``, ``Q ← Φ Q Φᵀ + Q``; ``E = Φ − I`` in, ``Φ`` out.
+
+    ``Φ`` is carried as its off-diagonal part ``X`` and its diagonal, each
+    diagonal element either as ``Φ_ii − 1`` (while below ½ in magnitude) or
+    as ``Φ_ii``.  With ``Φ = diag(φ) + X`` the square is
+    ``diag(φ² + diag(X²)) + offdiag(φX + Xφ + X²)``:
+
+    * near the identity (a very short base step, forced by a stiff Markov
+      state), ``φ_ii − 1`` is doubled as ``2d + d²`` instead of being
+      rounded away next to 1 (``expm1`` for scalars) and the off-diagonal
+      entries keep their relative precision;
+    * a decaying mode (``φ_ii → 0``) is squared as ``φ_ii`` itself, so it
+      does not lose its digits to the cancellation ``1 + (−1 + tiny)``.
+    """
+    N, n, _ = E.shape
+    idx = np.arange(n)
+    X = E.copy()
+    d = np.einsum("kii->ki", E).copy()                 # Φ_ii − 1 where `near`, else Φ_ii
+    X[:, idx, idx] = 0.0
+    near = np.abs(d) < 0.5
+    d[~near] += 1.0
     for j in range(int(s.max(initial=0))):
         m = s > j
-        P, Q = Phi[m], Qd[m]
+        Xm, dm, nm = X[m], d[m], near[m]
+        phi = np.where(nm, 1.0 + dm, dm)
+        P = Xm.copy()
+        P[:, idx, idx] = phi
         with np.errstate(over="ignore", invalid="ignore"):
-            Q = P @ Q @ np.swapaxes(P, 1, 2) + Q
+            Q = P @ Qd[m] @ np.swapaxes(P, 1, 2) + Qd[m]
             Qd[m] = 0.5 * (Q + np.swapaxes(Q, 1, 2))
-            Phi[m] = P @ P
-    return Phi, Qd
+            X2 = Xm @ Xm
+            dx = np.einsum("kii->ki", X2)
+            Xn = phi[:, :, None] * Xm + Xm * phi[:, None, :] + X2
+            Xn[:, idx, idx] = 0.0
+            dn = np.where(nm, 2.0 * dm + dm * dm + dx, dm * dm + dx)
+        grow = nm & (np.abs(dn) >= 0.5)
+        dn[grow] += 1.0
+        X[m], d[m], near[m] = Xn, dn, nm & ~grow
+    X[:, idx, idx] = np.where(near, 1.0 + d, d)
+    return X, Qd
 
 
 def _check_result(Phi, Qd, dt, info, what, times, psd):
@@ -377,8 +412,8 @@ def _not_converged(done, what, dt, times, nu, h):
                              f"converge in {MAX_TERMS} terms at νh = {nu[k] * h[k]:.3g}")
 
 
-def _finish(Phi, Qd, s, d, terms, nu, dt, what, times):
-    Phi, Qd = _square(Phi, Qd, s)
+def _finish(E, Qd, s, d, terms, nu, dt, what, times):
+    Phi, Qd = _square(E, Qd, s)
     Phi, Qd = _unbalance(Phi, Qd, d)
     info = StepInfo(terms, s, nu * dt)
     _check_result(Phi, Qd, dt, info, what, times, psd=True)
@@ -390,9 +425,9 @@ def _exact(F, Qc, dt, what, times):
     d = balancing(F)
     B, Qb, nu = _balanced(F, Qc, d)
     s, h = scaling(nu, dt)
-    Phi, Qd, terms, done = _series(B, Qb, h, nu)
+    E, Qd, terms, done = _series(B, Qb, h, nu, minus_identity=True)
     _not_converged(done, what, dt, times, nu, h)
-    return _finish(Phi, Qd, s, d, terms, nu, dt, what, times)
+    return _finish(E, Qd, s, d, terms, nu, dt, what, times)
 
 
 def _block_series(A, M, dd, QA, q, h, nu, rch):
@@ -411,7 +446,9 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
     TM = np.zeros((N, k, m))
     TD = np.ones((N, m))
     CA, CX, CS = QA.copy(), np.zeros((N, k, m)), q.copy()
-    out = [TA.copy(), TM.copy(), TD.copy(), np.zeros((N, k, k)), np.zeros((N, k, m)), np.zeros((N, m))]
+    # the sums start from the i = 1 terms: Φ − I (see _square)
+    out = [np.zeros((N, k, k)), TM.copy(), np.zeros((N, m)), np.zeros((N, k, k)), np.zeros((N, k, m)),
+           np.zeros((N, m))]
     work = [x.copy() for x in out]
     coef = hw.copy()
     a = nu * h
@@ -471,7 +508,7 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
     Phi[:, k:, k:] = PD[:, :, None] * np.eye(m)
     Q[:, :k, :k], Q[:, :k, k:], Q[:, k:, :k] = SA, SX, np.swapaxes(SX, 1, 2)
     Q[:, k:, k:] = SS[:, :, None] * np.eye(m)
-    return Phi, Q, terms, done
+    return Phi, Q, terms, done        # Φ − I (the sums start from the i = 1 terms)
 
 
 def is_block_triangular(F, Qc, k: int) -> bool:
@@ -526,10 +563,10 @@ def block_triangular(F, Qc, dt, k: int, *, what: str = "", times=None, info: boo
     B, Qb, nu = _balanced(F, Qc, d)
     s, h = scaling(nu, dt)
     rch = reach(B, np.einsum("kii->ki", Qb) > 0)
-    Phi, Qd, terms, done = _block_series(B[:, :k, :k], B[:, :k, k:], np.einsum("kii->ki", B[:, k:, k:]),
-                                         Qb[:, :k, :k], np.einsum("kii->ki", Qb[:, k:, k:]), h, nu, rch)
+    E, Qd, terms, done = _block_series(B[:, :k, :k], B[:, :k, k:], np.einsum("kii->ki", B[:, k:, k:]),
+                                       Qb[:, :k, :k], np.einsum("kii->ki", Qb[:, k:, k:]), h, nu, rch)
     _not_converged(done, what, dt, times, nu, h)
-    Phi, Qd, inf = _finish(Phi, Qd, s, d, terms, nu, dt, what, times)
+    Phi, Qd, inf = _finish(E, Qd, s, d, terms, nu, dt, what, times)
     return (Phi, Qd, inf) if info else (Phi, Qd)
 
 

@@ -49,6 +49,8 @@ from . import earth
 from . import quaternion as quat
 from . import strapdown as sd
 from .discretize import block_triangular, is_block_triangular, taylor
+from .covariance import (check_covariance, check_finite, filter_update, innovation_covariance, kalman_gain,
+                         symmetrize, time_text)
 from .dynamics import Context, error_dynamics
 from .errors import InputError, NumericalError
 from .imu import ImuRecord, SensorErrors
@@ -508,11 +510,13 @@ class DifferenceModel:
         """
         P = self.P0
         out = np.empty((self.t.size, self.m, self.m))
-        for j in range(self.t.size):
-            out[j] = self.H[j] @ P @ self.H[j].T + self.R
-            if j < self.t.size - 1:
-                P = self.Phi[j] @ P @ self.Phi[j].T + self.Qd[j]
-                P = 0.5 * (P + P.T)
+        with np.errstate(over="ignore", invalid="ignore"):    # a blow-up is reported by the guard
+            for j in range(self.t.size):
+                out[j] = self.H[j] @ P @ self.H[j].T + self.R
+                if j < self.t.size - 1:
+                    P = symmetrize(self.Phi[j] @ P @ self.Phi[j].T + self.Qd[j])
+        check_covariance(out, "dual-IMU open-loop difference", times=self.t,
+                         names=[DIFF_NAMES[c] for c in self.components])
         return out
 
 
@@ -774,11 +778,26 @@ class Whitener:
     estimate; in the linear model this leaves the innovations unchanged, and
     it keeps the two solutions close to their linearisation so that the
     second-order terms (``½ φ×(φ×f)`` at 10–20 g) stay negligible.
-    Joseph-form covariance update.
+    Gain and Joseph-form update by :func:`covtool.covariance.kalman_gain`
+    and :func:`~covtool.covariance.filter_update`; the model (P0, Φ, Q_d,
+    R) is checked on entry and the covariance after every update and
+    prediction (:func:`~covtool.covariance.check_covariance`), naming the
+    epoch time and the joint state.
+
+    Raises
+    ------
+    NumericalError
+        A model matrix or a covariance is not finite, symmetric and PSD.
     """
 
     def __init__(self, model: DifferenceModel, n_runs: int):
         J1, m, nc = model.t.size, model.m, len(model.candidates)
+        what = "dual-IMU whitener"
+        check_covariance(model.P0, f"{what}: P0", names=model.names)
+        check_finite(model.Phi, f"{what}: Φ of the epoch interval", names=model.names, times=model.t)
+        check_covariance(model.Qd, f"{what}: Q_d of the epoch interval", names=model.names,
+                         times=model.t)
+        check_covariance(model.R, f"{what}: comparison noise R")
         self.model = model
         self.P = model.P0.copy()
         self.x = np.zeros((int(n_runs), model.n))
@@ -807,19 +826,22 @@ class Whitener:
                           + np.einsum("ijk,lmn,jn,mk->il", _EPS, _EPS, Pab, Pab))
             zhat[:, att] += mean[:, ax]
             R[np.ix_(att, att)] += cov[np.ix_(ax, ax)]
-        S = H @ P @ H.T + R
-        S = 0.5 * (S + S.T)
-        K = np.linalg.solve(S, H @ P).T
+        S = innovation_covariance(P, H, R)
+        K = kalman_gain(P, H, R, S=S)
         v = np.asarray(z, float) - zhat
         self.nu[:, j] = v
         self.S[j] = S
         self.nis[:, j] = np.einsum("mi,mi->m", v, np.linalg.solve(S, v.T).T)
         self.rho[j] = H @ self.mu
         self.x = self.x + v @ K.T
-        A = np.eye(model.n) - K @ H
-        self.P = A @ P @ A.T + K @ R @ K.T
-        self.mu = A @ self.mu
+        self.P = filter_update(P, K, H, R, "joseph")
+        self._check(j, "after the update")
+        self.mu = self.mu - K @ (H @ self.mu)                # (I − K H) μ
         return v
+
+    def _check(self, j: int, step: str) -> None:
+        check_covariance(self.P, f"dual-IMU whitener: {step} at "
+                         f"{time_text(float(self.model.t[j]))}", names=self.model.names)
 
     def take_navigation(self):
         """Hand over the navigation-error estimates (M, 10) each."""
@@ -835,8 +857,8 @@ class Whitener:
         model = self.model
         Phi = model.Phi[j]
         self.x = self.x @ Phi.T
-        P = Phi @ self.P @ Phi.T + model.Qd[j]
-        self.P = 0.5 * (P + P.T)
+        self.P = symmetrize(Phi @ self.P @ Phi.T + model.Qd[j])
+        self._check(j + 1, "after the prediction")
         self.mu = Phi @ self.mu + model.Gamma[j]
 
     def result(self) -> "Innovations":

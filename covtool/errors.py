@@ -52,3 +52,23 @@ class NumericalError(CovtoolError, ArithmeticError):
 
     The message names the step (time and operation) where it happened.
     """
+
+
+class CovtoolWarning(UserWarning):
+    """Base class of the warnings a study run gives; the CLI prints each on one line."""
+
+
+class ValidityWarning(CovtoolWarning):
+    """A result left the linear error model's domain (:func:`covtool.metrics.validity`).
+
+    The numbers are still written, with the reason in the summary's
+    ``validity`` column.
+    """
+
+
+class FlaggedCaseWarning(CovtoolWarning):
+    """Cases of a sweep or grid failed the covariance guard and were flagged.
+
+    Their numbers are NaN and the ``status`` column gives the guard's
+    message (:func:`covtool.covariance.check_covariance`).
+    """

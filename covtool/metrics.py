@@ -1,6 +1,28 @@
 """Navigation-error metrics from covariances: CEP, probable error, attitude σ.
 
-All inputs SI; outputs SI unless a name says otherwise.
+All inputs SI; outputs SI unless a name says otherwise.  A metric of a
+covariance that is not finite, symmetric and PSD
+(:func:`covtool.covariance.covariance_status`) is NaN, never 0.
+
+Domain of the linear error model
+--------------------------------
+The error model (seed 002, eq (1)–(5)) keeps the first order of small-angle
+expansions; :func:`validity` says where a covariance leaves that domain.
+The criterion is the same for every error: the neglected second-order term
+stays below 5 % of the first-order term for a 3σ error (99.7 % of the
+errors of each axis), i.e. ``3σ·c ≤ 0.05`` with ``c`` the ratio of the two
+terms per unit error.
+
+* Position, horizontal and vertical, as an angle ``x = σ/R``: gravity
+  ``μ/r²`` gives ``c = 3/2`` (``g(R+δh) = g(1 − 2x + 3x² …)``); the
+  longitude rate ``v_E/(R cos L)`` gives ``c = tan L + 1/(2 tan L)``, 3/2 at
+  45° latitude.  ``x ≤ 0.05/4.5 = 1.1 %``: :data:`POSITION_LIMIT` =
+  :data:`ALTITUDE_LIMIT` = 1 % of the equatorial radius (63.8 km).  An
+  unaided vertical channel diverges as ``cosh(√2 ω_s t)`` and is the usual
+  way to get there.
+* Attitude (tilts and azimuth): ``Ĉ = (I − [φ×]) C`` drops ``½[φ×]²``, so
+  ``c = 1/2`` and ``σ ≤ 0.05/1.5 = 0.033 rad``: :data:`ATTITUDE_LIMIT`
+  (1.9°).
 """
 
 from __future__ import annotations
@@ -9,11 +31,19 @@ import numpy as np
 from scipy.special import erf
 
 from . import earth
+from .covariance import covariance_status, running_scale, symmetrize
 from .dynamics import attitude_errors
 
 #: probable-error factor: P(|x| < 0.6745 σ) = 0.5 for a normal variable
 PE_FACTOR = 0.6744897501960817
 _GL_X, _GL_W = np.polynomial.legendre.leggauss(96)
+
+#: largest horizontal position 1σ (per axis) of the linear error model's domain (module notes) [m]
+POSITION_LIMIT = 0.01 * earth.A
+#: largest altitude 1σ of the linear error model's domain (module notes) [m]
+ALTITUDE_LIMIT = 0.01 * earth.A
+#: largest tilt or azimuth 1σ of the linear error model's domain (module notes) [rad]
+ATTITUDE_LIMIT = 0.05 / 1.5
 
 
 def _circle_probability(r, s1, s2):
@@ -60,14 +90,15 @@ def cep(P2: np.ndarray) -> np.ndarray:
     narrower than 1e-13 r (a Newton step's size is no test: for σ₂ ≪ σ₁ the
     density around the circle is a spike that quadrature can overestimate).  Limits:
     ``√(2 ln 2) σ = 1.1774 σ`` (circular), ``0.6745 σ₁`` (σ₂ → 0).  The common
-    rule ``0.589(σ₁+σ₂)`` is within 3 % only for σ₂/σ₁ > 0.3.
+    rule ``0.589(σ₁+σ₂)`` is within 3 % only for σ₂/σ₁ > 0.3.  NaN where
+    ``P2`` is not finite, symmetric and PSD (never 0).
     """
-    P2 = np.asarray(P2, float)
-    w = np.linalg.eigvalsh(0.5 * (P2 + np.swapaxes(P2, -1, -2)))
+    P2, valid = _valid(P2)
+    w = np.linalg.eigvalsh(symmetrize(P2))
     w = np.clip(w, 0.0, None)
     s1 = np.sqrt(w[..., 1])
     s2 = np.sqrt(w[..., 0])
-    out = np.zeros(s1.shape)
+    out = np.where(valid, 0.0, np.nan)
     pos = s1 > 0
     if not np.any(pos):
         return out
@@ -82,7 +113,7 @@ def cep(P2: np.ndarray) -> np.ndarray:
         hi = np.where(f < 0, hi, r)
         if np.all((np.abs(f) < 1e-14) | (hi - lo <= 1e-13 * hi)):
             break
-        with np.errstate(divide="ignore", invalid="ignore"):
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             r_new = r - f / _circle_density(r, a, b)
         # Newton while it stays inside the bracket and early on; the circle density
         # is a narrow spike for very elongated ellipses, so fall back to bisection
@@ -105,9 +136,22 @@ def _circle_density(r, s1, s2):
 
 
 def cep_approx(P2: np.ndarray) -> np.ndarray:
-    """The ``0.589 (σ₁ + σ₂)`` CEP rule of thumb, for comparison. [m]"""
-    w = np.clip(np.linalg.eigvalsh(P2), 0.0, None)
-    return 0.589 * (np.sqrt(w[..., 0]) + np.sqrt(w[..., 1]))
+    """The ``0.589 (σ₁ + σ₂)`` CEP rule of thumb, for comparison. [m]
+
+    NaN where ``P2`` is not finite, symmetric and PSD.
+    """
+    P2, valid = _valid(P2)
+    w = np.clip(np.linalg.eigvalsh(symmetrize(P2)), 0.0, None)
+    return np.where(valid, 0.589 * (np.sqrt(w[..., 0]) + np.sqrt(w[..., 1])), np.nan)
+
+
+def _valid(P, groups=(), scale=None):
+    """``(P with invalid matrices zeroed, valid mask)`` (:func:`covariance_status`)."""
+    P = np.asarray(P, float)
+    valid = covariance_status(P, groups=groups, scale=scale).ok
+    if not valid.all():
+        P = np.where(valid[..., None, None], P, 0.0)
+    return P, valid
 
 
 def ned_position_covariance(P_pos: np.ndarray, lat, h) -> np.ndarray:
@@ -152,7 +196,15 @@ def nav_metrics(P: np.ndarray, lat, h, q, distance=None) -> dict:
         ``sigma_ve``, ``sigma_vd`` [m/s]; ``sigma_tilt_n``, ``sigma_tilt_e``,
         ``sigma_azimuth`` [rad]; ``cep`` [m], ``cep_rule`` [m], ``alt_pe`` [m],
         ``sigma_horizontal`` (RMS radial) [m]; ``cep_pct_distance`` [%].
+        Every metric is NaN at the times where the navigation block
+        ``P[:, :10, :10]`` is not finite, symmetric and PSD (its states
+        scaled by the largest σ they have had in ``P``, so along a history
+        a σ swinging through zero is not taken for round-off trouble).
     """
+    P = np.asarray(P, float)[:, :10, :10]
+    # δq0…δq3 scaled together, each state by the largest σ it has had (covtool.covariance.running_scale):
+    # the upstream guard has judged every covariance by its own σ; this catches what it did not see
+    P, valid = _valid(P, [np.arange(6, 10)], running_scale(P))
     Pn = ned_position_covariance(P[:, :3, :3], lat, h)
     Pphi = attitude_errors(P[:, 6:10, 6:10], q)
     sd = lambda M, i: np.sqrt(np.clip(M[:, i, i], 0.0, None))  # noqa: E731
@@ -169,4 +221,90 @@ def nav_metrics(P: np.ndarray, lat, h, q, distance=None) -> dict:
         d = np.asarray(distance, float)
         with np.errstate(divide="ignore", invalid="ignore"):
             out["cep_pct_distance"] = np.where(d > 0, 100.0 * out["cep"] / d, np.nan)
+    if not valid.all():
+        for v in out.values():
+            v[~valid] = np.nan
     return out
+
+
+#: the domain tests of :func:`validity`: name, metrics compared, limit, description
+VALIDITY_TESTS = (
+    ("position", ("sigma_north", "sigma_east"), POSITION_LIMIT,
+     f"horizontal position 1sigma > 1 % of the Earth radius ({POSITION_LIMIT / 1e3:.1f} km)"),
+    ("altitude", ("sigma_down",), ALTITUDE_LIMIT,
+     f"altitude 1sigma > {ALTITUDE_LIMIT / 1e3:.1f} km (vertical channel diverged)"),
+    ("attitude", ("sigma_tilt_n", "sigma_tilt_e", "sigma_azimuth"), ATTITUDE_LIMIT,
+     f"attitude 1sigma > {ATTITUDE_LIMIT:.3g} rad ({np.degrees(ATTITUDE_LIMIT):.2g} deg)"),
+)
+
+
+def validity(m: dict) -> dict:
+    """Where the metrics leave the linear error model's domain.
+
+    Parameters
+    ----------
+    m : dict of ndarray, shape (...)
+        From :func:`nav_metrics`.
+
+    Returns
+    -------
+    dict of str to ndarray of bool, shape (...)
+        ``position``: ``max(σ_N, σ_E) >`` :data:`POSITION_LIMIT`;
+        ``altitude``: ``σ_D >`` :data:`ALTITUDE_LIMIT`; ``attitude``: a tilt
+        or the azimuth ``>`` :data:`ATTITUDE_LIMIT` (module notes).  NaN
+        metrics are not flagged here (the guard flags them).
+    """
+    out = {}
+    for name, keys, limit, _ in VALIDITY_TESTS:
+        x = np.zeros(np.shape(m[keys[0]]), bool)
+        for k in keys:
+            with np.errstate(invalid="ignore"):
+                x |= np.asarray(m[k]) > limit
+        out[name] = x
+    return out
+
+
+def first_invalid(m: dict, t) -> dict:
+    """First time each domain test of :func:`validity` fails.
+
+    Parameters
+    ----------
+    m : dict of ndarray, shape (N,)
+        From :func:`nav_metrics` along a history.
+    t : ndarray, shape (N,)
+        Times of the history. [s]
+
+    Returns
+    -------
+    dict of str to float
+        Test name -> first time [s] it fails; tests that never fail are
+        left out.
+    """
+    t = np.asarray(t, float)
+    out = {}
+    for name, flags in validity(m).items():
+        hit = np.flatnonzero(flags)
+        if hit.size:
+            out[name] = float(t[hit[0]])
+    return out
+
+
+def validity_text(first: dict, until: float = np.inf) -> str:
+    """``"<test> from t = … min; …"`` for the tests failed by ``until``.
+
+    Parameters
+    ----------
+    first : dict of str to float
+        From :func:`first_invalid`.
+    until : float
+        Only failures at or before this time are listed. [s]
+
+    Returns
+    -------
+    str
+        ``"ok"`` if the covariance stayed in the domain (a table cell is
+        never left empty); failures in the order they happened.
+    """
+    desc = {name: d for name, _, _, d in VALIDITY_TESTS}
+    hits = sorted((v, k) for k, v in first.items() if v <= until + 1e-9)
+    return "; ".join(f"{desc[k]} from t = {v / 60:.1f} min" for v, k in hits) or "ok"

@@ -91,7 +91,8 @@ from scipy import stats
 from . import earth
 from . import quaternion as quat
 from . import strapdown as sd
-from .covariance import filter_update, kalman_gain
+from .covariance import check_system, check_covariance, filter_update, kalman_gain, symmetrize, time_text
+from .errors import NumericalError
 from .filters import zupt_matrices
 from .model.blocks import BLOCK_KINDS, gravity_sensitivity
 
@@ -111,10 +112,6 @@ _NAV = sd.NAV_STATES
 # --------------------------------------------------------------------------
 # the filter (covariance and gains: the same for every run)
 # --------------------------------------------------------------------------
-
-
-def _sym(P):
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
 @dataclass(frozen=True)
@@ -139,7 +136,8 @@ class FeedbackFilter:
     P: np.ndarray
 
     @classmethod
-    def design(cls, name, names, Phi_f, Qd_f, P0, Rf, update_steps, *, form: str = "joseph") -> "FeedbackFilter":
+    def design(cls, name, names, Phi_f, Qd_f, P0, Rf, update_steps, *, form: str = "joseph",
+               times=None) -> "FeedbackFilter":
         """Run the filter's covariance recursion (seed 002, eq (6)–(8)).
 
         Parameters
@@ -156,10 +154,19 @@ class FeedbackFilter:
         update_steps : iterable of int
             Grid indices of the ZUPT updates.
         form : {"joseph", "standard"}
+        times : ndarray, shape (N+1,), optional
+            Grid times, for error messages. [s]
 
         Returns
         -------
         FeedbackFilter
+
+        Raises
+        ------
+        NumericalError
+            An input (P0, Φ_f, Q_f, R_f) or a covariance of the history is
+            not finite, symmetric and PSD (:func:`covtool.covariance.check_covariance`);
+            the message names the filter, the time and the state.
 
         Notes
         -----
@@ -172,18 +179,28 @@ class FeedbackFilter:
         N, nf, _ = Phi_f.shape
         if nf != len(names):
             raise ValueError(f"filter {name!r}: Phi_f has {nf} states, names has {len(names)}")
+        label = f"Monte Carlo filter {name}"
+        check_system(label, Phi=Phi_f, Qd=Qd_f, P0=P0, R=Rf, names=names, times=times)
         upd = set(int(k) for k in update_steps)
-        P = np.empty((N + 1, nf, nf))
+        P = np.full((N + 1, nf, nf), np.nan)
         gains = {}
-        Pf = _sym(np.asarray(P0, float))
-        for k in range(N + 1):
-            if k in upd:
-                K = kalman_gain(Pf, Hf, Rf)
-                gains[k] = K
-                Pf = filter_update(Pf, K, Hf, Rf, form)
-            P[k] = Pf
-            if k < N:
-                Pf = _sym(Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k])
+        Pf = symmetrize(np.asarray(P0, float))
+        k = 0
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported by the guard
+                for k in range(N + 1):
+                    if k in upd:
+                        K = kalman_gain(Pf, Hf, Rf)
+                        gains[k] = K
+                        Pf = filter_update(Pf, K, Hf, Rf, form)
+                    P[k] = Pf
+                    if k < N:
+                        Pf = symmetrize(Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k])
+        except NumericalError as exc:
+            check_covariance(P[:k], label, names=names, times=times)
+            when = time_text(float(times[k])) if times is not None else f"step {k}"
+            raise NumericalError(f"{label}: gain at {when}: {exc}") from None
+        check_covariance(P, label, names=names, times=times)
         return cls(name, names, gains, P)
 
 
@@ -434,7 +451,7 @@ def nees_whitening(P, names, labels, steps, q, *, rtol: float = 1e-10) -> Nees:
     dof = np.zeros(steps.size, int)
     for j, k in enumerate(steps):
         T = reduction_matrix(names, labels, q[k])
-        Pr = _sym(T @ P[k] @ T.T)
+        Pr = symmetrize(T @ P[k] @ T.T)
         s = np.sqrt(np.clip(np.diag(Pr), 0.0, None))
         s = np.where(s > 0, s, 1.0)
         C = Pr / np.outer(s, s)
@@ -476,7 +493,7 @@ def expected_nees(spec: Nees, P, names, q):
     dof = np.zeros(spec.steps.size)
     for j, k in enumerate(spec.steps):
         T = reduction_matrix(names, spec.labels, q[k])
-        Sig = _sym(T @ P[k] @ T.T) / np.outer(spec.scale[j], spec.scale[j])
+        Sig = symmetrize(T @ P[k] @ T.T) / np.outer(spec.scale[j], spec.scale[j])
         B = spec.W[j] @ Sig @ spec.W[j].T
         tr = np.trace(B)
         mean[j] = tr
@@ -808,7 +825,7 @@ def horizontal_dof(P2) -> np.ndarray:
         ``(λ₁+λ₂)²/(λ₁²+λ₂²)`` ∈ [1, 2]: 2 for a circular error, 1 for a
         degenerate one (1 where the covariance is zero).
     """
-    w = np.clip(np.linalg.eigvalsh(_sym(np.asarray(P2, float))), 0.0, None)
+    w = np.clip(np.linalg.eigvalsh(symmetrize(np.asarray(P2, float))), 0.0, None)
     num = w.sum(axis=-1) ** 2
     den = (w * w).sum(axis=-1)
     with np.errstate(invalid="ignore", divide="ignore"):

@@ -110,6 +110,14 @@ class SweepCases:
     def n_cases(self) -> int:
         return self.p0.size
 
+    def labels(self) -> list[str]:
+        """``"nominal"`` or ``"P0 x0.01"``, ``"Q x100"``, … per batched case."""
+        out = []
+        for a in zip(self.p0, self.q, self.r):
+            scaled = [f"{p} x{s:g}" for p, s in zip(PARAMETERS, a) if s != 1.0]
+            out.append(", ".join(scaled) or "nominal")
+        return out
+
 
 def sweep_cases(parameters, scales) -> SweepCases:
     """One-at-a-time cases: each parameter swept, the others at ×1.
@@ -137,7 +145,8 @@ def sweep_cases(parameters, scales) -> SweepCases:
 
 def run_sweep(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np.ndarray,
               filt: System, Pf0: np.ndarray, Hf: np.ndarray, Rf: np.ndarray, cases: SweepCases,
-              update_steps, record_steps, *, form: str = "joseph", keep=slice(0, 10)):
+              update_steps, record_steps, *, form: str = "joseph", keep=slice(0, 10), on_invalid: str = "flag",
+              label: str = "sweep", names=None, filter_names=None, times=None):
     """Truth covariance under one filter for every case, batched.
 
     Parameters
@@ -156,11 +165,19 @@ def run_sweep(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
     form : {"joseph", "standard"}
     keep : slice or index array
         Recorded sub-block (default: the 10 navigation states).
+    on_invalid : {"flag", "raise"}
+        A case whose covariance fails the guard is flagged (its records NaN,
+        ``status`` says why) and the sweep goes on (default), or raises
+        :class:`covtool.errors.NumericalError` (:func:`covtool.engine.run_batch`).
+    label : str
+        Names the sweep in messages; ``names``, ``filter_names`` and
+        ``times`` (grid times [s]) name the states and the time.
 
     Returns
     -------
     covtool.engine.BatchResult
-        ``P_truth`` has shape (B, n_rec, k, k) with B = ``cases.n_cases``.
+        ``P_truth`` has shape (B, n_rec, k, k) with B = ``cases.n_cases``;
+        ``status`` names the flagged cases.
 
     Notes
     -----
@@ -170,7 +187,8 @@ def run_sweep(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
     Pf0s = cases.p0[:, None, None] * np.asarray(Pf0, float)[None]
     Rfs = cases.r[:, None, None] * np.asarray(Rf, float)[None]
     return run_batch(truth, P0, H, R, D, update_steps, record_steps, filt=filt, Pf0=Pf0s, Hf=Hf, Rf=Rfs,
-                     q_scale=cases.q, form=form, keep=keep)
+                     q_scale=cases.q, form=form, keep=keep, on_invalid=on_invalid, label=label,
+                     cases=cases.labels(), names=names, filter_names=filter_names, times=times)
 
 
 @dataclass(frozen=True)

@@ -168,5 +168,5 @@ def test_member_covariances_are_checked():
     P = np.zeros((1, 1, 10, 10))
     P[0, 0] = np.eye(10)
     P[0, 0, 3, 3] = np.nan
-    with pytest.raises(NumericalError, match=r"impact: filter X: nominal: t = 60 s: covariance has non-finite"):
+    with pytest.raises(NumericalError, match=r"impact: filter X: nominal: t = 60 s: covariance has a non-finite entry"):
         check_members(P, np.array([[1.0, 0, 0, 0]]), np.array([60.0]), ["impact: filter X: nominal"])

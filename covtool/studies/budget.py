@@ -55,9 +55,10 @@ from ..engine import System, events, run_batch
 from ..errors import StudyFileError
 from ..filters import zupt_matrices
 from ..io.config import check_keys, choice, integer, names, table
-from ..metrics import cep, ned_position_covariance
+from ..metrics import cep, nav_metrics, ned_position_covariance, validity_text
 from ..results import StudyResult
-from .common import ARCMIN, FT, memory_estimate, noise_columns, progress_bar, resource_provenance, study_header, study_inputs
+from .common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
+                     study_header, study_inputs)
 from .zupt import setup
 
 PURE = "pure_ins"
@@ -155,17 +156,18 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     q_check = _composed_noise_check(Qn, truth.Q)
     lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
 
-    runs, var, nominal, residuals = {}, {}, {}, {}
+    runs, var, nominal, residuals, first = {}, {}, {}, {}, {}
     with progress_bar(len(cases), "budget cases", progress) as bar:
         for c in cases:
             br, nominal[c] = case_budget(S, c, truth, sources, Qn, rec)
             runs[c] = br
             var[c] = nav_variances(br.P, lat, h, q)
             residuals[c] = _residuals(br, nominal[c], lat, h, q)
+            first[c] = case_validity(c, nav_metrics(nominal[c], lat, h, q), t[rec])
             bar.update(1)
     elapsed = time.perf_counter() - t_start
 
-    tables = _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h)
+    tables = _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h, first)
     tables["sources"] = _source_table(sources, factors)
     provenance = {"truth_model": truth_model.name, "truth_model_file": truth_model.path,
                   "truth_model_sha256": truth_model.sha256, "filter_file": str(S.filter_file),
@@ -218,16 +220,21 @@ def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec,
         The nominal run (running filter, the study's own Q_d).
     """
     P0 = S.P0 if P0 is None else P0
+    names, t = S.truth.names, S.t
     if case == PURE:
         src = [s for s in sources if s.kind != MEASUREMENT]
         n = truth.n
-        nom = run_batch(truth, P0[None], S.H, S.R, np.eye(n), [], rec, gains=np.zeros((1, 0, n, S.H.shape[0])))
-        return run_budget(truth, src, Qn, P0, S.H, S.R, None, None, [], rec), nom.P_truth[0]
+        nom = run_batch(truth, P0[None], S.H, S.R, np.eye(n), [], rec, gains=np.zeros((1, 0, n, S.H.shape[0])),
+                        label=f"{S.where}: pure INS (nominal run)", names=names, times=t)
+        return run_budget(truth, src, Qn, P0, S.H, S.R, None, None, [], rec,
+                          label=f"{S.where}: pure INS error budget", names=names, times=t), nom.P_truth[0]
     fm, Phi_f, Qd_f = S.filter_model(case)
     filt = System.from_steps(Phi_f, Qd_f, truth.ev)
     nom = run_batch(truth, P0[None], S.H, S.R, fm.D, S.update_steps, rec, filt=filt, Pf0=fm.P0[None],
-                    Hf=zupt_matrices(fm.names), Rf=S.filter_R(case)[None], form=S.specs[case].update)
-    br = run_budget(truth, sources, Qn, P0, S.H, S.R, fm.D, nom.gains, S.update_steps, rec)
+                    Hf=zupt_matrices(fm.names), Rf=S.filter_R(case)[None], form=S.specs[case].update,
+                    label=f"{S.where}: filter {case} (nominal run)", names=names, filter_names=fm.names, times=t)
+    br = run_budget(truth, sources, Qn, P0, S.H, S.R, fm.D, nom.gains, S.update_steps, rec,
+                    label=f"{S.where}: filter {case} error budget", names=names, times=t)
     return br, nom.P_truth[0]
 
 
@@ -263,7 +270,14 @@ def _states_text(states) -> str:
     return f"{states[0]} … {states[-1]} ({len(states)})"
 
 
-def _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h) -> dict:
+def _sqrt_total(total: float, parts) -> float:
+    """√ of a summed variance; NaN (never 0) if it is negative beyond round-off of its parts."""
+    if total < -1e-9 * float(np.sum(np.abs(parts))):
+        return np.nan
+    return float(np.sqrt(max(total, 0.0)))
+
+
+def _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h, first) -> dict:
     rep = [int(np.argmin(np.abs(t[rec] - tr))) for tr in S.report_times]
     summary, ranked, shares = [], {e: [] for e in ERRORS}, {}
     for c in cases:
@@ -279,8 +293,8 @@ def _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h) -> dict:
                 v = var[c][e][:, r]
                 total = v.sum()
                 order = np.argsort(-v, kind="stable")
-                row[f"{_LABEL[e]} [{unit}]"] = np.sqrt(max(total, 0.0)) / si
-                row[f"{_LABEL[e]}, nominal run [{unit}]"] = np.sqrt(max(vn[e][r], 0.0)) / si
+                row[f"{_LABEL[e]} [{unit}]"] = _sqrt_total(total, v) / si
+                row[f"{_LABEL[e]}, nominal run [{unit}]"] = _sqrt_total(vn[e][r], [vn[e][r]]) / si
                 top = [f"{srcs[i].name} {100 * v[i] / total:.1f} %" for i in order[:3]] if total > 0 else []
                 row[f"{e} top sources"] = "; ".join(top)
                 cum = 0.0
@@ -298,6 +312,7 @@ def _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h) -> dict:
                                    for i, s in enumerate(srcs)}
             row["sum-to-total residual (same Q_d)"] = residuals[c]["same"]
             row["sum vs nominal run residual"] = residuals[c]["nominal"]
+            row["validity"] = validity_text(first[c], until=t[rec[r]])
             summary.append(row)
     out = {"summary": pd.DataFrame(summary)}
     for e in ERRORS:

@@ -5,20 +5,22 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from .. import earth
-from .. import quaternion as quat
+from .. import earth, quaternion as quat
 from ..discretize import discretize
-from ..dynamics import Context, NavOptions, error_dynamics
-from ..errors import InputError, StudyFileError, UnitError
+from ..dynamics import Context, error_dynamics, NavOptions
+from ..errors import InputError, StudyFileError, UnitError, ValidityWarning
 from ..io.config import (check_keys, choice, file_sha256, names, number, quantity, quantity_list, resolve_input,
                          string, table)
 from ..io.names import check_study_name
+from ..covariance import check_covariance, check_system
+from ..metrics import first_invalid, nav_metrics, validity, validity_text
 from ..model.library import load_model_by_name
 from ..model.spec import Model
 from ..units import from_si, parse_quantity
@@ -617,17 +619,94 @@ def truth_system(model: Model, traj, t: np.ndarray, method: str, *, options=NavO
 
     The grid is first checked against the motion (:func:`check_step_motion`);
     ``where`` names the study file in that error.
+
+    Raises
+    ------
+    NumericalError
+        Φ or Q_d of a step is not finite (Q_d: symmetric, PSD), naming the
+        study ``where``, the step's time and the state.
     """
     check_step_motion(traj, t, where)
     ctx = midpoint_context(traj, t)
     dyn = error_dynamics(model, ctx, options)
     Phi, Qd = discretize_chunked(dyn.F, dyn.Qc, np.diff(t), method, progress=progress, desc="truth Φ, Q",
                                  what=f"{where}: truth model {model.name!r}", times=t[:-1])
+    # guarded once here; the runs that share them are told so (system_checked)
+    check_system(f"{where}: truth model {model.name!r}", Phi, Qd, names=model.names, times=t)
     return ctx, dyn, Phi, Qd
 
 
+def initial_covariance(truth: Model, nodes, where: str) -> np.ndarray:
+    """The truth P0 at the first trajectory node, guarded.
+
+    Parameters
+    ----------
+    truth : Model
+    nodes : covtool.trajectory.Trajectory
+        The trajectory sampled on the study grid.
+    where : str
+        The study file, for messages.
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+
+    Raises
+    ------
+    NumericalError
+        P0 is not finite, symmetric and PSD (names the state).
+    StudyFileError
+        P0 is already outside the linear error model's domain
+        (:func:`covtool.metrics.validity`), e.g. an initial azimuth 1σ of 83°.
+    """
+    P0 = truth.initial_covariance(nodes.q_nb[0])
+    check_covariance(P0, f"{where}: truth model {truth.name!r}: P0", names=truth.names)
+    m = nav_metrics(P0[None], nodes.lat[:1], nodes.h[:1], nodes.q_nb[:1])
+    first = first_invalid(m, [0.0])
+    if first:
+        text = validity_text(first)
+        sig = (f" (initial 1sigma: azimuth {np.degrees(m['sigma_azimuth'][0]):.3g} deg, tilts "
+               f"{np.degrees(m['sigma_tilt_n'][0]):.3g}/{np.degrees(m['sigma_tilt_e'][0]):.3g} deg, "
+               f"position {max(m['sigma_north'][0], m['sigma_east'][0]):.4g} m, altitude {m['sigma_down'][0]:.4g} m)")
+        raise StudyFileError(f"{where}: [truth]", "the initial covariance of truth model "
+                             f"{truth.name!r} is outside the linear error model's domain: "
+                             + text.replace(" from t = 0.0 min", "") + sig)
+    return P0
+
+
+def case_validity(case: str, m: dict, t: np.ndarray, *, warn: bool = True) -> dict:
+    """First times a case leaves the linear model's domain; warn once.
+
+    Parameters
+    ----------
+    case : str
+        Case name (in the warning).
+    m : dict of ndarray, shape (N,)
+        :func:`covtool.metrics.nav_metrics` along the case's history.
+    t : ndarray, shape (N,)
+        Times of the history. [s]
+    warn : bool
+        Issue one :class:`covtool.errors.ValidityWarning` naming the case and
+        the first time of each failed test.
+
+    Returns
+    -------
+    dict of str to float
+        :func:`covtool.metrics.first_invalid`.
+    """
+    first = first_invalid(m, t)
+    if first and warn:
+        warnings.warn(f"{case}: outside the linear error model's domain: {validity_text(first)}",
+                      ValidityWarning, stacklevel=2)
+    return first
+
+
 def history_frame(case: str, t: np.ndarray, m: dict, every: float | None = None) -> pd.DataFrame:
-    """History table with SI and paper units in the headers."""
+    """History table with SI and paper units in the headers.
+
+    The ``validity`` column names the domain tests that fail at each time
+    (:func:`covtool.metrics.validity`), empty where the linear model holds.
+    """
     sel = np.ones(t.shape, bool)
     if every:
         k = np.round(t / every)
@@ -652,11 +731,34 @@ def history_frame(case: str, t: np.ndarray, m: dict, every: float | None = None)
     })
     if "cep_pct_distance" in m:
         df["CEP/distance [%]"] = m["cep_pct_distance"][sel]
+    flags = validity(m)
+    df["validity"] = [", ".join(name for name, f in flags.items() if f[i]) or "ok" for i in np.flatnonzero(sel)]
     return df
 
 
-def summary_row(case: str, m: dict, k: int, t: float, distance: float | None) -> dict:
-    """Table 3 columns at grid index ``k``."""
+def summary_row(case: str, m: dict, k: int, t: float, distance: float | None, *, first: dict | None = None,
+                status: str | None = None) -> dict:
+    """Table 3 columns at grid index ``k``.
+
+    Parameters
+    ----------
+    case : str
+    m : dict of ndarray
+        :func:`covtool.metrics.nav_metrics`.
+    k : int
+        Index into ``m``.
+    t : float
+        Time of index ``k``. [s]
+    distance : float or None
+        Distance travelled by then. [m]
+    first : dict, optional
+        :func:`covtool.metrics.first_invalid` of the case; the ``validity``
+        column lists the tests failed by ``t`` with their first time.  By
+        default the tests at index ``k`` alone.
+    status : str, optional
+        Adds a ``status`` column (``"ok"`` or the guard's message) for
+        studies that flag a failed case instead of stopping.
+    """
     row = {
         "case": case,
         "t [min]": t / 60.0,
@@ -672,6 +774,11 @@ def summary_row(case: str, m: dict, k: int, t: float, distance: float | None) ->
     if distance:
         row["distance [km]"] = distance / 1000.0
         row["CEP/distance [%]"] = 100.0 * m["cep"][k] / distance
+    if first is None:
+        first = {name: t for name, f in validity(m).items() if f[k]}
+    row["validity"] = validity_text(first, until=t)
+    if status is not None:
+        row["status"] = status or "ok"
     return row
 
 
@@ -691,4 +798,5 @@ def report_times(decl_out: dict, where: str, duration: float) -> list[float]:
 
 
 __all__ = ["study_header", "load_truth", "time_grid", "truth_system", "check_step_motion", "step_motion",
-           "history_frame", "summary_row", "parse_quantity", "from_si", "UnitError", "FT", "ARCMIN", "ARCSEC"]
+           "history_frame", "summary_row", "initial_covariance", "case_validity",
+           "parse_quantity", "from_si", "UnitError", "FT", "ARCMIN", "ARCSEC"]

@@ -60,13 +60,14 @@ from .. import __version__
 from ..covariance import propagate, propagate_with_filter
 from ..errors import StudyFileError
 from ..filters import zupt_matrices
-from ..io.config import LIMITS, boolean, check_keys, integer, number, quantity
-from ..metrics import nav_metrics, ned_position_covariance
+from ..io.config import boolean, check_keys, integer, LIMITS, number, quantity
+from ..metrics import nav_metrics, ned_position_covariance, validity_text
 from ..montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, expected_nees,
                           horizontal_dof, inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
 from ..results import StudyResult
 from ..strapdown import MAX_SAMPLES, NAV_STATES
-from .common import ARCMIN, FT, memory_estimate, noise_columns, resource_provenance, study_header, study_inputs
+from .common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, resource_provenance, study_header,
+                     study_inputs)
 from .zupt import setup
 
 MC_KEYS = ("runs", "runs_per_chunk", "seed", "imu_rate", "samples_per_step", "confidence", "nees_every",
@@ -143,12 +144,17 @@ def _chunks(runs: int, per: int) -> list[int]:
     return [min(per, runs - i * per) for i in range(n)]
 
 
-def _linear(P, nodes) -> dict:
-    """σ of the compared quantities and the horizontal dof per run."""
+def _linear(P, nodes, case=None) -> dict:
+    """σ of the compared quantities, the horizontal dof per run and the validity.
+
+    ``first``: :func:`covtool.metrics.first_invalid` of the linear
+    prediction (a :class:`covtool.errors.ValidityWarning` names ``case``).
+    """
     m = nav_metrics(P, nodes.lat, nodes.h, nodes.q_nb)
     Pn = ned_position_covariance(P[:, :3, :3], nodes.lat, nodes.h)
     return {"horizontal": m["sigma_horizontal"], "altitude": m["sigma_down"], "azimuth": m["sigma_azimuth"],
-            "north": m["sigma_north"], "east": m["sigma_east"], "dof_h": horizontal_dof(Pn[:, :2, :2])}
+            "north": m["sigma_north"], "east": m["sigma_east"], "dof_h": horizontal_dof(Pn[:, :2, :2]),
+            "first": case_validity(case, m, nodes.t, warn=case is not None)}
 
 
 def _rms(s: EnsembleSums, quantity: str) -> np.ndarray:
@@ -202,8 +208,9 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     nees_steps = kk[np.isclose(t[kk] / every, np.round(t[kk] / every), rtol=0, atol=1e-9) | (kk == t.size - 1)]
     lin, claimed, cases, states, pf_check, predicted = {}, {}, [], {}, {}, {}
     if pure:
-        P = propagate(S.Phi, S.Qd, S.P0)
-        lin["pure_ins"] = _linear(P, nodes)
+        P = propagate(S.Phi, S.Qd, S.P0, label=f"{where}: pure INS", names=truth.names, times=t,
+                      system_checked=True)
+        lin["pure_ins"] = _linear(P, nodes, "pure_ins")
         cases.append(EnsembleCase("pure_ins", None, {
             "truth": nees_whitening(P, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)}))
         states["pure_ins"] = truth.n
@@ -212,11 +219,12 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         spec = S.specs[c]
         fm, Phi_f, Qd_f = S.filter_model(c)
         Rf = S.filter_R(c)
-        ff = FeedbackFilter.design(c, fm.names, Phi_f, Qd_f, fm.P0, Rf, S.update_steps, form=spec.update)
+        ff = FeedbackFilter.design(c, fm.names, Phi_f, Qd_f, fm.P0, Rf, S.update_steps, form=spec.update, times=t)
         res = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
-                                    S.update_steps, Rf=Rf, form=spec.update, label=f"filter {c}", times=t)
+                                    S.update_steps, Rf=Rf, form=spec.update, label=f"{where}: filter {c}", times=t,
+                                    names=truth.names, filter_names=fm.names, system_checked=True)
         pf_check[c] = float(np.max(np.abs(ff.P - res.P_filter)))
-        lin[c] = _linear(res.P_truth, nodes)
+        lin[c] = _linear(res.P_truth, nodes, c)
         claimed[c] = _linear(ff.P[:, :10, :10], nodes) if tuple(fm.names[:10]) == NAV_STATES else None
         const = [nm for nm in fm.names[10:] if truth.states[truth.index[nm]].process == "constant"]
         nees = {"truth": nees_whitening(res.P_truth, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb),
@@ -316,6 +324,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             if pred is not None:
                 row[f"NEES {key}: linear-predicted mean/dof"] = float(np.mean(pred[0] / spec.dof))
                 row[f"NEES {key}: inside bounds of prediction [%]"] = 100 * pred[3]["inside"]
+        row["validity"] = validity_text(L["first"])
         summary_rows.append(row)
         h = {"case": c, "t [s]": t[hsel], "t [min]": t[hsel] / 60.0}
         for q, unit, f in COMPARED:

@@ -35,8 +35,9 @@ from ..errors import StudyFileError
 from ..io.config import check_keys, quantity
 from ..metrics import nav_metrics
 from ..results import StudyResult
-from .common import (check_memory, history_frame, load_truth, memory_estimate, noise_columns, report_times, resource_provenance,
-                     steps_of, study_header, study_inputs, summary_row, time_grid, truth_system)
+from .common import (case_validity, check_memory, history_frame, initial_covariance, load_truth, memory_estimate,
+                     noise_columns, report_times, resource_provenance, steps_of, study_header, study_inputs,
+                     summary_row, time_grid, truth_system)
 
 
 def load_trajectory(decl, where, base_dir, dt, duration=None):
@@ -76,14 +77,15 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     t = time_grid(hdr["duration"], hdr["dt"])
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
-    P0 = truth.initial_covariance(nodes.q_nb[0])
-    P = propagate(Phi, Qd, P0)
+    P0 = initial_covariance(truth, nodes, where)
+    P = propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names, times=t, system_checked=True)
     m = nav_metrics(P, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+    first = case_validity("pure_ins", m, t)
     hist = history_frame("pure_ins", t, m, every)
     rows = []
     for tr in rtimes:
         k = int(np.argmin(np.abs(t - tr)))
-        rows.append(summary_row("pure_ins", m, k, t[k], float(nodes.distance[k])))
+        rows.append(summary_row("pure_ins", m, k, t[k], float(nodes.distance[k]), first=first))
     summary = pd.DataFrame(rows)
     elapsed = time.perf_counter() - t0
     tables = {"summary": summary, "history": hist, "truth_states": truth.state_table()}

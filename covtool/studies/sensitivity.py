@@ -60,6 +60,7 @@ Loan truth to about 1e-11 (tested to 1e-8).
 from __future__ import annotations
 
 import time
+import warnings
 
 import numpy as np
 import pandas as pd
@@ -67,13 +68,15 @@ from threadpoolctl import threadpool_limits
 
 from .. import flops
 from ..engine import System, events
-from ..errors import StudyFileError
+from ..errors import FlaggedCaseWarning, StudyFileError
 from ..filters import zupt_matrices
-from ..io.config import LIMITS, boolean, check_keys, choice, integer, names, number, table
-from ..metrics import nav_metrics
+from ..io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
+from ..metrics import first_invalid, nav_metrics, validity_text
 from ..results import StudyResult
-from ..sensitivity import PARAMETERS, fit_loglog, scale_grid, sensitivity_figures, sweep_cases, run_sweep
-from .common import ARCMIN, FT, memory_estimate, noise_columns, progress_bar, resource_provenance, study_inputs
+from ..sensitivity import (fit_loglog, LogLogFit, PARAMETERS, run_sweep, scale_grid, sensitivity_figures,
+                           sweep_cases)
+from .common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
+                     study_inputs)
 from .zupt import setup
 
 SWEEP_KEYS = {"parameters", "scales", "fit_degree", "discretization"}
@@ -172,7 +175,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         cases = sweep_cases(sw["parameters"], sw["scales"])
         B = cases.n_cases
         lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
-        results, fmodels, reused = {}, {}, {}
+        results, fmodels, reused, statuses = {}, {}, {}, {}
         timing.update({"filter models": 0.0, "compose filters": 0.0, "batched runs": 0.0})
         nr = len(rec)
 
@@ -186,7 +189,10 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             filt = truth_sys if reused_c else System.from_steps(Phi_f, Qd_f, ev)
             tuc = time.perf_counter()
             res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
-                            S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update)
+                            S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update,
+                            label=f"{where}: sweep of filter {c}", names=S.truth.names, filter_names=fm.names,
+                            times=t)
+            statuses[c] = res.status
             toc = time.perf_counter()
             mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
             mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
@@ -207,12 +213,13 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
     tic = time.perf_counter()
     rt = [t[k] for k in rec]
-    sweep_df, fits = _sweep_table(S, cases, results, fmodels, rt, sw["fit_degree"])
+    _warn(cases, results, statuses, rt)
+    sweep_df, fits = _sweep_table(S, cases, results, fmodels, rt, sw["fit_degree"], statuses)
     fits_df = _fits_table(fits, sw["fit_degree"])
     sens_df = _sensitivity_table(cases, results, fits, fmodels)
     ratio_df = _ratio_table(sens_df, fmodels)
     cost_df, scaling_df = _cost_tables(cost_rows)
-    summary = _summary(S, cases, results, fmodels, sens_df, cost_df, rt)
+    summary = _summary(S, cases, results, fmodels, sens_df, cost_df, rt, statuses)
     fine = scale_grid(cases.scales[0], cases.scales[-1], 2 * sw["per_decade"])
     chart_sheets, charts = _chart_sheets(cases, results, fits, fine)
     timing["tables and fits"] = time.perf_counter() - tic
@@ -253,14 +260,36 @@ def _curve(cases, results, c, p, metric, j=-1):
     return results[c][0][METRICS[metric][1]][cases.index[i], j]
 
 
-def _sweep_table(S, cases, results, fmodels, rt, degree):
+def _warn(cases, results, statuses, rt):
+    """One warning per filter for its flagged cases and for the nominal case's validity."""
+    labels = cases.labels()
+    for c, st in statuses.items():
+        bad = [b for b, s in enumerate(st) if s]
+        if bad:
+            warnings.warn(f"{len(bad)} of {len(st)} cases of filter {c} failed the covariance guard; their "
+                          f"numbers are NaN (status column): {', '.join(labels[b] for b in bad[:5])}"
+                          f"{' …' if len(bad) > 5 else ''}; first: {st[bad[0]]}", FlaggedCaseWarning, stacklevel=3)
+        case_validity(f"filter {c} (nominal tuning)", {k: v[0] for k, v in results[c][0].items()}, rt)
+
+
+def _fit(scales, err, degree):
+    """:func:`fit_loglog` on the finite points (a flagged case is NaN); NaN if too few remain."""
+    ok = np.isfinite(err) & (err > 0)
+    if ok.sum() < degree + 1:
+        nan = float("nan")
+        return LogLogFit(np.full(degree + 1, nan), nan, nan, nan)
+    return fit_loglog(scales[ok], err[ok], degree)
+
+
+def _sweep_table(S, cases, results, fmodels, rt, degree, statuses):
     rows, fits = [], {}
     last = len(rt) - 1
     for c, (mt, mf) in results.items():
+        first = [first_invalid({k: v[b] for k, v in mt.items()}, rt) for b in range(cases.n_cases)]
         for i, p in enumerate(cases.parameters):
             idx = cases.index[i]
             for metric in METRICS:
-                fits[(c, p, metric)] = fit_loglog(cases.scales, _curve(cases, results, c, p, metric) / FT, degree)
+                fits[(c, p, metric)] = _fit(cases.scales, _curve(cases, results, c, p, metric) / FT, degree)
             for j, tr in enumerate(rt):
                 for s, b in zip(cases.scales, idx):
                     row = {"filter": c, "states [-]": fmodels[c].spec.n, "parameter": p, "scale [-]": s,
@@ -275,6 +304,8 @@ def _sweep_table(S, cases, results, fmodels, rt, degree):
                            "filter-claimed altitude RMS [ft]": mf["sigma_down"][b, j] / FT}
                     for metric, (label, _) in METRICS.items():
                         row[f"fitted {label} [ft]"] = float(fits[(c, p, metric)](s)) if j == last else np.nan
+                    row["validity"] = validity_text(first[b], until=tr)
+                    row["status"] = statuses[c][b] or "ok"
                     rows.append(row)
     return pd.DataFrame(rows), fits
 
@@ -328,22 +359,29 @@ def _ratio_table(sens, fmodels):
             lr, lc = g.loc[ref, "mean |dlog e/dlog s| [-]"], g.loc[c, "mean |dlog e/dlog s| [-]"]
             rows.append({"parameter": p, "metric": metric, "reference": ref, "filter": c,
                          "states [-]": fmodels[c].spec.n, f"sensitivity {ref} [-]": sr, "sensitivity [-]": sc,
-                         f"ratio {ref}/filter [x]": sr / sc if sc > 0 else np.inf,
-                         f"mean-slope ratio {ref}/filter [x]": lr / lc if lc > 0 else np.inf,
+                         f"ratio {ref}/filter [x]": _ratio(sr, sc),
+                         f"mean-slope ratio {ref}/filter [x]": _ratio(lr, lc),
                          "paper ratio [x]": 2.0})
     for metric, g in sens.groupby("metric", sort=False):
-        worst = g.groupby("filter", sort=False)["sensitivity [-]"].max()
-        slope = g.groupby("filter", sort=False)["mean |dlog e/dlog s| [-]"].max()
+        worst = g.groupby("filter", sort=False)["sensitivity [-]"].max(skipna=False)
+        slope = g.groupby("filter", sort=False)["mean |dlog e/dlog s| [-]"].max(skipna=False)
         for c in worst.index:
             if fmodels[c].spec.n >= fmodels[ref].spec.n:
                 continue
             rows.append({"parameter": "max(" + ",".join(g["parameter"].unique()) + ")", "metric": metric,
                          "reference": ref, "filter": c, "states [-]": fmodels[c].spec.n,
                          f"sensitivity {ref} [-]": worst[ref], "sensitivity [-]": worst[c],
-                         f"ratio {ref}/filter [x]": worst[ref] / worst[c] if worst[c] > 0 else np.inf,
-                         f"mean-slope ratio {ref}/filter [x]": slope[ref] / slope[c] if slope[c] > 0 else np.inf,
+                         f"ratio {ref}/filter [x]": _ratio(worst[ref], worst[c]),
+                         f"mean-slope ratio {ref}/filter [x]": _ratio(slope[ref], slope[c]),
                          "paper ratio [x]": 2.0})
     return pd.DataFrame(rows)
+
+
+def _ratio(a, b):
+    """``a/b``; inf for a zero ``b``, NaN if either is NaN (a flagged case)."""
+    if not (np.isfinite(a) and np.isfinite(b)):
+        return np.nan
+    return a / b if b > 0 else np.inf
 
 
 def _cost(S, fmodels, co) -> dict:
@@ -408,7 +446,7 @@ def _cost_tables(cost):
     return df, pd.DataFrame(srows, columns=cols)
 
 
-def _summary(S, cases, results, fmodels, sens, cost_df, rt):
+def _summary(S, cases, results, fmodels, sens, cost_df, rt, statuses):
     rows = []
     nom = 0                                         # the shared nominal case
     cost_i = cost_df.set_index("filter")
@@ -422,10 +460,14 @@ def _summary(S, cases, results, fmodels, sens, cost_df, rt):
         for metric, (label, _) in METRICS.items():
             for p in cases.parameters:
                 row[f"sensitivity {metric} {p} [-]"] = g.loc[(label, p)]
-            row[f"max sensitivity {metric} [-]"] = max(g.loc[(label, p)] for p in cases.parameters)
+            row[f"max sensitivity {metric} [-]"] = float(np.max([g.loc[(label, p)] for p in cases.parameters]))
         row["FLOPs/cycle [FLOP]"] = cost_i.loc[c, "total [FLOP/cycle]"]
         row["measured [us/cycle]"] = cost_i.loc[c, "measured [us/cycle]"]
         row["paper 8086/8087 [s/cycle]"] = cost_i.loc[c, "paper 8086/8087 [s/cycle]"]
+        row["validity"] = validity_text(first_invalid({k: v[nom] for k, v in mt.items()}, rt))
+        bad = [s for s in statuses[c] if s]
+        row["status"] = (f"{len(bad)} of {len(statuses[c])} sweep cases flagged (NaN); first: {bad[0]}"
+                         if bad else "ok")
         rows.append(row)
     return pd.DataFrame(rows)
 

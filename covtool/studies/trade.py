@@ -67,6 +67,7 @@ import itertools
 import math
 import os
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -74,11 +75,11 @@ import pandas as pd
 
 from .. import __version__
 from ..engine import System, events, run_batch
-from ..errors import InputError, StudyFileError
+from ..errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
 from ..filters import load_filters, zupt_matrices
-from ..io.config import LIMITS, boolean, check_keys, number, quantity, string, table
+from ..io.config import boolean, check_keys, LIMITS, number, quantity, string, table
 from ..io.names import check_name
-from ..metrics import nav_metrics
+from ..metrics import first_invalid, nav_metrics
 from ..parallel import file_sha256
 from ..results import StudyResult
 from ..units import DIMENSIONS
@@ -405,7 +406,9 @@ def compute_chunk(task: dict) -> dict:
     -------
     dict
         ``rows``: one summary row per case and report time (Table 3
-        columns, truth and filter-claimed); ``reused_truth_phi``: the
+        columns, truth and filter-claimed, ``validity`` and ``status``: a
+        case whose covariance fails the guard is flagged there and its
+        numbers are NaN, the others go on); ``reused_truth_phi``: the
         filters that share the truth's Φ, Q_d (:func:`filter_system`);
         ``timing``: seconds spent.
     """
@@ -439,17 +442,21 @@ def compute_chunk(task: dict) -> dict:
         r = np.array([c["R scale"] for c in cs])
         res = run_batch(truth, S.P0, S.H, sig[:, None, None] ** 2 * eye, fm.D, S.update_steps, rec, filt=filt,
                         Pf0=p0[:, None, None] * fm.P0, Hf=zupt_matrices(fm.names),
-                        Rf=(r * fsig**2)[:, None, None] * eye, q_scale=q, form=spec.update)
+                        Rf=(r * fsig**2)[:, None, None] * eye, q_scale=q, form=spec.update, on_invalid="flag",
+                        label=f"trade grid: {task.get('key', 'chunk')}: filter {f}",
+                        cases=[str(c["case"]) for c in cs], names=S.truth.names, filter_names=fm.names, times=t)
         B, nr = len(cs), len(rec)
         tile = lambda x: np.tile(x[rec], (B,) + (1,) * (x.ndim - 1))  # noqa: E731
         geo = (tile(nodes.lat), tile(nodes.h), tile(nodes.q_nb), tile(nodes.distance))
         mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), *geo)
         mc = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), *geo)
         for i, c in enumerate(cs):
+            first = first_invalid({key: v[i * nr:(i + 1) * nr] for key, v in mt.items()}, t[rec])
             for j, k in enumerate(rec):
                 x = i * nr + j
                 row = {key: v for key, v in c.items() if not key.startswith("_")}
-                m = summary_row("", mt, x, float(t[k]), float(nodes.distance[k]))
+                m = summary_row("", mt, x, float(t[k]), float(nodes.distance[k]), first=first,
+                                status=res.status[i])
                 del m["case"]
                 row.update(m)
                 row["filter-claimed CEP [ft]"] = mc["cep"][x] / FT
@@ -512,6 +519,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             rs.close()
     elapsed = time.perf_counter() - t_start
     summary = pd.DataFrame([row for res in results for row in res["rows"]])
+    _warn(summary)
     tables = {"summary": summary, **pivot_tables(summary, plan), "grades": _grade_table(plan),
               "grid": _grid_table(plan)}
     timing = pd.DataFrame([{"chunk": c["key"], **res["timing"]} for c, res in zip(plan.chunks, results)])
@@ -551,6 +559,28 @@ def _store_checks(rs, stats: dict) -> str:
     head = (f"{stats['reused']} chunks verified and reused, {stats['rejected']} rejected, "
             f"{stats['computed']} computed")
     return "; ".join([head] + rs.notes)
+
+
+def _warn(summary: pd.DataFrame) -> None:
+    """One warning for the flagged cases and one for those outside the linear model's domain.
+
+    Built from the rows (chunks may have run in other processes).
+    """
+    if not len(summary):
+        return
+    last = summary[summary["t [min]"] == summary["t [min]"].max()]
+    if "status" in last:
+        bad = last[last["status"].fillna("ok") != "ok"]
+        if len(bad):
+            warnings.warn(f"{len(bad)} of {len(last)} trade-grid cases failed the covariance guard; their numbers "
+                          f"are NaN (status column); first: case {bad['case'].iloc[0]}: {bad['status'].iloc[0]}",
+                          FlaggedCaseWarning, stacklevel=3)
+    if "validity" in last:
+        out = last[~last["validity"].fillna("ok").isin(["ok", ""])]
+        if len(out):
+            warnings.warn(f"{len(out)} of {len(last)} trade-grid cases are outside the linear error model's domain "
+                          f"(validity column); first: case {out['case'].iloc[0]}: {out['validity'].iloc[0]}",
+                          ValidityWarning, stacklevel=3)
 
 
 def nominal(summary: pd.DataFrame, plan: TradePlan) -> pd.DataFrame:

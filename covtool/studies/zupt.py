@@ -38,16 +38,16 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..covariance import propagate, propagate_with_filter
+from ..covariance import check_system, propagate, propagate_with_filter
 from ..dynamics import error_dynamics
 from ..errors import StudyFileError
 from ..filters import build_filter, default_filter_file, ewn_navigation_effect, load_filters, zupt_matrices
 from ..io.config import boolean, check_keys, names, quantity, resolve_input, table
 from ..metrics import nav_metrics
 from ..results import StudyResult
-from .common import (ARCMIN, FT, check_memory, discretize_chunked, history_frame, load_truth, memory_estimate,
-                     noise_columns,
-                     progress_bar, resource_provenance, steps_of, study_header, study_inputs, summary_row, time_grid,
+from .common import (ARCMIN, case_validity, check_memory, discretize_chunked, FT, history_frame,
+                     initial_covariance, load_truth, memory_estimate, noise_columns, progress_bar,
+                     resource_provenance, steps_of, study_header, study_inputs, summary_row, time_grid,
                      truth_system)
 from .nav_covariance import load_trajectory, output_options
 
@@ -233,6 +233,8 @@ class ZuptSetup:
                 Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(self.t), spec.discretization,
                                                  spec.taylor_order, what=f"{spec.path}: filter {name!r}",
                                                  times=self.t[:-1])
+                # guarded once here; the runs that use them are told so (system_checked)
+                check_system(f"{self.where}: filter {name}", Phi_f, Qd_f, names=fm.names, times=self.t)
                 self._filters[ckey] = (fm, Phi_f, Qd_f, False)
         return self._filters[ckey]
 
@@ -286,7 +288,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
     upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
-    P0 = truth.initial_covariance(nodes.q_nb[0])
+    P0 = initial_covariance(truth, nodes, where)
     moving = t[-1] - t[0] - sum(max(0.0, min(b, t[-1]) - max(a, t[0])) for a, b in traj.stationary)
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
     H = zupt_matrices(truth.names)
@@ -327,15 +329,19 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     dt_s, zsig, mean_speed = S.zupt_interval, S.zupt_sigma, S.mean_speed
     fcfg = decl.get("filters", {})
     metrics, runs, fmodels, claimed = {}, {}, {}, {}
+    where = S.where
     if fcfg.get("pure_ins", True):
-        metrics["pure_ins"] = nav_metrics(propagate(Phi, Qd, P0), nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+        metrics["pure_ins"] = nav_metrics(propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names,
+                                                    times=t, system_checked=True),
+                                          nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
     with progress_bar(len(cases), "filters", progress) as bar:
         for c in cases:
             spec = S.specs[c]
             fm, Phi_f, Qd_f = S.filter_model(c)
             Hf = zupt_matrices(fm.names)
             run_ = propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, fm.P0, H, Hf, fm.D, R, upd, Rf=S.filter_R(c),
-                                         form=spec.update, label=f"filter {c}", times=t)
+                                         form=spec.update, label=f"{where}: filter {c}", times=t,
+                                         names=truth.names, filter_names=fm.names, system_checked=True)
             runs[c], fmodels[c] = run_, fm
             metrics[c] = nav_metrics(run_.P_truth, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
             claimed[c] = nav_metrics(run_.P_filter[:, :10, :10], nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
@@ -344,9 +350,10 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
     rows = []
     for case, m in metrics.items():
+        first = case_validity(case, m, t)
         for tr in rtimes:
             k = int(np.argmin(np.abs(t - tr)))
-            row = summary_row(case, m, k, t[k], float(nodes.distance[k]))
+            row = summary_row(case, m, k, t[k], float(nodes.distance[k]), first=first)
             row["states"] = truth.n if case == "pure_ins" else fmodels[case].spec.n
             if case in claimed:
                 row["filter-claimed CEP [ft]"] = claimed[case]["cep"][k] / FT
