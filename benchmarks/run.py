@@ -258,7 +258,7 @@ def engine_sweep(S):
 
 def physical(P, q):
     """Nav block in physical coordinates: δL, δl, δh, δv, tilts, azimuth (δq's norm direction dropped)."""
-    from covtool.quaternion import attitude_error_matrix
+    from covtool.nav.attitude import attitude_error_matrix
 
     T = np.zeros((9, 10))
     T[:6, :6] = np.eye(6)

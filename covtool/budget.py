@@ -40,11 +40,11 @@ from dataclasses import dataclass
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .discretize import per_source
-from .covariance import symmetrize
-from .dynamics import NoiseSource, attitude_errors
-from .engine import System, run_batch, sandwich
-from .metrics import ned_position_covariance
+from covtool.discretize import per_source
+from covtool.covariance import symmetrize
+from covtool.dynamics import NoiseSource, attitude_errors
+from covtool.engine import System, run_batch, sandwich
+from covtool.metrics import ned_position_covariance
 
 #: groups of the navigation block (seed 002 eq (14)), in reference-attitude quaternion components
 NAV_GROUPS = {
@@ -497,7 +497,7 @@ def physical_nav(P: np.ndarray, q) -> np.ndarray:
     ndarray, shape (..., n_rec, 9, 9)
         Position (δL, δl, δh), velocity, then (north tilt, east tilt, azimuth).
     """
-    from .quaternion import attitude_error_matrix
+    from covtool.nav.attitude import attitude_error_matrix
 
     q = np.asarray(q, float)
     T = np.zeros(q.shape[:1] + (9, 10))

@@ -11,7 +11,7 @@ import time
 import warnings
 from pathlib import Path
 
-from .errors import CovtoolError, CovtoolWarning
+from covtool.errors import CovtoolError, CovtoolWarning
 
 
 #: longer summaries are abbreviated on the console (the files hold every row)
@@ -20,7 +20,7 @@ MAX_SUMMARY_ROWS = 60
 
 def _output_dir(args) -> Path:
     """``--out`` (or ``out/<study stem>``), checked before any computation."""
-    from .io.atomic import check_output_dir
+    from covtool.io.atomic import check_output_dir
 
     if args.out:
         return check_output_dir(args.out, "--out")
@@ -28,9 +28,9 @@ def _output_dir(args) -> Path:
 
 
 def _cmd_run(args) -> int:
-    from .io.writers import write_outputs
-    from .parallel import DirLock
-    from .studies import run_study
+    from covtool.io.writers import write_outputs
+    from covtool.parallel import DirLock
+    from covtool.studies import run_study
 
     t0 = time.perf_counter()
     out = _output_dir(args)
@@ -40,7 +40,7 @@ def _cmd_run(args) -> int:
         backend = None
         try:
             if args.workers is not None or args.scheduler is not None:
-                from .parallel import make_backend
+                from covtool.parallel import make_backend
 
                 backend = make_backend(workers=args.workers, scheduler=args.scheduler)
             with warnings.catch_warnings(record=True) as caught:
@@ -74,7 +74,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_models(args) -> int:
-    from .model.library import list_models
+    from covtool.model.library import list_models
 
     df = list_models(args.dir)
     print(df.to_string(index=False))
@@ -82,11 +82,11 @@ def _cmd_models(args) -> int:
 
 
 def _cmd_show(args) -> int:
-    from .model.library import load_model_by_name
+    from covtool.model.library import load_model_by_name
 
     model = load_model_by_name(args.model, args.dir)
     if args.markdown:
-        from .model.library import markdown_table
+        from covtool.model.library import markdown_table
         print(markdown_table(model), end="")
         return 0
     print(f"{model.name}: {model.n} states, {model.description} [{model.path}]\n")
@@ -127,7 +127,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dir", default=None, help="model directory (default: models/)")
     s.add_argument("--markdown", action="store_true", help="print the table as Markdown (docs/)")
     s.set_defaults(func=_cmd_show)
-    from .cli_dualnav import add_parser as add_dualnav_parser
+    from covtool.cli_dualnav import add_parser as add_dualnav_parser
     add_dualnav_parser(sub)
     return p
 

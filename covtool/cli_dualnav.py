@@ -2,7 +2,7 @@
 
 Wire it into :mod:`covtool.cli` with one call in ``build_parser``::
 
-    from .cli_dualnav import add_parser as add_dualnav_parser
+    from covtool.cli_dualnav import add_parser as add_dualnav_parser
     add_dualnav_parser(sub)
 
 Usage::
@@ -42,13 +42,13 @@ def default_study() -> Path:
 
 def cmd_dualnav(args) -> int:
     """Run the comparison of two logs and write its outputs."""
-    from .errors import StudyFileError
-    from .io.imu_log import load_imu_log
-    from .io.writers import write_outputs
-    from .studies import load_study
-    from .studies.dual_imu import compare_logs
+    from covtool.errors import StudyFileError
+    from covtool.io.imu_log import load_imu_log
+    from covtool.io.writers import write_outputs
+    from covtool.studies import load_study
+    from covtool.studies.dual_imu import compare_logs
 
-    from .io.atomic import check_output_dir
+    from covtool.io.atomic import check_output_dir
 
     t0 = time.perf_counter()
     out = check_output_dir(args.out, "--out")

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import NumericalError
+from covtool.errors import NumericalError
 
 
 #: tolerance of the PSD test: the smallest eigenvalue of the correlation matrix

@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg import matrix_balance
 
-from .errors import InputError, NumericalError
+from covtool.errors import InputError, NumericalError
 
 #: base-step bound ``νh ≤ θ`` (see the module notes)
 THETA = 0.5

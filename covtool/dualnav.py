@@ -45,16 +45,17 @@ import numpy as np
 from scipy.stats import chi2
 from threadpoolctl import threadpool_limits
 
-from . import earth
-from . import quaternion as quat
-from . import strapdown as sd
-from .discretize import block_triangular, is_block_triangular, taylor
-from .covariance import (check_covariance, check_finite, filter_update, innovation_covariance, kalman_gain,
+from covtool.nav import earth
+from covtool.nav import attitude as quat
+from covtool.nav import strapdown as sd
+from covtool.discretize import block_triangular, is_block_triangular, taylor
+from covtool.covariance import (check_covariance, check_finite, filter_update, innovation_covariance, kalman_gain,
                          symmetrize, time_text)
-from .dynamics import Context, error_dynamics
-from .errors import InputError, NumericalError
-from .imu import ImuRecord, SensorErrors
-from .model.spec import Model
+from covtool.dynamics import Context, error_dynamics
+from covtool.errors import InputError, NumericalError
+from covtool.nav.imu.simulator import ImuRecord
+from covtool.validation.sensor_errors import SensorErrors
+from covtool.model.spec import Model
 
 __all__ = [
     "DIFF_NAMES", "COMPONENTS", "AXES", "GAP_POLICIES", "GSensitiveErrors", "triad_alignment",
@@ -108,7 +109,7 @@ class GSensitiveErrors(SensorErrors):
     Parameters
     ----------
     model, x0, rng, **kw
-        As for :class:`covtool.imu.SensorErrors`.
+        As for :class:`covtool.validation.sensor_errors.SensorErrors`.
     gsens : sequence of (int, int, float)
         ``(i, j, k)``: the scale factor of gyro ``i`` changes by ``k f_j``,
         ``δω_i = k f_j ω_i`` (seed 001, Fig 16 and ref [9]: a parallel-plate
@@ -270,7 +271,7 @@ def nav_difference(main: sd.NavHistory, kimu: sd.NavHistory, mount_main=None, mo
 
     Parameters
     ----------
-    main, kimu : covtool.strapdown.NavHistory
+    main, kimu : covtool.nav.strapdown.NavHistory
         Solutions at the same output times (S, M); each navigates its own
         sensor frame.
     mount_main, mount_kimu : array_like, shape (4,), optional
@@ -367,7 +368,7 @@ class ImuLinearization:
     Attributes
     ----------
     model : Model
-        Its error-state model (:meth:`covtool.imu.ImuGrade.to_model`).
+        Its error-state model (:meth:`covtool.io.imu_grade.ImuGrade.to_model`).
     ctx : Context
         Its own sensor-frame quantities at the mid-points of the propagation
         steps (mean ``f``, ``ω`` over each step, attitude at the mid-point).
@@ -417,7 +418,7 @@ class ImuLinearization:
         -----
         ``δf^s = Cᵀ (F_{v,s} x_s)`` at rest (the velocity rows of F are
         ``C_b^n S_a``), ``φ0 = A [δf^s; δψ]`` (:func:`alignment_jacobian`)
-        and ``δq0 = −½ R(q) φ0`` (:func:`covtool.quaternion.attitude_error_matrix`
+        and ``δq0 = −½ R(q) φ0`` (:func:`covtool.nav.attitude.attitude_error_matrix`
         inverted on the unit-norm complement).  The accelerometer Markov
         states enter with their value at the end of the window, a ~T/(2τ)
         approximation of their window mean.
@@ -1431,7 +1432,7 @@ class DualRun:
     intervals : list of list of (float, float)
         Flagged spans of every run.
     gsens : GsensEstimate
-    main, kimu : covtool.strapdown.NavHistory
+    main, kimu : covtool.nav.strapdown.NavHistory
         The two solutions at the epochs.
     unused : dict of str to (int, int)
         Samples of each log before and after the compared span (outside the
@@ -1516,7 +1517,7 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
         The two logs on their grids, from the start of the alignment
         window (the vehicle at rest); increments of shape (K, 3) or
         (M, K, 3).  The KIMU's samples are assigned to the main intervals by
-        :func:`covtool.strapdown.group_samples` (seed 001 Fig 7).
+        :func:`covtool.nav.strapdown.group_samples` (seed 001 Fig 7).
     setup : DualSetup
     heading : array_like, shape (M,), optional
         Per-run input heading (simulated input errors); default
@@ -1541,7 +1542,7 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
         The logs do not overlap, are too short for the alignment and one
         comparison window, the alignment is not a whole number of main
         samples, or the KIMU does not deliver ``ratio`` samples per main
-        interval (named by :func:`~covtool.strapdown.group_samples`).  Each
+        interval (named by :func:`~covtool.nav.strapdown.group_samples`).  Each
         message names the log it is about (:attr:`BridgedLog.where`); when
         the logs cannot be paired because their clocks drift apart by more
         than :data:`CLOCK_PPM_TOL`, the one further from its nominal rate is

@@ -19,7 +19,7 @@ Velocity, seed 002 eq (4)::
     δv̇ = C_b^n δf^b + J(q, f^b) δq − (2δω_ie + δω_en) × v
           − (2ω_ie + ω_en) × δv + δg
 
-where ``J = ∂(C(q/|q|) f)/∂q`` (:func:`covtool.quaternion.dcm_times_vector_jacobian`,
+where ``J = ∂(C(q/|q|) f)/∂q`` (:func:`covtool.nav.attitude.dcm_times_vector_jacobian`,
 the quaternion scale error ignored as in seed 002 §2.1), ``δω_ie``, ``δω_en``
 are the perturbations of Earth and transport rate through ``δL, δh, δv`` and
 ``δg`` is the normal-gravity perturbation through ``δL, δh`` (the ``−2g/R``
@@ -40,7 +40,7 @@ qᵀR(q) = 0`` and the skew parts conserve it, and ``J`` has no component
 along ``q``.  The norm error therefore neither grows nor affects any other
 state; with the seed 002 Table 2 initial σ (δq0 = 0 at q = 1) it is zero and P
 has one structural zero eigenvalue.  Physical attitude errors are
-``φ = −2 R(q)ᵀ δq`` (:func:`covtool.quaternion.attitude_error_matrix`).
+``φ = −2 R(q)ᵀ δq`` (:func:`covtool.nav.attitude.attitude_error_matrix`).
 """
 
 from __future__ import annotations
@@ -49,10 +49,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import earth
-from . import quaternion as quat
-from .model.blocks import BLOCK_KINDS, gravity_sensitivity
-from .model.spec import Model
+from covtool.nav import earth
+from covtool.nav import attitude as quat
+from covtool.model.blocks import BLOCK_KINDS, gravity_sensitivity
+from covtool.model.spec import Model
 
 I_L, I_l, I_H, I_VN, I_VE, I_VD = range(6)
 I_Q = slice(6, 10)
@@ -107,7 +107,7 @@ class Context:
 
     @classmethod
     def from_trajectory(cls, traj) -> "Context":
-        """Context from a :class:`covtool.trajectory.Trajectory` (all its samples)."""
+        """Context from a :class:`covtool.nav.trajectory.core.Trajectory` (all its samples)."""
         return cls(traj.lat, traj.h, traj.v_n, traj.q_nb, traj.f_b, traj.w_ib_b)
 
     @property

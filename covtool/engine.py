@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from .covariance import (NEGATIVE_VARIANCE, NOT_PSD, check_covariance, check_finite, covariance_status, scale_groups, symmetrize,
+from covtool.covariance import (NEGATIVE_VARIANCE, NOT_PSD, check_covariance, check_finite, covariance_status, scale_groups, symmetrize,
                          time_text)
-from .errors import NumericalError
+from covtool.errors import NumericalError
 
 
 def sandwich(A: np.ndarray, P: np.ndarray) -> np.ndarray:

@@ -36,14 +36,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .discretize import discretize
-from .dynamics import Context, ErrorDynamics, NavOptions, NoiseSource, error_dynamics
-from .errors import ModelFileError
-from .io.config import (boolean, check_keys, choice, integer, is_library_name, load_toml, names, quantity,
+from covtool.discretize import discretize
+from covtool.dynamics import Context, ErrorDynamics, NavOptions, NoiseSource, error_dynamics
+from covtool.errors import ModelFileError
+from covtool.io.config import (boolean, check_keys, choice, integer, is_library_name, load_toml, names, quantity,
                         resolve_input, string, table)
-from .io.names import check_name
-from .model.blocks import NAV_STATES
-from .model.spec import Model
+from covtool.io.names import check_name
+from covtool.model.blocks import NAV_STATES
+from covtool.model.spec import Model
 
 _FILTER_KEYS = {"name", "truth", "description", "keep", "base", "drop", "decouple_vertical", "coriolis",
                 "equivalent_noise", "discretization", "taylor_order", "update", "P0", "zupt_sigma", "source"}
@@ -171,7 +171,7 @@ def _check_truth(tname, truth: Model, where: str, base_dir) -> None:
             raise ModelFileError(w, f"filter was declared for truth model {tname!r}, "
                                  f"but the study's truth model is {truth.name!r}")
         return
-    from .model.loader import load_model
+    from covtool.model.loader import load_model
 
     p = resolve_input(tname, base_dir, w, ModelFileError, what="truth model file")
     same = Path(truth.path).is_file() and os.path.samefile(p, truth.path)
@@ -692,7 +692,7 @@ def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat
     own dynamics (Φ_f, no updates) over every ZUPT interval, and the
     covariance it builds up by the interval's end is expressed in the
     physical errors: position N/E/D, velocity N/E/D, north/east tilt and
-    azimuth (``φ = −2R(q)ᵀδq``, :func:`covtool.quaternion.attitude_error_matrix`).
+    azimuth (``φ = −2R(q)ᵀδq``, :func:`covtool.nav.attitude.attitude_error_matrix`).
 
     Parameters
     ----------
@@ -720,8 +720,8 @@ def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat
     through it (trapezoid rule on ``Φ``): for 1 s steps this is well
     below 1 % of the interval's accumulation.
     """
-    from . import earth
-    from .quaternion import attitude_error_matrix
+    from covtool.nav import earth
+    from covtool.nav.attitude import attitude_error_matrix
 
     if not fm.ewn_noise:
         return pd.DataFrame()
@@ -830,6 +830,6 @@ def zupt_matrices(names) -> np.ndarray:
 
 def default_filter_file() -> Path:
     """The library's ZUPT filter declarations."""
-    from .model.library import default_model_dir
+    from covtool.model.library import default_model_dir
 
     return default_model_dir() / "filters" / "zupt_filters.toml"

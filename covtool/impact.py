@@ -33,8 +33,8 @@ import numpy as np
 from scipy.linalg import expm
 from threadpoolctl import threadpool_limits
 
-from .budget import NoiseFactor, compose_noise
-from .engine import System, events, run_batch
+from covtool.budget import NoiseFactor, compose_noise
+from covtool.engine import System, events, run_batch
 
 NOMINAL, NONE, ONLY, BACK = "nominal", "no equivalent noise", "noise from block only", "block put back"
 
@@ -150,7 +150,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     -------
     ImpactRun
     """
-    from .studies.zupt import dyn_key
+    from covtool.studies.zupt import dyn_key
 
     truth = S.truth
     fm, Phi_f, Qd_f = S.filter_model(name)
@@ -271,8 +271,8 @@ def check_members(P: np.ndarray, q: np.ndarray, t: np.ndarray, labels) -> None:
     covtool.errors.NumericalError
         Naming the member and the time.
     """
-    from .budget import physical_nav
-    from .covariance import check_covariance
+    from covtool.budget import physical_nav
+    from covtool.covariance import check_covariance
 
     for b, lab in enumerate(labels):
         Pp = physical_nav(P[b], q)

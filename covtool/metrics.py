@@ -30,9 +30,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import erf
 
-from . import earth
-from .covariance import covariance_status, running_scale, symmetrize
-from .dynamics import attitude_errors
+from covtool.nav import earth
+from covtool.covariance import covariance_status, running_scale, symmetrize
+from covtool.dynamics import attitude_errors
 
 #: probable-error factor: P(|x| < 0.6745 σ) = 0.5 for a normal variable
 PE_FACTOR = 0.6744897501960817

@@ -28,14 +28,14 @@ because every earlier estimate was fed back (eq (9)).
 
 *Feedback* (eq (10), ``x ← x − D x̂``):
 
-* navigation states: :func:`covtool.strapdown.correct` subtracts
+* navigation states: :func:`covtool.nav.strapdown.correct` subtracts
   ``(δL̂, δl̂, δĥ, δv̂, δq̂)`` from the navigation state (quaternion
   renormalised);
 * sensor and environment states: every run keeps an accumulated estimate
   ``ĉ`` of each sensor state its filter carries (:class:`SensorFeedback`);
   an update adds ``x̂_s`` to ``ĉ``.  Every IMU sample is then compensated
   through the same block sensitivities that inject the errors
-  (:mod:`covtool.model.blocks`, :class:`covtool.imu.SensorErrors`)::
+  (:mod:`covtool.model.blocks`, :class:`covtool.validation.sensor_errors.SensorErrors`)::
 
       Δθ_c = Δθ − h S_g(f̄, ω̄) ĉ_g,     Δv_c = Δv − h S_a(f̄, ω̄) ĉ_a
              − h C_n^b diag(g, g, −1) ĉ_grav − Δĉ_AD
@@ -88,13 +88,13 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
-from . import earth
-from . import quaternion as quat
-from . import strapdown as sd
-from .covariance import check_system, check_covariance, filter_update, kalman_gain, symmetrize, time_text
-from .errors import NumericalError
-from .filters import zupt_matrices
-from .model.blocks import BLOCK_KINDS, gravity_sensitivity
+from covtool.nav import earth
+from covtool.nav import attitude as quat
+from covtool.nav import strapdown as sd
+from covtool.covariance import check_system, check_covariance, filter_update, kalman_gain, symmetrize, time_text
+from covtool.errors import NumericalError
+from covtool.filters import zupt_matrices
+from covtool.model.blocks import BLOCK_KINDS, gravity_sensitivity
 
 __all__ = [
     "QUANTITIES", "REDUCED_NAV", "FeedbackFilter", "SensorFeedback", "Nees", "EnsembleCase", "EnsembleSums",
@@ -586,7 +586,7 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
 
     Parameters
     ----------
-    sim : covtool.imu.ImuSimulator
+    sim : covtool.nav.imu.simulator.ImuSimulator
         Raw IMU increments of the M runs (sensor errors included); one pass
         of its records drives every case, so all cases see the same sensor
         realisations (common random numbers).
@@ -763,7 +763,8 @@ def simulate_chunk(task: dict) -> dict:
     """
     import time
 
-    from .imu import ImuSimulator, SensorErrors, sample_states
+    from covtool.nav.imu.simulator import ImuSimulator
+    from covtool.validation.sensor_errors import SensorErrors, sample_states
 
     t0 = time.perf_counter()
     ss = np.random.SeedSequence(task["seed"], spawn_key=(int(task["chunk"]),))

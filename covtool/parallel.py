@@ -52,7 +52,7 @@ import uuid
 from pathlib import Path
 from typing import Any, Callable, Iterator, Sequence
 
-from .errors import CovtoolError, InputError
+from covtool.errors import CovtoolError, InputError
 
 __all__ = ["SerialBackend", "ProcessBackend", "DaskBackend", "make_backend", "call_limited", "ResultStore",
            "StoreError", "DirLock", "OutputLockedError", "run_chunks", "WorkerError", "file_sha256"]
@@ -691,7 +691,7 @@ def _fsync_dir(path: Path) -> None:
 
 def _write_durable(path: Path, text: str) -> None:
     """Write ``text`` to a temporary file, fsync, rename into place."""
-    from .io.atomic import atomic_path
+    from covtool.io.atomic import atomic_path
 
     with atomic_path(path) as tmp:
         with open(tmp, "w", encoding="utf-8") as fh:

@@ -52,7 +52,7 @@ from functools import lru_cache
 
 import pint
 
-from .errors import UnitError
+from covtool.errors import UnitError
 
 __all__ = ["ureg", "parse_quantity", "to_si", "from_si", "DIMENSIONS", "is_unit", "G0",
            "MAX_LENGTH", "MAX_DEPTH", "MAX_EXPONENT"]

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool import earth
-from covtool import quaternion as quat
+from covtool.nav import earth
+from covtool.nav import attitude as quat
 
 
 def _vals(model, x, prefix, n):

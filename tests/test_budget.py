@@ -16,7 +16,7 @@ import pandas as pd
 import pytest
 
 import covtool
-from covtool import earth
+from covtool.nav import earth
 from covtool.budget import (MemberNoise, NoiseFactor, Source, budget_sources, compose_noise, discretize_noise,
                             initial_groups, nav_variances, noise_factors, physical_nav, run_budget, split_initial)
 from covtool.cli import main

@@ -40,7 +40,7 @@ from covtool.discretize import THETA, block_triangular, discretize, per_source, 
 from covtool.dynamics import Context, error_dynamics
 from covtool.errors import InputError, NumericalError
 from covtool.model.loader import load_model
-from covtool.trajectory import land_vehicle
+from covtool.nav.trajectory.profiles import land_vehicle
 
 SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
 

@@ -25,10 +25,10 @@ import pytest
 from scipy.linalg import expm
 
 import covtool
-from covtool import earth
+from covtool.nav import earth
 from covtool.errors import StudyFileError
 from covtool.studies.common import MAX_STEP_ROTATION, step_motion, time_grid
-from covtool.trajectory import land_vehicle, static
+from covtool.nav.trajectory.profiles import land_vehicle, static
 
 ROOT = Path(__file__).resolve().parents[1]
 UG = 9.80665e-6

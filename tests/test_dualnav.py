@@ -27,16 +27,19 @@ import math
 import numpy as np
 import pytest
 
-from covtool import earth
-from covtool import quaternion as quat
+from covtool.nav import earth
+from covtool.nav import attitude as quat
 from covtool import dualnav as dn
-from covtool import strapdown as sd
+from covtool.nav import strapdown as sd
 from covtool.discretize import van_loan
 from covtool.dynamics import Context, error_dynamics
 from covtool.errors import InputError, StudyFileError, TrajectoryError
-from covtool.flight import (FlightProfile, Segment, VibrationInterval, VibrationTone, flight, flight_from_config,
-                            high_dynamics_flight, quadrature_nodes)
-from covtool.imu import ImuSimulator, SensorErrors, ideal_increments, load_imu_grade
+from covtool.nav.trajectory.flight import (FlightProfile, Segment, VibrationInterval, VibrationTone, flight,
+                                           quadrature_nodes)
+from covtool.io.flight import flight_from_config, high_dynamics_flight
+from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
+from covtool.validation.sensor_errors import SensorErrors
+from covtool.io.imu_grade import load_imu_grade
 from covtool.studies import run_study
 from covtool.studies.dual_imu import PPM_G, gsens_coefficient, make_setup, parse_study, simulate_logs
 
@@ -595,7 +598,7 @@ def test_monitor_errors(linear_model):
 
 
 def _static_log(rate, seconds, t0=0.0):
-    from covtool.trajectory import static
+    from covtool.nav.trajectory.profiles import static
 
     traj = static(seconds + 1.0, lat=0.6, lon=2.2, h=50.0, heading=0.5, dt=1.0)
     rec = ideal_increments(traj, rate, t0=t0, duration=seconds)

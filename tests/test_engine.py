@@ -9,7 +9,7 @@ import covtool
 from covtool.covariance import propagate_with_filter
 from covtool.engine import System, compose, events, run_batch, sandwich
 from covtool.filters import zupt_matrices
-from covtool.quaternion import attitude_error_matrix
+from covtool.nav.attitude import attitude_error_matrix
 
 
 def test_sandwich_equals_per_case_products():

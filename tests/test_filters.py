@@ -50,7 +50,7 @@ def test_model_A_truth_equals_filter_at_every_step(run_A):
     run = run_A.data["runs"]["A"]
     # physical coordinates: δq → φ = −2 R(q)ᵀ δq (tilt, azimuth); the quaternion
     # norm direction is structurally zero (see covtool.dynamics) and carries only round-off
-    from covtool.quaternion import attitude_error_matrix
+    from covtool.nav.attitude import attitude_error_matrix
     q = run_A.data["trajectory"].q_nb
     n = PT_n = run.P_truth.shape[1]
     T = np.zeros((len(q), n - 1, n))

@@ -17,7 +17,7 @@ import pandas as pd
 import pytest
 
 import covtool
-from covtool import earth
+from covtool.nav import earth
 from covtool.covariance import (PSD_TOL, check_covariance, covariance_status, propagate, propagate_with_filter,
                                 scale_groups)
 from covtool.engine import System, events, run_batch

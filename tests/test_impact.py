@@ -138,7 +138,7 @@ def test_equivalent_noise_sheet_reports_navigation_errors(S):
     from covtool.budget import compose_noise
     from covtool.filters import ewn_navigation_effect
     from covtool.metrics import ned_position_covariance
-    from covtool.quaternion import attitude_error_matrix
+    from covtool.nav.attitude import attitude_error_matrix
 
     fm, Phi_f, _ = S.filter_model("B1")
     nodes = S.nodes

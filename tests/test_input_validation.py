@@ -25,7 +25,7 @@ import covtool
 from covtool.cli import main
 from covtool.errors import InputError, ModelFileError, StudyFileError, TrajectoryError
 from covtool.filters import filters_from_dict
-from covtool.imu import imu_grade_from_dict, load_imu_grade
+from covtool.io.imu_grade import imu_grade_from_dict, load_imu_grade
 from covtool.io import config
 from covtool.model.library import resolve_model_path
 from covtool.model.loader import load_model, model_from_dict
@@ -510,7 +510,7 @@ def test_dual_imu_fields(mutate, match):
 
 
 def test_vibration_tone_frequency_is_bounded():
-    from covtool.flight import flight_from_config
+    from covtool.io.flight import flight_from_config
     cfg = {"segment": [{"kind": "stand", "duration": "2 s"}], "initial": {"lat": "0 deg", "lon": "0 deg", "h": "0 m"},
            "vibration": [{"start": "0 s", "duration": "1 s", "tone": [{"kind": "angular", "axis": "x",
                                                                       "amplitude": "1 mrad", "frequency": "1e12 Hz"}]}]}
@@ -659,7 +659,8 @@ def _model_variant(acc_bias):
 @pytest.fixture()
 def project(tmp_path):
     """parent/proj/{study.toml, m.toml, filters/f.toml, route.csv} and decoys of each in parent/."""
-    from covtool.trajectory import land_vehicle, save_trajectory_csv
+    from covtool.nav.trajectory.profiles import land_vehicle
+    from covtool.io.trajectory_csv import save_trajectory_csv
     parent = tmp_path / "parent"
     proj = parent / "proj"
     (proj / "filters").mkdir(parents=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from covtool import quaternion as quat
+from covtool.nav import attitude as quat
 from covtool.metrics import PE_FACTOR, cep, cep_approx
 
 

@@ -105,7 +105,7 @@ def test_toml_syntax_and_missing_file_errors(tmp_path):
 
 def test_initial_quaternion_covariance_keeps_physical_errors():
     """P0's δq block is rotated to the initial attitude; tilt and azimuth σ do not change."""
-    from covtool import quaternion as quat
+    from covtool.nav import attitude as quat
     m = load_model(SDINS)
     for yaw in (0.0, 1.0, np.pi):
         q0 = quat.from_euler(0.01, -0.02, yaw)

@@ -22,11 +22,12 @@ from covtool import montecarlo as mc
 from covtool.covariance import propagate_with_filter
 from covtool.errors import StudyFileError
 from covtool.filters import zupt_matrices
-from covtool.imu import ImuSimulator, SensorErrors, ideal_increments, sample_states
+from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
+from covtool.validation.sensor_errors import SensorErrors, sample_states
 from covtool.io.writers import write_outputs
 from covtool.metrics import ned_position_covariance
 from covtool.parallel import ProcessBackend, SerialBackend
-from covtool.quaternion import attitude_error_matrix
+from covtool.nav.attitude import attitude_error_matrix
 from covtool.studies import monte_carlo as smc
 from covtool.studies.nav_covariance import load_trajectory
 from covtool.studies.zupt import setup

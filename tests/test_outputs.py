@@ -214,7 +214,7 @@ def _model_decl():
 
 def test_every_shipped_name_is_accepted():
     from covtool.filters import load_filters
-    from covtool.imu import load_imu_grade
+    from covtool.io.imu_grade import load_imu_grade
     from covtool.model.loader import load_model
 
     m = load_model(ROOT / "models" / "sdins58.toml")
@@ -249,7 +249,7 @@ def test_bad_model_names_refused_at_load(edit, match):
 
 def test_bad_filter_and_grade_names_refused_at_load():
     from covtool.filters import filters_from_dict
-    from covtool.imu import imu_grade_from_dict
+    from covtool.io.imu_grade import imu_grade_from_dict
     from covtool.model.loader import model_from_dict
 
     truth = model_from_dict(_model_decl(), path="m.toml")

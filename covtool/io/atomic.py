@@ -23,7 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..errors import InputError
+from covtool.errors import InputError
 
 #: ``.staging-<pid>-<random>`` (new) or ``.staging-<random>`` (covtool <= 0.x, no PID)
 _STAGING = re.compile(r"^\.staging-(?:(\d+)-)?[A-Za-z0-9_]+$")
@@ -185,7 +185,7 @@ def _package_dirs() -> list[tuple[Path, str]]:
     """Directories no output may go into: the package and the model library."""
     dirs = [(Path(__file__).resolve().parents[1], "the covtool package")]
     with contextlib.suppress(Exception):
-        from ..model.library import default_model_dir
+        from covtool.model.library import default_model_dir
 
         dirs.append((Path(default_model_dir()).resolve(), "the model library"))
     return dirs

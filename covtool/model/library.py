@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from ..errors import ModelFileError
-from ..io.config import is_library_name, resolve_input
-from .loader import load_model
+from covtool.errors import ModelFileError
+from covtool.io.config import is_library_name, resolve_input
+from covtool.model.loader import load_model
 
 
 def default_model_dir() -> Path:

@@ -44,12 +44,12 @@ import re
 import numpy as np
 import tomli_w
 
-from ..errors import ModelFileError
-from ..io.config import as_list, check_keys, choice, load_toml, number, quantity, string
-from ..units import DIMENSIONS, is_unit
-from ..io.names import check_name
-from .blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
-from .spec import PROCESSES, Model, State
+from covtool.errors import ModelFileError
+from covtool.io.config import as_list, check_keys, choice, load_toml, number, quantity, string
+from covtool.units import DIMENSIONS, is_unit
+from covtool.io.names import check_name
+from covtool.model.blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
+from covtool.model.spec import PROCESSES, Model, State
 
 _BLOCK_KEYS = {"kind", "name", "names", "sigma", "unit", "process", "tau", "distance", "rw", "source", "board"}
 _BOARD_KEYS = {"sf", "n_t", "n_e_ratio"}
@@ -187,7 +187,7 @@ def _board_sigma(board: dict, where: str) -> str:
     ``B = SF |N_e| / N̂`` of eq (7)-(8) with a uniformly distributed reset
     phase gives ``σ = B/√3`` (:func:`covtool.board.adreset.velocity_error_sigma`).
     """
-    from ..board.adreset import velocity_error_sigma
+    from covtool.board.adreset import velocity_error_sigma
 
     check_keys(board, _BOARD_KEYS, where, ModelFileError)
     for k in _BOARD_KEYS:
@@ -346,7 +346,7 @@ def resolve_base(decl: dict, path: str = "<dict>") -> dict:
         return decl
     from pathlib import Path
 
-    from .library import resolve_model_path
+    from covtool.model.library import resolve_model_path
 
     here = Path(path).parent if path != "<dict>" else None
     bpath = resolve_model_path(meta["base"], here if here is not None else None, base_dir=here)
@@ -385,7 +385,7 @@ def dump_model(model: Model) -> str:
 
 def save_model(model: Model, path) -> None:
     """Write a model file atomically."""
-    from ..io.atomic import write_text
+    from covtool.io.atomic import write_text
 
     write_text(path, dump_model(model))
 

@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .. import quaternion as quat
-from ..units import from_si
-from .blocks import BLOCK_KINDS, NAV_STATES
+from covtool.nav import attitude as quat
+from covtool.units import from_si
+from covtool.model.blocks import BLOCK_KINDS, NAV_STATES
 
 #: processes a state may follow
 PROCESSES = ("constant", "random_walk", "markov", "markov_distance")

@@ -12,8 +12,8 @@ import os
 import inspect
 from pathlib import Path
 
-from ..errors import InputError, StudyFileError
-from ..io.config import load_toml
+from covtool.errors import InputError, StudyFileError
+from covtool.io.config import load_toml
 
 #: study kind -> runner module (imported lazily)
 RUNNERS = {
@@ -84,7 +84,7 @@ def absolute_paths(decl: dict, base_dir) -> dict:
     written beside the results re-runs from anywhere.  Library names
     (``"sdins58"``) stay names.
     """
-    from ..io.config import is_library_name
+    from covtool.io.config import is_library_name
 
     out = copy.deepcopy(decl)
 

@@ -24,14 +24,14 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import __version__
-from ..board import adreset, alignment as align
-from ..board import output_filter as of
-from ..errors import StudyFileError
-from ..io.config import check_keys, number, quantity, require, string
-from ..io.names import check_study_name
-from ..results import StudyResult
-from ..units import from_si
+from covtool import __version__
+from covtool.board import adreset, alignment as align
+from covtool.board import output_filter as of
+from covtool.errors import StudyFileError
+from covtool.io.config import check_keys, number, quantity, require, string
+from covtool.io.names import check_study_name
+from covtool.results import StudyResult
+from covtool.units import from_si
 
 KIND = "ad_reset"
 

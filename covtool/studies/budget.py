@@ -49,17 +49,17 @@ import time
 import numpy as np
 import pandas as pd
 
-from ..budget import (ERRORS, MEASUREMENT, RESOLUTIONS, compose_noise, budget_sources, nav_variances,
+from covtool.budget import (ERRORS, MEASUREMENT, RESOLUTIONS, compose_noise, budget_sources, nav_variances,
                       relative_residual, run_budget)
-from ..engine import System, events, run_batch
-from ..errors import StudyFileError
-from ..filters import zupt_matrices
-from ..io.config import check_keys, choice, integer, names, table
-from ..metrics import cep, nav_metrics, ned_position_covariance, validity_text
-from ..results import StudyResult
-from .common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
+from covtool.engine import System, events, run_batch
+from covtool.errors import StudyFileError
+from covtool.filters import zupt_matrices
+from covtool.io.config import check_keys, choice, integer, names, table
+from covtool.metrics import cep, nav_metrics, ned_position_covariance, validity_text
+from covtool.results import StudyResult
+from covtool.studies.common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
                      study_header, study_inputs)
-from .zupt import setup
+from covtool.studies.zupt import setup
 
 PURE = "pure_ins"
 #: paper unit of each error: (SI per unit, label)
@@ -109,8 +109,8 @@ def budget_cases(decl: dict, where: str) -> tuple[list | None, bool]:
 
 def _memory(decl: dict, where: str, resolution: str, pure: bool):
     """What a budget holds: the setup, and per source its noise composed over the event grid (J, K, n, n)."""
-    from .nav_covariance import output_options
-    from .zupt import zupt_options, zupt_update_count
+    from covtool.studies.nav_covariance import output_options
+    from covtool.studies.zupt import zupt_options, zupt_update_count
 
     def memory(steps, truth, filters, dynamics):
         n = truth.n

@@ -12,18 +12,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import earth, quaternion as quat
-from ..discretize import discretize
-from ..dynamics import Context, error_dynamics, NavOptions
-from ..errors import InputError, StudyFileError, UnitError, ValidityWarning
-from ..io.config import (check_keys, choice, file_sha256, names, number, quantity, quantity_list, resolve_input,
+from covtool.nav import earth, attitude as quat
+from covtool.discretize import discretize
+from covtool.dynamics import Context, error_dynamics, NavOptions
+from covtool.errors import InputError, StudyFileError, UnitError, ValidityWarning
+from covtool.io.config import (check_keys, choice, file_sha256, names, number, quantity, quantity_list, resolve_input,
                          string, table)
-from ..io.names import check_study_name
-from ..covariance import check_covariance, check_system
-from ..metrics import first_invalid, nav_metrics, validity, validity_text
-from ..model.library import load_model_by_name
-from ..model.spec import Model
-from ..units import from_si, parse_quantity
+from covtool.io.names import check_study_name
+from covtool.covariance import check_covariance, check_system
+from covtool.metrics import first_invalid, nav_metrics, validity, validity_text
+from covtool.model.library import load_model_by_name
+from covtool.model.spec import Model
+from covtool.units import from_si, parse_quantity
 
 FT = 0.3048
 ARCMIN = np.pi / 180 / 60
@@ -78,7 +78,7 @@ def load_truth(decl: dict, where: str, base_dir) -> Model:
     ModelFileError
         The model file itself is invalid or missing.
     """
-    from ..model.loader import _PROCESS_KEYS, _RW_DIM
+    from covtool.model.loader import _PROCESS_KEYS, _RW_DIM
 
     tr = table(decl.get("truth", {}), f"{where}: [truth]", StudyFileError)
     check_keys(tr, {"model", "only", "override", "arw", "vrw"}, f"{where}: [truth]", StudyFileError)
@@ -642,7 +642,7 @@ def initial_covariance(truth: Model, nodes, where: str) -> np.ndarray:
     Parameters
     ----------
     truth : Model
-    nodes : covtool.trajectory.Trajectory
+    nodes : covtool.nav.trajectory.core.Trajectory
         The trajectory sampled on the study grid.
     where : str
         The study file, for messages.

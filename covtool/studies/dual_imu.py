@@ -73,15 +73,15 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import dualnav as dn
-from .. import earth
-from .. import quaternion as quat
-from ..errors import InputError, ModelFileError, StudyFileError
-from ..io.config import check_keys, choice, integer, names, number, quantity, string, table
-from ..io.imu_log import check_imu_log
-from ..io.names import check_study_name
-from ..results import StudyResult
-from .common import input_file
+from covtool import dualnav as dn
+from covtool.nav import earth
+from covtool.nav import attitude as quat
+from covtool.errors import InputError, ModelFileError, StudyFileError
+from covtool.io.config import check_keys, choice, integer, names, number, quantity, string, table
+from covtool.io.imu_log import check_imu_log
+from covtool.io.names import check_study_name
+from covtool.results import StudyResult
+from covtool.studies.common import input_file
 
 COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
 #: display units of the difference components
@@ -133,8 +133,8 @@ def _candidate(text, where):
 
 def gsens_coefficient(value, where) -> float:
     """A g-sensitive scale factor (``"1000 ppm/g"``) in 1/(m/s²)."""
-    from ..units import parse_quantity
-    from ..errors import UnitError
+    from covtool.units import parse_quantity
+    from covtool.errors import UnitError
 
     if not isinstance(value, str):
         raise StudyFileError(where, f"{value!r} is not a quantity such as '1000 ppm/g'")
@@ -152,7 +152,7 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
     StudyFileError
         Naming the file, the table and key, and the problem.
     """
-    from ..imu import load_imu_grade
+    from covtool.io.imu_grade import load_imu_grade
 
     check_keys(decl, _TOP, where, StudyFileError)
     st = table(decl.get("study", {}), f"{where}: [study]", StudyFileError)
@@ -310,7 +310,7 @@ def make_setup(cfg: DualConfig, initial: dict, where: str) -> dn.DualSetup:
 
 
 def _trajectory(decl, where):
-    from ..flight import flight_from_config
+    from covtool.io.flight import flight_from_config
 
     cfg = decl.get("trajectory", {"builtin": "high_dynamics_flight"})
     return flight_from_config(cfg, where=f"{where}: [trajectory]", dt=0.1)
@@ -333,8 +333,9 @@ def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
     removed : dict of str to list of (ndarray, ndarray, ndarray)
         Per IMU and gap: the removed sample indices and their true increments.
     """
-    from ..flight import quadrature_nodes
-    from ..imu import ImuSimulator, sample_states
+    from covtool.nav.trajectory.flight import quadrature_nodes
+    from covtool.nav.imu.simulator import ImuSimulator
+    from covtool.validation.sensor_errors import sample_states
 
     logs, removed = {}, {}
     for key in ("main", "kimu"):

@@ -50,16 +50,16 @@ import time
 import numpy as np
 import pandas as pd
 
-from ..budget import compose_noise
-from ..engine import System, events, run_batch
-from ..errors import StudyFileError
-from ..filters import zupt_matrices
-from ..impact import CombinedNoise, _compose_phi, _factor, check_members
-from ..io.config import check_keys, quantity
-from ..metrics import nav_metrics
-from ..results import StudyResult
-from .common import ARCMIN, FT, progress_bar
-from .zupt import setup
+from covtool.budget import compose_noise
+from covtool.engine import System, events, run_batch
+from covtool.errors import StudyFileError
+from covtool.filters import zupt_matrices
+from covtool.impact import CombinedNoise, _compose_phi, _factor, check_members
+from covtool.io.config import check_keys, quantity
+from covtool.metrics import nav_metrics
+from covtool.results import StudyResult
+from covtool.studies.common import ARCMIN, FT, progress_bar
+from covtool.studies.zupt import setup
 
 
 def sweep_options(decl: dict, where: str, truth) -> dict:
@@ -222,7 +222,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
 
 def _key(options):
-    from .zupt import dyn_key
+    from covtool.studies.zupt import dyn_key
     return dyn_key(options)
 
 
@@ -255,7 +255,7 @@ def threshold_table(sweep: pd.DataFrame, thr: float, groups, filters, truth, opt
                 row["crossing [SI]"] = float(np.exp(lx))
                 unit = opts["groups"][gi]["unit_text"]
                 if unit:
-                    from ..units import from_si
+                    from covtool.units import from_si
                     row["crossing"] = f"{float(from_si(np.exp(lx), unit)):.3g} {unit}"
                 else:
                     row["crossing"] = f"{np.exp(lx):.4g}"
@@ -266,7 +266,7 @@ def threshold_table(sweep: pd.DataFrame, thr: float, groups, filters, truth, opt
 def _figure(sweep: pd.DataFrame, opts: dict, truth):
     def make():
         import matplotlib.pyplot as plt
-        from ..units import from_si
+        from covtool.units import from_si
         groups = opts["groups"]
         fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 4.2), squeeze=False, sharey=True)
         for ax, g in zip(axes[0], groups):

@@ -56,19 +56,20 @@ import time
 import numpy as np
 import pandas as pd
 
-from .. import __version__
-from ..covariance import propagate, propagate_with_filter
-from ..errors import StudyFileError
-from ..filters import zupt_matrices
-from ..io.config import boolean, check_keys, integer, LIMITS, number, quantity
-from ..metrics import nav_metrics, ned_position_covariance, validity_text
-from ..montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, expected_nees,
+from covtool import __version__
+from covtool.covariance import propagate, propagate_with_filter
+from covtool.errors import StudyFileError
+from covtool.filters import zupt_matrices
+from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
+from covtool.metrics import nav_metrics, ned_position_covariance, validity_text
+from covtool.montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, expected_nees,
                           horizontal_dof, inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
-from ..results import StudyResult
-from ..strapdown import MAX_SAMPLES, NAV_STATES
-from .common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, resource_provenance, study_header,
+from covtool.results import StudyResult
+from covtool.nav.coning import MAX_SAMPLES
+from covtool.nav.strapdown import NAV_STATES
+from covtool.studies.common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, resource_provenance, study_header,
                      study_inputs)
-from .zupt import setup
+from covtool.studies.zupt import setup
 
 MC_KEYS = ("runs", "runs_per_chunk", "seed", "imu_rate", "samples_per_step", "confidence", "nees_every",
            "sensor_noise", "measurement_noise", "process_dt")
@@ -186,8 +187,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     resume : bool
         Reuse the chunks already in ``store``.
     """
-    from ..parallel import ResultStore, file_sha256, make_backend, run_chunks
-    from .trade import _store_checks, trajectory_csv_sha256
+    from covtool.parallel import ResultStore, file_sha256, make_backend, run_chunks
+    from covtool.studies.trade import _store_checks, trajectory_csv_sha256
 
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
@@ -422,7 +423,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
 
 def _trajectory(decl, where, path):
-    from .nav_covariance import load_trajectory
+    from covtool.studies.nav_covariance import load_trajectory
 
     hdr = study_header(decl, where)
     return load_trajectory(decl, where, path.parent if path else None, hdr["dt"])

@@ -10,7 +10,7 @@ Study file::
     discretization = "van_loan"      # or "taylor" (seed 002 eq (6b)-(6d))
 
     [trajectory]
-    builtin = "land_vehicle"         # see covtool.trajectory.trajectory_from_config
+    builtin = "land_vehicle"         # see covtool.io.trajectory.trajectory_from_config
 
     [truth]
     model = "sdins58"
@@ -30,19 +30,19 @@ import time
 import numpy as np
 import pandas as pd
 
-from ..covariance import propagate
-from ..errors import StudyFileError
-from ..io.config import check_keys, quantity
-from ..metrics import nav_metrics
-from ..results import StudyResult
-from .common import (case_validity, check_memory, history_frame, initial_covariance, load_truth, memory_estimate,
+from covtool.covariance import propagate
+from covtool.errors import StudyFileError
+from covtool.io.config import check_keys, quantity
+from covtool.metrics import nav_metrics
+from covtool.results import StudyResult
+from covtool.studies.common import (case_validity, check_memory, history_frame, initial_covariance, load_truth, memory_estimate,
                      noise_columns, report_times, resource_provenance, steps_of, study_header, study_inputs,
                      summary_row, time_grid, truth_system)
 
 
 def load_trajectory(decl, where, base_dir, dt, duration=None):
     """The study's ``[trajectory]``; it must last at least ``duration`` [s] if given."""
-    from ..trajectory import trajectory_from_config
+    from covtool.io.trajectory import trajectory_from_config
 
     cfg = decl.get("trajectory", {"builtin": "land_vehicle"})
     traj = trajectory_from_config(cfg, where=f"{where}: [trajectory]", base_dir=base_dir, dt=dt)

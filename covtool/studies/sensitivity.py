@@ -66,18 +66,18 @@ import numpy as np
 import pandas as pd
 from threadpoolctl import threadpool_limits
 
-from .. import flops
-from ..engine import System, events
-from ..errors import FlaggedCaseWarning, StudyFileError
-from ..filters import zupt_matrices
-from ..io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
-from ..metrics import first_invalid, nav_metrics, validity_text
-from ..results import StudyResult
-from ..sensitivity import (fit_loglog, LogLogFit, PARAMETERS, run_sweep, scale_grid, sensitivity_figures,
+from covtool import flops
+from covtool.engine import System, events
+from covtool.errors import FlaggedCaseWarning, StudyFileError
+from covtool.filters import zupt_matrices
+from covtool.io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
+from covtool.metrics import first_invalid, nav_metrics, validity_text
+from covtool.results import StudyResult
+from covtool.sensitivity import (fit_loglog, LogLogFit, PARAMETERS, run_sweep, scale_grid, sensitivity_figures,
                            sweep_cases)
-from .common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
+from covtool.studies.common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
                      study_inputs)
-from .zupt import setup
+from covtool.studies.zupt import setup
 
 SWEEP_KEYS = {"parameters", "scales", "fit_degree", "discretization"}
 COST_KEYS = {"measure", "repeats", "taylor_order", "paper_seconds"}

@@ -73,20 +73,20 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .. import __version__
-from ..engine import System, events, run_batch
-from ..errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
-from ..filters import load_filters, zupt_matrices
-from ..io.config import boolean, check_keys, LIMITS, number, quantity, string, table
-from ..io.names import check_name
-from ..metrics import first_invalid, nav_metrics
-from ..parallel import file_sha256
-from ..results import StudyResult
-from ..units import DIMENSIONS
-from .common import (FT, ARCMIN, check_memory, check_step_motion, load_truth, memory_estimate, noise_columns, resource_provenance, steps_of,
+from covtool import __version__
+from covtool.engine import System, events, run_batch
+from covtool.errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
+from covtool.filters import load_filters, zupt_matrices
+from covtool.io.config import boolean, check_keys, LIMITS, number, quantity, string, table
+from covtool.io.names import check_name
+from covtool.metrics import first_invalid, nav_metrics
+from covtool.parallel import file_sha256
+from covtool.results import StudyResult
+from covtool.units import DIMENSIONS
+from covtool.studies.common import (FT, ARCMIN, check_memory, check_step_motion, load_truth, memory_estimate, noise_columns, resource_provenance, steps_of,
                      study_header, study_inputs, summary_row, time_grid)
-from .nav_covariance import load_trajectory, output_options
-from .zupt import _filters_file, filter_cases, filter_dynamics, setup, zupt_schedule
+from covtool.studies.nav_covariance import load_trajectory, output_options
+from covtool.studies.zupt import _filters_file, filter_cases, filter_dynamics, setup, zupt_schedule
 
 #: truth-model block kinds a grade does not scale (they are not IMU errors)
 UNSCALED_KINDS = ("navigation", "gravity_disturbance")
@@ -126,7 +126,7 @@ def grade_truth(truth_decl: dict, grade: dict, model) -> dict:
         state explicitly (SI strings that parse back exactly), then the
         grade's own overrides, ``arw`` and ``vrw``.
     """
-    from ..model.loader import _RW_DIM
+    from covtool.model.loader import _RW_DIM
 
     k = grade["scale"]
     out = copy.deepcopy(truth_decl)
@@ -202,7 +202,7 @@ def _grades(decl: dict, where: str) -> list[dict]:
 def _lv_default(key):
     import inspect
 
-    from ..trajectory import land_vehicle
+    from covtool.nav.trajectory.profiles import land_vehicle
     return inspect.signature(land_vehicle).parameters[key].default
 
 
@@ -375,7 +375,7 @@ class TradePlan:
 def trajectory_csv_sha256(decl: dict, base_dir) -> str:
     """SHA-256 of the study's ``[trajectory] csv`` file (``""`` without one).
 
-    The path is resolved as :func:`covtool.trajectory.trajectory_from_config`
+    The path is resolved as :func:`covtool.io.trajectory.trajectory_from_config`
     resolves it (relative to the study file's directory).
     """
     traj = decl.get("trajectory")
@@ -496,7 +496,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     resume : bool
         Reuse the chunks already in ``store`` (an interrupted run).
     """
-    from ..parallel import ResultStore, make_backend, run_chunks
+    from covtool.parallel import ResultStore, make_backend, run_chunks
 
     t_start = time.perf_counter()
     plan = TradePlan(decl, path)

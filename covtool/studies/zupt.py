@@ -38,18 +38,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from ..covariance import check_system, propagate, propagate_with_filter
-from ..dynamics import error_dynamics
-from ..errors import StudyFileError
-from ..filters import build_filter, default_filter_file, ewn_navigation_effect, load_filters, zupt_matrices
-from ..io.config import boolean, check_keys, names, quantity, resolve_input, table
-from ..metrics import nav_metrics
-from ..results import StudyResult
-from .common import (ARCMIN, case_validity, check_memory, discretize_chunked, FT, history_frame,
+from covtool.covariance import check_system, propagate, propagate_with_filter
+from covtool.dynamics import error_dynamics
+from covtool.errors import StudyFileError
+from covtool.filters import build_filter, default_filter_file, ewn_navigation_effect, load_filters, zupt_matrices
+from covtool.io.config import boolean, check_keys, names, quantity, resolve_input, table
+from covtool.metrics import nav_metrics
+from covtool.results import StudyResult
+from covtool.studies.common import (ARCMIN, case_validity, check_memory, discretize_chunked, FT, history_frame,
                      initial_covariance, load_truth, memory_estimate, noise_columns, progress_bar,
                      resource_provenance, steps_of, study_header, study_inputs, summary_row, time_grid,
                      truth_system)
-from .nav_covariance import load_trajectory, output_options
+from covtool.studies.nav_covariance import load_trajectory, output_options
 
 
 ZUPT_KEYS = {"interval", "duration", "rate", "sigma", "first"}
@@ -304,7 +304,7 @@ def order_memory(pure: bool, impact: bool = True):
     filter in turn, the truth transition under the filter's options and
     the per-source noise series (:data:`covtool.budget.COMPOSE_WORKSPACE`).
     """
-    from ..budget import COMPOSE_WORKSPACE
+    from covtool.budget import COMPOSE_WORKSPACE
 
     def memory(steps, truth, filters, dynamics):
         n = truth.n
@@ -495,8 +495,8 @@ def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None) -> pd.DataF
     each dropped block put back as filter states; ratios to the nominal
     and to filter A when it is in the run.
     """
-    from ..engine import System, events
-    from ..impact import impact_run
+    from covtool.engine import System, events
+    from covtool.impact import impact_run
 
     N = S.t.size - 1
     rep = sorted({int(np.argmin(np.abs(S.t - tr))) for tr in S.report_times})
