@@ -12,7 +12,7 @@ is linear in the triple (P0, Q, R).  Splitting
 
 and propagating each piece alone (the others zero) gives contributions
 ``P_b(t)`` that sum to the total ``P(t)`` up to round-off.  Every piece is a
-member of one batched run (:func:`covtool.engine.run_batch`), so the budget
+member of one batched run (:func:`covtool.lincov.batch.run_batch`), so the budget
 costs one pass with B = number of sources, not B runs.
 
 Sources (``resolution = "block"``):
@@ -27,7 +27,7 @@ Sources (``resolution = "block"``):
 * the ZUPT measurement noise R.
 
 ``resolution = "state"`` gives one initial source per state and one noise
-source per :class:`covtool.dynamics.NoiseSource`.
+source per :class:`covtool.lincov.dynamics.NoiseSource`.
 
 Pure numeric core (models and arrays in, arrays out).
 """
@@ -38,13 +38,13 @@ import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
-from covtool.discretize import per_source
-from covtool.covariance import symmetrize
-from covtool.dynamics import NoiseSource, attitude_errors
-from covtool.engine import System, run_batch, sandwich
+from covtool.lincov.batch import run_batch, System
+from covtool.lincov.dynamics import attitude_errors, NoiseSource, physical_nav
+from covtool.lincov.kalman import symmetrize
+from covtool.lincov.noise import MemberNoise
 from covtool.metrics import ned_position_covariance
+
 
 #: groups of the navigation block (seed 002 eq (14)), in reference-attitude quaternion components
 NAV_GROUPS = {
@@ -91,10 +91,6 @@ class Source:
     R: np.ndarray | None = None
 
 
-#: a grouped driving noise ``Q_c = G diag(psd) Gᵀ`` (the same object as a dynamics noise source)
-NoiseFactor = NoiseSource
-
-
 # ---------------------------------------------------------------------------
 # sources
 
@@ -104,7 +100,7 @@ def initial_groups(model, resolution: str = "block") -> dict[str, tuple]:
 
     Parameters
     ----------
-    model : covtool.model.spec.Model
+    model : covtool.lincov.model.spec.Model
     resolution : {"block", "state"}
 
     Returns
@@ -141,7 +137,7 @@ def split_initial(model, groups: dict, q0=None) -> tuple[list, np.ndarray | None
 
     Parameters
     ----------
-    model : covtool.model.spec.Model
+    model : covtool.lincov.model.spec.Model
     groups : dict of str to tuple of str
         From :func:`initial_groups`.
     q0 : array_like, shape (4,), optional
@@ -183,13 +179,13 @@ def split_initial(model, groups: dict, q0=None) -> tuple[list, np.ndarray | None
     return pieces, cross
 
 
-def noise_factors(model, noise, resolution: str = "block") -> list[NoiseFactor]:
+def noise_factors(model, noise, resolution: str = "block") -> list[NoiseSource]:
     """Group the truth's driving noises into budget sources.
 
     Parameters
     ----------
-    model : covtool.model.spec.Model
-    noise : list of covtool.dynamics.NoiseSource
+    model : covtool.lincov.model.spec.Model
+    noise : list of covtool.lincov.dynamics.NoiseSource
         The truth dynamics' noise sources (``ErrorDynamics.noise``).
     resolution : {"block", "state"}
         ``"block"``: the noises of one block's states form one source (ARW
@@ -197,7 +193,7 @@ def noise_factors(model, noise, resolution: str = "block") -> list[NoiseFactor]:
 
     Returns
     -------
-    list of NoiseFactor
+    list of NoiseSource
         Concatenating a block's columns keeps ``Σ G diag(psd) Gᵀ`` exact.
     """
     if resolution not in RESOLUTIONS:
@@ -211,7 +207,7 @@ def noise_factors(model, noise, resolution: str = "block") -> list[NoiseFactor]:
     for key, srcs in groups.items():
         G = np.concatenate([s.G for s in srcs], axis=2)
         psd = np.concatenate([s.psd for s in srcs], axis=1)
-        out.append(NoiseFactor(key, G, psd))
+        out.append(NoiseSource(key, G, psd))
     return out
 
 
@@ -220,9 +216,9 @@ def budget_sources(model, noise, q0, R=None, *, resolution: str = "block") -> tu
 
     Parameters
     ----------
-    model : covtool.model.spec.Model
+    model : covtool.lincov.model.spec.Model
         The truth model.
-    noise : list of covtool.dynamics.NoiseSource
+    noise : list of covtool.lincov.dynamics.NoiseSource
     q0 : array_like, shape (4,)
         Initial attitude.
     R : ndarray, shape (m, m), optional
@@ -232,7 +228,7 @@ def budget_sources(model, noise, q0, R=None, *, resolution: str = "block") -> tu
     Returns
     -------
     sources : list of Source
-    factors : list of NoiseFactor
+    factors : list of NoiseSource
         Indexed by ``Source.noise``.
     """
     groups = initial_groups(model, resolution)
@@ -253,114 +249,6 @@ def budget_sources(model, noise, q0, R=None, *, resolution: str = "block") -> tu
     if R is not None:
         sources.append(Source("ZUPT measurement noise", MEASUREMENT, ("dvN", "dvE", "dvD"), R=np.asarray(R, float)))
     return sources, factors
-
-
-# ---------------------------------------------------------------------------
-# discretisation and composition of the per-source noise
-
-
-def discretize_noise(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str = "",
-                     times=None) -> np.ndarray:
-    """Exact ``Q_d`` of each column of a low-rank ``Q_c``, any step.
-
-    :func:`covtool.discretize.per_source` (see there).
-
-    Returns
-    -------
-    ndarray, shape (N, k, n, n)
-    """
-    return per_source(F, G, psd, dt, what=what, times=times)
-
-
-def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100,
-                  blas_threads: int | None = 1) -> np.ndarray:
-    """Per-source noise composed over the event intervals.
-
-    Parameters
-    ----------
-    Phi, F : ndarray, shape (N, n, n)
-        Truth transition (of the study's discretisation) and dynamics.
-    factors : list of NoiseFactor
-    dt : float or ndarray, shape (N,)
-    ev : ndarray of int, shape (K+1,)
-        Event grid (:func:`covtool.engine.events`).
-    chunk : int
-        Steps discretised at once (bounds the memory).
-    blas_threads : int or None
-        BLAS thread limit, as :func:`covtool.engine.run_batch` (n ≤ 58
-        matrices gain nothing from more threads).
-
-    Returns
-    -------
-    ndarray, shape (J, K, n, n)
-        ``Q_{a→b},j = Σ_k Φ_{k+1→b} Q_k,j Φ_{k+1→b}ᵀ`` for each source j and
-        interval ``[ev_i, ev_{i+1})``, as :func:`covtool.engine.compose`
-        computes it for the total.
-    """
-    with threadpool_limits(limits=blas_threads, user_api="blas"):
-        return _compose_noise(Phi, F, factors, dt, ev, chunk)
-
-
-#: bytes the per-source series of :func:`compose_noise` may hold at once
-COMPOSE_WORKSPACE = 32e6
-#: (chunk, k, n, n)-sized stacks alive at once inside :func:`discretize_noise` and the reduction
-_STACKS = 6
-
-
-def _compose_noise(Phi, F, factors, dt, ev, chunk):
-    N, n, _ = Phi.shape
-    J = len(factors)
-    K = len(ev) - 1
-    out = np.zeros((J, K, n, n))
-    if J == 0:
-        return out
-    dt = np.broadcast_to(np.asarray(dt, float), (N,))
-    widths = [f.G.shape[2] for f in factors]
-    starts = np.r_[0, np.cumsum(widths)[:-1]]
-    G = np.concatenate([f.G for f in factors], axis=2)
-    psd = np.concatenate([f.psd for f in factors], axis=1)
-    acc = np.zeros((J, n, n))
-    i = 0
-    # the series' stacks are (chunk, k, n, n) and (chunk, k, n, terms): bound them by COMPOSE_WORKSPACE
-    chunk = max(1, min(chunk, int(COMPOSE_WORKSPACE // (_STACKS * 8 * G.shape[2] * n * n))))
-    for a in range(0, N, chunk):
-        b = min(N, a + chunk)
-        Qk = discretize_noise(F[a:b], G[a:b], psd[a:b], dt[a:b], what="error budget: per-source Q_d")   # (c, k, n, n)
-        Qj = np.add.reduceat(Qk, starts, axis=1)                              # (c, J, n, n)
-        for s in range(a, b):
-            acc = sandwich(Phi[s], acc) + Qj[s - a]
-            if s + 1 == ev[i + 1]:
-                out[:, i] = symmetrize(acc)
-                acc = np.zeros((J, n, n))
-                i += 1
-    return out
-
-
-class MemberNoise:
-    """Per-member truth noise for ``run_batch``, without copies.
-
-    Behaves like an array of shape ``(B, K, n, n)`` for the indexing
-    ``Q[:, i]`` the engine uses; member ``b`` takes ``arrays[b][i]`` or zero.
-
-    Parameters
-    ----------
-    arrays : list of (ndarray of shape (K, n, n)) or None
-    K, n : int
-    """
-
-    def __init__(self, arrays: list, K: int, n: int):
-        self.arrays = arrays
-        self.shape = (len(arrays), K, n, n)
-
-    def __getitem__(self, key):
-        if not (isinstance(key, tuple) and len(key) == 2 and key[0] == slice(None)):
-            raise IndexError("MemberNoise supports Q[:, i] only")
-        i = key[1]
-        out = np.zeros((self.shape[0],) + self.shape[2:])
-        for b, arr in enumerate(self.arrays):
-            if arr is not None:
-                out[b] = arr[i]
-        return out
 
 
 # ---------------------------------------------------------------------------
@@ -428,7 +316,7 @@ def run_budget(truth: System, sources: list, Qn: np.ndarray, P0: np.ndarray, H: 
         is not finite and symmetric, or not PSD (every source but the
         cross-covariance piece, which may be indefinite, and the total),
         naming the source, the time and the state
-        (:func:`covtool.engine.run_batch`).
+        (:func:`covtool.lincov.batch.run_batch`).
     """
     n = truth.n
     m = H.shape[0]
@@ -482,28 +370,6 @@ def nav_variances(P: np.ndarray, lat, h, q) -> dict:
     Pn = ned_position_covariance(P[..., :3, :3], lat, h)
     Pphi = attitude_errors(P[..., 6:10, 6:10], q)
     return {"horizontal": Pn[..., 0, 0] + Pn[..., 1, 1], "altitude": Pn[..., 2, 2], "azimuth": Pphi[..., 2, 2]}
-
-
-def physical_nav(P: np.ndarray, q) -> np.ndarray:
-    """Navigation block in physical coordinates (δq → tilt, azimuth).
-
-    Parameters
-    ----------
-    P : ndarray, shape (..., n_rec, 10, 10)
-    q : ndarray, shape (n_rec, 4)
-
-    Returns
-    -------
-    ndarray, shape (..., n_rec, 9, 9)
-        Position (δL, δl, δh), velocity, then (north tilt, east tilt, azimuth).
-    """
-    from covtool.nav.attitude import attitude_error_matrix
-
-    q = np.asarray(q, float)
-    T = np.zeros(q.shape[:1] + (9, 10))
-    T[:, :6, :6] = np.eye(6)
-    T[:, 6:, 6:] = attitude_error_matrix(q)
-    return T @ P @ np.swapaxes(T, -1, -2)
 
 
 def relative_residual(P_sum: np.ndarray, P_ref: np.ndarray, q) -> float:

@@ -74,7 +74,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_models(args) -> int:
-    from covtool.model.library import list_models
+    from covtool.io.library import list_models
 
     df = list_models(args.dir)
     print(df.to_string(index=False))
@@ -82,11 +82,11 @@ def _cmd_models(args) -> int:
 
 
 def _cmd_show(args) -> int:
-    from covtool.model.library import load_model_by_name
+    from covtool.io.library import load_model_by_name
 
     model = load_model_by_name(args.model, args.dir)
     if args.markdown:
-        from covtool.model.library import markdown_table
+        from covtool.io.library import markdown_table
         print(markdown_table(model), end="")
         return 0
     print(f"{model.name}: {model.n} states, {model.description} [{model.path}]\n")

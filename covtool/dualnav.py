@@ -11,7 +11,7 @@ misalignment between the IMUs is compensated.  This module
   mounting (seed 001 §2.3.2);
 * forms the navigation difference main − KIMU (:func:`nav_difference`);
 * predicts its covariance by linear covariance analysis: the two INS error
-  states, each from its grade's :class:`~covtool.model.spec.Model`,
+  states, each from its grade's :class:`~covtool.lincov.model.spec.Model`,
   propagated independently along the flight with covtool's error dynamics,
   correlated only through the shared input heading
   (:func:`difference_model`);
@@ -48,14 +48,14 @@ from threadpoolctl import threadpool_limits
 from covtool.nav import earth
 from covtool.nav import attitude as quat
 from covtool.nav import strapdown as sd
-from covtool.discretize import block_triangular, is_block_triangular, taylor
-from covtool.covariance import (check_covariance, check_finite, filter_update, innovation_covariance, kalman_gain,
-                         symmetrize, time_text)
-from covtool.dynamics import Context, error_dynamics
+from covtool.lincov.discretize import block_triangular, is_block_triangular, taylor
+from covtool.lincov.kalman import (check_covariance, check_finite, filter_update, innovation_covariance,
+                                   kalman_gain, symmetrize, time_text)
+from covtool.lincov.dynamics import Context, error_dynamics
 from covtool.errors import InputError, NumericalError
 from covtool.nav.imu.simulator import ImuRecord
 from covtool.validation.sensor_errors import SensorErrors
-from covtool.model.spec import Model
+from covtool.lincov.model.spec import Model
 
 __all__ = [
     "DIFF_NAMES", "COMPONENTS", "AXES", "GAP_POLICIES", "GSensitiveErrors", "triad_alignment",
@@ -560,7 +560,7 @@ def _discretize(F, Qc, dt, Fc=None, chunk=200, nav=10):
     driven by sensor states that are random constants, random walks or
     first-order Markov (``D`` diagonal, independent noise).  The faults are
     more random constants (zero rows, no noise), so the system augmented
-    with them keeps that form and :func:`covtool.discretize.block_triangular`
+    with them keeps that form and :func:`covtool.lincov.discretize.block_triangular`
     gives ``Φ``, ``Q_d`` and the fault response ``Γ = ∫_0^Δ Φ(Δ−u) F_c du``
     (the fault columns of the augmented ``Φ``) exactly, with its products
     done by blocks.  Any other structure falls back to the exact
@@ -629,7 +629,7 @@ def difference_model(main: ImuLinearization, kimu: ImuLinearization, *, t_epochs
 
     Notes
     -----
-    Each block is ``ẋ_i = F_i(t) x_i + w_i`` (:func:`covtool.dynamics.error_dynamics`
+    Each block is ``ẋ_i = F_i(t) x_i + w_i`` (:func:`covtool.lincov.dynamics.error_dynamics`
     along the IMU's own context), discretised by Van Loan per step and
     chained over the epoch interval.  The fault of candidate ``(i, j)``
     adds the column ``½ Q(q) e_i ⟨ω_i f_j⟩`` to the KIMU's quaternion rows
@@ -779,10 +779,10 @@ class Whitener:
     estimate; in the linear model this leaves the innovations unchanged, and
     it keeps the two solutions close to their linearisation so that the
     second-order terms (``½ φ×(φ×f)`` at 10–20 g) stay negligible.
-    Gain and Joseph-form update by :func:`covtool.covariance.kalman_gain`
-    and :func:`~covtool.covariance.filter_update`; the model (P0, Φ, Q_d,
+    Gain and Joseph-form update by :func:`covtool.lincov.kalman.kalman_gain`
+    and :func:`~covtool.lincov.kalman.filter_update`; the model (P0, Φ, Q_d,
     R) is checked on entry and the covariance after every update and
-    prediction (:func:`~covtool.covariance.check_covariance`), naming the
+    prediction (:func:`~covtool.lincov.kalman.check_covariance`), naming the
     epoch time and the joint state.
 
     Raises

@@ -70,5 +70,5 @@ class FlaggedCaseWarning(CovtoolWarning):
     """Cases of a sweep or grid failed the covariance guard and were flagged.
 
     Their numbers are NaN and the ``status`` column gives the guard's
-    message (:func:`covtool.covariance.check_covariance`).
+    message (:func:`covtool.lincov.kalman.check_covariance`).
     """

@@ -48,7 +48,7 @@ import timeit
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from covtool import discretize
+from covtool.lincov import discretize
 from covtool.errors import InputError
 
 #: Seed 002 Table 4: time of one filter cycle on an 8 MHz 8086/8087. [s]
@@ -205,7 +205,7 @@ def taylor_terms(F, Qc, dt) -> int:
     """Number of terms covtool's adaptive eq (6b)–(6d) series takes.
 
     The most over the steps of the stack, from
-    :func:`covtool.discretize.taylor_terms` (the series stops when its
+    :func:`covtool.lincov.discretize.taylor_terms` (the series stops when its
     tail is provably below 2⁻⁵³ of the sum).
 
     Parameters
@@ -223,7 +223,7 @@ def taylor_terms(F, Qc, dt) -> int:
     ------
     InputError
         A step the series only reaches by scaling and squaring (``νΔt`` above
-        :data:`covtool.discretize.THETA`): one on-board cycle of
+        :data:`covtool.lincov.discretize.THETA`): one on-board cycle of
         :func:`cycle_flops` has no squarings, so its count would be wrong;
         give the number of terms explicitly.
     """

@@ -2,7 +2,7 @@
 
 All inputs SI; outputs SI unless a name says otherwise.  A metric of a
 covariance that is not finite, symmetric and PSD
-(:func:`covtool.covariance.covariance_status`) is NaN, never 0.
+(:func:`covtool.lincov.kalman.covariance_status`) is NaN, never 0.
 
 Domain of the linear error model
 --------------------------------
@@ -31,8 +31,8 @@ import numpy as np
 from scipy.special import erf
 
 from covtool.nav import earth
-from covtool.covariance import covariance_status, running_scale, symmetrize
-from covtool.dynamics import attitude_errors
+from covtool.lincov.kalman import covariance_status, running_scale, symmetrize
+from covtool.lincov.dynamics import attitude_errors
 
 #: probable-error factor: P(|x| < 0.6745 σ) = 0.5 for a normal variable
 PE_FACTOR = 0.6744897501960817
@@ -202,7 +202,7 @@ def nav_metrics(P: np.ndarray, lat, h, q, distance=None) -> dict:
         a σ swinging through zero is not taken for round-off trouble).
     """
     P = np.asarray(P, float)[:, :10, :10]
-    # δq0…δq3 scaled together, each state by the largest σ it has had (covtool.covariance.running_scale):
+    # δq0…δq3 scaled together, each state by the largest σ it has had (covtool.lincov.kalman.running_scale):
     # the upstream guard has judged every covariance by its own σ; this catches what it did not see
     P, valid = _valid(P, [np.arange(6, 10)], running_scale(P))
     Pn = ned_position_covariance(P[:, :3, :3], lat, h)

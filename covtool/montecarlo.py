@@ -35,7 +35,7 @@ because every earlier estimate was fed back (eq (9)).
   ``ĉ`` of each sensor state its filter carries (:class:`SensorFeedback`);
   an update adds ``x̂_s`` to ``ĉ``.  Every IMU sample is then compensated
   through the same block sensitivities that inject the errors
-  (:mod:`covtool.model.blocks`, :class:`covtool.validation.sensor_errors.SensorErrors`)::
+  (:mod:`covtool.lincov.model.blocks`, :class:`covtool.validation.sensor_errors.SensorErrors`)::
 
       Δθ_c = Δθ − h S_g(f̄, ω̄) ĉ_g,     Δv_c = Δv − h S_a(f̄, ω̄) ĉ_a
              − h C_n^b diag(g, g, −1) ĉ_grav − Δĉ_AD
@@ -91,10 +91,11 @@ from scipy import stats
 from covtool.nav import earth
 from covtool.nav import attitude as quat
 from covtool.nav import strapdown as sd
-from covtool.covariance import check_system, check_covariance, filter_update, kalman_gain, symmetrize, time_text
+from covtool.lincov.kalman import (check_system, check_covariance, filter_update, kalman_gain, symmetrize,
+                                   time_text)
 from covtool.errors import NumericalError
-from covtool.filters import zupt_matrices
-from covtool.model.blocks import BLOCK_KINDS, gravity_sensitivity
+from covtool.lincov.reduced import zupt_matrices
+from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
 
 __all__ = [
     "QUANTITIES", "REDUCED_NAV", "FeedbackFilter", "SensorFeedback", "Nees", "EnsembleCase", "EnsembleSums",
@@ -165,13 +166,13 @@ class FeedbackFilter:
         ------
         NumericalError
             An input (P0, Φ_f, Q_f, R_f) or a covariance of the history is
-            not finite, symmetric and PSD (:func:`covtool.covariance.check_covariance`);
+            not finite, symmetric and PSD (:func:`covtool.lincov.kalman.check_covariance`);
             the message names the filter, the time and the state.
 
         Notes
         -----
         The operations are those of
-        :func:`covtool.covariance.propagate_with_filter`, in the same order,
+        :func:`covtool.lincov.reference.propagate_with_filter`, in the same order,
         so ``P`` and ``gains`` equal its ``P_filter`` and ``gains`` bit for bit.
         """
         names = tuple(names)
@@ -223,7 +224,7 @@ class SensorFeedback:
 
     Parameters
     ----------
-    model : covtool.model.spec.Model
+    model : covtool.lincov.model.spec.Model
         The truth model (states, blocks, processes).
     names : sequence of str
         The filter's states; the non-navigation ones are fed back here.
@@ -605,7 +606,7 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
         Measurement noise (one draw per update, shared by the cases).
     measurement_noise : bool
         False: noise-free ZUPTs (deterministic checks).
-    model : covtool.model.spec.Model
+    model : covtool.lincov.model.spec.Model
         The truth model (required when a filter feeds back sensor states or
         NEES involves them).
     record_errors : bool

@@ -13,7 +13,7 @@ maps the function over the chunks and yields each result as it finishes:
 
 Every backend runs a chunk with the BLAS pool limited to one thread
 (:func:`call_limited`): the engine's matrices are medium-sized and scale
-across processes, not BLAS threads (see :func:`covtool.engine.run_batch`).
+across processes, not BLAS threads (see :func:`covtool.lincov.batch.run_batch`).
 The same limit everywhere also makes results bitwise identical across
 backends.
 

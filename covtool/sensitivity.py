@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.polynomial import polynomial as npoly
 
-from covtool.engine import System, run_batch
+from covtool.lincov.batch import System, run_batch
 
 #: parameters a sweep may scale: the filter's P_f(0), Q_f and R_f
 PARAMETERS = ("P0", "Q", "R")
@@ -168,14 +168,14 @@ def run_sweep(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
     on_invalid : {"flag", "raise"}
         A case whose covariance fails the guard is flagged (its records NaN,
         ``status`` says why) and the sweep goes on (default), or raises
-        :class:`covtool.errors.NumericalError` (:func:`covtool.engine.run_batch`).
+        :class:`covtool.errors.NumericalError` (:func:`covtool.lincov.batch.run_batch`).
     label : str
         Names the sweep in messages; ``names``, ``filter_names`` and
         ``times`` (grid times [s]) name the states and the time.
 
     Returns
     -------
-    covtool.engine.BatchResult
+    covtool.lincov.batch.BatchResult
         ``P_truth`` has shape (B, n_rec, k, k) with B = ``cases.n_cases``;
         ``status`` names the flagged cases.
 

@@ -31,8 +31,8 @@ from covtool.nav import earth
 from covtool.nav import attitude as quat
 from covtool import dualnav as dn
 from covtool.nav import strapdown as sd
-from covtool.discretize import van_loan
-from covtool.dynamics import Context, error_dynamics
+from covtool.lincov.discretize import van_loan
+from covtool.lincov.dynamics import Context, error_dynamics
 from covtool.errors import InputError, StudyFileError, TrajectoryError
 from covtool.nav.trajectory.flight import (FlightProfile, Segment, VibrationInterval, VibrationTone, flight,
                                            quadrature_nodes)

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import covtool
-from covtool.covariance import propagate_with_filter
-from covtool.engine import System, compose, events, run_batch, sandwich
-from covtool.filters import zupt_matrices
+from covtool.lincov.reference import propagate_with_filter
+from covtool.lincov.batch import System, compose, events, run_batch, sandwich
+from covtool.lincov.reduced import zupt_matrices
 from covtool.nav.attitude import attitude_error_matrix
 
 

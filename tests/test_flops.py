@@ -15,8 +15,8 @@ import numpy as np
 import pytest
 
 from covtool import flops
-from covtool.covariance import filter_update, kalman_gain
-from covtool.discretize import taylor
+from covtool.lincov.kalman import filter_update, kalman_gain
+from covtool.lincov.discretize import taylor
 
 
 class Counter:
@@ -178,7 +178,7 @@ def test_counted_cycle_is_the_numpy_cycle(form):
 def test_onboard_cycle_is_seed002_eq6_to_8(form):
     """onboard_cycle is seed 002 eq (6a)-(8) as covtool computes it.
 
-    Eq (6b)-(6d) by covtool.discretize.taylor, eq (6a), eq (7) and
+    Eq (6b)-(6d) by covtool.lincov.discretize.taylor, eq (6a), eq (7) and
     eq (8) or Joseph by covtool.covariance.
     """
     F, Qc, dt, P, H, R = _problem(7, 3, seed=5)
@@ -209,7 +209,7 @@ def test_taylor_terms_is_the_adaptive_series_length():
     adaptive sum is formed as Φ − I, then I added); a step
     that needs squaring is refused (one on-board cycle has no squarings).
     """
-    from covtool.discretize import THETA, taylor_terms
+    from covtool.lincov.discretize import THETA, taylor_terms
     from covtool.errors import InputError
 
     rng = np.random.default_rng(2)

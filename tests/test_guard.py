@@ -1,6 +1,6 @@
 """One covariance guard on every path; NaN, never 0; validity warnings (issue 9, cases 4-5, acceptance 3).
 
-Every covariance covtool produces passes :func:`covtool.covariance.check_covariance`
+Every covariance covtool produces passes :func:`covtool.lincov.kalman.check_covariance`
 (finite, symmetric, PSD within ``PSD_TOL`` on the correlation matrix); a metric
 of a covariance that fails it is NaN; a result outside the linear error
 model's domain is flagged in the summary and warned about, with its time.
@@ -18,13 +18,13 @@ import pytest
 
 import covtool
 from covtool.nav import earth
-from covtool.covariance import (PSD_TOL, check_covariance, covariance_status, propagate, propagate_with_filter,
-                                scale_groups)
-from covtool.engine import System, events, run_batch
+from covtool.lincov.kalman import PSD_TOL, check_covariance, covariance_status, scale_groups
+from covtool.lincov.reference import propagate, propagate_with_filter
+from covtool.lincov.batch import System, events, run_batch
 from covtool.errors import FlaggedCaseWarning, InputError, NumericalError, StudyFileError, ValidityWarning
 from covtool.metrics import (ALTITUDE_LIMIT, ATTITUDE_LIMIT, POSITION_LIMIT, cep, cep_approx, first_invalid,
                              nav_metrics, validity, validity_text)
-from covtool.model.spec import Model
+from covtool.lincov.model.spec import Model
 
 ROOT = Path(__file__).resolve().parents[1]
 G0 = 9.80665
@@ -137,7 +137,7 @@ def test_pure_propagation_is_judged_at_the_scale_its_states_have_had():
     the largest σ the state has had (1) it is round-off, and the propagation passes the guard.
     The entries themselves match the closed form to 1e-12.
     """
-    from covtool.covariance import running_scale
+    from covtool.lincov.kalman import running_scale
     N = 400
     R = np.array([[np.cos(1.0), -np.sin(1.0)], [np.sin(1.0), np.cos(1.0)]])
     Phi = np.broadcast_to(R, (N, 2, 2)).copy()
@@ -607,7 +607,7 @@ def test_trade_grid_flags_a_diverging_case(monkeypatch):
 # --------------------------------------------------------------------------
 
 def test_kalman_gain_refuses_a_singular_or_non_finite_innovation_covariance():
-    from covtool.covariance import kalman_gain
+    from covtool.lincov.kalman import kalman_gain
     H = np.array([[1.0, 0.0]])
     np.testing.assert_allclose(kalman_gain(np.eye(2), H, np.eye(1)), [[0.5], [0.0]], rtol=1e-15)   # P Hᵀ/(1+1)
     with pytest.raises(NumericalError, match=r"^innovation covariance H P Hᵀ \+ R is singular$"):
@@ -658,7 +658,7 @@ def test_engine_refuses_bad_options():
 
 
 def test_check_finite_names_the_matrix_time_and_row():
-    from covtool.covariance import check_finite
+    from covtool.lincov.kalman import check_finite
     A = np.zeros((3, 2, 2))
     A[2, 1, 0] = np.inf
     with pytest.raises(NumericalError, match=r"^truth: Φ of the step at t = 20\.0 s: non-finite entry \(inf\) in the "

@@ -21,14 +21,14 @@ import nonlinear_reference as nr
 from covtool.nav import earth
 from covtool.nav import attitude as quat
 from covtool.nav import strapdown as sd
-from covtool.dynamics import error_dynamics
+from covtool.lincov.dynamics import error_dynamics
 from covtool.errors import ModelFileError
 from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
 from covtool.nav.imu.vibration import RandomVibration, Tone, Vibration, right_jacobian_apply
 from covtool.validation.sensor_errors import SensorErrors, grade_simulator, sample_states
 from covtool.io.imu_grade import dump_imu_grade, imu_grade_from_dict, list_imu_grades, load_imu_grade
-from covtool.model.library import load_model_by_name
-from covtool.model.loader import model_from_dict
+from covtool.io.library import load_model_by_name
+from covtool.io.model_file import model_from_dict
 from covtool.studies.common import midpoint_context
 from covtool.nav.trajectory.profiles import land_vehicle, static
 from covtool.units import parse_quantity

@@ -24,11 +24,11 @@ import tomli_w
 import covtool
 from covtool.cli import main
 from covtool.errors import InputError, ModelFileError, StudyFileError, TrajectoryError
-from covtool.filters import filters_from_dict
+from covtool.io.filters import filters_from_dict
 from covtool.io.imu_grade import imu_grade_from_dict, load_imu_grade
 from covtool.io import config
-from covtool.model.library import resolve_model_path
-from covtool.model.loader import load_model, model_from_dict
+from covtool.io.library import resolve_model_path
+from covtool.io.model_file import load_model, model_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 SDINS = ROOT / "models" / "sdins58.toml"

@@ -35,7 +35,7 @@ import pytest
 import nonlinear_reference as nr
 from covtool.nav import earth
 from covtool.nav import attitude as quat
-from covtool.model.loader import load_model
+from covtool.io.model_file import load_model
 from covtool.studies.common import time_grid, truth_system
 from covtool.nav.trajectory.profiles import land_vehicle
 

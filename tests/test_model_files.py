@@ -11,7 +11,7 @@ import pytest
 
 from covtool.cli import main
 from covtool.errors import ModelFileError
-from covtool.model.loader import dump_model, load_model, model_from_dict
+from covtool.io.model_file import dump_model, load_model, model_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 SDINS = ROOT / "models" / "sdins58.toml"
@@ -151,6 +151,6 @@ def test_ad_reset_states_take_sigma_from_board_parameters(decl):
 
 def test_truth_model_doc_is_in_step_with_the_model_file():
     """docs/truth_model.md carries the generated state table of the current model file."""
-    from covtool.model.library import markdown_table
+    from covtool.io.library import markdown_table
     doc = (ROOT / "docs" / "truth_model.md").read_text()
     assert markdown_table(load_model(SDINS)) in doc, "regenerate: covtool show sdins58 --markdown"

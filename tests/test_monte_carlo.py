@@ -19,9 +19,9 @@ import pytest
 
 import covtool
 from covtool import montecarlo as mc
-from covtool.covariance import propagate_with_filter
+from covtool.lincov.reference import propagate_with_filter
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
+from covtool.lincov.reduced import zupt_matrices
 from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
 from covtool.validation.sensor_errors import SensorErrors, sample_states
 from covtool.io.writers import write_outputs

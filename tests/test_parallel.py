@@ -4,7 +4,7 @@ A damaged store is verified, reported and recomputed; a second run into the
 same OUT is refused; SIGINT/SIGTERM stop the workers promptly and a killed
 parent leaves no worker behind (the store-level units are in test_store.py).
 
-Also the engine's rank-m update forms (covtool.engine._joseph) against the
+Also the engine's rank-m update forms (covtool.lincov.batch._joseph) against the
 product forms they replace.
 """
 
@@ -31,8 +31,8 @@ import pytest
 import tomli_w
 
 from covtool.cli import main
-from covtool.covariance import propagate_with_filter
-from covtool.engine import System, _joseph, events, run_batch
+from covtool.lincov.reference import propagate_with_filter
+from covtool.lincov.batch import System, _joseph, events, run_batch
 from covtool.parallel import (LOCK_NAME, DaskBackend, ProcessBackend, ResultStore, SerialBackend, StoreError,
                               WorkerError, _record_hash, call_limited, fingerprint, make_backend, run_chunks)
 

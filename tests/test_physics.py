@@ -38,10 +38,10 @@ import numpy as np
 import pytest
 
 from covtool.nav import earth
-from covtool.covariance import propagate
-from covtool.discretize import van_loan
-from covtool.dynamics import Context, error_dynamics
-from covtool.model.loader import load_model
+from covtool.lincov.reference import propagate
+from covtool.lincov.discretize import van_loan
+from covtool.lincov.dynamics import Context, error_dynamics
+from covtool.io.model_file import load_model
 from covtool.studies.common import time_grid
 from covtool.nav.trajectory.profiles import static
 

@@ -3,7 +3,7 @@
 Seed 002 §3.2.
 
 Oracles: synthetic curves with known coefficients for the fit; the stepwise
-reference :func:`covtool.covariance.propagate_with_filter` with the same
+reference :func:`covtool.lincov.reference.propagate_with_filter` with the same
 scaled P_f(0), Q_f, R_f for the batched sweep; the flagship's own filter
 discretisation (declared Taylor series) for the nominal point.
 """
@@ -19,10 +19,10 @@ import pandas as pd
 import pytest
 from threadpoolctl import threadpool_limits
 
-from covtool.covariance import propagate_with_filter
-from covtool.engine import System, events
+from covtool.lincov.reference import propagate_with_filter
+from covtool.lincov.batch import System, events
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
+from covtool.lincov.reduced import zupt_matrices
 from covtool.io.workbook import sheet_title
 from covtool.io.writers import write_outputs
 from covtool.metrics import nav_metrics
@@ -267,7 +267,7 @@ def test_nominal_point_equals_the_flagship_run(short, flagship, case):
 def test_filter_a_reuses_the_truth_discretisation():
     """Filter A takes the truth's Φ, Q_d; that shortcut is right only if
     discretising A's own F, Q_c by its declared method gives them again."""
-    from covtool.discretize import discretize
+    from covtool.lincov.discretize import discretize
     from covtool.studies.zupt import setup
 
     with threadpool_limits(limits=1, user_api="blas"):

@@ -4,7 +4,7 @@ Oracles: the closed-form coning and sculling residuals of the n-sample +
 1-previous algorithm (Ignagni 1996; Roscoe 2001), exact error-free IMU data
 (the navigation errors are then the algorithm's own), the Schuler response
 to an accelerometer bias, and covtool's linear error model (ẋ = F x from
-covtool.dynamics) for injected sensor biases.
+covtool.lincov.dynamics) for injected sensor biases.
 """
 
 from __future__ import annotations
@@ -21,10 +21,10 @@ from scipy.special import j1
 from covtool.nav import earth
 from covtool.nav import attitude as quat
 from covtool.nav import strapdown as sd, coning
-from covtool.dynamics import error_dynamics
+from covtool.lincov.dynamics import error_dynamics
 from covtool.nav.imu.simulator import ImuRecord, ImuSimulator, ideal_increments
 from covtool.validation.sensor_errors import SensorErrors
-from covtool.model.loader import model_from_dict
+from covtool.io.model_file import model_from_dict
 from covtool.studies.common import midpoint_context
 from covtool.nav.trajectory.profiles import land_vehicle, static
 from covtool.units import parse_quantity
@@ -389,7 +389,7 @@ def _small_model(kinds):
 
 
 def _linear_response(model, traj, x0, T, dt=0.5):
-    """x(T) = Π expm(F_k dt) x0 with covtool.dynamics' F at step mid-points."""
+    """x(T) = Π expm(F_k dt) x0 with covtool.lincov.dynamics' F at step mid-points."""
     t = np.arange(0.0, T + 0.5 * dt, dt)
     F = error_dynamics(model, midpoint_context(traj, t)).F
     x = np.array(x0, dtype=float)

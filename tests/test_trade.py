@@ -11,9 +11,9 @@ import pytest
 import tomli_w
 
 import covtool
-from covtool.covariance import propagate_with_filter
+from covtool.lincov.reference import propagate_with_filter
 from covtool.errors import InputError, StudyFileError
-from covtool.filters import zupt_matrices
+from covtool.lincov.reduced import zupt_matrices
 from covtool.metrics import nav_metrics
 from covtool.studies.common import ARCMIN, FT, load_truth
 from covtool.studies.trade import TradePlan, grade_truth, run

@@ -185,7 +185,7 @@ def _package_dirs() -> list[tuple[Path, str]]:
     """Directories no output may go into: the package and the model library."""
     dirs = [(Path(__file__).resolve().parents[1], "the covtool package")]
     with contextlib.suppress(Exception):
-        from covtool.model.library import default_model_dir
+        from covtool.io.library import default_model_dir
 
         dirs.append((Path(default_model_dir()).resolve(), "the model library"))
     return dirs

@@ -19,8 +19,8 @@ from covtool.errors import ModelFileError
 from covtool.io.config import (as_list, check_keys, is_library_name, LIMITS, load_toml, quantity,
                                resolve_input, string, table as as_table)
 from covtool.io.names import check_name
-from covtool.model.loader import model_from_dict
-from covtool.model.spec import Model
+from covtool.io.model_file import model_from_dict
+from covtool.lincov.model.spec import Model
 
 __all__ = [
     "ImuGrade", "load_imu_grade", "imu_grade_from_dict", "dump_imu_grade", "list_imu_grades",
@@ -160,11 +160,11 @@ class ImuGrade:
 def imu_grade_dir(directory=None) -> Path:
     """The grade library, ``<models>/imu``.
 
-    ``<models>`` is :func:`covtool.model.library.default_model_dir`.
+    ``<models>`` is :func:`covtool.io.library.default_model_dir`.
     """
     if directory is not None:
         return Path(directory)
-    from covtool.model.library import default_model_dir
+    from covtool.io.library import default_model_dir
 
     return default_model_dir() / "imu"
 

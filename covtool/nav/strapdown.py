@@ -7,7 +7,7 @@ array carries a leading run axis ``M``, so one :func:`step` advances all
 Monte-Carlo runs at once.
 
 Conventions are those of :mod:`covtool` (SI, NED, ``q`` scalar first and
-body→NED) and of the linear error model (:mod:`covtool.dynamics`): error =
+body→NED) and of the linear error model (:mod:`covtool.lincov.dynamics`): error =
 computed − true, position errors ``(δL, δl, δh)``, velocity ``δv^n`` and the
 additive quaternion error ``δq = q̂ − q`` (seed 002, eq (1)), in the state
 order of seed 002, eq (14) (:data:`NAV_STATES`).

@@ -49,11 +49,12 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.budget import (ERRORS, MEASUREMENT, RESOLUTIONS, compose_noise, budget_sources, nav_variances,
-                      relative_residual, run_budget)
-from covtool.engine import System, events, run_batch
+from covtool.budget import (ERRORS, MEASUREMENT, RESOLUTIONS, budget_sources, nav_variances,
+                            relative_residual, run_budget)
+from covtool.lincov.noise import compose_noise
+from covtool.lincov.batch import System, events, run_batch
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
+from covtool.lincov.reduced import zupt_matrices
 from covtool.io.config import check_keys, choice, integer, names, table
 from covtool.metrics import cep, nav_metrics, ned_position_covariance, validity_text
 from covtool.results import StudyResult
@@ -202,7 +203,7 @@ def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec,
     case : str
         A filter name, or ``"pure_ins"`` (no updates; the measurement
         source is left out).
-    truth : covtool.engine.System
+    truth : covtool.lincov.batch.System
         Truth Φ, Q_d composed on the event grid of ``rec`` and the updates.
     sources : list of covtool.budget.Source
     Qn : ndarray, shape (J, K, n, n)

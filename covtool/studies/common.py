@@ -13,16 +13,16 @@ import numpy as np
 import pandas as pd
 
 from covtool.nav import earth, attitude as quat
-from covtool.discretize import discretize
-from covtool.dynamics import Context, error_dynamics, NavOptions
+from covtool.lincov.discretize import discretize
+from covtool.lincov.dynamics import Context, error_dynamics, NavOptions
 from covtool.errors import InputError, StudyFileError, UnitError, ValidityWarning
 from covtool.io.config import (check_keys, choice, file_sha256, names, number, quantity, quantity_list, resolve_input,
                          string, table)
 from covtool.io.names import check_study_name
-from covtool.covariance import check_covariance, check_system
+from covtool.lincov.kalman import check_covariance, check_system
 from covtool.metrics import first_invalid, nav_metrics, validity, validity_text
-from covtool.model.library import load_model_by_name
-from covtool.model.spec import Model
+from covtool.io.library import load_model_by_name
+from covtool.lincov.model.spec import Model
 from covtool.units import from_si, parse_quantity
 
 FT = 0.3048
@@ -78,7 +78,7 @@ def load_truth(decl: dict, where: str, base_dir) -> Model:
     ModelFileError
         The model file itself is invalid or missing.
     """
-    from covtool.model.loader import _PROCESS_KEYS, _RW_DIM
+    from covtool.io.model_file import _PROCESS_KEYS, _RW_DIM
 
     tr = table(decl.get("truth", {}), f"{where}: [truth]", StudyFileError)
     check_keys(tr, {"model", "only", "override", "arw", "vrw"}, f"{where}: [truth]", StudyFileError)
@@ -181,8 +181,8 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
     whole grid; change it together with :func:`truth_system`,
     :func:`discretize_chunked`,
     :meth:`covtool.studies.zupt.ZuptSetup.filter_system`,
-    :func:`covtool.covariance.propagate` and
-    :func:`~covtool.covariance.propagate_with_filter`.
+    :func:`covtool.lincov.reference.propagate` and
+    :func:`~covtool.lincov.reference.propagate_with_filter`.
 
     Parameters
     ----------

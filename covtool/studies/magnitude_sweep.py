@@ -38,9 +38,9 @@ Study file::
 How it is computed: the truth Φ and F do not depend on the magnitudes, and
 the truth P0, the truth noise (gravity's Markov driving noise ∝ σ²), the
 filters' P_f(0) and their equivalent noise (∝ P0) are linear in the swept
-variances.  Each noise source is composed once (:func:`covtool.budget.compose_noise`)
+variances.  Each noise source is composed once (:func:`covtool.lincov.noise.compose_noise`)
 and every sweep point is a member of one batched engine call per filter
-(:func:`covtool.engine.run_batch`) with its own combination.
+(:func:`covtool.lincov.batch.run_batch`) with its own combination.
 """
 
 from __future__ import annotations
@@ -50,11 +50,12 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.budget import compose_noise
-from covtool.engine import System, events, run_batch
+from covtool.lincov.noise import compose_noise
+from covtool.lincov.batch import System, events, run_batch
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
-from covtool.impact import CombinedNoise, _compose_phi, _factor, check_members
+from covtool.lincov.reduced import zupt_matrices
+from covtool.lincov.noise import CombinedNoise, compose_transition, restricted_noise
+from covtool.lincov.impact import check_members
 from covtool.io.config import check_keys, quantity
 from covtool.metrics import nav_metrics
 from covtool.results import StudyResult
@@ -151,7 +152,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     own = [src for src in S.dyn.noise if src.name in names_sw]
     rest = [src for src in S.dyn.noise if src.name not in names_sw]
     allrows = np.arange(truth.n)
-    tfac = [_factor("rest", rest, allrows)] + [_factor(src.name, [src], allrows) for src in own]
+    tfac = [restricted_noise("rest", rest, allrows)] + [restricted_noise(src.name, [src], allrows) for src in own]
     Qt = compose_noise(S.Phi, S.dyn.F, tfac, dt, ev)
     tcoef = np.ones((B, len(tfac)))
     for k, src in enumerate(own, start=1):
@@ -166,10 +167,10 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             dyn = S._dyn_cache.get(_key(fm.spec.options), S.dyn)
             fown = [src for src in dyn.noise if src.name in names_sw]
             frest = [src for src in dyn.noise if src.name not in names_sw]
-            fac = [_factor("rest", frest, kidx)] + [_factor(src.name, [src], kidx) for src in fown]
+            fac = [restricted_noise("rest", frest, kidx)] + [restricted_noise(src.name, [src], kidx) for src in fown]
             coef_idx = [None] + [ix[src.name] for src in fown]
             for src in fm.ewn_noise:
-                fac.append(_factor(f"ewn {src.name}", [src], np.arange(src.G.shape[1])))
+                fac.append(restricted_noise(f"ewn {src.name}", [src], np.arange(src.G.shape[1])))
                 coef_idx.append(ix[src.name])
             QF = compose_noise(Phi_f, fm.F, fac, dt, ev)
             fcoef = np.ones((B, len(fac)))
@@ -185,7 +186,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             Pf0 = sk[:, :, None] * P0n[None] * sk[:, None, :]
             for nm, a in fm.ewn_absorb.items():
                 Pf0 += (scale[:, ix[nm]] * sig[ix[nm]])[:, None, None] ** 2 * np.outer(a, a)[None]
-            fsys = System(ev, _compose_phi(Phi_f, ev), np.zeros((len(ev) - 1, 0, 0)))
+            fsys = System(ev, compose_transition(Phi_f, ev), np.zeros((len(ev) - 1, 0, 0)))
             res = run_batch(tsys, P0s, S.H, S.R, fm.D, S.update_steps, rep, filt=fsys, Pf0=Pf0,
                             Hf=zupt_matrices(fm.names), Rf=S.filter_R(name)[None], filter_Q=filt_Q,
                             truth_Q=truth_Q, form=fm.spec.update)
@@ -222,7 +223,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
 
 def _key(options):
-    from covtool.studies.zupt import dyn_key
+    from covtool.lincov.dynamics import dyn_key
     return dyn_key(options)
 
 

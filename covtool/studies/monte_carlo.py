@@ -4,8 +4,8 @@ N nonlinear INS runs (:mod:`covtool.strapdown`) on simulated IMU data with
 errors drawn from the truth model (:mod:`covtool.imu`), unaided and under
 each declared ZUPT filter running as a real feedback filter
 (:mod:`covtool.montecarlo`), against the linear covariance analysis of the
-same setup (:func:`covtool.covariance.propagate`,
-:func:`~covtool.covariance.propagate_with_filter`).
+same setup (:func:`covtool.lincov.reference.propagate`,
+:func:`~covtool.lincov.reference.propagate_with_filter`).
 
 Study file (the ``zupt_filter_order`` sections plus ``[monte_carlo]``)::
 
@@ -57,9 +57,9 @@ import numpy as np
 import pandas as pd
 
 from covtool import __version__
-from covtool.covariance import propagate, propagate_with_filter
+from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
+from covtool.lincov.reduced import zupt_matrices
 from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
 from covtool.metrics import nav_metrics, ned_position_covariance, validity_text
 from covtool.montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, expected_nees,

@@ -30,7 +30,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.covariance import propagate
+from covtool.lincov.reference import propagate
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, quantity
 from covtool.metrics import nav_metrics

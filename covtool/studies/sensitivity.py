@@ -67,9 +67,9 @@ import pandas as pd
 from threadpoolctl import threadpool_limits
 
 from covtool import flops
-from covtool.engine import System, events
+from covtool.lincov.batch import System, events
 from covtool.errors import FlaggedCaseWarning, StudyFileError
-from covtool.filters import zupt_matrices
+from covtool.lincov.reduced import zupt_matrices
 from covtool.io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
 from covtool.metrics import first_invalid, nav_metrics, validity_text
 from covtool.results import StudyResult

@@ -2,7 +2,7 @@
 
 Seed 002 §3-4 (issue 4).  Thousands of truth-under-filter cases, grouped
 so that the cases sharing a truth system and a filter run in one batched
-engine call (:func:`covtool.engine.run_batch`), chunked over an execution
+engine call (:func:`covtool.lincov.batch.run_batch`), chunked over an execution
 backend (:mod:`covtool.parallel`) and stored incrementally, so that an
 interrupted grid resumes where it stopped.
 
@@ -74,9 +74,10 @@ import numpy as np
 import pandas as pd
 
 from covtool import __version__
-from covtool.engine import System, events, run_batch
+from covtool.lincov.batch import System, events, run_batch
 from covtool.errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
-from covtool.filters import load_filters, zupt_matrices
+from covtool.io.filters import load_filters
+from covtool.lincov.reduced import zupt_matrices
 from covtool.io.config import boolean, check_keys, LIMITS, number, quantity, string, table
 from covtool.io.names import check_name
 from covtool.metrics import first_invalid, nav_metrics
@@ -116,7 +117,7 @@ def grade_truth(truth_decl: dict, grade: dict, model) -> dict:
         The study's ``[truth]`` table.
     grade : dict
         A validated ``[[grade]]`` table (``scale`` a float).
-    model : covtool.model.spec.Model
+    model : covtool.lincov.model.spec.Model
         The study's truth model (with its own overrides applied).
 
     Returns
@@ -126,7 +127,7 @@ def grade_truth(truth_decl: dict, grade: dict, model) -> dict:
         state explicitly (SI strings that parse back exactly), then the
         grade's own overrides, ``arw`` and ``vrw``.
     """
-    from covtool.model.loader import _RW_DIM
+    from covtool.io.model_file import _RW_DIM
 
     k = grade["scale"]
     out = copy.deepcopy(truth_decl)

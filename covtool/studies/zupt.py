@@ -38,10 +38,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from covtool.covariance import check_system, propagate, propagate_with_filter
-from covtool.dynamics import error_dynamics
+from covtool.lincov.kalman import check_system
+from covtool.lincov.reference import propagate, propagate_with_filter
+from covtool.lincov.dynamics import dyn_key, error_dynamics
 from covtool.errors import StudyFileError
-from covtool.filters import build_filter, default_filter_file, ewn_navigation_effect, load_filters, zupt_matrices
+from covtool.lincov.reduced import build_filter, ewn_navigation_effect, zupt_matrices
+from covtool.io.filters import default_filter_file, load_filters
 from covtool.io.config import boolean, check_keys, names, quantity, resolve_input, table
 from covtool.metrics import nav_metrics
 from covtool.results import StudyResult
@@ -302,9 +304,9 @@ def order_memory(pure: bool, impact: bool = True):
 
     With the dropped-state impact table (``impact``) it also holds, per
     filter in turn, the truth transition under the filter's options and
-    the per-source noise series (:data:`covtool.budget.COMPOSE_WORKSPACE`).
+    the per-source noise series (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).
     """
-    from covtool.budget import COMPOSE_WORKSPACE
+    from covtool.lincov.noise import COMPOSE_WORKSPACE
 
     def memory(steps, truth, filters, dynamics):
         n = truth.n
@@ -428,19 +430,12 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     )
 
 
-def dyn_key(options):
-    """Cache key of a NavOptions (None: the truth's own)."""
-    if options is None:
-        return (True, True)
-    return (options.coriolis, options.couple_vertical)
-
-
 def equivalent_noise_table(S: ZuptSetup, fmodels: dict) -> pd.DataFrame:
     """The ``equivalent_noise`` sheet: rule per dropped state and what it does to navigation.
 
     Each filter's rows of :attr:`FilterModel.ewn_table` (rule applied,
     pointwise overstatement) joined with
-    :func:`covtool.filters.ewn_navigation_effect` (the 1σ each dropped
+    :func:`covtool.lincov.reduced.ewn_navigation_effect` (the 1σ each dropped
     state's noise adds per ZUPT interval in tilt, azimuth, velocity and
     position, and its share).
     """
@@ -488,15 +483,15 @@ def impact_filters(decl: dict, S: ZuptSetup) -> list[str]:
 def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None) -> pd.DataFrame:
     """The ``impact`` sheet: every reduced filter × dropped block (D'Appolito state deletion).
 
-    For each filter (:func:`covtool.impact.impact_run`, one batched pass
+    For each filter (:func:`covtool.lincov.impact.impact_run`, one batched pass
     per filter against one shared truth) and report time: the true CEP,
     altitude PE and azimuth of the nominal filter, without equivalent
     noise, with eq (11)–(13) noise from each dropped block alone, and with
     each dropped block put back as filter states; ratios to the nominal
     and to filter A when it is in the run.
     """
-    from covtool.engine import System, events
-    from covtool.impact import impact_run
+    from covtool.lincov.batch import System, events
+    from covtool.lincov.impact import impact_run
 
     N = S.t.size - 1
     rep = sorted({int(np.argmin(np.abs(S.t - tr))) for tr in S.report_times})

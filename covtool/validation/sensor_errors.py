@@ -31,8 +31,8 @@ import math
 
 import numpy as np
 
-from covtool.model.blocks import BLOCK_KINDS, gravity_sensitivity
-from covtool.model.spec import Model
+from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
+from covtool.lincov.model.spec import Model
 from covtool.nav import attitude as quat
 from covtool.nav.imu.simulator import ImuSimulator
 
@@ -107,7 +107,7 @@ class SensorErrors:
     random walk ``x += rw √Δ w``; Markov ``x = e^{−Δ/τ} x +
     σ √(1 − e^{−2Δ/τ}) w``; Markov in distance the same with the horizontal
     distance travelled over ``Δ`` in place of ``Δ/τ·d``.  These are the
-    processes behind the model's F and Q_c (:func:`covtool.dynamics.error_dynamics`).
+    processes behind the model's F and Q_c (:func:`covtool.lincov.dynamics.error_dynamics`).
     """
 
     def __init__(self, model: Model, x0, rng=None, *, noise: bool = True, process_dt: float = 0.1):

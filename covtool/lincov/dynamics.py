@@ -1,6 +1,6 @@
 """Error dynamics F(t) and process noise along a trajectory (seed 002, eq (1)–(5)).
 
-State order and meaning follow :class:`covtool.model.spec.Model`; the first
+State order and meaning follow :class:`covtool.lincov.model.spec.Model`; the first
 ten states are the navigation errors of seed 002, eq (14)::
 
     x = [δL δl δh | δV_N δV_E δV_D | δq0 δq1 δq2 δq3 | sensor/environment states]
@@ -31,7 +31,7 @@ Attitude, seed 002 eq (1)::
 
 Sensor errors enter through ``δf^b`` (seed 002 eq (5)) and ``δω_ib^b``
 (seed 002 eq (3)); each block kind supplies its sensitivity
-(:mod:`covtool.model.blocks`).
+(:mod:`covtool.lincov.model.blocks`).
 
 Quaternion constraint
 ---------------------
@@ -49,10 +49,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from covtool.nav import earth
-from covtool.nav import attitude as quat
-from covtool.model.blocks import BLOCK_KINDS, gravity_sensitivity
-from covtool.model.spec import Model
+from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
+from covtool.lincov.model.spec import Model
+from covtool.nav import attitude as quat, earth
 
 I_L, I_l, I_H, I_VN, I_VE, I_VD = range(6)
 I_Q = slice(6, 10)
@@ -311,3 +310,32 @@ def attitude_errors(P_qq: np.ndarray, q: np.ndarray) -> np.ndarray:
     """
     M = quat.attitude_error_matrix(q)
     return M @ P_qq @ np.swapaxes(M, -1, -2)
+
+
+def physical_nav(P: np.ndarray, q) -> np.ndarray:
+    """Navigation block in physical coordinates (δq → tilt, azimuth).
+
+    Parameters
+    ----------
+    P : ndarray, shape (..., n_rec, 10, 10)
+    q : ndarray, shape (n_rec, 4)
+
+    Returns
+    -------
+    ndarray, shape (..., n_rec, 9, 9)
+        Position (δL, δl, δh), velocity, then (north tilt, east tilt, azimuth).
+    """
+    from covtool.nav.attitude import attitude_error_matrix
+
+    q = np.asarray(q, float)
+    T = np.zeros(q.shape[:1] + (9, 10))
+    T[:, :6, :6] = np.eye(6)
+    T[:, 6:, 6:] = attitude_error_matrix(q)
+    return T @ P @ np.swapaxes(T, -1, -2)
+
+
+def dyn_key(options):
+    """Cache key of a NavOptions (None: the truth's own)."""
+    if options is None:
+        return (True, True)
+    return (options.coriolis, options.couple_vertical)

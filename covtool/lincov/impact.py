@@ -11,15 +11,15 @@ covariance under its gains, seed 002 eq (15)–(16)) is computed
   and driving noise), the other dropped blocks still as equivalent noise.
 
 All variants of one filter run in one batched engine call
-(:func:`covtool.engine.run_batch`).  Every variant is embedded in the truth's
+(:func:`covtool.lincov.batch.run_batch`).  Every variant is embedded in the truth's
 state space: the filter carries all 58 states with the truth's F under the
-filter's :class:`~covtool.dynamics.NavOptions`, and the states a variant does
+filter's :class:`~covtool.lincov.dynamics.NavOptions`, and the states a variant does
 not keep have zero P_f(0) and zero noise.  Because no kept state drives a
 sensor or environment state (``F_dropped,kept = 0``), those states keep zero
 covariance and zero gain, and the kept block of the transition is exactly the
 reduced filter's own: the embedding changes nothing but the bookkeeping.  The
 members differ only in P_f(0) and in the filter noise, which is linear in its
-sources and therefore composed once per source (:func:`covtool.budget.compose_noise`)
+sources and therefore composed once per source (:func:`covtool.lincov.noise.compose_noise`)
 and summed per member.
 
 Pure numeric core: a :class:`~covtool.studies.zupt.ZuptSetup` in, arrays out.
@@ -33,8 +33,9 @@ import numpy as np
 from scipy.linalg import expm
 from threadpoolctl import threadpool_limits
 
-from covtool.budget import NoiseFactor, compose_noise
-from covtool.engine import System, events, run_batch
+from covtool.lincov.batch import events, run_batch, System
+from covtool.lincov.noise import compose_transition, restricted_noise, CombinedNoise, compose_noise
+
 
 NOMINAL, NONE, ONLY, BACK = "nominal", "no equivalent noise", "noise from block only", "block put back"
 
@@ -64,39 +65,6 @@ class ImpactRun:
     noise_check: float
 
 
-class CombinedNoise:
-    """Per-member filter noise ``Σ_c coef[b, c] · embed(component_c)``, built per interval.
-
-    Behaves like an array of shape ``(B, K, n, n)`` for ``Q[:, i]``
-    (:func:`covtool.engine.run_batch`'s ``filter_Q``).
-
-    Parameters
-    ----------
-    components : list of (ndarray of shape (K, m, m), ndarray of int of shape (m,))
-        Composed noise and the state indices it lives on.
-    coef : ndarray, shape (B, n_components)
-    n : int
-        Dimension of the embedding space.
-    """
-
-    def __init__(self, components, coef, n):
-        self.components = components
-        self.coef = np.asarray(coef, float)
-        K = components[0][0].shape[0] if components else 0
-        self.shape = (self.coef.shape[0], K, n, n)
-
-    def __getitem__(self, key):
-        if not (isinstance(key, tuple) and len(key) == 2 and key[0] == slice(None)):
-            raise IndexError("CombinedNoise supports Q[:, i] only")
-        i = key[1]
-        out = np.zeros((self.shape[0],) + self.shape[2:])
-        for c, (Q, ix) in enumerate(self.components):
-            w = self.coef[:, c]
-            if np.any(w != 0):
-                out[:, ix[:, None], ix[None, :]] += w[:, None, None] * Q[i][None]
-        return out
-
-
 def dropped_blocks(truth, kept) -> list[str]:
     """Blocks of ``truth`` with at least one state not in ``kept``, in truth order."""
     ks = set(kept)
@@ -113,25 +81,6 @@ def _transition(F, dt):
         return out
 
 
-def _compose_phi(Phi, ev):
-    K = len(ev) - 1
-    n = Phi.shape[1]
-    out = np.empty((K, n, n))
-    for i in range(K):
-        A = np.eye(n)
-        for k in range(ev[i], ev[i + 1]):
-            A = Phi[k] @ A
-        out[i] = A
-    return out
-
-
-def _factor(name, sources, rows):
-    """One noise factor from NoiseSources, restricted to ``rows``."""
-    G = np.concatenate([s.G[:, rows, :] for s in sources], axis=2)
-    psd = np.concatenate([s.psd for s in sources], axis=1)
-    return NoiseFactor(name, G, psd)
-
-
 def impact_run(S, name: str, record_steps, *, truth_system: System | None = None) -> ImpactRun:
     """All variants of one reduced filter in one batched pass.
 
@@ -142,7 +91,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
         A declared filter that drops truth states.
     record_steps : array_like of int
         Grid steps at which the truth covariance is recorded.
-    truth_system : covtool.engine.System, optional
+    truth_system : covtool.lincov.batch.System, optional
         The truth composed on ``events(N, S.update_steps, record_steps)``
         (shared between filters; built if omitted).
 
@@ -150,7 +99,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     -------
     ImpactRun
     """
-    from covtool.studies.zupt import dyn_key
+    from covtool.lincov.dynamics import dyn_key
 
     truth = S.truth
     fm, Phi_f, Qd_f = S.filter_model(name)
@@ -175,14 +124,14 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     # --- filter-noise components in the filter's own space
     PhiX = Phi_pad[:, kidx][:, :, kidx]
     FX = dyn.F[:, kidx][:, :, kidx]
-    factors = [_factor("kept", dyn.noise, kidx)]
+    factors = [restricted_noise("kept", dyn.noise, kidx)]
     ewn_of = {b: [src for src in fm.ewn_noise if state_block[src.name] == b] for b in blocks}
     ewn_blocks = [b for b in blocks if ewn_of[b]]
-    factors += [_factor(f"ewn {b}", ewn_of[b], kidx) for b in ewn_blocks]
+    factors += [restricted_noise(f"ewn {b}", ewn_of[b], kidx) for b in ewn_blocks]
     own_noise = {b: [src for src in dyn.noise if src.name in {truth.states[i].name for i in block_states[b]}]
                  for b in blocks}
     noisy = [b for b in blocks if own_noise[b]]
-    factors += [_factor(f"noise {b} on kept", own_noise[b], kidx) for b in noisy]
+    factors += [restricted_noise(f"noise {b} on kept", own_noise[b], kidx) for b in noisy]
     QX = compose_noise(PhiX, FX, factors, dt, ev)
     components = [(QX[c], kidx) for c in range(len(factors))]
     ci_kept, ci_ewn = 0, {b: 1 + k for k, b in enumerate(ewn_blocks)}
@@ -191,7 +140,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     for b in noisy:
         rows = np.array(sorted(kset | set(block_states[b])))
         Qb = compose_noise(Phi_pad[:, rows][:, :, rows], dyn.F[:, rows][:, :, rows],
-                           [_factor(f"noise {b}", own_noise[b], rows)], dt, ev)[0]
+                           [restricted_noise(f"noise {b}", own_noise[b], rows)], dt, ev)[0]
         ci_own_full[b] = len(components)
         components.append((Qb, rows))
     # the summed sources against the filter's own composed Q_f
@@ -244,7 +193,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
             P[np.ix_(bi, kidx)] = P0t[np.ix_(bi, kidx)]
             P[np.ix_(kidx, bi)] = P0t[np.ix_(kidx, bi)]
         member(BACK, b, P, back)
-    Phi_c = _compose_phi(Phi_pad, ev)
+    Phi_c = compose_transition(Phi_pad, ev)
     filt = System(ev, Phi_c, np.zeros((len(ev) - 1, 0, 0)))
     fQ = CombinedNoise(components, np.array(coefs), n)
     res = run_batch(truth_system, P0t, S.H, S.R, np.eye(n), S.update_steps, rec, filt=filt,
@@ -271,8 +220,8 @@ def check_members(P: np.ndarray, q: np.ndarray, t: np.ndarray, labels) -> None:
     covtool.errors.NumericalError
         Naming the member and the time.
     """
-    from covtool.budget import physical_nav
-    from covtool.covariance import check_covariance
+    from covtool.lincov.dynamics import physical_nav
+    from covtool.lincov.kalman import check_covariance
 
     for b, lab in enumerate(labels):
         Pp = physical_nav(P[b], q)

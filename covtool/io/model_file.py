@@ -18,7 +18,7 @@ File format
     source = "seed 002, Table 2"
 
     [[block]]
-    kind = "accel_bias"             # see covtool.model.blocks.BLOCK_KINDS
+    kind = "accel_bias"             # see covtool.lincov.model.blocks.BLOCK_KINDS
     sigma = ["20 ug", "20 ug", "30 ug"]
     process = "constant"            # constant | random_walk | markov | markov_distance
     tau = "1 h"                     # markov: required
@@ -46,10 +46,10 @@ import tomli_w
 
 from covtool.errors import ModelFileError
 from covtool.io.config import as_list, check_keys, choice, load_toml, number, quantity, string
-from covtool.units import DIMENSIONS, is_unit
 from covtool.io.names import check_name
-from covtool.model.blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
-from covtool.model.spec import PROCESSES, Model, State
+from covtool.lincov.model.blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
+from covtool.lincov.model.spec import Model, PROCESSES, State
+from covtool.units import DIMENSIONS, is_unit
 
 _BLOCK_KEYS = {"kind", "name", "names", "sigma", "unit", "process", "tau", "distance", "rw", "source", "board"}
 _BOARD_KEYS = {"sf", "n_t", "n_e_ratio"}
@@ -346,7 +346,7 @@ def resolve_base(decl: dict, path: str = "<dict>") -> dict:
         return decl
     from pathlib import Path
 
-    from covtool.model.library import resolve_model_path
+    from covtool.io.library import resolve_model_path
 
     here = Path(path).parent if path != "<dict>" else None
     bpath = resolve_model_path(meta["base"], here if here is not None else None, base_dir=here)

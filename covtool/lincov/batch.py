@@ -17,7 +17,7 @@ truth's Φ(t) and Q(t); only the gains differ.  The engine
 
 A Q_f scale multiplies the composed filter noise (Q_{a→b} is linear in Q),
 so one composition serves every Q scale.  Results are identical to
-:func:`covtool.covariance.propagate_with_filter` up to round-off (tested).
+:func:`covtool.lincov.reference.propagate_with_filter` up to round-off (tested).
 
 Pure numeric core: arrays in, arrays out.
 """
@@ -29,9 +29,9 @@ from dataclasses import dataclass, field
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from covtool.covariance import (NEGATIVE_VARIANCE, NOT_PSD, check_covariance, check_finite, covariance_status, scale_groups, symmetrize,
-                         time_text)
 from covtool.errors import NumericalError
+from covtool.lincov.kalman import (check_covariance, check_finite, covariance_status, NEGATIVE_VARIANCE,
+                                   NOT_PSD, scale_groups, symmetrize, time_text)
 
 
 def sandwich(A: np.ndarray, P: np.ndarray) -> np.ndarray:
@@ -275,7 +275,7 @@ def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: n
     keep : slice or index array
         Sub-block of the covariances to record (default: the 10 navigation states).
     check : bool
-        Guard (:func:`covtool.covariance.check_covariance`): the inputs
+        Guard (:func:`covtool.lincov.kalman.check_covariance`): the inputs
         (P0, R, Φ and Q of every interval, P_f(0), R_f, Φ_f, Q_f, gains) on
         entry, and the full truth and filter covariances of every case at
         every record step and after every ``SYMMETRIZE_EVERY``-th and the

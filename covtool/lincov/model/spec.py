@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
+from covtool.lincov.model.blocks import BLOCK_KINDS, NAV_STATES
 from covtool.nav import attitude as quat
 from covtool.units import from_si
-from covtool.model.blocks import BLOCK_KINDS, NAV_STATES
 
 #: processes a state may follow
 PROCESSES = ("constant", "random_walk", "markov", "markov_distance")
@@ -30,7 +30,7 @@ class State:
     name, symbol : str
         Unique name (``acc_bias_x``) and symbol (``B_x``, seed 002 notation).
     block, kind : str
-        Block name and block kind (see :data:`covtool.model.blocks.BLOCK_KINDS`).
+        Block name and block kind (see :data:`covtool.lincov.model.blocks.BLOCK_KINDS`).
     meaning : str
         One-line description.
     dimension : str

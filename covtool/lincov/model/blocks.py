@@ -5,7 +5,7 @@ A model file declares *blocks*; each block kind here declares its states
 
 * a **sensor block** returns the body-frame sensitivity ``S`` with
   ``δf^b = S_a x`` (accelerometer, seed 002 eq (5)) or ``δω_ib^b = S_g x``
-  (gyro, seed 002 eq (3)); :mod:`covtool.dynamics` maps them into the velocity
+  (gyro, seed 002 eq (3)); :mod:`covtool.lincov.dynamics` maps them into the velocity
   rows (``C_b^n S_a``) and quaternion rows (``½ Q(q) S_g``);
 * an **environment block** returns the NED gravity-error sensitivity;
 * the **AD-reset block** (seed 000) is a bounded velocity error whose time

@@ -615,7 +615,7 @@ def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str =
     column instead of by order.  It is linear in ``W`` term by term, costs
     ``n × k`` products instead of ``n × n`` per order, and, the coefficient
     matrix being a Hilbert (Gram) matrix, is positive semi-definite for any
-    truncation.  It is evaluated as :func:`covtool.discretize.taylor` does
+    truncation.  It is evaluated as :func:`covtool.lincov.discretize.taylor` does
     (module notes there): on the balanced system, at ``h = Δt/2^s`` with
     ``νh ≤ θ``, each column summed until the tail of ``Σ_a Ŷ_a`` is provably
     small (``‖Ŷ_{a+1}‖ ≤ ‖Ŷ_a‖ νh/(a+1)``): below ``2⁻⁵³ √(min_r Q_rr/(wh))/2``

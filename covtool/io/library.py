@@ -9,7 +9,7 @@ import pandas as pd
 
 from covtool.errors import ModelFileError
 from covtool.io.config import is_library_name, resolve_input
-from covtool.model.loader import load_model
+from covtool.io.model_file import load_model
 
 
 def default_model_dir() -> Path:
