@@ -59,7 +59,7 @@ class CovtoolWarning(UserWarning):
 
 
 class ValidityWarning(CovtoolWarning):
-    """A result left the linear error model's domain (:func:`covtool.metrics.validity`).
+    """A result left the linear error model's domain (:func:`covtool.analysis.metrics.validity`).
 
     The numbers are still written, with the reason in the summary's
     ``validity`` column.

@@ -18,8 +18,8 @@ import pytest
 import covtool
 from covtool.nav import earth
 from covtool.lincov.noise import MemberNoise, compose_noise
-from covtool.budget import (Source, budget_sources, initial_groups, nav_variances, noise_factors, run_budget,
-                            split_initial)
+from covtool.analysis.budget import (Source, budget_sources, initial_groups, nav_variances, noise_factors,
+                                     run_budget, split_initial)
 from covtool.lincov.dynamics import physical_nav
 from covtool.cli import main
 from covtool.lincov.reference import propagate, propagate_with_filter

@@ -22,8 +22,8 @@ from covtool.lincov.kalman import PSD_TOL, check_covariance, covariance_status, 
 from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.lincov.batch import System, events, run_batch
 from covtool.errors import FlaggedCaseWarning, InputError, NumericalError, StudyFileError, ValidityWarning
-from covtool.metrics import (ALTITUDE_LIMIT, ATTITUDE_LIMIT, POSITION_LIMIT, cep, cep_approx, first_invalid,
-                             nav_metrics, validity, validity_text)
+from covtool.analysis.metrics import (ALTITUDE_LIMIT, ATTITUDE_LIMIT, POSITION_LIMIT, cep, cep_approx,
+                                      first_invalid, nav_metrics, validity, validity_text)
 from covtool.lincov.model.spec import Model
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -618,7 +618,7 @@ def test_kalman_gain_refuses_a_singular_or_non_finite_innovation_covariance():
 
 def test_a_singular_gain_is_named_with_its_filter_and_time():
     """R = 0 and a filter that knows its measured state exactly: S = 0 at the second update."""
-    from covtool.montecarlo import FeedbackFilter
+    from covtool.validation.feedback import FeedbackFilter
     N = 4
     Phi = np.broadcast_to(np.eye(2), (N, 2, 2)).copy()
     Qd = np.zeros((N, 2, 2))
@@ -673,7 +673,7 @@ def test_covariance_status_refuses_a_non_square_array():
 
 def test_sweep_fit_leaves_out_flagged_cases():
     """A flagged (NaN) point is left out of the log-log fit; too few points give a NaN fit, not an error."""
-    from covtool.sensitivity import fit_loglog
+    from covtool.analysis.sensitivity import fit_loglog
     from covtool.studies.sensitivity import _fit, _ratio
     s = np.array([0.01, 0.1, 1.0, 10.0, 100.0])
     e = 3.0 * s ** 0.25

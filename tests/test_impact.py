@@ -20,7 +20,7 @@ from covtool.errors import StudyFileError
 from covtool.lincov.reduced import zupt_matrices
 from covtool.lincov.impact import BACK, NOMINAL, NONE, ONLY, dropped_blocks, impact_run
 from covtool.lincov.noise import CombinedNoise
-from covtool.metrics import nav_metrics
+from covtool.analysis.metrics import nav_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
@@ -138,7 +138,7 @@ def test_equivalent_noise_sheet_reports_navigation_errors(S):
     state's noise alone through the filter's Φ_f over each ZUPT interval."""
     from covtool.lincov.noise import compose_noise
     from covtool.lincov.reduced import ewn_navigation_effect
-    from covtool.metrics import ned_position_covariance
+    from covtool.analysis.metrics import ned_position_covariance
     from covtool.nav.attitude import attitude_error_matrix
 
     fm, Phi_f, _ = S.filter_model("B1")

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from covtool.nav import attitude as quat
-from covtool.metrics import PE_FACTOR, cep, cep_approx
+from covtool.analysis.metrics import PE_FACTOR, cep, cep_approx
 
 
 def test_cep_circular_closed_form():

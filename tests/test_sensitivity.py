@@ -25,8 +25,8 @@ from covtool.errors import StudyFileError
 from covtool.lincov.reduced import zupt_matrices
 from covtool.io.workbook import sheet_title
 from covtool.io.writers import write_outputs
-from covtool.metrics import nav_metrics
-from covtool.sensitivity import fit_loglog, run_sweep, scale_grid, sensitivity_figures, sweep_cases
+from covtool.analysis.metrics import nav_metrics
+from covtool.analysis.sensitivity import fit_loglog, run_sweep, scale_grid, sensitivity_figures, sweep_cases
 from covtool.studies import sensitivity as study
 from covtool.studies.common import FT, discretize_chunked
 
@@ -163,7 +163,7 @@ def test_joint_scaling_of_p0_q_r_leaves_the_truth_unchanged():
 
     Eq (6a)-(8) are homogeneous of degree one in (P_f, Q_f, R_f).
     """
-    from covtool.sensitivity import SweepCases
+    from covtool.analysis.sensitivity import SweepCases
     rng = np.random.default_rng(3)
     n, m, N = 5, 2, 30
     Phi = np.eye(n) + 0.05 * rng.standard_normal((N, n, n))

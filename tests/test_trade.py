@@ -14,7 +14,7 @@ import covtool
 from covtool.lincov.reference import propagate_with_filter
 from covtool.errors import InputError, StudyFileError
 from covtool.lincov.reduced import zupt_matrices
-from covtool.metrics import nav_metrics
+from covtool.analysis.metrics import nav_metrics
 from covtool.studies.common import ARCMIN, FT, load_truth
 from covtool.studies.trade import TradePlan, grade_truth, run
 from covtool.studies.zupt import setup

@@ -1,7 +1,7 @@
 """Error budget study: the sources of the error (seed 002, Fig 4).
 
 The truth covariance of each case is split exactly into contributions of its
-sources (:mod:`covtool.budget`): initial errors by block (navigation split
+sources (:mod:`covtool.analysis.budget`): initial errors by block (navigation split
 into position, velocity, tilt, azimuth), process noises, and the ZUPT noise,
 all under the gains of the case's nominal filter run.  A pure INS case
 (``"pure_ins"``) has no gains; its budget is the one seed 002 used to choose
@@ -49,14 +49,14 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.budget import (ERRORS, MEASUREMENT, RESOLUTIONS, budget_sources, nav_variances,
-                            relative_residual, run_budget)
+from covtool.analysis.budget import (ERRORS, MEASUREMENT, RESOLUTIONS, budget_sources, nav_variances,
+                                     relative_residual, run_budget)
 from covtool.lincov.noise import compose_noise
 from covtool.lincov.batch import System, events, run_batch
 from covtool.errors import StudyFileError
 from covtool.lincov.reduced import zupt_matrices
 from covtool.io.config import check_keys, choice, integer, names, table
-from covtool.metrics import cep, nav_metrics, ned_position_covariance, validity_text
+from covtool.analysis.metrics import cep, nav_metrics, ned_position_covariance, validity_text
 from covtool.results import StudyResult
 from covtool.studies.common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
                      study_header, study_inputs)
@@ -205,7 +205,7 @@ def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec,
         source is left out).
     truth : covtool.lincov.batch.System
         Truth Φ, Q_d composed on the event grid of ``rec`` and the updates.
-    sources : list of covtool.budget.Source
+    sources : list of covtool.analysis.budget.Source
     Qn : ndarray, shape (J, K, n, n)
         Composed per-source noise.
     rec : ndarray of int
@@ -215,7 +215,7 @@ def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec,
 
     Returns
     -------
-    budget : covtool.budget.BudgetRun
+    budget : covtool.analysis.budget.BudgetRun
         Contributions under the gains of the nominal filter run.
     P_nominal : ndarray, shape (n_rec, 10, 10)
         The nominal run (running filter, the study's own Q_d).

@@ -20,7 +20,7 @@ from covtool.io.config import (check_keys, choice, file_sha256, names, number, q
                          string, table)
 from covtool.io.names import check_study_name
 from covtool.lincov.kalman import check_covariance, check_system
-from covtool.metrics import first_invalid, nav_metrics, validity, validity_text
+from covtool.analysis.metrics import first_invalid, nav_metrics, validity, validity_text
 from covtool.io.library import load_model_by_name
 from covtool.lincov.model.spec import Model
 from covtool.units import from_si, parse_quantity
@@ -657,7 +657,7 @@ def initial_covariance(truth: Model, nodes, where: str) -> np.ndarray:
         P0 is not finite, symmetric and PSD (names the state).
     StudyFileError
         P0 is already outside the linear error model's domain
-        (:func:`covtool.metrics.validity`), e.g. an initial azimuth 1σ of 83°.
+        (:func:`covtool.analysis.metrics.validity`), e.g. an initial azimuth 1σ of 83°.
     """
     P0 = truth.initial_covariance(nodes.q_nb[0])
     check_covariance(P0, f"{where}: truth model {truth.name!r}: P0", names=truth.names)
@@ -682,7 +682,7 @@ def case_validity(case: str, m: dict, t: np.ndarray, *, warn: bool = True) -> di
     case : str
         Case name (in the warning).
     m : dict of ndarray, shape (N,)
-        :func:`covtool.metrics.nav_metrics` along the case's history.
+        :func:`covtool.analysis.metrics.nav_metrics` along the case's history.
     t : ndarray, shape (N,)
         Times of the history. [s]
     warn : bool
@@ -692,7 +692,7 @@ def case_validity(case: str, m: dict, t: np.ndarray, *, warn: bool = True) -> di
     Returns
     -------
     dict of str to float
-        :func:`covtool.metrics.first_invalid`.
+        :func:`covtool.analysis.metrics.first_invalid`.
     """
     first = first_invalid(m, t)
     if first and warn:
@@ -705,7 +705,7 @@ def history_frame(case: str, t: np.ndarray, m: dict, every: float | None = None)
     """History table with SI and paper units in the headers.
 
     The ``validity`` column names the domain tests that fail at each time
-    (:func:`covtool.metrics.validity`), empty where the linear model holds.
+    (:func:`covtool.analysis.metrics.validity`), empty where the linear model holds.
     """
     sel = np.ones(t.shape, bool)
     if every:
@@ -744,7 +744,7 @@ def summary_row(case: str, m: dict, k: int, t: float, distance: float | None, *,
     ----------
     case : str
     m : dict of ndarray
-        :func:`covtool.metrics.nav_metrics`.
+        :func:`covtool.analysis.metrics.nav_metrics`.
     k : int
         Index into ``m``.
     t : float
@@ -752,7 +752,7 @@ def summary_row(case: str, m: dict, k: int, t: float, distance: float | None, *,
     distance : float or None
         Distance travelled by then. [m]
     first : dict, optional
-        :func:`covtool.metrics.first_invalid` of the case; the ``validity``
+        :func:`covtool.analysis.metrics.first_invalid` of the case; the ``validity``
         column lists the tests failed by ``t`` with their first time.  By
         default the tests at index ``k`` alone.
     status : str, optional

@@ -57,7 +57,7 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.lincov.noise import CombinedNoise, compose_transition, restricted_noise
 from covtool.lincov.impact import check_members
 from covtool.io.config import check_keys, quantity
-from covtool.metrics import nav_metrics
+from covtool.analysis.metrics import nav_metrics
 from covtool.results import StudyResult
 from covtool.studies.common import ARCMIN, FT, progress_bar
 from covtool.studies.zupt import setup

@@ -61,9 +61,11 @@ from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.errors import StudyFileError
 from covtool.lincov.reduced import zupt_matrices
 from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
-from covtool.metrics import nav_metrics, ned_position_covariance, validity_text
-from covtool.montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, expected_nees,
-                          horizontal_dof, inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
+from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text
+from covtool.analysis.consistency import (REDUCED_NAV, expected_nees, horizontal_dof, inside_fraction,
+                                          nees_bounds, nees_whitening, rms_bounds)
+from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, simulate_chunk
+from covtool.validation.feedback import FeedbackFilter
 from covtool.results import StudyResult
 from covtool.nav.coning import MAX_SAMPLES
 from covtool.nav.strapdown import NAV_STATES
@@ -148,7 +150,7 @@ def _chunks(runs: int, per: int) -> list[int]:
 def _linear(P, nodes, case=None) -> dict:
     """σ of the compared quantities, the horizontal dof per run and the validity.
 
-    ``first``: :func:`covtool.metrics.first_invalid` of the linear
+    ``first``: :func:`covtool.analysis.metrics.first_invalid` of the linear
     prediction (a :class:`covtool.errors.ValidityWarning` names ``case``).
     """
     m = nav_metrics(P, nodes.lat, nodes.h, nodes.q_nb)

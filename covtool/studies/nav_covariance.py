@@ -33,7 +33,7 @@ import pandas as pd
 from covtool.lincov.reference import propagate
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, quantity
-from covtool.metrics import nav_metrics
+from covtool.analysis.metrics import nav_metrics
 from covtool.results import StudyResult
 from covtool.studies.common import (case_validity, check_memory, history_frame, initial_covariance, load_truth, memory_estimate,
                      noise_columns, report_times, resource_provenance, steps_of, study_header, study_inputs,

@@ -32,18 +32,18 @@ What is computed
   assumed P_f(0), Q_f (its whole discrete Q, equivalent noise included) and
   R_f are, so only its gains change (seed 002 eq (7)).
 * Every case of one filter runs in one batched engine call
-  (:func:`covtool.sensitivity.run_sweep`, B = 1 + 3·(n_scales − 1): the
+  (:func:`covtool.analysis.sensitivity.run_sweep`, B = 1 + 3·(n_scales − 1): the
   nominal case is shared by the three parameters).  Only the report times
   are recorded.
 * Errors at each report time: horizontal RMS ``sqrt(σ_N² + σ_E²)`` and
   altitude RMS ``σ_D`` (the paper's "RMS navigation error"), plus CEP, PE and
   azimuth.  Fits, sensitivities and figures use the last report time.
 * Fit: ``log10 e = Σ_k c_k (log10 s)^k`` by least squares
-  (:func:`covtool.sensitivity.fit_loglog`).
+  (:func:`covtool.analysis.sensitivity.fit_loglog`).
 * Sensitivity (primary): ``max(e(s_max), e(s_min))/e(1) − 1``; the ratio of
   the largest filter's (58-state A) sensitivity to each reduced filter's is
   the paper's "about 2×" comparison (``sensitivity_ratio`` table).
-* Cost: closed-form FLOPs of one on-board cycle (:mod:`covtool.flops`),
+* Cost: closed-form FLOPs of one on-board cycle (:mod:`covtool.analysis.cost`),
   the measured numpy time per cycle, and the paper's 8086/8087 seconds.
 
 Discretisation.  ``[sweep] discretization`` overrides the filters' declared
@@ -66,15 +66,15 @@ import numpy as np
 import pandas as pd
 from threadpoolctl import threadpool_limits
 
-from covtool import flops
+from covtool.analysis.cost import PAPER_TABLE4_SECONDS, cycle_flops, power_law, taylor_terms, time_cycle
 from covtool.lincov.batch import System, events
 from covtool.errors import FlaggedCaseWarning, StudyFileError
 from covtool.lincov.reduced import zupt_matrices
 from covtool.io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
-from covtool.metrics import first_invalid, nav_metrics, validity_text
+from covtool.analysis.metrics import first_invalid, nav_metrics, validity_text
 from covtool.results import StudyResult
-from covtool.sensitivity import (fit_loglog, LogLogFit, PARAMETERS, run_sweep, scale_grid, sensitivity_figures,
-                           sweep_cases)
+from covtool.analysis.sensitivity import (fit_loglog, LogLogFit, PARAMETERS, run_sweep, scale_grid,
+                                          sensitivity_figures, sweep_cases)
 from covtool.studies.common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
                      study_inputs)
 from covtool.studies.zupt import setup
@@ -136,7 +136,7 @@ def cost_options(cfg: dict, where: str) -> dict:
     if order != "auto" and (type(order) is not int or not lim.lo <= order <= lim.hi):
         raise StudyFileError(f"{w} taylor_order", f"{order!r} is not 'auto' or an integer in {lim.lo}..{lim.hi} "
                              f"({lim.reason})")
-    paper = table(cfg.get("paper_seconds", dict(flops.PAPER_TABLE4_SECONDS)), f"{w} paper_seconds",
+    paper = table(cfg.get("paper_seconds", dict(PAPER_TABLE4_SECONDS)), f"{w} paper_seconds",
                   StudyFileError)
     for k, v in paper.items():
         number(v, f"{w} paper_seconds {k}", StudyFileError, lo=0.0, lo_open=True)
@@ -390,18 +390,18 @@ def _cost(S, fmodels, co) -> dict:
     for c, fm in fmodels.items():
         n = fm.spec.n
         if co["taylor_order"] == "auto":
-            order = fm.spec.taylor_order or flops.taylor_terms(fm.F[::TAYLOR_STRIDE], fm.Qc[::TAYLOR_STRIDE],
+            order = fm.spec.taylor_order or taylor_terms(fm.F[::TAYLOR_STRIDE], fm.Qc[::TAYLOR_STRIDE],
                                                               np.diff(S.t)[::TAYLOR_STRIDE])
         else:
             order = co["taylor_order"]
-        fl = flops.cycle_flops(n, m, order, fm.spec.update)
+        fl = cycle_flops(n, m, order, fm.spec.update)
         sec = np.nan
         if co["measure"]:
             k = int(np.argmax(np.linalg.norm(fm.F, 1, axis=(1, 2))))
-            sec = flops.time_cycle(fm.F[k], fm.Qc[k], float(S.t[k + 1] - S.t[k]), fm.P0, zupt_matrices(fm.names),
+            sec = time_cycle(fm.F[k], fm.Qc[k], float(S.t[k + 1] - S.t[k]), fm.P0, zupt_matrices(fm.names),
                                    S.filter_R(c), order, fm.spec.update, repeats=co["repeats"], min_time=0.005)
         out[c] = {"n": n, "m": m, "order": order, "form": fm.spec.update, "flops": fl, "seconds": sec,
-                  "flops2": flops.cycle_flops(n, m, 2, fm.spec.update)["total"],
+                  "flops2": cycle_flops(n, m, 2, fm.spec.update)["total"],
                   "paper": co["paper_seconds"].get(c, np.nan)}
     return out
 
@@ -433,7 +433,7 @@ def _cost_tables(cost):
 
     def law(label, names, y):
         if len({cost[c]["n"] for c in names}) >= 2:
-            p, a = flops.power_law([cost[c]["n"] for c in names], [y(c) for c in names])
+            p, a = power_law([cost[c]["n"] for c in names], [y(c) for c in names])
             srows.append(dict(zip(cols, (label, p, a))))
 
     have = [c for c, v in cost.items() if np.isfinite(v["paper"])]

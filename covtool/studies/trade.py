@@ -80,7 +80,7 @@ from covtool.io.filters import load_filters
 from covtool.lincov.reduced import zupt_matrices
 from covtool.io.config import boolean, check_keys, LIMITS, number, quantity, string, table
 from covtool.io.names import check_name
-from covtool.metrics import first_invalid, nav_metrics
+from covtool.analysis.metrics import first_invalid, nav_metrics
 from covtool.parallel import file_sha256
 from covtool.results import StudyResult
 from covtool.units import DIMENSIONS

@@ -45,7 +45,7 @@ from covtool.errors import StudyFileError
 from covtool.lincov.reduced import build_filter, ewn_navigation_effect, zupt_matrices
 from covtool.io.filters import default_filter_file, load_filters
 from covtool.io.config import boolean, check_keys, names, quantity, resolve_input, table
-from covtool.metrics import nav_metrics
+from covtool.analysis.metrics import nav_metrics
 from covtool.results import StudyResult
 from covtool.studies.common import (ARCMIN, case_validity, check_memory, discretize_chunked, FT, history_frame,
                      initial_covariance, load_truth, memory_estimate, noise_columns, progress_bar,

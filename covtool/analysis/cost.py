@@ -48,8 +48,8 @@ import timeit
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from covtool.lincov import discretize
 from covtool.errors import InputError
+from covtool.lincov import discretize
 
 #: Seed 002 Table 4: time of one filter cycle on an 8 MHz 8086/8087. [s]
 PAPER_TABLE4_SECONDS = {"A": 22.62, "B3": 0.74, "C": 0.29, "D": 0.08}

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.polynomial import polynomial as npoly
 
-from covtool.lincov.batch import System, run_batch
+from covtool.lincov.batch import run_batch, System
 
 #: parameters a sweep may scale: the filter's P_f(0), Q_f and R_f
 PARAMETERS = ("P0", "Q", "R")

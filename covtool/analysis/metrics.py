@@ -30,9 +30,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import erf
 
-from covtool.nav import earth
-from covtool.lincov.kalman import covariance_status, running_scale, symmetrize
 from covtool.lincov.dynamics import attitude_errors
+from covtool.lincov.kalman import covariance_status, running_scale, symmetrize
+from covtool.nav import earth
 
 #: probable-error factor: P(|x| < 0.6745 σ) = 0.5 for a normal variable
 PE_FACTOR = 0.6744897501960817

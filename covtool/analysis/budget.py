@@ -39,11 +39,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from covtool.analysis.metrics import ned_position_covariance
 from covtool.lincov.batch import run_batch, System
 from covtool.lincov.dynamics import attitude_errors, NoiseSource, physical_nav
 from covtool.lincov.kalman import symmetrize
 from covtool.lincov.noise import MemberNoise
-from covtool.metrics import ned_position_covariance
 
 
 #: groups of the navigation block (seed 002 eq (14)), in reference-attitude quaternion components
