@@ -18,7 +18,7 @@ Reference, independent of the code under test: with ``F = V Λ V⁻¹``
 
 Requirement: ``van_loan``, the adaptive ``taylor``, ``block_triangular``
 (when ``F`` has its structure), ``per_source``
-(each noise column) and ``dualnav._discretize`` agree with the reference to
+(each noise column) and ``discretize_difference`` agree with the reference to
 1e-9: Φ column-wise relative (``max_i |ΔΦ_ij| / max_i |Φ_ij|``), Q_d in
 correlation scaling (``|ΔQ_ij| / √(Q_ii Q_jj)``).  For stable ``F`` none may
 refuse.
@@ -31,7 +31,7 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from covtool import dualnav
+from covtool.dualnav.difference import discretize_difference
 from covtool.lincov.discretize import block_triangular, is_block_triangular, per_source, taylor, van_loan
 
 TOL = 1e-9
@@ -127,7 +127,7 @@ def test_every_discretiser_matches_the_eigen_reference(system):
     Phi_r, Q_r, Q_cols = _reference(F, Qc, dt, list(zip(G.T, psd)))
     F3, Q3 = F[None], Qc[None]
     results = {"van_loan": van_loan(F3, Q3, dt), "taylor": taylor(F3, Q3, dt),
-               "dualnav._discretize": dualnav._discretize(F3, Q3, dt, nav=k)[:2]}
+               "discretize_difference": discretize_difference(F3, Q3, dt, nav=k)[:2]}
     if is_block_triangular(F3, Q3, k):
         results["block_triangular"] = block_triangular(F3, Q3, dt, k)
     for name, (Phi, Qd) in results.items():

@@ -244,7 +244,8 @@ def test_engine_flags_a_diverging_case_and_keeps_the_others():
 
 def test_dual_imu_whitener_guards_its_model():
     """The whitener refuses a NaN Q_d (names the epoch time) and a non-PSD P0 (names the joint state)."""
-    from covtool.dualnav import DifferenceModel, Whitener
+    from covtool.dualnav.difference import DifferenceModel
+    from covtool.dualnav.monitor import Whitener
     J = 5
     t = np.arange(J + 1) * 2.0
     Phi = np.broadcast_to(np.eye(2), (J, 2, 2)).copy()
@@ -512,15 +513,15 @@ def test_every_study_kind_refuses_an_invalid_initial_covariance(kind, bad, tmp_p
     (The seed 000 ad_reset study propagates no covariance: there is nothing to guard.)"""
     decl, _ = _study(kind, tmp_path)
     if kind == "dual_imu":
-        import covtool.dualnav as dn
-        original = dn.difference_model
+        from covtool.dualnav.difference import difference_model
+        original = difference_model
 
         def poisoned(*args, **kwargs):
             m = original(*args, **kwargs)
             m.P0 = _poison(m.P0, 10, bad)
             return m
 
-        monkeypatch.setattr(dn, "difference_model", poisoned)
+        monkeypatch.setattr("covtool.dualnav.run.difference_model", poisoned)
         pattern = r"^dual-IMU whitener: P0: covariance has a " + BAD[bad][1] + r".* state 'main:"
     else:
         original = Model.initial_covariance
@@ -561,9 +562,9 @@ def test_every_study_kind_refuses_an_invalid_process_noise(kind, bad, tmp_path, 
 
 
 def test_dual_imu_refuses_an_invalid_process_noise(monkeypatch):
-    """dual_imu builds its own Q_d (covtool.dualnav.difference_model): a NaN there stops the whitener."""
-    import covtool.dualnav as dn
-    original = dn.difference_model
+    """dual_imu builds its own Q_d (covtool.dualnav.difference.difference_model): a NaN there stops the whitener."""
+    from covtool.dualnav.difference import difference_model
+    original = difference_model
 
     def poisoned(*args, **kwargs):
         m = original(*args, **kwargs)
@@ -571,7 +572,7 @@ def test_dual_imu_refuses_an_invalid_process_noise(monkeypatch):
         m.Qd[2, 4, 4] = np.nan
         return m
 
-    monkeypatch.setattr(dn, "difference_model", poisoned)
+    monkeypatch.setattr("covtool.dualnav.run.difference_model", poisoned)
     from test_dualnav import short_decl
     with pytest.raises(NumericalError, match=r"^dual-IMU whitener: Q_d of the epoch interval at t = [\d.]+ s: "
                                              r"covariance has a non-finite entry \(nan\) in state 'main:dvE'$"):

@@ -13,7 +13,7 @@ File format (one row per IMU sample, comma separated, header first)::
 * Columns may come in any order and are matched by their header names,
   never by position; no other column is allowed.  Time must be strictly
   increasing.  Missing samples (telemetry gaps) are allowed: they are found
-  and bridged by :func:`covtool.dualnav.bridge_gaps`, never dropped
+  and bridged by :func:`covtool.dualnav.gaps.bridge_gaps`, never dropped
   silently.
 * Against the grade that produced it (:func:`check_imu_log`): no increment
   beyond the grade's range over one period, and the alignment window at

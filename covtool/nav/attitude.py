@@ -85,6 +85,34 @@ def to_euler(q):
     return np.stack([roll, pitch, yaw], axis=-1)
 
 
+def from_dcm(C):
+    """Unit quaternion (scalar first) of DCMs ``C_b^n``, shape (..., 4) (Shepperd's method)."""
+    C = np.asarray(C, float)
+    tr = np.trace(C, axis1=-2, axis2=-1)
+    cand = np.stack([tr, C[..., 0, 0], C[..., 1, 1], C[..., 2, 2]], axis=-1)
+    k = np.argmax(cand, axis=-1)
+    q = np.empty(C.shape[:-2] + (4,))
+    for case in range(4):
+        m = k == case
+        if not m.any():
+            continue
+        c = C[m]
+        if case == 0:
+            s = 2.0 * np.sqrt(1.0 + tr[m])
+            qq = [0.25 * s, (c[:, 2, 1] - c[:, 1, 2]) / s, (c[:, 0, 2] - c[:, 2, 0]) / s, (c[:, 1, 0] - c[:, 0, 1]) / s]
+        elif case == 1:
+            s = 2.0 * np.sqrt(1.0 + c[:, 0, 0] - c[:, 1, 1] - c[:, 2, 2])
+            qq = [(c[:, 2, 1] - c[:, 1, 2]) / s, 0.25 * s, (c[:, 0, 1] + c[:, 1, 0]) / s, (c[:, 0, 2] + c[:, 2, 0]) / s]
+        elif case == 2:
+            s = 2.0 * np.sqrt(1.0 + c[:, 1, 1] - c[:, 0, 0] - c[:, 2, 2])
+            qq = [(c[:, 0, 2] - c[:, 2, 0]) / s, (c[:, 0, 1] + c[:, 1, 0]) / s, 0.25 * s, (c[:, 1, 2] + c[:, 2, 1]) / s]
+        else:
+            s = 2.0 * np.sqrt(1.0 + c[:, 2, 2] - c[:, 0, 0] - c[:, 1, 1])
+            qq = [(c[:, 1, 0] - c[:, 0, 1]) / s, (c[:, 0, 2] + c[:, 2, 0]) / s, (c[:, 1, 2] + c[:, 2, 1]) / s, 0.25 * s]
+        q[m] = np.stack(qq, axis=-1)
+    return normalize(q)
+
+
 def from_rotvec(phi):
     """Quaternion of a rotation vector [rad], shape ``(..., 4)``."""
     phi = _arr(phi)

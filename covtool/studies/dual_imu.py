@@ -73,7 +73,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from covtool import dualnav as dn
+from covtool.dualnav.difference import DIFF_NAMES
+from covtool.dualnav.run import DualRun, DualSetup, as_runs, ppm_text, run_dual
+from covtool.dualnav.gaps import GAP_POLICIES, GapReport, bridge_gaps
+from covtool.validation.sensor_errors import GSensitiveErrors
+from covtool.dualnav.monitor import candidate_label
+from covtool.units import G0
 from covtool.nav import earth
 from covtool.nav import attitude as quat
 from covtool.errors import InputError, ModelFileError, StudyFileError
@@ -86,7 +91,7 @@ from covtool.studies.common import input_file
 COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
 #: display units of the difference components
 DIFF_UNITS = {"pos": ("m", 1.0), "vel": ("m/s", 1.0), "att": ("mrad", 1e3)}
-PPM_G = 1e-6 / dn.G0          # 1 ppm/g in 1/(m/s²)
+PPM_G = 1e-6 / G0          # 1 ppm/g in 1/(m/s²)
 _TOP = {"study", "trajectory", "imu", "alignment", "comparison", "monitor", "gaps", "simulation"}
 
 
@@ -248,7 +253,7 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
     w = f"{where}: [gaps]"
     gp = table(decl.get("gaps", {}), w, StudyFileError)
     check_keys(gp, {"policy", "window", "trials"}, w, StudyFileError)
-    policy = choice(gp.get("policy", "interpolate"), tuple(dn.GAP_POLICIES), f"{w} policy", StudyFileError)
+    policy = choice(gp.get("policy", "interpolate"), tuple(GAP_POLICIES), f"{w} policy", StudyFileError)
     gwin = integer(gp.get("window", 10), f"{w} window", StudyFileError, limit="gap_window")
     trials = integer(gp.get("trials", 8), f"{w} trials", StudyFileError, limit="gap_trials")
     w = f"{where}: [simulation]"
@@ -269,7 +274,7 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
         fault = (_axis(f["gyro"], f"{wf} gyro"), _axis(f["accel"], f"{wf} accel"),
                  gsens_coefficient(f["coefficient"], f"{wf} coefficient"))
         if (fault[0], fault[1]) not in candidates:
-            raise StudyFileError(wf, f"the injected {dn.candidate_label(fault)} is not among [monitor] candidates")
+            raise StudyFileError(wf, f"the injected {candidate_label(fault)} is not among [monitor] candidates")
     elif fruns:
         raise StudyFileError(w, f"fault_runs = {fruns} needs a [simulation.fault] table")
     gaps = []
@@ -290,14 +295,14 @@ def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
                       seed, fault, tuple(gaps))
 
 
-def make_setup(cfg: DualConfig, initial: dict, where: str) -> dn.DualSetup:
-    """The numeric setup of :func:`covtool.dualnav.run_dual`."""
+def make_setup(cfg: DualConfig, initial: dict, where: str) -> DualSetup:
+    """The numeric setup of :func:`covtool.dualnav.run.run_dual`."""
     for key in ("lat", "lon", "h", "heading"):
         if key not in initial:
             raise StudyFileError(f"{where}: [alignment]", f"missing {key!r}: the logs need the input position and "
                                  "heading (lat, lon, h, heading)")
     hm = 1.0 / cfg.grades["main"].rate
-    return dn.DualSetup(
+    return DualSetup(
         cfg.grades["main"].to_model(), cfg.grades["kimu"].to_model(), cfg.mounting["main"], cfg.mounting["kimu"],
         cfg.ratio, cfg.align_time, initial["lat"], initial["lon"], initial["h"], initial["heading"],
         cfg.heading_sigma, int(round(cfg.model_step / hm)), int(round(cfg.interval / hm)), cfg.components,
@@ -345,7 +350,7 @@ def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
         gs = ()
         if key == "kimu" and fault is not None:
             gs = (fault,)
-        err = dn.GSensitiveErrors(model, x0, rng, gsens=gs)
+        err = GSensitiveErrors(model, x0, rng, gsens=gs)
         sim = ImuSimulator(traj, g.rate, errors=err, quantization=g.quantization, saturation=g.range,
                            mounting=cfg.mounting[key], nodes=quadrature_nodes(traj, g.rate))
         rec = sim.record()
@@ -368,7 +373,7 @@ def bridge(logs, cfg: DualConfig, where="logs"):
     for key in ("main", "kimu"):
         t, th, dv, dt = logs[key]
         m = cfg.grades[key].to_model()
-        out[key] = dn.bridge_gaps(t, th, dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
+        out[key] = bridge_gaps(t, th, dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
                                   window=cfg.gap_window, trials=cfg.gap_trials, where=f"{where} ({key})")
     return out
 
@@ -382,8 +387,8 @@ def _actual_gap_errors(bridged, removed):
         for (idx, th, dv), rep in zip(lst, b.gaps):
             # the bridged samples of this gap are the n filled ones after rep.after
             sel = filled[(b.t[filled] > rep.after + 1e-9) & (b.t[filled] < rep.before - 1e-9)]
-            e_th = dn._runs(b.dtheta)[:, sel].sum(axis=1) - th.sum(axis=1)
-            e_v = dn._runs(b.dv)[:, sel].sum(axis=1) - dv.sum(axis=1)
+            e_th = as_runs(b.dtheta)[:, sel].sum(axis=1) - th.sum(axis=1)
+            e_v = as_runs(b.dv)[:, sel].sum(axis=1) - dv.sum(axis=1)
             rows.append((np.sqrt(np.mean(e_th**2, axis=0)), np.sqrt(np.mean(e_v**2, axis=0))))
     return rows
 
@@ -413,7 +418,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             logs, removed = simulate_logs(traj, cfg, b, rng, fault=fault)
             bridged = bridge(logs, cfg, where=f"{where}: simulated logs")
             psi = initial["heading"] + cfg.heading_sigma * rng.standard_normal(b)
-            r = dn.run_dual(bridged["main"], bridged["kimu"], setup, heading=psi)
+            r = run_dual(bridged["main"], bridged["kimu"], setup, heading=psi)
             res.append(r)
             if not gap_rows:
                 actual = _actual_gap_errors(bridged, removed)
@@ -424,7 +429,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     return _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed)
 
 
-def _gap_row(rep: dn.GapReport, actual_att=None, actual_vel=None) -> dict:
+def _gap_row(rep: GapReport, actual_att=None, actual_vel=None) -> dict:
     row = {"imu": rep.imu, "after [s]": rep.after, "before [s]": rep.before, "samples bridged": rep.samples,
            "duration [ms]": 1e3 * (rep.before - rep.after), "policy": rep.policy, "trials": rep.trials}
     for k, a in enumerate("xyz"):
@@ -439,11 +444,11 @@ def _gap_row(rep: dn.GapReport, actual_att=None, actual_vel=None) -> dict:
     return row
 
 
-def _history(run: dn.DualRun, i: int, label: str) -> pd.DataFrame:
+def _history(run: DualRun, i: int, label: str) -> pd.DataFrame:
     comps = run.model.components
     df = pd.DataFrame({"case": label, "run": i, "t [s]": run.t})
     for c_i, c in enumerate(comps):
-        name = dn.DIFF_NAMES[c]
+        name = DIFF_NAMES[c]
         unit, scale = DIFF_UNITS[name[:3]]
         df[f"{name} [{unit}]"] = scale * run.z[i, :, c]
         df[f"{name} 1sigma [{unit}]"] = scale * run.envelope[:, c_i]
@@ -468,7 +473,7 @@ def _run_rows(runs, label, cfg, truth=None):
                    "flagged intervals [s]": "; ".join(f"{a:.0f}-{b:.0f}" for a, b in r.intervals[i]),
                    "max GLR": float(gs.glr[i, best]), "GLR threshold": gs.threshold,
                    "g-sensitivity detected": bool(gs.detected[i]),
-                   "identified": dn.candidate_label(gs.candidates[best])}
+                   "identified": candidate_label(gs.candidates[best])}
             if truth is not None:
                 c = gs.candidates.index((truth[0], truth[1]))
                 est = gs.estimate[i, c]
@@ -489,7 +494,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
         ("flight duration", traj.duration, "s", traj.name),
         ("IMUs", f"{cfg.grades['main'].name} @ {cfg.grades['main'].rate:g} Hz, "
                  f"{cfg.grades['kimu'].name} @ {cfg.grades['kimu'].rate:g} Hz", "", "seed 001 Table 2 grades"),
-        ("compared components", ", ".join(dn.DIFF_NAMES[c] for c in cfg.components), "",
+        ("compared components", ", ".join(DIFF_NAMES[c] for c in cfg.components), "",
          f"every {cfg.interval:g} s after a {cfg.align_time:g} s alignment"),
         ("false-alarm design per flight", 100.0 * cfg.false_alarm, "%",
          f"each test; window test Bonferroni over sliding {cfg.window:g} s windows, GLR over "
@@ -514,7 +519,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
         err = t_fault["error [%]"].to_numpy()
         est = t_fault["estimate [ppm/g]"].to_numpy()
         summary += [
-            ("g-sensitivity injected", f"KIMU gyro {dn.candidate_label(cfg.fault)}: {cfg.fault[2] / PPM_G:g}",
+            ("g-sensitivity injected", f"KIMU gyro {candidate_label(cfg.fault)}: {cfg.fault[2] / PPM_G:g}",
              "ppm/g", "δω_i = k f_j ω_i (seed 001 Fig 16)"),
             ("flights with the fault", n1, "", ""),
             ("detected (GLR)", 100.0 * det / n1, "%", f"{det} of {n1}"),
@@ -532,7 +537,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     summary["value"] = summary["value"].astype(object)
     tables = {"summary": summary, "fault_free_runs": t_free, "fault_runs": t_fault}
     ref = (free or fault)[0]
-    cand = {"candidate": [dn.candidate_label(c) for c in cfg.candidates],
+    cand = {"candidate": [candidate_label(c) for c in cfg.candidates],
             "1sigma [ppm/g]": ref.gsens.sigma / PPM_G}
     if fault:
         g = np.concatenate([r.gsens.glr for r in fault])
@@ -570,7 +575,7 @@ def _figures(cfg, free, fault, estimates=True, labels=("fault-free", "g-sensitiv
         fig, axs = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
         for k, c in enumerate(comps[-6:]):
             ax = axs.flat[k]
-            name = dn.DIFF_NAMES[c]
+            name = DIFF_NAMES[c]
             unit, scale = DIFF_UNITS[name[:3]]
             ref = free[0] if free else fault[0]
             ci = list(ref.model.components).index(c)
@@ -688,9 +693,9 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         check_imu_log(log, period=dt, gyro_range=gyro_range, accel_range=accel_range, align_time=cfg.align_time,
                       gravity=float(np.linalg.norm(earth.gravity_n(setup.lat, setup.h))), label=key)
         m = cfg.grades[key].to_model()
-        bridged[key] = dn.bridge_gaps(log.t, log.dtheta, log.dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
+        bridged[key] = bridge_gaps(log.t, log.dtheta, log.dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
                                       window=cfg.gap_window, trials=cfg.gap_trials, where=log.path)
-    r = dn.run_dual(bridged["main"], bridged["kimu"], setup)
+    r = run_dual(bridged["main"], bridged["kimu"], setup)
     elapsed = time.perf_counter() - t0
     gs = r.gsens
     best = int(gs.identified[0])
@@ -701,8 +706,8 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         ("samples not compared (before, after)",
          f"main {r.unused['main'][0]}, {r.unused['main'][1]}; KIMU {r.unused['kimu'][0]}, {r.unused['kimu'][1]}", "",
          "outside the common span or after the last whole comparison interval"),
-        ("clock rates", f"main {dn.ppm_text(r.clock['main'])}, KIMU {dn.ppm_text(r.clock['kimu'])}; mismatch "
-         f"{dn.ppm_text(r.clock['mismatch'])}",
+        ("clock rates", f"main {ppm_text(r.clock['main'])}, KIMU {ppm_text(r.clock['kimu'])}; mismatch "
+         f"{ppm_text(r.clock['mismatch'])}",
          "ppm", "measured from the recorded times, against the grades' nominal rates"),
         ("bridged gaps", len(bridged["main"].gaps) + len(bridged["kimu"].gaps), "",
          f"{int(bridged['main'].bridged.sum()) + int(bridged['kimu'].bridged.sum())} samples, policy "
@@ -712,7 +717,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         ("window threshold", r.window_threshold, "", f"α = {cfg.false_alarm:g} per flight"),
         ("max window chi2", float(r.window_stat[0].max()), "", ""),
         ("g-sensitivity detected", bool(gs.detected[0]), "", f"GLR {gs.glr[0, best]:.1f} vs {gs.threshold:.1f}"),
-        ("most likely candidate", dn.candidate_label(gs.candidates[best]), "", "gyro axis / accel axis"),
+        ("most likely candidate", candidate_label(gs.candidates[best]), "", "gyro axis / accel axis"),
         ("its coefficient", gs.estimate[0, best] / PPM_G, "ppm/g", f"1σ {gs.sigma[best] / PPM_G:.1f} ppm/g"),
         ("wall time", elapsed, "s", ""),
     ]
@@ -721,7 +726,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
     gaps = pd.DataFrame([_gap_row(g) for g in bridged["main"].gaps + bridged["kimu"].gaps])
     intervals = pd.DataFrame([{"start [s]": a, "end [s]": b} for a, b in r.intervals[0]],
                              columns=["start [s]", "end [s]"])
-    cand = pd.DataFrame({"candidate": [dn.candidate_label(c) for c in gs.candidates],
+    cand = pd.DataFrame({"candidate": [candidate_label(c) for c in gs.candidates],
                          "estimate [ppm/g]": gs.estimate[0] / PPM_G, "1sigma [ppm/g]": gs.sigma / PPM_G,
                          "GLR": gs.glr[0]})
     tables = {"summary": summary, "history": _history(r, 0, "logs"), "gaps": gaps, "intervals": intervals,

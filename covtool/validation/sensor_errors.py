@@ -333,3 +333,45 @@ def grade_simulator(traj, grade, n_runs: int, rng=None, *, extras: bool = True, 
         kw.setdefault("quantization", grade.quantization)
         kw.setdefault("saturation", grade.range)
     return ImuSimulator(traj, rate, errors=errors, rng=rng, **kw)
+
+
+# --------------------------------------------------------------------------
+# fault injection
+# --------------------------------------------------------------------------
+
+
+class GSensitiveErrors(SensorErrors):
+    """Sensor errors plus a g-sensitive gyro scale-factor error.
+
+    Parameters
+    ----------
+    model, x0, rng, **kw
+        As for :class:`covtool.validation.sensor_errors.SensorErrors`.
+    gsens : sequence of (int, int, float)
+        ``(i, j, k)``: the scale factor of gyro ``i`` changes by ``k f_j``,
+        ``δω_i = k f_j ω_i`` (seed 001, Fig 16 and ref [9]: a parallel-plate
+        sense electrode moved by the acceleration along it). ``k`` in
+        [1/(m/s²)].
+
+    Notes
+    -----
+    The term is added per sample from the true sample means
+    ``f̄ = Δv/h``, ``ω̄ = Δθ/h``: ``δΔθ_i = k (Δv_j/h) Δθ_i``.
+    """
+
+    def __init__(self, model: Model, x0, rng=None, *, gsens=(), **kw):
+        super().__init__(model, x0, rng, **kw)
+        out = []
+        for item in gsens:
+            i, j, k = item
+            if int(i) not in (0, 1, 2) or int(j) not in (0, 1, 2):
+                raise ValueError(f"g-sensitive scale factor axes must be 0, 1 or 2, got {item!r}")
+            out.append((int(i), int(j), float(k)))
+        self.gsens = tuple(out)
+
+    def increment_errors(self, t0, h, dtheta, dv, **kw):
+        """Sensor-error increments plus the g-sensitive term."""
+        ddth, ddv = super().increment_errors(t0, h, dtheta, dv, **kw)
+        for i, j, k in self.gsens:
+            ddth[..., i] += k * (dv[..., j] / h) * dtheta[..., i]
+        return ddth, ddv
