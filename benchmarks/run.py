@@ -82,7 +82,7 @@ def _timed(fn) -> float:
 def flagship_setup():
     import tomllib
 
-    from covtool.studies.zupt import setup
+    from covtool.studies.zupt_setup import setup
 
     return setup(tomllib.loads(FLAGSHIP.read_text()), path=FLAGSHIP)
 

@@ -28,7 +28,7 @@ from covtool.lincov.dynamics import NoiseSource
 from covtool.lincov.batch import compose
 from covtool.errors import StudyFileError
 from covtool.lincov.reduced import zupt_matrices
-from covtool.studies.budget import case_budget
+from covtool.studies.error_budget import case_budget
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "error_budget.toml"
@@ -397,7 +397,7 @@ def test_cli_writes_tables_workbook_and_figures(tmp_path):
 
 def test_figure_sources_are_ranked_by_peak_share(flagship):
     """Stacked figures show the sources with the largest peak share (zero totals at t = 0 skipped)."""
-    from covtool.studies.budget import top_sources
+    from covtool.studies.error_budget import top_sources
     v = np.array([[0.0, 1.0, 1.0], [0.0, 0.0, 9.0], [0.0, 5.0, 1.0], [0.0, 0.0, 0.0]])
     assert top_sources(v, 2) == [2, 1]            # peaks 5/6 and 9/11 beat 1/6
     assert top_sources(v, 10) == [2, 1, 0]        # a source that never contributes is left out
@@ -409,7 +409,7 @@ def test_figure_sources_are_ranked_by_peak_share(flagship):
 
 def test_shipped_study_files_validate():
     """Both shipped studies pass validation (the runs themselves are the CLI's job)."""
-    from covtool.studies.budget import budget_cases, budget_options
+    from covtool.studies.error_budget import budget_cases, budget_options
     for f in ("error_budget.toml", "error_budget_pure_ins.toml"):
         d = tomllib.loads((ROOT / "studies" / f).read_text())
         assert d["study"]["kind"] == "error_budget"

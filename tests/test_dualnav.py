@@ -794,7 +794,7 @@ def log_files(tmp_path_factory):
 
 
 def _parser():
-    from covtool.cli_dualnav import add_parser
+    from covtool.cli import add_dualnav_parser as add_parser
 
     p = argparse.ArgumentParser(prog="covtool")
     add_parser(p.add_subparsers(dest="command", required=True))

@@ -45,7 +45,7 @@ def _physical(P, q):
 
 @pytest.fixture(scope="module")
 def setup():
-    from covtool.studies.zupt import setup as zsetup
+    from covtool.studies.zupt_setup import setup as zsetup
     import tomllib
     from pathlib import Path
     path = Path(__file__).resolve().parents[1] / "studies" / "zupt_filter_order.toml"

@@ -541,10 +541,10 @@ def test_every_study_kind_refuses_an_invalid_initial_covariance(kind, bad, tmp_p
 def test_every_study_kind_refuses_an_invalid_process_noise(kind, bad, tmp_path, monkeypatch):
     """The same three values injected into the truth's discrete process noise Q_d at one step
     (the discretiser's output) stop the study with the step's time and the state."""
-    import covtool.studies.common as common
+    import covtool.studies.grid as grid
     decl, _ = _study(kind, tmp_path)
     value, problem = BAD[bad]
-    original = common.discretize_chunked
+    original = grid.discretize_chunked
     calls = []
 
     def poisoned(F, Qc, dt, method, order=None, **kw):
@@ -555,7 +555,7 @@ def test_every_study_kind_refuses_an_invalid_process_noise(kind, bad, tmp_path, 
         calls.append(1)
         return Phi, Qd
 
-    monkeypatch.setattr(common, "discretize_chunked", poisoned)
+    monkeypatch.setattr(grid, "discretize_chunked", poisoned)
     with pytest.raises(NumericalError, match=r": Q_d of the step at t = \d+\.0 s: covariance has a "
                                              + problem + r".* state 'dvN'"):
         covtool.run_study(decl)
@@ -675,7 +675,7 @@ def test_covariance_status_refuses_a_non_square_array():
 def test_sweep_fit_leaves_out_flagged_cases():
     """A flagged (NaN) point is left out of the log-log fit; too few points give a NaN fit, not an error."""
     from covtool.analysis.sensitivity import fit_loglog
-    from covtool.studies.sensitivity import _fit, _ratio
+    from covtool.studies.zupt_sensitivity import _fit, _ratio
     s = np.array([0.01, 0.1, 1.0, 10.0, 100.0])
     e = 3.0 * s ** 0.25
     e_bad = e.copy()

@@ -43,7 +43,7 @@ def one_blas_thread():
 
 @pytest.fixture(scope="module")
 def S(tmp_path_factory):
-    from covtool.studies.zupt import setup
+    from covtool.studies.zupt_setup import setup
     ff = tmp_path_factory.mktemp("f") / "filters.toml"
     ff.write_text((ROOT / "models" / "filters" / "zupt_filters.toml").read_text() + EXTRA)
     d = tomllib.loads(FLAGSHIP.read_text())

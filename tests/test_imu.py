@@ -29,7 +29,7 @@ from covtool.validation.sensor_errors import SensorErrors, grade_simulator, samp
 from covtool.io.imu_grade import dump_imu_grade, imu_grade_from_dict, list_imu_grades, load_imu_grade
 from covtool.io.library import load_model_by_name
 from covtool.io.model_file import model_from_dict
-from covtool.studies.common import midpoint_context
+from covtool.studies.grid import midpoint_context
 from covtool.nav.trajectory.profiles import land_vehicle, static
 from covtool.units import parse_quantity
 

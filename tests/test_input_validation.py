@@ -143,13 +143,13 @@ def test_choice_compares_type_and_value():
 @pytest.mark.parametrize("text, expected", [("6 GB", 6e9), ("512 MiB", 512 * 2**20), ("1.5GiB", 1.5 * 2**30),
                                             (2_000_000, 2e6), ("100", 100.0)])
 def test_parse_bytes(text, expected):
-    from covtool.studies.common import parse_bytes
+    from covtool.studies.resources import parse_bytes
     assert parse_bytes(text, "w") == expected
 
 
 @pytest.mark.parametrize("text", ["6 GX", "-1 GB", "lots", True, 0, "0 GB"])
 def test_parse_bytes_refuses(text):
-    from covtool.studies.common import parse_bytes
+    from covtool.studies.resources import parse_bytes
     with pytest.raises(StudyFileError, match=r"w: .*(memory size|not a number)"):
         parse_bytes(text, "w")
 
@@ -246,7 +246,7 @@ def test_study_override_process_parameter_of_another_process_is_refused(state, k
 
 
 def test_study_override_of_the_right_process_parameter_is_applied():
-    from covtool.studies.common import load_truth
+    from covtool.studies.inputs import load_truth
     m = load_truth({"truth": {"override": {"gyro_markov_x": {"tau": "2 h"}}}}, "s.toml", None)
     assert m.states[m.index["gyro_markov_x"]].tau == 7200.0
 
@@ -435,7 +435,7 @@ def test_zupt_study_fields(mutate, match):
     ("cost", lambda c: c.update(paper_seconds={"A": math.inf}), r"\[cost\] paper_seconds A: inf is not finite"),
 ])
 def test_sensitivity_fields(section, mutate, match):
-    from covtool.studies.sensitivity import cost_options, sweep_options
+    from covtool.studies.zupt_sensitivity import cost_options, sweep_options
     cfg = {}
     mutate(cfg)
     fn = sweep_options if section == "sweep" else cost_options
@@ -449,7 +449,7 @@ def test_sensitivity_fields(section, mutate, match):
     ({"top": True}, r"\[budget\] top: True is not an integer"),
 ])
 def test_budget_fields(cfg, match):
-    from covtool.studies.budget import budget_options
+    from covtool.studies.error_budget import budget_options
     with pytest.raises(StudyFileError, match=match):
         budget_options({"budget": cfg}, "s.toml")
 
@@ -622,8 +622,8 @@ def _peak(decl):
 @pytest.mark.parametrize("make", [lambda: pure_decl("12 min"), lambda: order_decl(("A", "B3", "D"), "6 min")])
 def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
     """The estimate (reported in provenance) bounds the traced peak, and not by more than 30 %."""
-    from covtool.studies.common import memory_estimate, noise_columns
-    from covtool.studies.zupt import filter_dynamics, order_memory
+    from covtool.studies.resources import memory_estimate, noise_columns
+    from covtool.studies.zupt_setup import filter_dynamics, order_memory
     d = make()
     r, peak = _peak(d)
     truth = load_model(SDINS)
@@ -638,7 +638,7 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
 
 
 def test_trade_grid_memory_counts_the_workers():
-    from covtool.studies.trade import TradePlan
+    from covtool.studies.trade_grid import TradePlan
     plan = TradePlan(tomllib.loads((ROOT / "studies" / "trade_grid.toml").read_text()), ROOT / "studies" /
                      "trade_grid.toml")
     one, four = plan.memory(1), plan.memory(4)

@@ -30,8 +30,8 @@ from covtool.analysis.metrics import ned_position_covariance
 from covtool.parallel import ProcessBackend, SerialBackend
 from covtool.nav.attitude import attitude_error_matrix
 from covtool.studies import monte_carlo as smc
-from covtool.studies.nav_covariance import load_trajectory
-from covtool.studies.zupt import setup
+from covtool.studies.inputs import load_trajectory
+from covtool.studies.zupt_setup import setup
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "monte_carlo_validation.toml"

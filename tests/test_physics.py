@@ -42,7 +42,7 @@ from covtool.lincov.reference import propagate
 from covtool.lincov.discretize import van_loan
 from covtool.lincov.dynamics import Context, error_dynamics
 from covtool.io.model_file import load_model
-from covtool.studies.common import time_grid
+from covtool.studies.grid import time_grid
 from covtool.nav.trajectory.profiles import static
 
 SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"

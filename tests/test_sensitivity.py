@@ -27,8 +27,9 @@ from covtool.io.workbook import sheet_title
 from covtool.io.writers import write_outputs
 from covtool.analysis.metrics import nav_metrics
 from covtool.analysis.sensitivity import fit_loglog, run_sweep, scale_grid, sensitivity_figures, sweep_cases
-from covtool.studies import sensitivity as study
-from covtool.studies.common import FT, discretize_chunked
+from covtool.studies import zupt_sensitivity as study
+from covtool.studies.tables import FT
+from covtool.studies.grid import discretize_chunked
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "zupt_sensitivity.toml"
@@ -232,7 +233,7 @@ def test_sweep_point_equals_independent_stepwise_run(short, case, param, scale):
 @pytest.fixture(scope="module")
 def flagship():
     """The flagship study's own setup (Van Loan truth), shortened like ``short``."""
-    from covtool.studies.zupt import setup
+    from covtool.studies.zupt_setup import setup
     d = tomllib.loads(FLAGSHIP.read_text())
     d["study"]["duration"] = "11 min"
     d["output"]["report_times"] = ["11 min"]
@@ -268,7 +269,7 @@ def test_filter_a_reuses_the_truth_discretisation():
     """Filter A takes the truth's Φ, Q_d; that shortcut is right only if
     discretising A's own F, Q_c by its declared method gives them again."""
     from covtool.lincov.discretize import discretize
-    from covtool.studies.zupt import setup
+    from covtool.studies.zupt_setup import setup
 
     with threadpool_limits(limits=1, user_api="blas"):
         flagship = setup(short_decl(), path=STUDY, extra_sections=("sweep", "cost"))

@@ -25,7 +25,7 @@ from covtool.lincov.dynamics import error_dynamics
 from covtool.nav.imu.simulator import ImuRecord, ImuSimulator, ideal_increments
 from covtool.validation.sensor_errors import SensorErrors
 from covtool.io.model_file import model_from_dict
-from covtool.studies.common import midpoint_context
+from covtool.studies.grid import midpoint_context
 from covtool.nav.trajectory.profiles import land_vehicle, static
 from covtool.units import parse_quantity
 

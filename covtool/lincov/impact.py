@@ -22,7 +22,7 @@ members differ only in P_f(0) and in the filter noise, which is linear in its
 sources and therefore composed once per source (:func:`covtool.lincov.noise.compose_noise`)
 and summed per member.
 
-Pure numeric core: a :class:`~covtool.studies.zupt.ZuptSetup` in, arrays out.
+Pure numeric core: a :class:`~covtool.studies.zupt_setup.ZuptSetup` in, arrays out.
 """
 
 from __future__ import annotations
@@ -86,7 +86,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
 
     Parameters
     ----------
-    S : covtool.studies.zupt.ZuptSetup
+    S : covtool.studies.zupt_setup.ZuptSetup
     name : str
         A declared filter that drops truth states.
     record_steps : array_like of int

@@ -1,4 +1,4 @@
-"""Study runners: one module per study kind, dispatched on ``[study] kind``.
+"""Study runners: one module per study kind, named as the kind, dispatched on ``[study] kind``.
 
 A runner module exposes ``run(decl: dict, *, path: Path | None, progress: bool)
 -> StudyResult``.  Runners compute only; :mod:`covtool.io.writers` writes.
@@ -8,25 +8,18 @@ from __future__ import annotations
 
 import copy
 import importlib
-import os
 import inspect
+import os
 from pathlib import Path
 
 from covtool.errors import InputError, StudyFileError
 from covtool.io.config import load_toml
 
-#: study kind -> runner module (imported lazily)
-RUNNERS = {
-    "pure_ins": "covtool.studies.nav_covariance",
-    "zupt_filter_order": "covtool.studies.zupt",
-    "ad_reset": "covtool.studies.ad_reset",
-    "zupt_sensitivity": "covtool.studies.sensitivity",
-    "error_budget": "covtool.studies.budget",
-    "trade_grid": "covtool.studies.trade",
-    "monte_carlo": "covtool.studies.monte_carlo",
-    "dual_imu": "covtool.studies.dual_imu",
-    "magnitude_sweep": "covtool.studies.magnitude_sweep",
-}
+#: study kinds; each runs in the module of the same name, ``covtool.studies.<kind>`` (imported lazily)
+KINDS = ("pure_ins", "zupt_filter_order", "ad_reset", "zupt_sensitivity", "error_budget", "trade_grid", "monte_carlo",
+         "dual_imu", "magnitude_sweep")
+#: study kind -> runner module
+RUNNERS = {kind: f"covtool.studies.{kind}" for kind in KINDS}
 
 
 def load_study(path_or_dict):

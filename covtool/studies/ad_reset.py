@@ -18,20 +18,20 @@ a computation.  The runner computes; :mod:`covtool.io.writers` writes.
 from __future__ import annotations
 
 import math
-import time
 from pathlib import Path
+import time
 
 import numpy as np
 import pandas as pd
 
 from covtool import __version__
-from covtool.board import adreset, alignment as align
-from covtool.board import output_filter as of
+from covtool.board import adreset, alignment as align, output_filter as of
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, number, quantity, require, string
 from covtool.io.names import check_study_name
 from covtool.results import StudyResult
 from covtool.units import from_si
+
 
 KIND = "ad_reset"
 
@@ -567,29 +567,6 @@ def _register_extrema(name, df, xcol, unit, title, p, tables, figs, charts, *, y
     figs[name] = lambda: _plot_extrema(df, xcol, p["ratios"], unit, title, ylabel, nav=nav, tag=tag)
 
 
-def _plot_extrema(df, xcol, ratios, unit, title, ylabel, nav=False, tag=None):
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for r, col in zip(ratios, colors):
-        lab = _ratio_label(r)
-        for kind in ("max", "min"):
-            ax.plot(df[xcol], df[f"{kind} {lab} [{unit}]"], "-", color=col,
-                    label=f"N_e = {lab} N_t" if kind == "max" else None)
-            if nav:
-                ax.plot(df[xcol], df[f"{kind} {lab} nav [{unit}]"], ":", color=col)
-            if tag:
-                ax.plot(df[xcol], df[f"{kind} {lab}{tag} [{unit}]"], ":", color=col)
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xlabel(xcol.replace("m/s^2", "m/s$^2$"))
-    ax.set_ylabel(f"{ylabel} [{unit}]".replace("m/s^2", "m/s$^2$"))
-    ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    return fig
-
-
 def _derived_table(p, d) -> pd.DataFrame:
     filt, t = d["filt"], d["thresholds"]
     c = p["coarse"]
@@ -672,3 +649,26 @@ def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> Stud
                     "study_file": str(path) if path else "<dict>"},
         data={"params": p, "derived": d},
     )
+
+
+def _plot_extrema(df, xcol, ratios, unit, title, ylabel, nav=False, tag=None):
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    for r, col in zip(ratios, colors):
+        lab = _ratio_label(r)
+        for kind in ("max", "min"):
+            ax.plot(df[xcol], df[f"{kind} {lab} [{unit}]"], "-", color=col,
+                    label=f"N_e = {lab} N_t" if kind == "max" else None)
+            if nav:
+                ax.plot(df[xcol], df[f"{kind} {lab} nav [{unit}]"], ":", color=col)
+            if tag:
+                ax.plot(df[xcol], df[f"{kind} {lab}{tag} [{unit}]"], ":", color=col)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xlabel(xcol.replace("m/s^2", "m/s$^2$"))
+    ax.set_ylabel(f"{ylabel} [{unit}]".replace("m/s^2", "m/s$^2$"))
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    return fig

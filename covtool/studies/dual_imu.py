@@ -66,27 +66,27 @@ Study file (datasheet units)::
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass
 from pathlib import Path
+import time
 
 import numpy as np
 import pandas as pd
 
 from covtool.dualnav.difference import DIFF_NAMES
-from covtool.dualnav.run import DualRun, DualSetup, as_runs, ppm_text, run_dual
-from covtool.dualnav.gaps import GAP_POLICIES, GapReport, bridge_gaps
-from covtool.validation.sensor_errors import GSensitiveErrors
+from covtool.dualnav.gaps import bridge_gaps, GAP_POLICIES, GapReport
 from covtool.dualnav.monitor import candidate_label
-from covtool.units import G0
-from covtool.nav import earth
-from covtool.nav import attitude as quat
+from covtool.dualnav.run import as_runs, DualRun, DualSetup, ppm_text, run_dual
 from covtool.errors import InputError, ModelFileError, StudyFileError
 from covtool.io.config import check_keys, choice, integer, names, number, quantity, string, table
 from covtool.io.imu_log import check_imu_log
 from covtool.io.names import check_study_name
+from covtool.nav import attitude as quat, earth
 from covtool.results import StudyResult
-from covtool.studies.common import input_file
+from covtool.studies.inputs import input_file
+from covtool.units import G0
+from covtool.validation.sensor_errors import GSensitiveErrors
+
 
 COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
 #: display units of the difference components
@@ -567,83 +567,6 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     )
 
 
-def _figures(cfg, free, fault, estimates=True, labels=("fault-free", "g-sensitivity injected")):
-    def fig_difference():
-        import matplotlib.pyplot as plt
-
-        comps = free[0].model.components if free else fault[0].model.components
-        fig, axs = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
-        for k, c in enumerate(comps[-6:]):
-            ax = axs.flat[k]
-            name = DIFF_NAMES[c]
-            unit, scale = DIFF_UNITS[name[:3]]
-            ref = free[0] if free else fault[0]
-            ci = list(ref.model.components).index(c)
-            ax.fill_between(ref.t, -3 * scale * ref.envelope[:, ci], 3 * scale * ref.envelope[:, ci], color="0.85",
-                            label="±3σ predicted")
-            for runs, color, lab in ((free, "C0", labels[0]), (fault, "C3", labels[1])):
-                for r in runs[:1]:
-                    for i in range(min(3, r.z.shape[0])):
-                        ax.plot(r.t, scale * r.z[i, :, c], color=color, lw=0.8, label=lab if i == 0 else None)
-            ax.set_title(f"{name} (main − KIMU)")
-            ax.set_ylabel(f"[{unit}]")
-            ax.grid(True, alpha=0.3)
-        axs.flat[0].legend(fontsize=8)
-        for ax in axs[-1]:
-            ax.set_xlabel("time [s]")
-        fig.suptitle(f"{cfg.name}: navigation difference after mounting compensation vs predicted envelope")
-        fig.tight_layout()
-        return fig
-
-    def fig_window():
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(9, 4.5))
-        thr = None
-        for runs, color, lab in ((free, "0.6", labels[0]), (fault, "C3", labels[1])):
-            first = True
-            for r in runs:
-                W = r.window_stat.shape[1]
-                tt = r.t[r.t.size - W:]
-                for i in range(r.window_stat.shape[0]):
-                    ax.plot(tt, r.window_stat[i], color=color, lw=0.5, alpha=0.6, label=lab if first else None)
-                    first = False
-                thr = r.window_threshold
-        if thr is not None:
-            ax.axhline(thr, color="k", ls="--", label=f"threshold (α = {cfg.false_alarm:g} per flight)")
-        ax.set_yscale("log")
-        ax.set_xlabel("end of window [s]")
-        ax.set_ylabel(f"Σ NIS over {cfg.window:g} s")
-        ax.legend(fontsize=8)
-        ax.grid(True, alpha=0.3)
-        return fig
-
-    def fig_estimates():
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(7, 4))
-        if fault:
-            c = fault[0].gsens.candidates.index((cfg.fault[0], cfg.fault[1]))
-            e = np.concatenate([r.gsens.estimate[:, c] for r in fault]) / PPM_G
-            k = cfg.fault[2] / PPM_G
-            ax.hist(e, bins=20, color="C3", alpha=0.7, label="fault runs")
-            ax.axvline(k, color="k", label="injected")
-            ax.axvspan(0.8 * k, 1.2 * k, color="C2", alpha=0.15, label="±20 %")
-        if free:
-            c = free[0].gsens.candidates.index((cfg.fault[0], cfg.fault[1])) if cfg.fault else 0
-            e = np.concatenate([r.gsens.estimate[:, c] for r in free]) / PPM_G
-            ax.hist(e, bins=20, color="0.5", alpha=0.7, label="fault-free runs")
-        ax.set_xlabel("estimated g-sensitive scale factor [ppm/g]")
-        ax.set_ylabel("flights")
-        ax.legend(fontsize=8)
-        return fig
-
-    figs = {"difference_envelope": fig_difference, "window_test": fig_window}
-    if cfg.fault and estimates:
-        figs["gsens_estimates"] = fig_estimates
-    return figs
-
-
 # --------------------------------------------------------------------------
 # recorded logs
 # --------------------------------------------------------------------------
@@ -739,3 +662,80 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
                     **input_file("kimu_grade", cfg.grades["kimu"].path), "compute_seconds": f"{elapsed:.2f}"},
         data={"run": r, "bridged": bridged, "config": cfg},
     )
+
+
+def _figures(cfg, free, fault, estimates=True, labels=("fault-free", "g-sensitivity injected")):
+    def fig_difference():
+        import matplotlib.pyplot as plt
+
+        comps = free[0].model.components if free else fault[0].model.components
+        fig, axs = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
+        for k, c in enumerate(comps[-6:]):
+            ax = axs.flat[k]
+            name = DIFF_NAMES[c]
+            unit, scale = DIFF_UNITS[name[:3]]
+            ref = free[0] if free else fault[0]
+            ci = list(ref.model.components).index(c)
+            ax.fill_between(ref.t, -3 * scale * ref.envelope[:, ci], 3 * scale * ref.envelope[:, ci], color="0.85",
+                            label="±3σ predicted")
+            for runs, color, lab in ((free, "C0", labels[0]), (fault, "C3", labels[1])):
+                for r in runs[:1]:
+                    for i in range(min(3, r.z.shape[0])):
+                        ax.plot(r.t, scale * r.z[i, :, c], color=color, lw=0.8, label=lab if i == 0 else None)
+            ax.set_title(f"{name} (main − KIMU)")
+            ax.set_ylabel(f"[{unit}]")
+            ax.grid(True, alpha=0.3)
+        axs.flat[0].legend(fontsize=8)
+        for ax in axs[-1]:
+            ax.set_xlabel("time [s]")
+        fig.suptitle(f"{cfg.name}: navigation difference after mounting compensation vs predicted envelope")
+        fig.tight_layout()
+        return fig
+
+    def fig_window():
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(9, 4.5))
+        thr = None
+        for runs, color, lab in ((free, "0.6", labels[0]), (fault, "C3", labels[1])):
+            first = True
+            for r in runs:
+                W = r.window_stat.shape[1]
+                tt = r.t[r.t.size - W:]
+                for i in range(r.window_stat.shape[0]):
+                    ax.plot(tt, r.window_stat[i], color=color, lw=0.5, alpha=0.6, label=lab if first else None)
+                    first = False
+                thr = r.window_threshold
+        if thr is not None:
+            ax.axhline(thr, color="k", ls="--", label=f"threshold (α = {cfg.false_alarm:g} per flight)")
+        ax.set_yscale("log")
+        ax.set_xlabel("end of window [s]")
+        ax.set_ylabel(f"Σ NIS over {cfg.window:g} s")
+        ax.legend(fontsize=8)
+        ax.grid(True, alpha=0.3)
+        return fig
+
+    def fig_estimates():
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(7, 4))
+        if fault:
+            c = fault[0].gsens.candidates.index((cfg.fault[0], cfg.fault[1]))
+            e = np.concatenate([r.gsens.estimate[:, c] for r in fault]) / PPM_G
+            k = cfg.fault[2] / PPM_G
+            ax.hist(e, bins=20, color="C3", alpha=0.7, label="fault runs")
+            ax.axvline(k, color="k", label="injected")
+            ax.axvspan(0.8 * k, 1.2 * k, color="C2", alpha=0.15, label="±20 %")
+        if free:
+            c = free[0].gsens.candidates.index((cfg.fault[0], cfg.fault[1])) if cfg.fault else 0
+            e = np.concatenate([r.gsens.estimate[:, c] for r in free]) / PPM_G
+            ax.hist(e, bins=20, color="0.5", alpha=0.7, label="fault-free runs")
+        ax.set_xlabel("estimated g-sensitive scale factor [ppm/g]")
+        ax.set_ylabel("flights")
+        ax.legend(fontsize=8)
+        return fig
+
+    figs = {"difference_envelope": fig_difference, "window_test": fig_window}
+    if cfg.fault and estimates:
+        figs["gsens_estimates"] = fig_estimates
+    return figs

@@ -50,17 +50,18 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.lincov.noise import compose_noise
-from covtool.lincov.batch import System, events, run_batch
-from covtool.errors import StudyFileError
-from covtool.lincov.reduced import zupt_matrices
-from covtool.lincov.noise import CombinedNoise, compose_transition, restricted_noise
-from covtool.lincov.impact import check_members
-from covtool.io.config import check_keys, quantity
 from covtool.analysis.metrics import nav_metrics
+from covtool.errors import StudyFileError
+from covtool.io.config import check_keys, quantity
+from covtool.lincov.batch import events, run_batch, System
+from covtool.lincov.impact import check_members
+from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transition, restricted_noise
+from covtool.lincov.reduced import zupt_matrices
+from covtool.plotting.magnitude_sweep import sweep_figure
 from covtool.results import StudyResult
-from covtool.studies.common import ARCMIN, FT, progress_bar
-from covtool.studies.zupt import setup
+from covtool.studies.resources import progress_bar
+from covtool.studies.tables import ARCMIN, FT
+from covtool.studies.zupt_setup import setup
 
 
 def sweep_options(decl: dict, where: str, truth) -> dict:
@@ -217,7 +218,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                   "compute_seconds": f"{elapsed:.2f}"}
     return StudyResult(
         name=S.hdr["name"], kind="magnitude_sweep", tables={"summary": thresholds, "sweep": sweep},
-        figures={"magnitude_sweep": _figure(sweep, opts, truth)},
+        figures={"magnitude_sweep": sweep_figure(sweep, opts, truth)},
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
         data={"setup": S, "results": results, "members": members, "metrics": mets, "report_steps": rep})
 
@@ -262,34 +263,3 @@ def threshold_table(sweep: pd.DataFrame, thr: float, groups, filters, truth, opt
                     row["crossing"] = f"{np.exp(lx):.4g}"
             rows.append(row)
     return pd.DataFrame(rows)
-
-
-def _figure(sweep: pd.DataFrame, opts: dict, truth):
-    def make():
-        import matplotlib.pyplot as plt
-        from covtool.units import from_si
-        groups = opts["groups"]
-        fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 4.2), squeeze=False, sharey=True)
-        for ax, g in zip(axes[0], groups):
-            unit = g["unit_text"]
-            s = sweep[sweep["group"] == g["name"]]
-            for f in dict.fromkeys(s["filter"]):
-                if f == "A":
-                    continue
-                gg = s[s["filter"] == f].sort_values("magnitude [SI]")
-                x = [float(from_si(v, unit)) if unit else v for v in gg["magnitude [SI]"]]
-                ax.plot(x, gg["CEP / A [-]"], marker="o", ms=3, label=f)
-            ax.axhline(opts["threshold"], color="k", ls="--", lw=1, label=f"{opts['threshold']:g} x A")
-            dsig = truth.states[truth.index[g["states"][0]]].sigma
-            ax.axvline(float(from_si(dsig, unit)) if unit else dsig, color="0.5", ls=":", lw=1,
-                       label="declared")
-            ax.set_xscale("log")
-            ax.set_xlabel(f"{g['name']} 1sigma [{unit}]" if unit else g["name"])
-            ax.set_title(g["name"])
-            ax.grid(True, which="both", alpha=0.3)
-        axes[0, 0].set_ylabel("true CEP / CEP of optimal filter A at the report time")
-        axes[0, -1].legend(fontsize=8)
-        fig.suptitle("Where the reduced filters stop being within the threshold of the optimal filter")
-        fig.tight_layout()
-        return fig
-    return make

@@ -57,21 +57,27 @@ import numpy as np
 import pandas as pd
 
 from covtool import __version__
-from covtool.lincov.reference import propagate, propagate_with_filter
-from covtool.errors import StudyFileError
-from covtool.lincov.reduced import zupt_matrices
-from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
+from covtool.analysis.consistency import (expected_nees, horizontal_dof, inside_fraction, nees_bounds,
+                                          nees_whitening, REDUCED_NAV, rms_bounds)
 from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text
-from covtool.analysis.consistency import (REDUCED_NAV, expected_nees, horizontal_dof, inside_fraction,
-                                          nees_bounds, nees_whitening, rms_bounds)
-from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, simulate_chunk
-from covtool.validation.feedback import FeedbackFilter
-from covtool.results import StudyResult
+from covtool.errors import StudyFileError
+from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
+from covtool.lincov.reduced import zupt_matrices
+from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.nav.coning import MAX_SAMPLES
 from covtool.nav.strapdown import NAV_STATES
-from covtool.studies.common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, resource_provenance, study_header,
-                     study_inputs)
-from covtool.studies.zupt import setup
+from covtool.results import StudyResult
+from covtool.studies.inputs import study_header, study_inputs
+from covtool.studies.resources import memory_estimate, noise_columns, resource_provenance
+from covtool.studies.tables import ARCMIN, case_validity, FT
+from covtool.studies.zupt_setup import setup
+from covtool.validation.feedback import FeedbackFilter
+from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, simulate_chunk
+
+__all__ = [
+    "run", "mc_options",
+]
+
 
 MC_KEYS = ("runs", "runs_per_chunk", "seed", "imu_rate", "samples_per_step", "confidence", "nees_every",
            "sensor_noise", "measurement_noise", "process_dt")
@@ -189,8 +195,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     resume : bool
         Reuse the chunks already in ``store``.
     """
-    from covtool.parallel import ResultStore, file_sha256, make_backend, run_chunks
-    from covtool.studies.trade import _store_checks, trajectory_csv_sha256
+    from covtool.io.store import ResultStore
+    from covtool.io.config import file_sha256
+    from covtool.parallel import make_backend, run_chunks
+    from covtool.studies.resources import store_checks
+    from covtool.studies.inputs import trajectory_csv_sha256
 
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
@@ -413,7 +422,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                   "chunks_computed": stats["computed"], "chunks_reused": stats["reused"],
                   "compute_seconds": f"{elapsed:.2f}", "monte_carlo_seconds": f"{stats['seconds']:.2f}",
                   "result_store": str(store) if store is not None else "",
-                  "result_store_checks": _store_checks(rs, stats)}
+                  "result_store_checks": store_checks(rs, stats)}
     return StudyResult(
         name=S.hdr["name"], kind="monte_carlo", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
@@ -425,15 +434,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
 
 def _trajectory(decl, where, path):
-    from covtool.studies.nav_covariance import load_trajectory
+    from covtool.studies.inputs import load_trajectory
 
     hdr = study_header(decl, where)
     return load_trajectory(decl, where, path.parent if path else None, hdr["dt"])
 
-
-# --------------------------------------------------------------------------
-# figures
-# --------------------------------------------------------------------------
 
 _LABELS = {"horizontal": "horizontal position (radial)", "altitude": "altitude", "azimuth": "azimuth"}
 
@@ -526,6 +531,3 @@ def _nees_figure(names, t, nees_stats, N, conf):
         fig.tight_layout()
         return fig
     return make
-
-
-__all__ = ["run", "mc_options"]

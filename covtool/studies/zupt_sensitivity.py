@@ -66,18 +66,20 @@ import numpy as np
 import pandas as pd
 from threadpoolctl import threadpool_limits
 
-from covtool.analysis.cost import PAPER_TABLE4_SECONDS, cycle_flops, power_law, taylor_terms, time_cycle
-from covtool.lincov.batch import System, events
-from covtool.errors import FlaggedCaseWarning, StudyFileError
-from covtool.lincov.reduced import zupt_matrices
-from covtool.io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
+from covtool.analysis.cost import cycle_flops, PAPER_TABLE4_SECONDS, power_law, taylor_terms, time_cycle
 from covtool.analysis.metrics import first_invalid, nav_metrics, validity_text
-from covtool.results import StudyResult
 from covtool.analysis.sensitivity import (fit_loglog, LogLogFit, PARAMETERS, run_sweep, scale_grid,
                                           sensitivity_figures, sweep_cases)
-from covtool.studies.common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
-                     study_inputs)
-from covtool.studies.zupt import setup
+from covtool.errors import FlaggedCaseWarning, StudyFileError
+from covtool.io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
+from covtool.lincov.batch import events, System
+from covtool.lincov.reduced import zupt_matrices
+from covtool.results import StudyResult
+from covtool.studies.inputs import study_inputs
+from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
+from covtool.studies.tables import ARCMIN, case_validity, FT
+from covtool.studies.zupt_setup import setup
+
 
 SWEEP_KEYS = {"parameters", "scales", "fit_degree", "discretization"}
 COST_KEYS = {"measure", "repeats", "taylor_order", "paper_seconds"}

@@ -49,18 +49,20 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.analysis.budget import (ERRORS, MEASUREMENT, RESOLUTIONS, budget_sources, nav_variances,
-                                     relative_residual, run_budget)
-from covtool.lincov.noise import compose_noise
-from covtool.lincov.batch import System, events, run_batch
-from covtool.errors import StudyFileError
-from covtool.lincov.reduced import zupt_matrices
-from covtool.io.config import check_keys, choice, integer, names, table
+from covtool.analysis.budget import (budget_sources, ERRORS, MEASUREMENT, nav_variances, relative_residual,
+                                     RESOLUTIONS, run_budget)
 from covtool.analysis.metrics import cep, nav_metrics, ned_position_covariance, validity_text
+from covtool.errors import StudyFileError
+from covtool.io.config import check_keys, choice, integer, names, table
+from covtool.lincov.batch import events, run_batch, System
+from covtool.lincov.noise import compose_noise
+from covtool.lincov.reduced import zupt_matrices
 from covtool.results import StudyResult
-from covtool.studies.common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, progress_bar, resource_provenance,
-                     study_header, study_inputs)
-from covtool.studies.zupt import setup
+from covtool.studies.inputs import study_header, study_inputs
+from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
+from covtool.studies.tables import ARCMIN, case_validity, FT
+from covtool.studies.zupt_setup import setup
+
 
 PURE = "pure_ins"
 #: paper unit of each error: (SI per unit, label)
@@ -110,8 +112,8 @@ def budget_cases(decl: dict, where: str) -> tuple[list | None, bool]:
 
 def _memory(decl: dict, where: str, resolution: str, pure: bool):
     """What a budget holds: the setup, and per source its noise composed over the event grid (J, K, n, n)."""
-    from covtool.studies.nav_covariance import output_options
-    from covtool.studies.zupt import zupt_options, zupt_update_count
+    from covtool.studies.inputs import output_options
+    from covtool.studies.zupt_setup import zupt_options, zupt_update_count
 
     def memory(steps, truth, filters, dynamics):
         n = truth.n
@@ -199,7 +201,7 @@ def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec,
 
     Parameters
     ----------
-    S : covtool.studies.zupt.ZuptSetup
+    S : covtool.studies.zupt_setup.ZuptSetup
     case : str
         A filter name, or ``"pure_ins"`` (no updates; the measurement
         source is left out).

@@ -66,28 +66,32 @@ import copy
 import itertools
 import math
 import os
+from pathlib import Path
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from covtool import __version__
-from covtool.lincov.batch import System, events, run_batch
-from covtool.errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
-from covtool.io.filters import load_filters
-from covtool.lincov.reduced import zupt_matrices
-from covtool.io.config import boolean, check_keys, LIMITS, number, quantity, string, table
-from covtool.io.names import check_name
 from covtool.analysis.metrics import first_invalid, nav_metrics
-from covtool.parallel import file_sha256
+from covtool.errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
+from covtool.io.config import boolean, check_keys, LIMITS, number, quantity, string, table
+from covtool.io.filters import load_filters
+from covtool.io.names import check_name
+from covtool.lincov.batch import events, run_batch, System
+from covtool.lincov.reduced import zupt_matrices
+from covtool.io.config import file_sha256
 from covtool.results import StudyResult
+from covtool.studies.grid import check_step_motion, time_grid
+from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_header, study_inputs,
+                                    trajectory_csv_sha256)
+from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
+                                       steps_of, store_checks)
+from covtool.studies.tables import ARCMIN, FT, summary_row
+from covtool.studies.zupt_setup import filter_cases, filter_dynamics, filters_file, setup, zupt_schedule
 from covtool.units import DIMENSIONS
-from covtool.studies.common import (FT, ARCMIN, check_memory, check_step_motion, load_truth, memory_estimate, noise_columns, resource_provenance, steps_of,
-                     study_header, study_inputs, summary_row, time_grid)
-from covtool.studies.nav_covariance import load_trajectory, output_options
-from covtool.studies.zupt import _filters_file, filter_cases, filter_dynamics, setup, zupt_schedule
+
 
 #: truth-model block kinds a grade does not scale (they are not IMU errors)
 UNSCALED_KINDS = ("navigation", "gravity_disturbance")
@@ -284,7 +288,7 @@ class TradePlan:
         check_keys(fcfg, {"file", "cases", "pure_ins"}, f"{where}: [filters]", StudyFileError)
         if "pure_ins" in fcfg:
             boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
-        self.filter_file = _filters_file(fcfg, where, base_dir)
+        self.filter_file = filters_file(fcfg, where, base_dir)
         specs = load_filters(self.filter_file, truth)
         self.filters = filter_cases(fcfg, specs, self.filter_file, where, nonempty=True)
         self.states = {c: specs[c].n for c in self.filters}
@@ -372,20 +376,6 @@ class TradePlan:
                 "trajectory_csv_sha256": trajectory_csv_sha256(decl, self.path.parent if self.path else None),
                 "chunks": [c["key"] for c in self.chunks], "cases": self.n_cases}
 
-
-def trajectory_csv_sha256(decl: dict, base_dir) -> str:
-    """SHA-256 of the study's ``[trajectory] csv`` file (``""`` without one).
-
-    The path is resolved as :func:`covtool.io.trajectory.trajectory_from_config`
-    resolves it (relative to the study file's directory).
-    """
-    traj = decl.get("trajectory")
-    if not isinstance(traj, dict) or not isinstance(traj.get("csv"), str):
-        return ""
-    path = Path(traj["csv"])
-    if not path.is_absolute() and base_dir is not None:
-        path = Path(base_dir) / path
-    return file_sha256(path)
 
 
 # --------------------------------------------------------------------------
@@ -497,7 +487,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     resume : bool
         Reuse the chunks already in ``store`` (an interrupted run).
     """
-    from covtool.parallel import ResultStore, make_backend, run_chunks
+    from covtool.io.store import ResultStore
+    from covtool.parallel import make_backend, run_chunks
 
     t_start = time.perf_counter()
     plan = TradePlan(decl, path)
@@ -533,7 +524,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                   "filters_reusing_truth_phi_qd": ", ".join(sorted({f for r in results
                                                                    for f in r.get("reused_truth_phi", [])})) or "none",
                   "result_store": str(store) if store is not None else "",
-                  "result_store_checks": _store_checks(rs, stats)}
+                  "result_store_checks": store_checks(rs, stats)}
     return StudyResult(
         name=plan.hdr["name"], kind="trade_grid", tables=tables,
         figures={"trade_grid": lambda: trade_figure(summary, plan)},
@@ -552,14 +543,6 @@ def _local_workers(backend) -> int:
         return 1
     return int(getattr(backend, "workers", 1) or 1)
 
-
-def _store_checks(rs, stats: dict) -> str:
-    """Provenance line of the result store's verification (notes joined)."""
-    if rs is None:
-        return ""
-    head = (f"{stats['reused']} chunks verified and reused, {stats['rejected']} rejected, "
-            f"{stats['computed']} computed")
-    return "; ".join([head] + rs.notes)
 
 
 def _warn(summary: pd.DataFrame) -> None:

@@ -30,35 +30,16 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.lincov.reference import propagate
-from covtool.errors import StudyFileError
-from covtool.io.config import check_keys, quantity
 from covtool.analysis.metrics import nav_metrics
+from covtool.errors import StudyFileError
+from covtool.io.config import check_keys
+from covtool.lincov.reference import propagate
 from covtool.results import StudyResult
-from covtool.studies.common import (case_validity, check_memory, history_frame, initial_covariance, load_truth, memory_estimate,
-                     noise_columns, report_times, resource_provenance, steps_of, study_header, study_inputs,
-                     summary_row, time_grid, truth_system)
-
-
-def load_trajectory(decl, where, base_dir, dt, duration=None):
-    """The study's ``[trajectory]``; it must last at least ``duration`` [s] if given."""
-    from covtool.io.trajectory import trajectory_from_config
-
-    cfg = decl.get("trajectory", {"builtin": "land_vehicle"})
-    traj = trajectory_from_config(cfg, where=f"{where}: [trajectory]", base_dir=base_dir, dt=dt)
-    if duration is not None and traj.t[-1] < duration - 1e-9:
-        raise StudyFileError(f"{where}: [study] duration",
-                             f"{duration:g} s is longer than the trajectory ({traj.t[-1]:g} s)")
-    return traj
-
-
-def output_options(decl, where, duration):
-    out = decl.get("output", {})
-    check_keys(out, {"history_every", "report_times"}, f"{where}: [output]", StudyFileError)
-    # any spacing is bounded: the history never holds more rows than grid steps
-    every = quantity(out.get("history_every", "10 s"), "time", f"{where}: [output] history_every",
-                     StudyFileError, positive=True)
-    return every, report_times(out, where, duration)
+from covtool.studies.grid import initial_covariance, time_grid, truth_system
+from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
+from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
+                                       steps_of)
+from covtool.studies.tables import case_validity, history_frame, summary_row
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
