@@ -13,7 +13,7 @@ Conventions (stated once, used everywhere)
   model selected by name.
 """
 
-__version__ = "0.1.0"
+from covtool.version import __version__
 
 
 def run_study(path_or_dict, **overrides):

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import tomli_w
 
-from covtool import __version__
+from covtool.version import __version__
 from covtool.results import StudyResult
 from covtool.errors import InputError
 from covtool.io.atomic import staging_dir

@@ -24,7 +24,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool import __version__
+from covtool.version import __version__
 from covtool.board import adreset, alignment as align, output_filter as of
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, number, quantity, require, string

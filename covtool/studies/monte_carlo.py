@@ -56,7 +56,7 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool import __version__
+from covtool.version import __version__
 from covtool.analysis.consistency import (expected_nees, horizontal_dof, inside_fraction, nees_bounds,
                                           nees_whitening, REDUCED_NAV, rms_bounds)
 from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text

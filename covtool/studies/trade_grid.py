@@ -73,7 +73,7 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from covtool import __version__
+from covtool.version import __version__
 from covtool.analysis.metrics import first_invalid, nav_metrics
 from covtool.errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
 from covtool.io.config import boolean, check_keys, LIMITS, number, quantity, string, table
