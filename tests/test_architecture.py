@@ -41,3 +41,15 @@ def test_every_part_of_the_package_is_in_a_contract():
     parts = {f"covtool.{m.name}" for m in pkgutil.iter_modules(covtool.__path__)} - {"covtool.__main__"}
     assert parts - named == set(), f"outside every import contract: {sorted(parts - named)}"
     assert named - parts == set(), f"contracts name modules that do not exist: {sorted(named - parts)}"
+
+
+def test_every_package_ships():
+    """``[tool.setuptools] packages`` lists every folder of the package and the model library."""
+    cfg = tomllib.loads(PYPROJECT.read_text())["tool"]["setuptools"]
+    on_disk = {".".join(p.parent.relative_to(ROOT).parts) for p in (ROOT / "covtool").rglob("__init__.py")}
+    mapped = {pkg for pkg, folder in cfg["package-dir"].items() if (ROOT / folder / "__init__.py").is_file()}
+    assert set(cfg["packages"]) == on_disk | mapped
+    assert mapped == {"covtool.models", "covtool.models.filters", "covtool.models.imu"}
+    for pkg in mapped:
+        assert list((ROOT / cfg["package-dir"][pkg]).glob("*.toml")), pkg
+        assert cfg["package-data"][pkg] == ["*.toml"]

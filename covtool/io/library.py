@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.resources
 import os
 from pathlib import Path
 
@@ -13,15 +14,24 @@ from covtool.io.model_file import load_model
 
 
 def default_model_dir() -> Path:
-    """The model library: ``$COVTOOL_MODELS``, else the ``models/`` shipped with covtool.
+    """The model library: ``$COVTOOL_MODELS``, else the package data ``covtool.models``.
 
-    Never the current directory: a study must give the same answer
-    wherever it is run from.
+    The repository's top-level ``models/`` folder ships as the package
+    ``covtool.models`` (``pip install .`` or ``pip install -e .``) and is
+    found with :func:`importlib.resources.files`; a source checkout used
+    without installing (``PYTHONPATH``) falls back to the ``models/``
+    beside the ``covtool`` package.  Never the current directory: a study
+    must give the same answer wherever it is run from.  A path given in a
+    study or filter file resolves against that file's folder
+    (:func:`resolve_model_path`) and comes before the library.
     """
     env = os.environ.get("COVTOOL_MODELS")
     if env:
         return Path(env)
-    return Path(__file__).resolve().parents[2] / "models"
+    try:
+        return Path(str(importlib.resources.files("covtool.models")))
+    except ModuleNotFoundError:
+        return Path(__file__).resolve().parents[2] / "models"
 
 
 def model_files(directory=None) -> list[Path]:
