@@ -15,6 +15,8 @@ Conventions (stated once, used everywhere)
 
 from covtool.version import __version__
 
+__all__ = ["__version__", "run_study"]
+
 
 def run_study(path_or_dict, **overrides):
     """Run a study file (or an equivalent dict) and return its result.

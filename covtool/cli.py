@@ -220,7 +220,7 @@ def cmd_dualnav(args) -> int:
     from covtool.errors import StudyFileError
     from covtool.io.imu_log import load_imu_log
     from covtool.io.writers import write_outputs
-    from covtool.studies import load_study
+    from covtool.studies import load_study, one_blas_thread
     from covtool.studies.dual_imu import compare_logs
 
     from covtool.io.atomic import check_output_dir
@@ -234,7 +234,8 @@ def cmd_dualnav(args) -> int:
         raise StudyFileError(f"{path}: [study] kind", f"{kind!r}: covtool dualnav needs a 'dual_imu' study")
     main = load_imu_log(args.main)
     kimu = load_imu_log(args.kimu)
-    result = compare_logs(main, kimu, decl, path=path)
+    with one_blas_thread():
+        result = compare_logs(main, kimu, decl, path=path)
     files = write_outputs(result, out, figures=not args.no_figures)
     if not args.quiet:
         print(result.summary.to_string(index=False))

@@ -28,7 +28,7 @@ from covtool.io.writers import write_outputs
 from covtool.analysis.metrics import nav_metrics
 from covtool.analysis.sensitivity import fit_loglog, run_sweep, scale_grid, sensitivity_figures, sweep_cases
 from covtool.studies import zupt_sensitivity as study
-from covtool.studies.tables import FT
+from covtool.units import FT
 from covtool.studies.grid import discretize_chunked
 
 ROOT = Path(__file__).resolve().parents[1]

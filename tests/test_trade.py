@@ -15,7 +15,7 @@ from covtool.lincov.reference import propagate_with_filter
 from covtool.errors import InputError, StudyFileError
 from covtool.lincov.reduced import zupt_matrices
 from covtool.analysis.metrics import nav_metrics
-from covtool.studies.tables import ARCMIN, FT
+from covtool.units import ARCMIN, FT
 from covtool.studies.inputs import load_truth
 from covtool.studies.trade_grid import TradePlan, grade_truth, run
 from covtool.studies.zupt_setup import setup

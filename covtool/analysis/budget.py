@@ -278,7 +278,7 @@ class BudgetRun:
 
 def run_budget(truth: System, sources: list, Qn: np.ndarray, P0: np.ndarray, H: np.ndarray, R: np.ndarray,
                D: np.ndarray, gains: np.ndarray | None, update_steps, record_steps, *,
-               keep=slice(0, 10), blas_threads: int | None = 1, label: str = "error budget", names=None,
+               keep=slice(0, 10), label: str = "error budget", names=None,
                times=None) -> BudgetRun:
     """Every source alone, and the total, in one batched pass.
 
@@ -342,7 +342,7 @@ def run_budget(truth: System, sources: list, Qn: np.ndarray, P0: np.ndarray, H: 
     K = len(truth.ev) - 1
     psd = np.array([s.kind != CORRELATION for s in sources] + [True])
     res = run_batch(truth, P0s, H, Rs, D, upd, record_steps, gains=gains, truth_Q=MemberNoise(arrays, K, n),
-                    keep=keep, blas_threads=blas_threads, label=label, cases=[s.name for s in sources] + ["total"],
+                    keep=keep, label=label, cases=[s.name for s in sources] + ["total"],
                     names=names, times=times, psd_cases=psd, scale_case=len(sources))
     return BudgetRun(list(sources), res.record_steps, res.P_truth[:-1], res.P_truth[-1])
 

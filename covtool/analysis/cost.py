@@ -46,7 +46,6 @@ from __future__ import annotations
 import timeit
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from covtool.errors import InputError
 from covtool.lincov import discretize
@@ -180,15 +179,15 @@ def time_cycle(F, Qc, dt, P, H, R, order: int, form: str = "joseph", *, repeats:
 
     timeit-style: the loop count is raised until one repeat lasts at least
     ``min_time``; the median over ``repeats`` repeats divided by the loop count
-    is returned.  BLAS is limited to one thread (an on-board processor has
-    one).  A benchmark figure, never asserted in tests.
+    is returned.  Run it with one BLAS thread (an on-board processor has one;
+    :func:`covtool.studies.run_study` limits the pool).  A benchmark figure,
+    never asserted in tests.
     """
     args = (np.asarray(F, float), np.asarray(Qc, float), float(dt), np.asarray(P, float),
             np.asarray(H, float), np.asarray(R, float), int(order), form)
-    with threadpool_limits(limits=1, user_api="blas"):
-        timer = timeit.Timer(lambda: onboard_cycle(*args))
-        number = _autorange(timer, min_time)
-        times = timer.repeat(repeat=repeats, number=number)
+    timer = timeit.Timer(lambda: onboard_cycle(*args))
+    number = _autorange(timer, min_time)
+    times = timer.repeat(repeat=repeats, number=number)
     return float(np.median(times)) / number
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from covtool.lincov.kalman import symmetrize
 from covtool.nav import attitude as quat
 
 __all__ = [
@@ -168,4 +169,4 @@ def alignment_second_order(f_mean, heading, mounting, cov_u, step: float = 0.05)
     G = np.moveaxis(G, -1, 0)                                                    # (i, a, b)
     mean = 0.5 * np.trace(G, axis1=1, axis2=2)
     cov = 0.5 * np.einsum("iab,jba->ij", G, G)
-    return mean, 0.5 * (cov + cov.T)
+    return mean, symmetrize(cov)

@@ -17,7 +17,7 @@ import numpy as np
 
 from covtool.dualnav.alignment import alignment_jacobian, alignment_second_order, small_angle
 from covtool.lincov.discretize import block_triangular, is_block_triangular, taylor
-from covtool.lincov.dynamics import Context, error_dynamics
+from covtool.lincov.dynamics import Context, error_dynamics, nav_error_matrix
 from covtool.lincov.kalman import check_covariance, symmetrize
 from covtool.lincov.model.spec import Model
 from covtool.nav import attitude as quat, earth, strapdown as sd
@@ -232,18 +232,6 @@ class DifferenceModel:
         return out
 
 
-def _measurement_rows(lat, h, q):
-    """Rows of the 9 difference components for one IMU's nav states."""
-    rm, rn = earth.radii(lat)
-    Hm = np.zeros((9, 10))
-    Hm[0, 0] = rm + h
-    Hm[1, 1] = (rn + h) * np.cos(lat)
-    Hm[2, 2] = -1.0
-    Hm[3:6, 3:6] = np.eye(3)
-    Hm[6:9, 6:10] = quat.attitude_error_matrix(q)
-    return Hm
-
-
 def discretize_difference(F, Qc, dt, Fc=None, chunk=200, nav=10):
     """Φ, Q_d and the fault response of every step, exploiting the structure.
 
@@ -382,7 +370,7 @@ def difference_model(main: ImuLinearization, kimu: ImuLinearization, *, t_epochs
                 P = Ps @ P
                 Q = Ps @ Q @ Ps.T + Qd_s[s]
                 G = Ps @ G + Gam_s[s]
-            Phi[jj], Qd[jj], Gam[jj] = P, 0.5 * (Q + Q.T), G
+            Phi[jj], Qd[jj], Gam[jj] = P, symmetrize(Q), G
         blocks.append((Phi, Qd, Gam))
     nm, nk = main.model.n, kimu.model.n
     n = nm + nk
@@ -425,12 +413,12 @@ def difference_model(main: ImuLinearization, kimu: ImuLinearization, *, t_epochs
     P0 = T @ Su @ T.T
     P0[:nm, :nm] += Pr_m
     P0[nm:, nm:] += Pr_k
-    P0 = 0.5 * (P0 + P0.T)
+    P0 = symmetrize(P0)
     H = np.zeros((J + 1, len(comps), n))
     Hphi = np.zeros((J + 1, 2, 3, n))
     for jj in range(J + 1):
-        rows_m = _measurement_rows(lat_epochs[jj], h_epochs[jj], main.q_epochs[jj])
-        rows_k = _measurement_rows(lat_epochs[jj], h_epochs[jj], kimu.q_epochs[jj])
+        rows_m = nav_error_matrix(main.q_epochs[jj], lat_epochs[jj], h_epochs[jj])
+        rows_k = nav_error_matrix(kimu.q_epochs[jj], lat_epochs[jj], h_epochs[jj])
         H[jj, :, :10] = rows_m[list(comps)]
         H[jj, :, nm:nm + 10] = -rows_k[list(comps)]
         Hphi[jj, 0, :, :10] = rows_m[6:9]

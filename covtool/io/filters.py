@@ -37,7 +37,7 @@ from covtool.io.config import (boolean, check_keys, choice, integer, is_library_
                                quantity, resolve_input, string, table)
 from covtool.io.names import check_name
 from covtool.lincov.dynamics import NavOptions
-from covtool.lincov.model.blocks import NAV_STATES
+from covtool.nav.strapdown import NAV_STATES
 from covtool.lincov.model.spec import Model
 from covtool.lincov.reduced import FilterSpec
 

@@ -47,7 +47,8 @@ import tomli_w
 from covtool.errors import ModelFileError
 from covtool.io.config import as_list, check_keys, choice, load_toml, number, quantity, string
 from covtool.io.names import check_name
-from covtool.lincov.model.blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_STATES, NAV_SYMBOLS
+from covtool.lincov.model.blocks import AXES, BLOCK_KINDS, NAV_DIMS, NAV_MEANING, NAV_SYMBOLS
+from covtool.nav.strapdown import NAV_STATES
 from covtool.lincov.model.spec import Model, PROCESSES, State
 from covtool.units import DIMENSIONS, is_unit
 

@@ -27,7 +27,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from covtool.errors import NumericalError
 from covtool.lincov.kalman import (check_covariance, check_finite, covariance_status, NEGATIVE_VARIANCE,
@@ -217,21 +216,7 @@ def _joseph(P, K, HP, S, sel=None, symmetrize=True):
 SYMMETRIZE_EVERY = 8
 
 
-def run_batch(*args, blas_threads: int | None = 1, **kwargs) -> "BatchResult":
-    """Batched truth-under-filter run; see :func:`_run_batch` for the parameters.
-
-    ``blas_threads`` limits the BLAS thread pool (default 1): the matrices are
-    medium-sized (n ≤ 58, B·n ≲ 10⁴) and a second BLAS thread costs more in
-    synchronisation than it gains; cases are parallelised across processes
-    instead (:mod:`covtool.parallel`).  ``None`` leaves the pool alone.
-    """
-    if blas_threads is None:
-        return _run_batch(*args, **kwargs)
-    with threadpool_limits(limits=blas_threads, user_api="blas"):
-        return _run_batch(*args, **kwargs)
-
-
-def _run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np.ndarray,
+def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np.ndarray,
                update_steps, record_steps, *, filt: System | None = None, Pf0: np.ndarray | None = None,
                Hf: np.ndarray | None = None, Rf: np.ndarray | None = None, q_scale=None,
                gains: np.ndarray | None = None, truth_Q: np.ndarray | None = None,

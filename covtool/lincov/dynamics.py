@@ -312,6 +312,45 @@ def attitude_errors(P_qq: np.ndarray, q: np.ndarray) -> np.ndarray:
     return M @ P_qq @ np.swapaxes(M, -1, -2)
 
 
+def nav_error_matrix(q, lat=None, h=None) -> np.ndarray:
+    """Map from the navigation error state to physical errors, 9 × 10.
+
+    The one home of the "physical navigation" transform: the velocity
+    errors unchanged, the quaternion error to the attitude error
+    ``φ = −2 R(q)ᵀ δq`` (north tilt, east tilt, azimuth;
+    :func:`covtool.nav.attitude.attitude_error_matrix`), and the position
+    errors ``(δL, δl, δh)`` either unchanged or, given ``lat`` and ``h``, in
+    metres north, east and down: ``δN = (R_M + h) δL``,
+    ``δE = (R_N + h) cos L δl``, ``δD = −δh``.
+
+    Parameters
+    ----------
+    q : array_like, shape (..., 4)
+        Attitude quaternion (body→NED).
+    lat, h : float or array_like, shape (...), optional
+        Geodetic latitude [rad] and height [m]; None keeps the position
+        errors in ``(δL, δl, δh)``.
+
+    Returns
+    -------
+    ndarray, shape (..., 9, 10)
+        Rows: position (3), velocity N/E/D (3), north tilt, east tilt,
+        azimuth; columns: the navigation states of seed 002 eq (14).
+    """
+    q = np.asarray(q, float)
+    T = np.zeros(q.shape[:-1] + (9, 10))
+    if lat is None:
+        T[..., :3, :3] = np.eye(3)
+    else:
+        rm, rn = earth.radii(lat)
+        T[..., 0, 0] = rm + h
+        T[..., 1, 1] = (rn + h) * np.cos(lat)
+        T[..., 2, 2] = -1.0
+    T[..., 3:6, 3:6] = np.eye(3)
+    T[..., 6:9, 6:10] = quat.attitude_error_matrix(q)
+    return T
+
+
 def physical_nav(P: np.ndarray, q) -> np.ndarray:
     """Navigation block in physical coordinates (δq → tilt, azimuth).
 
@@ -323,14 +362,10 @@ def physical_nav(P: np.ndarray, q) -> np.ndarray:
     Returns
     -------
     ndarray, shape (..., n_rec, 9, 9)
-        Position (δL, δl, δh), velocity, then (north tilt, east tilt, azimuth).
+        Position (δL, δl, δh), velocity, then (north tilt, east tilt, azimuth):
+        ``T P Tᵀ`` with ``T`` of :func:`nav_error_matrix`.
     """
-    from covtool.nav.attitude import attitude_error_matrix
-
-    q = np.asarray(q, float)
-    T = np.zeros(q.shape[:1] + (9, 10))
-    T[:, :6, :6] = np.eye(6)
-    T[:, 6:, 6:] = attitude_error_matrix(q)
+    T = nav_error_matrix(q)
     return T @ P @ np.swapaxes(T, -1, -2)
 
 

@@ -30,12 +30,14 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg import expm
-from threadpoolctl import threadpool_limits
 
 from covtool.lincov.batch import events, run_batch, System
-from covtool.lincov.noise import compose_transition, restricted_noise, CombinedNoise, compose_noise
+from covtool.lincov.discretize import van_loan
+from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transition, restricted_noise
 
+
+#: steps discretised at once by :func:`_transition` (bounds its workspace)
+TRANSITION_CHUNK = 150
 
 NOMINAL, NONE, ONLY, BACK = "nominal", "no equivalent noise", "noise from block only", "block put back"
 
@@ -72,13 +74,14 @@ def dropped_blocks(truth, kept) -> list[str]:
 
 
 def _transition(F, dt):
-    """Φ = e^{FΔt} per step (the truth F under the filter's options)."""
-    with threadpool_limits(limits=1, user_api="blas"):
-        out = np.empty_like(F)
-        for a in range(0, F.shape[0], 150):
-            b = min(F.shape[0], a + 150)
-            out[a:b] = expm(F[a:b] * np.asarray(dt)[a:b, None, None])
-        return out
+    """Φ = e^{FΔt} per step (the truth F under the filter's options), by :func:`covtool.lincov.discretize.van_loan`."""
+    out = np.empty_like(F)
+    dt = np.broadcast_to(np.asarray(dt, float), (F.shape[0],))
+    zero = np.zeros(F.shape[1:])
+    for a in range(0, F.shape[0], TRANSITION_CHUNK):
+        b = min(F.shape[0], a + TRANSITION_CHUNK)
+        out[a:b] = van_loan(F[a:b], zero, dt[a:b], what="impact: Φ under the filter's navigation options")[0]
+    return out
 
 
 def impact_run(S, name: str, record_steps, *, truth_system: System | None = None) -> ImpactRun:

@@ -13,7 +13,6 @@ Pure numeric core: arrays in, arrays out.
 from __future__ import annotations
 
 import numpy as np
-from threadpoolctl import threadpool_limits
 
 from covtool.lincov.batch import sandwich
 from covtool.lincov.discretize import per_source
@@ -25,8 +24,7 @@ from covtool.lincov.kalman import symmetrize
 # discretisation and composition of the per-source noise
 
 
-def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100,
-                  blas_threads: int | None = 1) -> np.ndarray:
+def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100) -> np.ndarray:
     """Per-source noise composed over the event intervals.
 
     Parameters
@@ -39,9 +37,6 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         Event grid (:func:`covtool.lincov.batch.events`).
     chunk : int
         Steps discretised at once (bounds the memory).
-    blas_threads : int or None
-        BLAS thread limit, as :func:`covtool.lincov.batch.run_batch` (n ≤ 58
-        matrices gain nothing from more threads).
 
     Returns
     -------
@@ -50,8 +45,7 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         interval ``[ev_i, ev_{i+1})``, as :func:`covtool.lincov.batch.compose`
         computes it for the total.
     """
-    with threadpool_limits(limits=blas_threads, user_api="blas"):
-        return _compose_noise(Phi, F, factors, dt, ev, chunk)
+    return _compose_noise(Phi, F, factors, dt, ev, chunk)
 
 
 #: bytes the per-source series of :func:`compose_noise` may hold at once

@@ -19,12 +19,13 @@ import numpy as np
 import pandas as pd
 
 from covtool.lincov.discretize import discretize
-from covtool.lincov.dynamics import Context, error_dynamics, ErrorDynamics, NavOptions
+from covtool.lincov.dynamics import Context, error_dynamics, ErrorDynamics, nav_error_matrix, NavOptions
 from covtool.lincov.equivalent_noise import (absorbed_coupling, equivalent_noise_source,
                                              equivalent_white_noise, pointwise_overstatement,
                                              uses_constant_rule, zupt_intervals)
-from covtool.lincov.model.blocks import NAV_STATES
 from covtool.lincov.model.spec import Model
+from covtool.nav.strapdown import NAV_STATES
+from covtool.units import ARCSEC, FT
 
 
 VELOCITY_STATES = ("dvN", "dvE", "dvD")
@@ -247,7 +248,7 @@ def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat
     own dynamics (Φ_f, no updates) over every ZUPT interval, and the
     covariance it builds up by the interval's end is expressed in the
     physical errors: position N/E/D, velocity N/E/D, north/east tilt and
-    azimuth (``φ = −2R(q)ᵀδq``, :func:`covtool.nav.attitude.attitude_error_matrix`).
+    azimuth (:func:`covtool.lincov.dynamics.nav_error_matrix`).
 
     Parameters
     ----------
@@ -275,9 +276,6 @@ def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat
     through it (trapezoid rule on ``Φ``): for 1 s steps this is well
     below 1 % of the interval's accumulation.
     """
-    from covtool.nav import earth
-    from covtool.nav.attitude import attitude_error_matrix
-
     if not fm.ewn_noise:
         return pd.DataFrame()
     if tuple(fm.names[:10]) != NAV_STATES:
@@ -296,15 +294,11 @@ def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat
     b = fm.bounds
     K = len(b) - 1
     var = np.zeros((K, J, 9))
-    rm, rn = earth.radii(np.asarray(lat))
+    lat, h = np.asarray(lat), np.asarray(h)
     for i in range(K):
         end = b[i + 1]
         T = np.zeros((9, nf))
-        T[0, 0] = rm[end] + h[end]
-        T[1, 1] = (rn[end] + h[end]) * np.cos(lat[end])
-        T[2, 2] = -1.0
-        T[3:6, 3:6] = np.eye(3)
-        T[6:9, 6:10] = attitude_error_matrix(q[end])
+        T[:, :10] = nav_error_matrix(q[end], lat[end], h[end])
         M = T
         acc = np.zeros((9, G.shape[2]))
         for k in range(end - 1, b[i] - 1, -1):
@@ -315,7 +309,6 @@ def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat
         for jj in range(J):
             var[i, jj] = acc[:, owner == jj].sum(axis=1)
     ms = var.mean(axis=0)                                       # (J, 9) mean variance per interval
-    FT, ARCSEC = 0.3048, np.pi / 180 / 3600
     tot = ms.sum(axis=0)
 
     def share(v, total):

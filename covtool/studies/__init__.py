@@ -58,15 +58,31 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     if refused:
         raise InputError(f"{where}: [study] kind", f"{kind!r} runs in-process in one piece; it takes no "
                          f"{' or '.join(refused)} (--workers, --scheduler, --resume)")
-    # covtool's matrices are small to medium (n <= 116): OpenBLAS's thread pool was
-    # measured 3-30x slower than one thread for them on a loaded 2-core machine;
-    # parallelism comes from processes (covtool.parallel) instead.
-    from threadpoolctl import threadpool_limits
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         result = module.run(decl, path=path, progress=progress, **options)
     if path is not None:
         result.resolved = absolute_paths(result.resolved, path.parent)
     return result
+
+
+def one_blas_thread():
+    """The BLAS thread pool limited to one thread, for the duration of a study.
+
+    The one place the pool is limited in-process (worker processes limit
+    theirs in :mod:`covtool.parallel`): covtool's matrices are small to
+    medium (n ≤ 116), and OpenBLAS's thread pool was measured 3–30× slower
+    than one thread for them on a loaded two-core machine; parallelism comes
+    from processes instead.  Used by :func:`run_study` and by
+    ``covtool dualnav`` (:func:`covtool.studies.dual_imu.compare_logs`).
+
+    Returns
+    -------
+    threadpoolctl.threadpool_limits
+        A context manager.
+    """
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 def absolute_paths(decl: dict, base_dir) -> dict:

@@ -24,13 +24,13 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.version import __version__
 from covtool.board import adreset, alignment as align, output_filter as of
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, number, quantity, require, string
 from covtool.io.names import check_study_name
 from covtool.results import StudyResult
 from covtool.units import from_si
+from covtool.version import __version__
 
 
 KIND = "ad_reset"

@@ -60,8 +60,9 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.results import StudyResult
 from covtool.studies.inputs import study_header, study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
-from covtool.studies.tables import ARCMIN, case_validity, FT
+from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
+from covtool.units import ARCMIN, FT
 
 
 PURE = "pure_ins"

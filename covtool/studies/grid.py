@@ -225,13 +225,11 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
     ``what`` and ``times`` (start time of each step [s]) name the system
     and the step in error messages.
     """
-    from threadpoolctl import threadpool_limits
-
     N = F.shape[0]
     Phi = np.empty_like(F)
     Qd = np.empty_like(F)
     dt = np.broadcast_to(np.asarray(dt, float), (N,))
-    with threadpool_limits(limits=1, user_api="blas"), progress_bar(N, desc, progress) as bar:
+    with progress_bar(N, desc, progress) as bar:
         for a in range(0, N, chunk):
             b = min(N, a + chunk)
             Phi[a:b], Qd[a:b] = discretize(F[a:b], Qc[a:b], dt[a:b], method, order, what=what,

@@ -60,8 +60,8 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.magnitude_sweep import sweep_figure
 from covtool.results import StudyResult
 from covtool.studies.resources import progress_bar
-from covtool.studies.tables import ARCMIN, FT
 from covtool.studies.zupt_setup import setup
+from covtool.units import ARCMIN, FT
 
 
 def sweep_options(decl: dict, where: str, truth) -> dict:

@@ -56,7 +56,6 @@ import time
 import numpy as np
 import pandas as pd
 
-from covtool.version import __version__
 from covtool.analysis.consistency import (expected_nees, horizontal_dof, inside_fraction, nees_bounds,
                                           nees_whitening, REDUCED_NAV, rms_bounds)
 from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text
@@ -69,10 +68,12 @@ from covtool.nav.strapdown import NAV_STATES
 from covtool.results import StudyResult
 from covtool.studies.inputs import study_header, study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, resource_provenance
-from covtool.studies.tables import ARCMIN, case_validity, FT
+from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
+from covtool.units import ARCMIN, FT
 from covtool.validation.feedback import FeedbackFilter
 from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, simulate_chunk
+from covtool.version import __version__
 
 __all__ = [
     "run", "mc_options",

@@ -9,15 +9,11 @@ import pandas as pd
 
 from covtool.analysis.metrics import first_invalid, validity, validity_text
 from covtool.errors import ValidityWarning
+from covtool.units import ARCMIN, ARCSEC, FT
 
 __all__ = [
-    "history_frame", "summary_row", "case_validity", "FT", "ARCMIN", "ARCSEC",
+    "history_frame", "summary_row", "case_validity",
 ]
-
-
-FT = 0.3048
-ARCMIN = np.pi / 180 / 60
-ARCSEC = ARCMIN / 60
 
 
 def case_validity(case: str, m: dict, t: np.ndarray, *, warn: bool = True) -> dict:

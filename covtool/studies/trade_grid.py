@@ -73,24 +73,23 @@ import warnings
 import numpy as np
 import pandas as pd
 
-from covtool.version import __version__
 from covtool.analysis.metrics import first_invalid, nav_metrics
 from covtool.errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
-from covtool.io.config import boolean, check_keys, LIMITS, number, quantity, string, table
+from covtool.io.config import boolean, check_keys, file_sha256, LIMITS, number, quantity, string, table
 from covtool.io.filters import load_filters
 from covtool.io.names import check_name
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.reduced import zupt_matrices
-from covtool.io.config import file_sha256
 from covtool.results import StudyResult
 from covtool.studies.grid import check_step_motion, time_grid
 from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_header, study_inputs,
                                     trajectory_csv_sha256)
 from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
                                        steps_of, store_checks)
-from covtool.studies.tables import ARCMIN, FT, summary_row
+from covtool.studies.tables import summary_row
 from covtool.studies.zupt_setup import filter_cases, filter_dynamics, filters_file, setup, zupt_schedule
-from covtool.units import DIMENSIONS
+from covtool.units import ARCMIN, DIMENSIONS, FT
+from covtool.version import __version__
 
 
 #: truth-model block kinds a grade does not scale (they are not IMU errors)

@@ -44,8 +44,9 @@ from covtool.plotting.zupt_filter_order import impact_figure
 from covtool.results import StudyResult
 from covtool.studies.inputs import study_inputs
 from covtool.studies.resources import progress_bar, resource_provenance
-from covtool.studies.tables import ARCMIN, case_validity, FT, history_frame, summary_row
+from covtool.studies.tables import case_validity, history_frame, summary_row
 from covtool.studies.zupt_setup import order_memory, setup, ZuptSetup
+from covtool.units import ARCMIN, FT
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:

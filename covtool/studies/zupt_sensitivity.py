@@ -64,7 +64,6 @@ import warnings
 
 import numpy as np
 import pandas as pd
-from threadpoolctl import threadpool_limits
 
 from covtool.analysis.cost import cycle_flops, PAPER_TABLE4_SECONDS, power_law, taylor_terms, time_cycle
 from covtool.analysis.metrics import first_invalid, nav_metrics, validity_text
@@ -77,8 +76,9 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.results import StudyResult
 from covtool.studies.inputs import study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
-from covtool.studies.tables import ARCMIN, case_validity, FT
+from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
+from covtool.units import ARCMIN, FT
 
 
 SWEEP_KEYS = {"parameters", "scales", "fit_degree", "discretization"}
@@ -159,59 +159,58 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     if isinstance(decl.get("filters", {}), dict) and "pure_ins" in decl.get("filters", {}):
         raise StudyFileError(f"{where}: [filters] pure_ins", "not used by a zupt_sensitivity study; remove it")
     timing = {}
-    with threadpool_limits(limits=1, user_api="blas"):
+    tic = time.perf_counter()
+    S = setup(decl, path=path, progress=progress, extra_sections=("sweep", "cost"), memory=_memory)
+    timing["setup (trajectory, truth Phi/Qd)"] = time.perf_counter() - tic
+    for k in co["paper_seconds"]:
+        if k not in S.specs:
+            raise StudyFileError(f"{where}: [cost] paper_seconds {k}",
+                                 f"unknown filter {k!r} (declared in {S.filter_file}: {', '.join(S.specs)})")
+    t, nodes = S.t, S.nodes
+    N = t.size - 1
+    rec = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
+    ev = events(N, S.update_steps, rec)
+    tic = time.perf_counter()
+    truth_sys = System.from_steps(S.Phi, S.Qd, ev)
+    timing["compose truth"] = time.perf_counter() - tic
+    cases = sweep_cases(sw["parameters"], sw["scales"])
+    B = cases.n_cases
+    lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
+    results, fmodels, reused, statuses = {}, {}, {}, {}
+    timing.update({"filter models": 0.0, "compose filters": 0.0, "batched runs": 0.0})
+    nr = len(rec)
+
+    def rep(a):
+        return np.broadcast_to(a, (B,) + a.shape).reshape((B * nr,) + a.shape[1:])
+
+    def one(c):
         tic = time.perf_counter()
-        S = setup(decl, path=path, progress=progress, extra_sections=("sweep", "cost"), memory=_memory)
-        timing["setup (trajectory, truth Phi/Qd)"] = time.perf_counter() - tic
-        for k in co["paper_seconds"]:
-            if k not in S.specs:
-                raise StudyFileError(f"{where}: [cost] paper_seconds {k}",
-                                     f"unknown filter {k!r} (declared in {S.filter_file}: {', '.join(S.specs)})")
-        t, nodes = S.t, S.nodes
-        N = t.size - 1
-        rec = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
-        ev = events(N, S.update_steps, rec)
-        tic = time.perf_counter()
-        truth_sys = System.from_steps(S.Phi, S.Qd, ev)
-        timing["compose truth"] = time.perf_counter() - tic
-        cases = sweep_cases(sw["parameters"], sw["scales"])
-        B = cases.n_cases
-        lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
-        results, fmodels, reused, statuses = {}, {}, {}, {}
-        timing.update({"filter models": 0.0, "compose filters": 0.0, "batched runs": 0.0})
-        nr = len(rec)
+        fm, Phi_f, Qd_f, reused_c = S.filter_system(c, sw["discretization"])
+        tac = time.perf_counter()
+        filt = truth_sys if reused_c else System.from_steps(Phi_f, Qd_f, ev)
+        tuc = time.perf_counter()
+        res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
+                        S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update,
+                        label=f"{where}: sweep of filter {c}", names=S.truth.names, filter_names=fm.names,
+                        times=t)
+        statuses[c] = res.status
+        toc = time.perf_counter()
+        mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
+        mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
+        out = ({k: v.reshape(B, nr) for k, v in mt.items()}, {k: v.reshape(B, nr) for k, v in mf.items()})
+        return fm, reused_c, out, (tac - tic, tuc - tac, toc - tuc)
 
-        def rep(a):
-            return np.broadcast_to(a, (B,) + a.shape).reshape((B * nr,) + a.shape[1:])
+    with progress_bar(len(S.cases), "filters", progress) as bar:
+        for c in S.cases:
+            fmodels[c], reused[c], results[c], dts = one(c)
+            for key, dt_ in zip(("filter models", "compose filters", "batched runs"), dts):
+                timing[key] += dt_
+            bar.update(1)
+    t_sweep, c_sweep = time.perf_counter() - t_start, time.process_time() - c_start
 
-        def one(c):
-            tic = time.perf_counter()
-            fm, Phi_f, Qd_f, reused_c = S.filter_system(c, sw["discretization"])
-            tac = time.perf_counter()
-            filt = truth_sys if reused_c else System.from_steps(Phi_f, Qd_f, ev)
-            tuc = time.perf_counter()
-            res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
-                            S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update,
-                            label=f"{where}: sweep of filter {c}", names=S.truth.names, filter_names=fm.names,
-                            times=t)
-            statuses[c] = res.status
-            toc = time.perf_counter()
-            mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
-            mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
-            out = ({k: v.reshape(B, nr) for k, v in mt.items()}, {k: v.reshape(B, nr) for k, v in mf.items()})
-            return fm, reused_c, out, (tac - tic, tuc - tac, toc - tuc)
-
-        with progress_bar(len(S.cases), "filters", progress) as bar:
-            for c in S.cases:
-                fmodels[c], reused[c], results[c], dts = one(c)
-                for key, dt_ in zip(("filter models", "compose filters", "batched runs"), dts):
-                    timing[key] += dt_
-                bar.update(1)
-        t_sweep, c_sweep = time.perf_counter() - t_start, time.process_time() - c_start
-
-        tic = time.perf_counter()
-        cost_rows = _cost(S, fmodels, co)
-        timing["compute-cost (FLOPs, timing)"] = time.perf_counter() - tic
+    tic = time.perf_counter()
+    cost_rows = _cost(S, fmodels, co)
+    timing["compute-cost (FLOPs, timing)"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
     rt = [t[k] for k in rec]

@@ -31,6 +31,7 @@ import math
 
 import numpy as np
 
+from covtool.lincov.kalman import symmetrize
 from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
 from covtool.lincov.model.spec import Model
 from covtool.nav import attitude as quat
@@ -65,7 +66,7 @@ def sample_states(model: Model, n_runs: int, rng=None, *, q0=None) -> np.ndarray
     """
     rng = np.random.default_rng(rng)
     P = model.initial_covariance(q0)
-    w, V = np.linalg.eigh(0.5 * (P + P.T))
+    w, V = np.linalg.eigh(symmetrize(P))
     L = V * np.sqrt(np.clip(w, 0.0, None))
     return rng.standard_normal((int(n_runs), model.n)) @ L.T
 

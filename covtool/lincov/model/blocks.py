@@ -34,7 +34,6 @@ OFFDIAG = (("x", "y"), ("x", "z"), ("y", "x"), ("y", "z"), ("z", "x"), ("z", "y"
 _IDX = {"x": 0, "y": 1, "z": 2}
 SPIN = {0: 1, 1: 2, 2: 0}
 
-NAV_STATES = ("dL", "dl", "dh", "dvN", "dvE", "dvD", "dq0", "dq1", "dq2", "dq3")
 NAV_SYMBOLS = ("δL", "δl", "δh", "δV_N", "δV_E", "δV_D", "δq0", "δq1", "δq2", "δq3")
 NAV_DIMS = ("angle", "angle", "length", "velocity", "velocity", "velocity",
             "quaternion", "quaternion", "quaternion", "quaternion")

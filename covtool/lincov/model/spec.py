@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from covtool.lincov.model.blocks import BLOCK_KINDS, NAV_STATES
+from covtool.lincov.model.blocks import BLOCK_KINDS
+from covtool.nav.strapdown import NAV_STATES
 from covtool.nav import attitude as quat
 from covtool.units import from_si
 
