@@ -44,8 +44,14 @@ _held_locks: dict[str, list] = {}          # resolved directory -> [fd, count, c
 _held_guard = threading.Lock()
 
 
-def _pid_alive(pid) -> bool:
-    """Whether process ``pid`` exists on this host."""
+def pid_alive(pid) -> bool:
+    """Whether process ``pid`` may exist on this host.
+
+    False for a PID that is not a positive integer or names no process;
+    True for one that exists (even owned by someone else) and, to be safe,
+    when the system cannot tell: a lock or a staging directory is taken
+    over only when its owner is known to be gone.
+    """
     if not isinstance(pid, int) or isinstance(pid, bool) or pid <= 0:
         return False
     try:
@@ -55,7 +61,7 @@ def _pid_alive(pid) -> bool:
     except PermissionError:                    # exists, owned by someone else
         return True
     except OSError:
-        return False
+        return True
     return True
 
 
@@ -163,7 +169,7 @@ class DirLock:
             except OSError:                    # no flock here: the PID decides alone
                 holder = self._read(fd)
                 if holder.get("host") == socket.gethostname() and holder.get("pid") != os.getpid() \
-                        and _pid_alive(holder.get("pid")):
+                        and pid_alive(holder.get("pid")):
                     os.close(fd)
                     raise self._busy(holder) from None
                 return fd, holder
@@ -200,7 +206,7 @@ class DirLock:
                                     "which cannot be checked from here; if that run has ended, delete "
                                     f"{self.path}")
         pid = holder.get("pid")
-        why = "does not hold the lock" if _pid_alive(pid) and pid != os.getpid() else "is no longer running"
+        why = "does not hold the lock" if pid_alive(pid) and pid != os.getpid() else "is no longer running"
         self.report(f"{self.path}: took over a stale lock ({_holder_text(holder)}; that process {why})")
 
     def release(self) -> None:

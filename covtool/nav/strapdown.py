@@ -17,20 +17,9 @@ Algorithm (one navigation interval ``T = t_m − t_{m−1}``)
 The interval holds ``n`` IMU samples ``Δθ_1 … Δθ_n``, ``Δv_1 … Δv_n``
 (sample ``0`` is the last sample of the previous interval).
 
-*Body increments* (seed 001 eq (1)–(4); Savage 1998 Parts 1–2;
-Ignagni 1996)::
-
-    α = Σ Δθ_i,   υ = Σ Δv_i
-    φ = α + Σ_{i=0}^{n−1} k_{n−i} (Δθ_i × Δθ_n)                      (coning)
-    Δv_b = υ + c1 α×υ + c2 α×(α×υ)                        (rotation, exact for
-           + Σ_{i=0}^{n−1} k_{n−i} (Δθ_i × Δv_n + Δv_i × Δθ_n)   constant rates)
-                                                                     (sculling)
-
-with ``c1 = (1−cos a)/a² ≈ ½``, ``c2 = (a − sin a)/a³ ≈ ⅙``, ``a = |α|``.
-The lag coefficients ``k_L`` (``L = n − i`` samples apart) are those of
-:func:`coning_coefficients`; for ``n = 4`` they are seed 001's
-``(656, 262, 168, −1)/315``.  The sculling terms use the same coefficients
-(Roscoe 2001, the coning/sculling equivalency, seed 001 ref [7]).
+*Body increments*: the compensated rotation vector ``φ`` and velocity
+increment ``Δv_b`` of the interval, with the n-sample + 1-previous coning
+and sculling of seed 001 eq (1)–(4) (:mod:`covtool.nav.coning`).
 
 *Navigation frame* (second order, predictor–corrector at the mid-interval)::
 
@@ -41,7 +30,7 @@ The lag coefficients ``k_L`` (``L = n − i`` samples apart) are those of
     ΔR = T [v_{m−1} + C r − ⅙ ζ × C Δv_b + ½ Δv_gc]
     (L, l, h)_m = (L, l, h)_{m−1} + (ΔR_N/(R_M+h), ΔR_E/((R_N+h) cos L), −ΔR_D)   (radii at t_{m−½})
 
-``r = Σ_i (n − i + ½)/n Δv_i + α×υ/6`` (:func:`body_position_increment`)
+``r = Σ_i (n − i + ½)/n Δv_i + α×υ/6`` (:func:`covtool.nav.coning.body_position_increment`)
 weights each sample's specific force at its mid-time, so ``∫v dt`` is
 exact for a linearly varying specific force up to ``O(h²)`` rather than
 the ``O(T²)`` of the trapezoid (Savage 1998 Part 2, position algorithm).

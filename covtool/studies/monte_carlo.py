@@ -67,7 +67,7 @@ from covtool.nav.coning import MAX_SAMPLES
 from covtool.nav.strapdown import NAV_STATES
 from covtool.results import StudyResult
 from covtool.studies.inputs import study_header, study_inputs
-from covtool.studies.resources import memory_estimate, noise_columns, resource_provenance
+from covtool.studies.resources import memory_estimate, noise_columns, resource_provenance, run_in_chunks
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN, FT
@@ -196,11 +196,9 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     resume : bool
         Reuse the chunks already in ``store``.
     """
-    from covtool.io.store import ResultStore
     from covtool.io.config import file_sha256
-    from covtool.parallel import make_backend, run_chunks
-    from covtool.studies.resources import store_checks
     from covtool.studies.inputs import trajectory_csv_sha256
+    from covtool.studies.resources import store_checks
 
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
@@ -262,26 +260,17 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     keys = [f"runs-{i:04d}" for i in range(len(sizes))]
     first = np.cumsum([0] + sizes)
     run_ids = [list(range(int(first[i]), int(first[i + 1]))) for i in range(len(sizes))]
-    rs = None
-    if store is not None:
-        manifest = {"kind": "monte_carlo", "covtool_version": __version__, "study": decl,
-                    "truth_model_sha256": truth.sha256,
-                    "filter_file_sha256": file_sha256(S.filter_file),
-                    "trajectory_csv_sha256": trajectory_csv_sha256(decl, path.parent if path else None),
-                    "chunks": keys, "runs": sizes}
-        rs = ResultStore(store, manifest, resume=resume)
-    own = backend is None or isinstance(backend, str)
-    try:
-        be = make_backend(backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"))
-        try:
-            results, stats = run_chunks(simulate_chunk, tasks, keys, run_ids, backend=be, store=rs,
-                                        progress=progress, desc="Monte Carlo runs")
-        finally:
-            if own:
-                be.close()
-    finally:
-        if rs is not None:
-            rs.close()
+    def manifest():
+        return {"kind": "monte_carlo", "covtool_version": __version__, "study": decl,
+                "truth_model_sha256": truth.sha256,
+                "filter_file_sha256": file_sha256(S.filter_file),
+                "trajectory_csv_sha256": trajectory_csv_sha256(decl, path.parent if path else None),
+                "chunks": keys, "runs": sizes}
+
+    results, stats, rs = run_in_chunks(
+        simulate_chunk, tasks, keys, run_ids, store=store, manifest=manifest, resume=resume, progress=progress,
+        backend=backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"),
+        desc="Monte Carlo runs")
     names = [c.name for c in cases]
     sums = {}
     for res in results:

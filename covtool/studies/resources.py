@@ -264,3 +264,51 @@ def store_checks(rs, stats: dict) -> str:
     head = (f"{stats['reused']} chunks verified and reused, {stats['rejected']} rejected, "
             f"{stats['computed']} computed")
     return "; ".join([head] + rs.notes)
+
+
+def run_in_chunks(fn, tasks, keys, cases, *, backend, store, manifest, resume: bool, progress: bool, desc: str):
+    """Run the chunks of a study on a backend, through the verified result store.
+
+    Parameters
+    ----------
+    fn : callable
+        ``fn(task) -> dict`` for one chunk (picklable, JSON-serialisable result).
+    tasks, keys, cases : sequences
+        Per chunk: its input, its key and its list of case labels
+        (:func:`covtool.parallel.run_chunks`).
+    backend : backend, str or None
+        :func:`covtool.parallel.make_backend`; a backend made here is closed here.
+    store : path or None
+        Directory of the result store (:class:`covtool.io.store.ResultStore`);
+        None keeps the results in memory only.
+    manifest : callable
+        ``manifest() -> dict``: the store's plan (called only with a store).
+    resume, progress : bool
+    desc : str
+        Label of the progress bar.
+
+    Returns
+    -------
+    results : list
+        One result per chunk, in chunk order.
+    stats : dict
+        Chunks reused, rejected and computed (:func:`covtool.parallel.run_chunks`).
+    store : ResultStore or None
+        The (closed) store, for its notes (:func:`store_checks`).
+    """
+    from covtool.io.store import ResultStore
+    from covtool.parallel import make_backend, run_chunks
+
+    rs = ResultStore(store, manifest(), resume=resume) if store is not None else None
+    own = backend is None or isinstance(backend, str)
+    try:
+        be = make_backend(backend)
+        try:
+            results, stats = run_chunks(fn, tasks, keys, cases, backend=be, store=rs, progress=progress, desc=desc)
+        finally:
+            if own:
+                be.close()
+    finally:
+        if rs is not None:
+            rs.close()
+    return results, stats, rs

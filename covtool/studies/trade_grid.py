@@ -85,7 +85,7 @@ from covtool.studies.grid import check_step_motion, time_grid
 from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_header, study_inputs,
                                     trajectory_csv_sha256)
 from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
-                                       steps_of, store_checks)
+                                       run_in_chunks, steps_of, store_checks)
 from covtool.studies.tables import summary_row
 from covtool.studies.zupt_setup import filter_cases, filter_dynamics, filters_file, setup, zupt_schedule
 from covtool.units import ARCMIN, DIMENSIONS, FT
@@ -486,28 +486,15 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     resume : bool
         Reuse the chunks already in ``store`` (an interrupted run).
     """
-    from covtool.io.store import ResultStore
-    from covtool.parallel import make_backend, run_chunks
-
     t_start = time.perf_counter()
     plan = TradePlan(decl, path)
     est = check_memory(plan.memory(_local_workers(backend)), plan.where, plan.hdr["max_memory"],
                        "a larger [study] dt, a shorter duration, fewer [grid] values per interval or fewer "
                        "--workers")
-    rs = ResultStore(store, plan.manifest(decl), resume=resume) if store is not None else None
-    own = backend is None or isinstance(backend, str)
-    try:
-        be = make_backend(backend)
-        try:
-            results, stats = run_chunks(compute_chunk, plan.chunks, [c["key"] for c in plan.chunks],
-                                        [[k["case"] for k in c["cases"]] for c in plan.chunks],
-                                        backend=be, store=rs, progress=progress, desc="trade grid")
-        finally:
-            if own:
-                be.close()
-    finally:
-        if rs is not None:
-            rs.close()
+    results, stats, rs = run_in_chunks(
+        compute_chunk, plan.chunks, [c["key"] for c in plan.chunks], [[k["case"] for k in c["cases"]] for c in plan.chunks],
+        backend=backend, store=store, manifest=lambda: plan.manifest(decl), resume=resume, progress=progress,
+        desc="trade grid")
     elapsed = time.perf_counter() - t_start
     summary = pd.DataFrame([row for res in results for row in res["rows"]])
     _warn(summary)

@@ -27,6 +27,7 @@ additive quaternion error of seed 002, eq (1) needs a continuous reference.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -212,6 +213,31 @@ class Trajectory:
         df["distance [m]"] = self.distance
         df["stationary"] = self.stationary_mask(self.t).astype(int)
         return df
+
+
+def grid_times(t0: float, t1: float, dt: float) -> np.ndarray:
+    """Time grid of a generated profile: ``t0, t0 + dt, …``, ending exactly at ``t1``.
+
+    Parameters
+    ----------
+    t0, t1 : float
+        Span of the profile. [s]
+    dt : float
+        Step. [s]
+
+    Returns
+    -------
+    ndarray, shape (n,)
+        The last step is shorter when ``dt`` does not divide the span (to
+        within 1e-9 of it); the last time is ``t1`` exactly.
+    """
+    n = int(math.floor((t1 - t0) / dt + 1e-9))
+    t = t0 + dt * np.arange(n + 1)
+    if t1 - t[-1] > 1e-9 * max(1.0, t1):
+        t = np.append(t, t1)
+    else:
+        t[-1] = t1
+    return t
 
 
 def wrap_longitude(lon):

@@ -43,7 +43,7 @@ import numpy as np
 
 from covtool.errors import TrajectoryError
 from covtool.nav import attitude as quat, earth
-from covtool.nav.trajectory.core import inverse_mechanization, Trajectory
+from covtool.nav.trajectory.core import grid_times, inverse_mechanization, Trajectory
 
 __all__ = [
     "FlightProfile", "Segment", "VibrationTone", "VibrationInterval", "flight", "quadrature_nodes",
@@ -494,13 +494,7 @@ def flight(segments, *, lat, lon, h, heading=0.0, pitch=0.0, vibration=(), dt=0.
         raise TrajectoryError(f"{where}: dt", f"must be positive, got {dt!r}")
     prof = FlightProfile(segments, lat=lat, lon=lon, h=h, heading=heading, pitch=pitch, vibration=vibration,
                          where=where)
-    t0, t1 = prof.span
-    n = int(math.floor((t1 - t0) / dt + 1e-9))
-    t = t0 + dt * np.arange(n + 1)
-    if t1 - t[-1] > 1e-9 * max(1.0, t1):
-        t = np.append(t, t1)
-    else:
-        t[-1] = t1
+    t = grid_times(*prof.span, dt)
     return Trajectory(t=t, **prof.evaluate(t), stationary=prof.stationary(), name=name, _source=prof)
 
 

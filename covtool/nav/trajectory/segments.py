@@ -35,7 +35,7 @@ from scipy.integrate import solve_ivp
 
 from covtool.errors import TrajectoryError
 from covtool.nav import attitude as quat, earth
-from covtool.nav.trajectory.core import body_rate_from_euler, inverse_mechanization, Trajectory
+from covtool.nav.trajectory.core import body_rate_from_euler, grid_times, inverse_mechanization, Trajectory
 
 __all__ = [
     "SEGMENT_KINDS",
@@ -326,13 +326,7 @@ class _Profile:
 
     def trajectory(self, *, dt, name, where):
         check_positive(dt, f"{where}: dt")
-        t0, t1 = self.span
-        n = int(math.floor((t1 - t0) / dt + 1e-9))
-        t = t0 + dt * np.arange(n + 1)
-        if t1 - t[-1] > 1e-9 * max(1.0, t1):
-            t = np.append(t, t1)
-        else:
-            t[-1] = t1
+        t = grid_times(*self.span, dt)
         return Trajectory(t=t, **self.evaluate(t), stationary=self.stationary(), name=name,
                           _source=self)
 
