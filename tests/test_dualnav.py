@@ -47,7 +47,8 @@ from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
 from covtool.validation.sensor_errors import SensorErrors
 from covtool.io.imu_grade import load_imu_grade
 from covtool.studies import run_study
-from covtool.studies.dual_imu import PPM_G, gsens_coefficient, make_setup, parse_study, simulate_logs
+from covtool.studies.dual_imu_config import PPM_G, gsens_coefficient, parse_study
+from covtool.studies.dual_imu import make_setup, simulate_logs
 
 G = 9.80665
 INITIAL = {"lat": "36 deg", "lon": "127 deg", "h": "50 m", "heading": "30 deg", "pitch": "10 deg"}

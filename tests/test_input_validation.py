@@ -502,7 +502,7 @@ def _dual():
     (lambda d: d["study"].update(description=[]), r"\[study\] description: \[\] is not a string"),
 ])
 def test_dual_imu_fields(mutate, match):
-    from covtool.studies.dual_imu import parse_study
+    from covtool.studies.dual_imu_config import parse_study
     d = _dual()
     mutate(d)
     with pytest.raises(StudyFileError, match=rf"s\.toml: {match}"):
@@ -749,7 +749,7 @@ def test_missing_relative_model_names_the_resolved_path(tmp_path):
 
 
 def test_imu_grade_path_is_relative_to_the_study(tmp_path, monkeypatch):
-    from covtool.studies.dual_imu import parse_study
+    from covtool.studies.dual_imu_config import parse_study
     sub = tmp_path / "proj"
     sub.mkdir()
     text = (ROOT / "models" / "imu" / "kimu.toml").read_text()
