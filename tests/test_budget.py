@@ -1,7 +1,7 @@
 """Error budget (issue 4, seed 002 Fig 4): exact split of the truth covariance by source.
 
 The oracles are independent of the budget code: the step-by-step reference
-propagation (:mod:`covtool.covariance`), Van Loan, closed forms of the
+propagation (:mod:`covtool.lincov.reference`), Van Loan, closed forms of the
 Schuler and vertical channels, and linearity.
 """
 
@@ -87,7 +87,7 @@ def _rel(a, b, q, ref=None):
 
 @pytest.mark.parametrize("case", ["pure_ins", "B1", "D"])
 def test_contributions_sum_to_the_step_by_step_total(flagship, case):
-    """Σ contributions = the total run of covtool.covariance (Van Loan Q_d, running filter) to ≤ 1e-9.
+    """Σ contributions = the total run of covtool.lincov.reference (Van Loan Q_d, running filter) to ≤ 1e-9.
 
     The reference shares no code with the budget: its own per-step loop,
     Van Loan's Q_d instead of the per-source Taylor series, and the gains

@@ -1,6 +1,6 @@
 """Dropped-state impact table (issue 11, acceptance 4): D'Appolito state deletion.
 
-Oracles: the step-by-step reference propagation (covtool.covariance) of the
+Oracles: the step-by-step reference propagation (covtool.lincov.reference) of the
 declared filter, and of an independently declared filter with the block put
 back.
 """

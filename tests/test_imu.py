@@ -1,4 +1,4 @@
-"""Tests of covtool.imu: exact increments, sensor errors, grades, extras.
+"""Tests of covtool.nav.imu: exact increments, sensor errors, grades, extras.
 
 Oracles: adaptive quadrature of the trajectory's exact rates, the
 independent sensor-error equations of ``tests/nonlinear_reference.py``,

@@ -1,4 +1,4 @@
-"""Tests of covtool.strapdown: the nonlinear reference mechanization.
+"""Tests of covtool.nav.strapdown: the nonlinear reference mechanization.
 
 Oracles: the closed-form coning and sculling residuals of the n-sample +
 1-previous algorithm (Ignagni 1996; Roscoe 2001), exact error-free IMU data

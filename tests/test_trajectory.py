@@ -1,4 +1,4 @@
-"""Tests of covtool.trajectory: kinematics, mechanization, I/O.
+"""Tests of covtool.nav.trajectory: kinematics, mechanization, I/O.
 
 The oracle is the navigation equations themselves: the trajectory's own
 position, velocity and attitude, differentiated numerically, must satisfy

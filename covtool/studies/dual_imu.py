@@ -18,7 +18,7 @@ Study file (datasheet units)::
     name = "dual_imu_flight"
 
     [trajectory]
-    builtin = "high_dynamics_flight"     # or segment/initial/vibration (covtool.flight)
+    builtin = "high_dynamics_flight"     # or segment/initial/vibration (covtool.nav.trajectory.flight)
 
     [imu.main]
     grade = "main_imu"                   # models/imu/*.toml

@@ -1,9 +1,9 @@
 """Monte Carlo validation of the covariance analysis (issue 6).
 
-N nonlinear INS runs (:mod:`covtool.strapdown`) on simulated IMU data with
-errors drawn from the truth model (:mod:`covtool.imu`), unaided and under
+N nonlinear INS runs (:mod:`covtool.nav.strapdown`) on simulated IMU data with
+errors drawn from the truth model (:mod:`covtool.nav.imu`), unaided and under
 each declared ZUPT filter running as a real feedback filter
-(:mod:`covtool.montecarlo`), against the linear covariance analysis of the
+(:mod:`covtool.validation.monte_carlo`), against the linear covariance analysis of the
 same setup (:func:`covtool.lincov.reference.propagate`,
 :func:`~covtool.lincov.reference.propagate_with_filter`).
 

@@ -24,7 +24,7 @@ Study file::
     rate = "1 Hz"            # updates per second inside the window
     sigma = "0.01 ft/s"      # true ZUPT noise 1σ per axis (R); filters may assume another
 
-    [impact]                 # dropped-state impact table (covtool.impact)
+    [impact]                 # dropped-state impact table (covtool.lincov.impact)
     filters = ["B1", "C", "D"]   # default: every reduced filter of the run; [] for none
 """
 
