@@ -1,4 +1,4 @@
-"""The model library: ``models/*.toml`` found by name."""
+"""The model library: truth models, filters and IMU grades, found by name."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from covtool.errors import ModelFileError
+from covtool.errors import InputError, ModelFileError
 from covtool.io.config import is_library_name, resolve_input
 from covtool.io.model_file import load_model
 
@@ -81,15 +81,65 @@ def load_model_by_name(name_or_path, directory=None, *, base_dir=None, where=Non
 
 
 def list_models(directory=None) -> pd.DataFrame:
-    """One row per model file: name, states, description, file."""
+    """The library's contents: truth models, filters and IMU grades, one row each.
+
+    Parameters
+    ----------
+    directory : path, optional
+        The library (default :func:`default_model_dir`): ``*.toml`` truth
+        models, ``filters/*.toml`` filter files, ``imu/*.toml`` IMU grades.
+
+    Returns
+    -------
+    pandas.DataFrame
+        Columns ``kind`` (``"truth model"``, ``"filter"``, ``"IMU grade"``),
+        ``name``, ``states`` (of the truth model, kept by the filter, of the
+        grade's error model), ``description`` and ``file``.  A filter file
+        that names no truth (it projects whichever truth a study runs) is
+        listed against the library's first valid truth model.  A file that does
+        not validate is listed once, its description ``INVALID:`` and the
+        error.
+    """
+    from covtool.io.config import load_toml
+    from covtool.io.filters import load_filters
+    from covtool.io.imu_grade import load_imu_grade
+
+    d = Path(directory) if directory else default_model_dir()
     rows = []
-    for p in model_files(directory):
+
+    def row(kind, name, states, description, path):
+        rows.append({"kind": kind, "name": name, "states": states, "description": description, "file": str(path)})
+
+    for p in model_files(d):
         try:
             m = load_model(p)
-            rows.append({"model": m.name, "states": m.n, "description": m.description, "file": str(p)})
-        except ModelFileError as exc:
-            rows.append({"model": p.stem, "states": 0, "description": f"INVALID: {exc}", "file": str(p)})
-    return pd.DataFrame(rows)
+            row("truth model", m.name, m.n, m.description, p)
+        except InputError as exc:
+            row("truth model", p.stem, 0, f"INVALID: {exc}", p)
+    truths = [r["name"] for r in rows if not r["description"].startswith("INVALID")]
+    for p in sorted((d / "filters").glob("*.toml")):
+        try:
+            decl = load_toml(p, ModelFileError)
+            named = {f["truth"] for f in decl.get("filter", []) if isinstance(f, dict) and "truth" in f}
+            if len(named) > 1:
+                raise ModelFileError(f"{p}: truth", f"the filters name {len(named)} truth models "
+                                     f"({', '.join(sorted(map(repr, named)))}); listing needs one")
+            # a file that names no truth projects whichever truth a study runs: listed against the library's first
+            name = named.pop() if named else (truths[0] if truths else None)
+            if name is None:
+                raise ModelFileError(str(p), "no valid truth model in the library to project the filters of")
+            truth = load_model_by_name(name, d, base_dir=p.parent, where=f"{p}: truth")
+            for fname, spec in load_filters(p, truth).items():
+                row("filter", fname, len(spec.kept), f"{spec.description} (of {truth.name})", p)
+        except InputError as exc:
+            row("filter", p.stem, 0, f"INVALID: {exc}", p)
+    for p in sorted((d / "imu").glob("*.toml")):
+        try:
+            g = load_imu_grade(str(p))
+            row("IMU grade", g.name, g.to_model().n, g.description, p)
+        except InputError as exc:
+            row("IMU grade", p.stem, 0, f"INVALID: {exc}", p)
+    return pd.DataFrame(rows, columns=["kind", "name", "states", "description", "file"])
 
 
 def markdown_table(model) -> str:
