@@ -14,7 +14,7 @@ Everything is measured in this one run and printed as a report:
 2. Wall time of the flagship study (``studies/zupt_filter_order.toml``), as
    run by ``covtool.run_study`` and with the BLAS pool limited to one thread,
    and of the full Fig 8 sweep (``studies/zupt_sensitivity.toml``).
-3. The propagation core: :func:`covtool.engine.run_batch` over the
+3. The propagation core: :func:`covtool.lincov.batch.run_batch` over the
    flagship's event grid for each filter with B = 27 cases (3 parameters ×
    9 scales, the Fig 8 sweep), counting 4·n³·B FLOP per sandwich
    ``Φ P Φᵀ`` (truth and filter).  One process with one BLAS thread against
@@ -82,7 +82,7 @@ def _timed(fn) -> float:
 def flagship_setup():
     import tomllib
 
-    from covtool.studies.zupt import setup
+    from covtool.studies.zupt_setup import setup
 
     return setup(tomllib.loads(FLAGSHIP.read_text()), path=FLAGSHIP)
 
@@ -98,9 +98,9 @@ def sweep_inputs(Pf0, Rf):
 
 def core_systems(S, discretization="declared"):
     """Truth and per-filter composed systems on the flagship's event grid (record: the end)."""
-    from covtool.discretize import van_loan
-    from covtool.engine import System, events
-    from covtool.filters import zupt_matrices
+    from covtool.lincov.discretize import van_loan
+    from covtool.lincov.batch import System, events
+    from covtool.lincov.reduced import zupt_matrices
 
     N = S.t.size - 1
     rec = [N]
@@ -120,7 +120,7 @@ def core_times(payload, warm: bool = True) -> tuple[dict, float]:
     """run_batch of every filter's 27 cases: (best-of-repeats seconds per filter, sandwich FLOP)."""
     from threadpoolctl import threadpool_limits
 
-    from covtool.engine import run_batch
+    from covtool.lincov.batch import run_batch
 
     truth, filters, rec, P0, H, R, upd, repeats = payload
     n = truth.n
@@ -177,7 +177,7 @@ def core_two_processes(payload) -> tuple[float, float, set]:
 def sandwich_rate(truth, repeats=3) -> float:
     from threadpoolctl import threadpool_limits
 
-    from covtool.engine import sandwich
+    from covtool.lincov.batch import sandwich
 
     P = np.broadcast_to(np.eye(truth.n), (B, truth.n, truth.n)).copy()
     K = len(truth.ev) - 1
@@ -199,7 +199,7 @@ def naive_case(S, fm, Hf, Rf, Pf0, q_scale):
     """One case: per-step scipy expm Van Loan of truth and filter, then eq (6)-(8), (15)-(16)."""
     from scipy.linalg import expm
 
-    from covtool.covariance import filter_update, kalman_gain, truth_update
+    from covtool.lincov.kalman import filter_update, kalman_gain, truth_update
 
     def vl(F, Qc, dt):
         n = F.shape[0]
@@ -234,9 +234,9 @@ def engine_sweep(S):
     """All 162 Fig 8 cases end to end: batched Van Loan of truth and filters, compose, run_batch."""
     from threadpoolctl import threadpool_limits
 
-    from covtool.discretize import van_loan
-    from covtool.engine import System, events, run_batch
-    from covtool.filters import zupt_matrices
+    from covtool.lincov.discretize import van_loan
+    from covtool.lincov.batch import System, events, run_batch
+    from covtool.lincov.reduced import zupt_matrices
 
     out = {}
     with threadpool_limits(limits=1, user_api="blas"):
@@ -258,7 +258,7 @@ def engine_sweep(S):
 
 def physical(P, q):
     """Nav block in physical coordinates: δL, δl, δh, δv, tilts, azimuth (δq's norm direction dropped)."""
-    from covtool.quaternion import attitude_error_matrix
+    from covtool.nav.attitude import attitude_error_matrix
 
     T = np.zeros((9, 10))
     T[:6, :6] = np.eye(6)

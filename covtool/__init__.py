@@ -4,7 +4,7 @@ Conventions (stated once, used everywhere)
 -------------------------------------------
 * SI inside: rad, m, s, m/s, m/s^2, rad/s.  Datasheet units only in files,
   spreadsheet headers and plot axes (:mod:`covtool.units`).
-* Navigation frame NED; position geodetic (L, l, h) on WGS-84 (:mod:`covtool.earth`).
+* Navigation frame NED; position geodetic (L, l, h) on WGS-84 (:mod:`covtool.nav.earth`).
 * Attitude quaternion ``q`` scalar first, body→NED (``C_b^n``); the attitude
   error state is the additive quaternion error ``δq = q̂ − q`` (seed 002, eq (1)).
 * Error = computed − true.  White noise is specified by its power spectral
@@ -13,7 +13,9 @@ Conventions (stated once, used everywhere)
   model selected by name.
 """
 
-__version__ = "0.1.0"
+from covtool.version import __version__
+
+__all__ = ["__version__", "run_study"]
 
 
 def run_study(path_or_dict, **overrides):
@@ -32,6 +34,6 @@ def run_study(path_or_dict, **overrides):
     covtool.results.StudyResult
         Tables as pandas DataFrames, figure builders and provenance.
     """
-    from .studies import run_study as _run
+    from covtool.studies import run_study as _run
 
     return _run(path_or_dict, **overrides)

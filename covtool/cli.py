@@ -1,17 +1,23 @@
-"""Command-line interface: parse arguments, call the library, write results."""
+"""Command-line interface: parse arguments, call the library, write results.
+
+``covtool run STUDY``, ``covtool models``, ``covtool show MODEL`` and
+``covtool dualnav MAIN.csv KIMU.csv [--study S] --out DIR`` (seed 001,
+method II, on two recorded logs; the logs are CSV files with the columns of
+:data:`covtool.io.imu_log.LOG_COLUMNS` from the start of the alignment).
+"""
 
 from __future__ import annotations
 
 import argparse
 import os
+from pathlib import Path
 import signal
 import sys
 import threading
 import time
 import warnings
-from pathlib import Path
 
-from .errors import CovtoolError, CovtoolWarning
+from covtool.errors import CovtoolError, CovtoolWarning
 
 
 #: longer summaries are abbreviated on the console (the files hold every row)
@@ -20,7 +26,7 @@ MAX_SUMMARY_ROWS = 60
 
 def _output_dir(args) -> Path:
     """``--out`` (or ``out/<study stem>``), checked before any computation."""
-    from .io.atomic import check_output_dir
+    from covtool.io.atomic import check_output_dir
 
     if args.out:
         return check_output_dir(args.out, "--out")
@@ -28,9 +34,9 @@ def _output_dir(args) -> Path:
 
 
 def _cmd_run(args) -> int:
-    from .io.writers import write_outputs
-    from .parallel import DirLock
-    from .studies import run_study
+    from covtool.io.writers import write_outputs
+    from covtool.io.lock import DirLock
+    from covtool.studies import run_study
 
     t0 = time.perf_counter()
     out = _output_dir(args)
@@ -40,7 +46,7 @@ def _cmd_run(args) -> int:
         backend = None
         try:
             if args.workers is not None or args.scheduler is not None:
-                from .parallel import make_backend
+                from covtool.parallel import make_backend
 
                 backend = make_backend(workers=args.workers, scheduler=args.scheduler)
             with warnings.catch_warnings(record=True) as caught:
@@ -74,7 +80,7 @@ def _cmd_run(args) -> int:
 
 
 def _cmd_models(args) -> int:
-    from .model.library import list_models
+    from covtool.io.library import list_models
 
     df = list_models(args.dir)
     print(df.to_string(index=False))
@@ -82,11 +88,11 @@ def _cmd_models(args) -> int:
 
 
 def _cmd_show(args) -> int:
-    from .model.library import load_model_by_name
+    from covtool.io.library import load_model_by_name
 
     model = load_model_by_name(args.model, args.dir)
     if args.markdown:
-        from .model.library import markdown_table
+        from covtool.io.library import markdown_table
         print(markdown_table(model), end="")
         return 0
     print(f"{model.name}: {model.n} states, {model.description} [{model.path}]\n")
@@ -127,7 +133,6 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--dir", default=None, help="model directory (default: models/)")
     s.add_argument("--markdown", action="store_true", help="print the table as Markdown (docs/)")
     s.set_defaults(func=_cmd_show)
-    from .cli_dualnav import add_parser as add_dualnav_parser
     add_dualnav_parser(sub)
     return p
 
@@ -193,3 +198,82 @@ def main(argv=None) -> int:
 
 if __name__ == "__main__":
     sys.exit(main())
+
+
+def default_study() -> Path:
+    """The study file used when ``--study`` is not given.
+
+    ``$COVTOOL_DUALNAV_STUDY``, else ``./studies/dual_imu_flight.toml``,
+    else the repository's.
+    """
+    env = os.environ.get("COVTOOL_DUALNAV_STUDY")
+    if env:
+        return Path(env)
+    cwd = Path.cwd() / "studies" / "dual_imu_flight.toml"
+    if cwd.is_file():
+        return cwd
+    return Path(__file__).resolve().parents[1] / "studies" / "dual_imu_flight.toml"
+
+
+def cmd_dualnav(args) -> int:
+    """Run the comparison of two logs and write its outputs."""
+    from covtool.errors import StudyFileError
+    from covtool.io.imu_log import load_imu_log
+    from covtool.io.writers import write_outputs
+    from covtool.studies import load_study, one_blas_thread
+    from covtool.studies.dual_imu import compare_logs
+
+    from covtool.io.atomic import check_output_dir
+
+    t0 = time.perf_counter()
+    out = check_output_dir(args.out, "--out")
+    study = Path(args.study) if args.study else default_study()
+    decl, path = load_study(study)
+    kind = decl.get("study", {}).get("kind") if isinstance(decl.get("study"), dict) else None
+    if kind != "dual_imu":
+        raise StudyFileError(f"{path}: [study] kind", f"{kind!r}: covtool dualnav needs a 'dual_imu' study")
+    main = load_imu_log(args.main)
+    kimu = load_imu_log(args.kimu)
+    with one_blas_thread():
+        result = compare_logs(main, kimu, decl, path=path)
+    files = write_outputs(result, out, figures=not args.no_figures)
+    if not args.quiet:
+        print(result.summary.to_string(index=False))
+        gaps = result.tables["gaps"]
+        if len(gaps):
+            cols = ["imu", "after [s]", "before [s]", "samples bridged", "policy",
+                    "predicted att x [urad]", "predicted att y [urad]", "predicted att z [urad]",
+                    "predicted vel x [mm/s]", "predicted vel y [mm/s]", "predicted vel z [mm/s]"]
+            print("\nbridged gaps:")
+            print(gaps[cols].to_string(index=False))
+        print(f"\nwrote {len(files)} files to {out}/ in {time.perf_counter() - t0:.1f} s")
+    return 0
+
+
+def add_dualnav_parser(subparsers):
+    """Add the ``dualnav`` sub-command to a ``covtool`` sub-parser set.
+
+    Parameters
+    ----------
+    subparsers : argparse._SubParsersAction
+        The result of ``parser.add_subparsers(...)``.
+
+    Returns
+    -------
+    argparse.ArgumentParser
+        The new sub-parser (its ``func`` is :func:`cmd_dualnav`).
+    """
+    p = subparsers.add_parser(
+        "dualnav", help="compare a main-IMU and a KIMU log by dual navigation (seed 001 method II)",
+        description="Align, navigate and compare two recorded IMU logs; predict the difference envelope, flag "
+                    "the intervals that leave it, estimate a KIMU g-sensitive gyro scale factor, and report "
+                    "every bridged telemetry gap.")
+    p.add_argument("main", help="main IMU log: CSV with 't [s]', 'dtheta_x [rad]' … 'dv_z [m/s]'")
+    p.add_argument("kimu", help="KIMU log, same columns, at the study's rate ratio")
+    p.add_argument("--study", default=None,
+                   help="dual_imu study file (default: studies/dual_imu_flight.toml)")
+    p.add_argument("--out", required=True, help="output directory")
+    p.add_argument("--quiet", action="store_true", help="print nothing")
+    p.add_argument("--no-figures", action="store_true", help="skip PNG figures")
+    p.set_defaults(func=cmd_dualnav)
+    return p

@@ -59,7 +59,7 @@ class CovtoolWarning(UserWarning):
 
 
 class ValidityWarning(CovtoolWarning):
-    """A result left the linear error model's domain (:func:`covtool.metrics.validity`).
+    """A result left the linear error model's domain (:func:`covtool.analysis.metrics.validity`).
 
     The numbers are still written, with the reason in the summary's
     ``validity`` column.
@@ -70,5 +70,5 @@ class FlaggedCaseWarning(CovtoolWarning):
     """Cases of a sweep or grid failed the covariance guard and were flagged.
 
     Their numbers are NaN and the ``status`` column gives the guard's
-    message (:func:`covtool.covariance.check_covariance`).
+    message (:func:`covtool.lincov.kalman.check_covariance`).
     """

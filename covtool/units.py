@@ -52,15 +52,20 @@ from functools import lru_cache
 
 import pint
 
-from .errors import UnitError
+from covtool.errors import UnitError
 
-__all__ = ["ureg", "parse_quantity", "to_si", "from_si", "DIMENSIONS", "is_unit", "G0",
+__all__ = ["ureg", "parse_quantity", "to_si", "from_si", "DIMENSIONS", "is_unit", "G0", "FT", "ARCMIN", "ARCSEC",
            "MAX_LENGTH", "MAX_DEPTH", "MAX_EXPONENT"]
 
 ureg = pint.UnitRegistry()
 
 #: standard gravity [m/s^2]
 G0 = 9.80665
+#: international foot [m]
+FT = 0.3048
+#: arc minute and arc second [rad]
+ARCMIN = math.pi / 180 / 60
+ARCSEC = ARCMIN / 60
 
 #: longest quantity string read [characters]
 MAX_LENGTH = 100

@@ -2,7 +2,7 @@
 
 Written directly from the navigation equations (Titterton & Weston 2004, §3.7)
 and the sensor error equations of seed 002, eq (3) and (5), in explicit matrix
-form, without using covtool.dynamics.  Used by the Jacobian and
+form, without using covtool.lincov.dynamics.  Used by the Jacobian and
 linear-vs-nonlinear tests.
 """
 
@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool import earth
-from covtool import quaternion as quat
+from covtool.nav import earth
+from covtool.nav import attitude as quat
 
 
 def _vals(model, x, prefix, n):

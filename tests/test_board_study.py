@@ -23,6 +23,7 @@ from covtool.board.output_filter import butterworth_filter
 from covtool.errors import StudyFileError
 from covtool.io.writers import write_outputs
 from covtool.studies import ad_reset, run_study
+from covtool.studies.ad_reset_config import parse
 
 STUDY = Path(__file__).resolve().parents[1] / "studies" / "ad_reset_scale_error.toml"
 
@@ -129,8 +130,8 @@ def test_resolved_study_round_trip(result, tmp_path):
     write_outputs(result, tmp_path / "o", figures=False)
     with open(tmp_path / "o" / "resolved_study.toml", "rb") as fh:
         again = tomllib.load(fh)
-    p1 = ad_reset.parse(result.resolved, None)
-    p2 = ad_reset.parse(again, None)
+    p1 = parse(result.resolved, None)
+    p2 = parse(again, None)
     assert p1.keys() == p2.keys()
     for k in p1:
         if k == "ref":
@@ -153,7 +154,7 @@ def test_given_scale_factor(decl):
     d = copy.deepcopy(decl)
     del d["board"]["reset_period_reference"]
     d["board"]["scale_factor"] = "0.05 m/s"
-    p = ad_reset.parse(d, None)
+    p = parse(d, None)
     assert ad_reset.derive(p)["sf"] == pytest.approx(0.05)
 
 

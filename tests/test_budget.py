@@ -1,7 +1,7 @@
 """Error budget (issue 4, seed 002 Fig 4): exact split of the truth covariance by source.
 
 The oracles are independent of the budget code: the step-by-step reference
-propagation (:mod:`covtool.covariance`), Van Loan, closed forms of the
+propagation (:mod:`covtool.lincov.reference`), Van Loan, closed forms of the
 Schuler and vertical channels, and linearity.
 """
 
@@ -16,16 +16,19 @@ import pandas as pd
 import pytest
 
 import covtool
-from covtool import earth
-from covtool.budget import (MemberNoise, NoiseFactor, Source, budget_sources, compose_noise, discretize_noise,
-                            initial_groups, nav_variances, noise_factors, physical_nav, run_budget, split_initial)
+from covtool.nav import earth
+from covtool.lincov.noise import MemberNoise, compose_noise
+from covtool.analysis.budget import (Source, budget_sources, initial_groups, nav_variances, noise_factors,
+                                     run_budget, split_initial)
+from covtool.lincov.dynamics import physical_nav
 from covtool.cli import main
-from covtool.covariance import propagate, propagate_with_filter
-from covtool.discretize import van_loan
-from covtool.engine import compose
+from covtool.lincov.reference import propagate, propagate_with_filter
+from covtool.lincov.discretize import per_source, van_loan
+from covtool.lincov.dynamics import NoiseSource
+from covtool.lincov.batch import compose
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
-from covtool.studies.budget import case_budget
+from covtool.lincov.reduced import zupt_matrices
+from covtool.studies.error_budget import case_budget
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "error_budget.toml"
@@ -84,7 +87,7 @@ def _rel(a, b, q, ref=None):
 
 @pytest.mark.parametrize("case", ["pure_ins", "B1", "D"])
 def test_contributions_sum_to_the_step_by_step_total(flagship, case):
-    """Σ contributions = the total run of covtool.covariance (Van Loan Q_d, running filter) to ≤ 1e-9.
+    """Σ contributions = the total run of covtool.lincov.reference (Van Loan Q_d, running filter) to ≤ 1e-9.
 
     The reference shares no code with the budget: its own per-step loop,
     Van Loan's Q_d instead of the per-source Taylor series, and the gains
@@ -175,8 +178,8 @@ def test_fixed_gains_make_every_source_linear(short):
     sources = [dataclasses.replace(s, P0=4 * s.P0) if s.name == "initial tilt" else
                dataclasses.replace(s, R=4 * s.R) if s.R is not None else s for s in base.sources]
     fm = S.filter_model("B1")[0]
-    gains = covtool.engine.run_batch(truth, S.P0[None], S.H, S.R, fm.D, S.update_steps, rec,
-                                     filt=covtool.engine.System.from_steps(*S.filter_model("B1")[1:], truth.ev),
+    gains = covtool.lincov.batch.run_batch(truth, S.P0[None], S.H, S.R, fm.D, S.update_steps, rec,
+                                     filt=covtool.lincov.batch.System.from_steps(*S.filter_model("B1")[1:], truth.ev),
                                      Pf0=fm.P0[None], Hf=zupt_matrices(fm.names), Rf=S.filter_R("B1")[None]).gains
     br = run_budget(truth, sources, Qn, S.P0, S.H, S.R, fm.D, gains, S.update_steps, rec)
     q = S.nodes.q_nb[rec]
@@ -264,12 +267,12 @@ def test_per_source_noise_matches_van_loan_and_the_ou_closed_form():
     G = rng.standard_normal((N, n, k))
     psd = rng.uniform(0.5, 2.0, (N, k))
     dt = np.array([1.0, 0.5, 2.0, 1.0])
-    Q = discretize_noise(F, G, psd, dt)
+    Q = per_source(F, G, psd, dt)
     for p in range(k):
         Qc = (G[:, :, p:p + 1] * psd[:, None, p:p + 1]) @ np.swapaxes(G[:, :, p:p + 1], 1, 2)
         np.testing.assert_allclose(Q[:, p], van_loan(F, Qc, dt)[1], rtol=1e-12, atol=1e-14)
     tau, qc, h = 20.0, 3.0, 1.0
-    Qou = discretize_noise(np.full((1, 1, 1), -1 / tau), np.ones((1, 1, 1)), np.full((1, 1), qc), h)
+    Qou = per_source(np.full((1, 1, 1), -1 / tau), np.ones((1, 1, 1)), np.full((1, 1), qc), h)
     assert Qou[0, 0, 0, 0] == pytest.approx(qc * tau / 2 * (1 - np.exp(-2 * h / tau)), rel=1e-14)
 
 
@@ -278,8 +281,8 @@ def test_composed_source_noise_sums_to_the_composed_total():
     N, n = 12, 5
     F = 0.1 * rng.standard_normal((N, n, n))
     Phi, _ = van_loan(F, np.zeros((N, n, n)), 1.0)
-    factors = [NoiseFactor("a", rng.standard_normal((N, n, 2)), np.ones((N, 2))),
-               NoiseFactor("b", rng.standard_normal((N, n, 1)), np.full((N, 1), 0.3))]
+    factors = [NoiseSource("a", rng.standard_normal((N, n, 2)), np.ones((N, 2))),
+               NoiseSource("b", rng.standard_normal((N, n, 1)), np.full((N, 1), 0.3))]
     Qc = sum((f.G * f.psd[:, None, :]) @ np.swapaxes(f.G, 1, 2) for f in factors)
     Qd = van_loan(F, Qc, 1.0)[1]
     ev = np.array([0, 3, 4, 9, 12])
@@ -394,7 +397,7 @@ def test_cli_writes_tables_workbook_and_figures(tmp_path):
 
 def test_figure_sources_are_ranked_by_peak_share(flagship):
     """Stacked figures show the sources with the largest peak share (zero totals at t = 0 skipped)."""
-    from covtool.studies.budget import top_sources
+    from covtool.studies.error_budget import top_sources
     v = np.array([[0.0, 1.0, 1.0], [0.0, 0.0, 9.0], [0.0, 5.0, 1.0], [0.0, 0.0, 0.0]])
     assert top_sources(v, 2) == [2, 1]            # peaks 5/6 and 9/11 beat 1/6
     assert top_sources(v, 10) == [2, 1, 0]        # a source that never contributes is left out
@@ -406,7 +409,7 @@ def test_figure_sources_are_ranked_by_peak_share(flagship):
 
 def test_shipped_study_files_validate():
     """Both shipped studies pass validation (the runs themselves are the CLI's job)."""
-    from covtool.studies.budget import budget_cases, budget_options
+    from covtool.studies.error_budget import budget_cases, budget_options
     for f in ("error_budget.toml", "error_budget_pure_ins.toml"):
         d = tomllib.loads((ROOT / "studies" / f).read_text())
         assert d["study"]["kind"] == "error_budget"
@@ -459,7 +462,7 @@ def test_numeric_core_errors():
     np.testing.assert_array_equal(mn[:, 1], np.stack([np.zeros((3, 3)), np.ones((3, 3))]))
     with pytest.raises(IndexError, match=r"supports Q\[:, i\] only"):
         mn[0]
-    from covtool.engine import System
+    from covtool.lincov.batch import System
     sysm = System(np.array([0, 1]), np.eye(3)[None], np.zeros((1, 3, 3)))
     with pytest.raises(ValueError, match="update steps given without gains"):
         run_budget(sysm, [Source("x", "initial", (), P0=np.eye(3))], np.zeros((0, 1, 3, 3)), np.eye(3),

@@ -36,11 +36,12 @@ import numpy as np
 import pytest
 from scipy.linalg import expm
 
-from covtool.discretize import THETA, block_triangular, discretize, per_source, taylor, taylor_terms, van_loan
-from covtool.dynamics import Context, error_dynamics
+from covtool.lincov.discretize import (THETA, block_triangular, discretize, per_source, taylor, taylor_terms,
+                                       van_loan)
+from covtool.lincov.dynamics import Context, error_dynamics
 from covtool.errors import InputError, NumericalError
-from covtool.model.loader import load_model
-from covtool.trajectory import land_vehicle
+from covtool.io.model_file import load_model
+from covtool.nav.trajectory.profiles import land_vehicle
 
 SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
 
@@ -375,7 +376,7 @@ def test_non_finite_input_is_refused():
 
 def test_every_guard_names_the_step(monkeypatch):
     """Non-PSD Q_d, a series that stops short, bad shapes and non-finite noise: each refused by name."""
-    from covtool import discretize as dz
+    from covtool.lincov import discretize as dz
 
     Q = np.zeros((3, 2, 2))
     Q[:] = np.eye(2)

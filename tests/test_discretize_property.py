@@ -17,8 +17,8 @@ Reference, independent of the code under test: with ``F = V Λ V⁻¹``
 (``G_ij = Δt·expm1(z)/z``, exact for ``z → 0``).
 
 Requirement: ``van_loan``, the adaptive ``taylor``, ``block_triangular``
-(when ``F`` has its structure), ``per_source`` / ``budget.discretize_noise``
-(each noise column) and ``dualnav._discretize`` agree with the reference to
+(when ``F`` has its structure), ``per_source``
+(each noise column) and ``discretize_difference`` agree with the reference to
 1e-9: Φ column-wise relative (``max_i |ΔΦ_ij| / max_i |Φ_ij|``), Q_d in
 correlation scaling (``|ΔQ_ij| / √(Q_ii Q_jj)``).  For stable ``F`` none may
 refuse.
@@ -31,9 +31,8 @@ import numpy as np
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from covtool import dualnav
-from covtool.budget import discretize_noise
-from covtool.discretize import block_triangular, is_block_triangular, per_source, taylor, van_loan
+from covtool.dualnav.difference import discretize_difference
+from covtool.lincov.discretize import block_triangular, is_block_triangular, per_source, taylor, van_loan
 
 TOL = 1e-9
 
@@ -128,13 +127,12 @@ def test_every_discretiser_matches_the_eigen_reference(system):
     Phi_r, Q_r, Q_cols = _reference(F, Qc, dt, list(zip(G.T, psd)))
     F3, Q3 = F[None], Qc[None]
     results = {"van_loan": van_loan(F3, Q3, dt), "taylor": taylor(F3, Q3, dt),
-               "dualnav._discretize": dualnav._discretize(F3, Q3, dt, nav=k)[:2]}
+               "discretize_difference": discretize_difference(F3, Q3, dt, nav=k)[:2]}
     if is_block_triangular(F3, Q3, k):
         results["block_triangular"] = block_triangular(F3, Q3, dt, k)
     for name, (Phi, Qd) in results.items():
         assert _phi_error(Phi[0], Phi_r) <= TOL, name
         assert _q_error(Qd[0], Q_r) <= TOL, name
-    for fn in (per_source, discretize_noise):
-        Qs = fn(F3, G[None], psd[None], dt)
-        for p, Qp in enumerate(Q_cols):
-            assert _q_error(Qs[0, p], Qp) <= TOL, (fn.__name__, p)
+    Qs = per_source(F3, G[None], psd[None], dt)
+    for p, Qp in enumerate(Q_cols):
+        assert _q_error(Qs[0, p], Qp) <= TOL, p

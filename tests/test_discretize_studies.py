@@ -10,7 +10,7 @@
 * Case 3: F is held at the step mid-point; a step that contains a turn
   rotates the quaternion error by the wrong angle and an unaided azimuth σ
   shrank from 9.97′ to 0.09′ with 60-s steps.  Steps turning by more than
-  0.1 rad are refused (:func:`covtool.studies.common.check_step_motion`).
+  0.1 rad are refused (:func:`covtool.studies.grid.check_step_motion`).
 """
 
 from __future__ import annotations
@@ -25,10 +25,10 @@ import pytest
 from scipy.linalg import expm
 
 import covtool
-from covtool import earth
+from covtool.nav import earth
 from covtool.errors import StudyFileError
-from covtool.studies.common import MAX_STEP_ROTATION, step_motion, time_grid
-from covtool.trajectory import land_vehicle, static
+from covtool.studies.grid import MAX_STEP_ROTATION, step_motion, time_grid
+from covtool.nav.trajectory.profiles import land_vehicle, static
 
 ROOT = Path(__file__).resolve().parents[1]
 UG = 9.80665e-6

@@ -27,18 +27,28 @@ import math
 import numpy as np
 import pytest
 
-from covtool import earth
-from covtool import quaternion as quat
-from covtool import dualnav as dn
-from covtool import strapdown as sd
-from covtool.discretize import van_loan
-from covtool.dynamics import Context, error_dynamics
+from covtool.nav import earth
+from covtool.nav import attitude as quat
+from covtool.dualnav.gaps import BridgedLog, CLOCK_PPM_TOL, bridge_gaps, clock_rate, find_gaps
+from covtool.validation.sensor_errors import GSensitiveErrors
+from covtool.dualnav.difference import (ImuLinearization, discretize_difference, difference_model,
+                                        nav_difference)
+from covtool.dualnav.monitor import Whitener, flagged_intervals, gsens_estimates, innovations, window_test
+from covtool.dualnav.alignment import small_angle, alignment_jacobian, alignment_second_order, triad_alignment
+from covtool.dualnav.run import ppm_text, run_dual
+from covtool.nav import strapdown as sd
+from covtool.lincov.discretize import van_loan
+from covtool.lincov.dynamics import Context, error_dynamics
 from covtool.errors import InputError, StudyFileError, TrajectoryError
-from covtool.flight import (FlightProfile, Segment, VibrationInterval, VibrationTone, flight, flight_from_config,
-                            high_dynamics_flight, quadrature_nodes)
-from covtool.imu import ImuSimulator, SensorErrors, ideal_increments, load_imu_grade
+from covtool.nav.trajectory.flight import (FlightProfile, Segment, VibrationInterval, VibrationTone, flight,
+                                           quadrature_nodes)
+from covtool.io.flight import flight_from_config, high_dynamics_flight
+from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
+from covtool.validation.sensor_errors import SensorErrors
+from covtool.io.imu_grade import load_imu_grade
 from covtool.studies import run_study
-from covtool.studies.dual_imu import PPM_G, gsens_coefficient, make_setup, parse_study, simulate_logs
+from covtool.studies.dual_imu_config import PPM_G, gsens_coefficient, parse_study
+from covtool.studies.dual_imu import make_setup, simulate_logs
 
 G = 9.80665
 INITIAL = {"lat": "36 deg", "lon": "127 deg", "h": "50 m", "heading": "30 deg", "pitch": "10 deg"}
@@ -276,8 +286,8 @@ def test_triad_alignment_is_exact_without_errors(hdf, mount):
     s = hdf.sample([5.0])
     q_s = s.q_nb[0] if mount is None else quat.mul(s.q_nb[0], mount)
     f_s = quat.dcm(q_s).T @ quat.dcm(s.q_nb[0]) @ s.f_b[0]
-    q = dn.triad_alignment(f_s, math.radians(45.0), mount)[0]
-    assert np.abs(dn._small_angle(q, q_s)).max() < 1e-12
+    q = triad_alignment(f_s, math.radians(45.0), mount)[0]
+    assert np.abs(small_angle(q, q_s)).max() < 1e-12
 
 
 def test_levelling_closed_form():
@@ -286,7 +296,7 @@ def test_levelling_closed_form():
     g = earth.gravity(lat, 0.0)
     C = quat.dcm(quat.from_euler(0.0, 0.0, psi))
     f = C.T @ np.array([0.0, 0.0, -g])
-    A = dn.alignment_jacobian(f, psi)
+    A = alignment_jacobian(f, psi)
     df = np.array([3e-3, -2e-3, 5e-3])
     dfn = C @ df
     np.testing.assert_allclose(A[:, :3] @ df, [dfn[1] / g, -dfn[0] / g, 0.0], atol=1e-12)
@@ -298,12 +308,12 @@ def test_alignment_second_order_matches_sampling(hdf):
     s = hdf.sample([5.0])
     f, psi = s.f_b[0], math.radians(45.0)
     cov = np.diag([0.05**2, 0.05**2, 0.03**2, 0.002**2])         # 5 mg, 3 mg, 0.1 deg
-    mean, C = dn.alignment_second_order(f, psi, None, cov)
+    mean, C = alignment_second_order(f, psi, None, cov)
     rng = np.random.default_rng(2)
     u = rng.multivariate_normal(np.zeros(4), cov, 40000)
-    q0 = dn.triad_alignment(f, psi)[0]
-    phi = dn._small_angle(dn.triad_alignment(f + u[:, :3], psi + u[:, 3]), q0)
-    r = phi - u @ dn.alignment_jacobian(f, psi).T
+    q0 = triad_alignment(f, psi)[0]
+    phi = small_angle(triad_alignment(f + u[:, :3], psi + u[:, 3]), q0)
+    r = phi - u @ alignment_jacobian(f, psi).T
     np.testing.assert_allclose(np.sqrt(np.diag(C)), r.std(axis=0), rtol=0.05)
     np.testing.assert_allclose(mean, r.mean(axis=0), atol=3 * r.std(axis=0).max() / 200)
 
@@ -320,14 +330,14 @@ def test_nav_difference_bch_and_mounting():
         return sd.NavHistory(np.array([0.0]), np.array([[lat + dlat]]), np.array([[2.0]]), np.array([[h]]),
                              np.array([[v]]), q[None, None])
 
-    z = dn.nav_difference(hist(qm, 1e-7, [1.0, 2.0, 3.0]), hist(qk, 0.0, [0.5, 2.0, 3.5]), None, MOUNT)[0, 0]
+    z = nav_difference(hist(qm, 1e-7, [1.0, 2.0, 3.0]), hist(qk, 0.0, [0.5, 2.0, 3.5]), None, MOUNT)[0, 0]
     rm, _ = earth.radii(lat + 1e-7)
     assert z[0] == pytest.approx(1e-7 * (rm + h))
     np.testing.assert_allclose(z[3:6], [0.5, 0.0, -0.5])
     np.testing.assert_allclose(z[6:], pm - pk + 0.5 * np.cross(pm, pk), atol=2e-8)
     with pytest.raises(ValueError, match="same output times"):
         h2 = hist(qk, 0.0, [0, 0, 0])
-        dn.nav_difference(hist(qm, 0, [0, 0, 0]), dataclasses.replace(h2, t=np.array([1.0])))
+        nav_difference(hist(qm, 0, [0, 0, 0]), dataclasses.replace(h2, t=np.array([1.0])))
 
 
 def test_structured_discretisation_matches_van_loan(hdf):
@@ -337,7 +347,7 @@ def test_structured_discretisation_matches_van_loan(hdf):
     dyn = error_dynamics(model, ctx)
     Fc = np.zeros((30, model.n, 1))
     Fc[:, 6:10, 0] = 0.5 * quat.Q_matrix(s.q_nb)[:, :, 2] * 50.0
-    Phi, Qd, Gam = dn._discretize(dyn.F, dyn.Qc, 0.04, Fc)
+    Phi, Qd, Gam = discretize_difference(dyn.F, dyn.Qc, 0.04, Fc)
     Fa = np.zeros((30, model.n + 1, model.n + 1))
     Fa[:, :model.n, :model.n] = dyn.F
     Fa[:, :model.n, model.n:] = Fc
@@ -359,13 +369,13 @@ def test_gsensitive_injection_formula(hdf):
     k = 1000 * PPM_G
     kw = dict(t0=12.0, duration=2.0, nodes=quadrature_nodes(hdf, 400.0))
     plain = ImuSimulator(hdf, 400.0, errors=SensorErrors(model, x0, noise=False), **kw).record()
-    fault = ImuSimulator(hdf, 400.0, errors=dn.GSensitiveErrors(model, x0, noise=False, gsens=((2, 0, k),)),
+    fault = ImuSimulator(hdf, 400.0, errors=GSensitiveErrors(model, x0, noise=False, gsens=((2, 0, k),)),
                          **kw).record()
     expect = plain.dtheta[0, :, 2] * (1.0 + k * plain.dv[0, :, 0] / plain.dt)
     np.testing.assert_allclose(fault.dtheta[0, :, 2], expect, rtol=1e-12)
     np.testing.assert_array_equal(fault.dtheta[0, :, :2], plain.dtheta[0, :, :2])
     with pytest.raises(ValueError, match=r"axes must be 0, 1 or 2, got \(3, 0, 0\.1\)"):
-        dn.GSensitiveErrors(model, x0, gsens=((3, 0, 0.1),))
+        GSensitiveErrors(model, x0, gsens=((3, 0, 0.1),))
 
 
 # --------------------------------------------------------------------------
@@ -417,7 +427,7 @@ def linear_model(short_study):
 def test_innovations_are_white_chi2(linear_model):
     m = linear_model
     z = _linear_data(m, 400, np.random.default_rng(11))
-    inn = dn.innovations(m, z)
+    inn = innovations(m, z)
     # NIS ~ χ²(m) independent: the mean of 400×J values has sd sqrt(2m/N)
     N = inn.nis.size
     assert abs(inn.nis.mean() - m.m) < 4 * math.sqrt(2 * m.m / N)
@@ -426,7 +436,7 @@ def test_innovations_are_white_chi2(linear_model):
     assert abs(w.var() - 1.0) < 0.05
     lag1 = np.mean(w[:, 1:] * w[:, :-1])
     assert abs(lag1) < 4 / math.sqrt(w[:, 1:].size)
-    stat, thr, flagged = dn.window_test(inn.nis, m.m, 5, 0.05)
+    stat, thr, flagged = window_test(inn.nis, m.m, 5, 0.05)
     assert flagged.any(axis=1).mean() <= 0.05 + 3 * math.sqrt(0.05 * 0.95 / 400)
 
 
@@ -434,10 +444,10 @@ def test_feedback_leaves_innovations_unchanged(linear_model):
     """Correcting the errors by the estimates (seed 002 eq (10)) changes nothing linear."""
     m = linear_model
     z_open = _linear_data(m, 20, np.random.default_rng(5))
-    w = dn.Whitener(m, 20)
+    w = Whitener(m, 20)
     _linear_data(m, 20, np.random.default_rng(5), feedback=w)   # the Whitener runs inside, one BLAS thread
     closed = w.result()
-    open_ = dn.innovations(m, z_open)
+    open_ = innovations(m, z_open)
     scale = np.sqrt(np.einsum("jii->ji", open_.S))
     np.testing.assert_allclose(closed.nu / scale, open_.nu / scale, atol=1e-6)
 
@@ -448,7 +458,7 @@ def test_gls_estimate_is_unbiased_with_predicted_sigma(linear_model):
     c = np.zeros(len(m.candidates))
     c[k] = 3000 * PPM_G
     z = _linear_data(m, 300, np.random.default_rng(8), c=c)
-    est = dn.gsens_estimates(dn.innovations(m, z), m.candidates, 0.01)
+    est = gsens_estimates(innovations(m, z), m.candidates, 0.01)
     e = (est.estimate[:, k] - c[k]) / est.sigma[k]
     assert abs(e.mean()) < 4 / math.sqrt(300)
     assert e.std() == pytest.approx(1.0, abs=0.15)
@@ -514,7 +524,7 @@ def test_bridging_policies_on_linear_rates():
     keep = np.ones(200, bool)
     keep[100:106] = False
     for policy, expect_exact in (("interpolate", True), ("hold", False), ("propagate", False)):
-        b = dn.bridge_gaps(t[keep], x[keep], x[keep], h, policy, imu="kimu", window=5)
+        b = bridge_gaps(t[keep], x[keep], x[keep], h, policy, imu="kimu", window=5)
         np.testing.assert_allclose(b.t, t, atol=1e-12)
         assert b.bridged.sum() == 6 and b.bridged[100:106].all()
         err = b.dtheta[100:106].sum(axis=0) - x[100:106].sum(axis=0)
@@ -537,7 +547,7 @@ def test_gap_prediction_covers_white_noise():
     x = 1e-5 * rng.standard_normal((M, 4000, 3))
     keep = np.ones(4000, bool)
     keep[2000:2016] = False
-    b = dn.bridge_gaps(t[keep], x[:, keep], x[:, keep], h, "interpolate", window=10, arw=1e-5 / math.sqrt(h))
+    b = bridge_gaps(t[keep], x[:, keep], x[:, keep], h, "interpolate", window=10, arw=1e-5 / math.sqrt(h))
     (rep,) = b.gaps
     actual = np.sqrt(np.mean((b.dtheta[:, 2000:2016].sum(axis=1) - x[:, 2000:2016].sum(axis=1)) ** 2, axis=0))
     np.testing.assert_allclose(rep.sigma_attitude, actual, rtol=0.25)
@@ -551,20 +561,20 @@ def test_gap_errors():
     keep = np.ones(30, bool)
     keep[10:12] = False
     with pytest.raises(InputError, match=r"log: gap policy: 'guess' is not one of hold, interpolate"):
-        dn.bridge_gaps(t, x, x, 0.01, "guess", where="log")
+        bridge_gaps(t, x, x, 0.01, "guess", where="log")
     with pytest.raises(InputError, match=r"log: column 't \[s\]': 2 samples missing between t = 0\.1 s and 0\.13 s "
                                          r"\(gap policy 'refuse'\); 1 gap\(s\) in all"):
-        dn.bridge_gaps(t[keep], x[keep], x[keep], 0.01, "refuse", where="log")
+        bridge_gaps(t[keep], x[keep], x[keep], 0.01, "refuse", where="log")
     with pytest.raises(InputError, match=r"log: column 't \[s\]': gap of 2 samples after t = 0\.1 s: fewer than 20 "
                                          r"valid samples on each side"):
-        dn.bridge_gaps(t[keep], x[keep], x[keep], 0.01, "interpolate", window=20, where="log")
+        bridge_gaps(t[keep], x[keep], x[keep], 0.01, "interpolate", window=20, where="log")
     tj = t.copy()
     tj[5] += 0.004
     with pytest.raises(InputError, match=r"log: column 't \[s\]': row 6: step 0\.014 s after t = 0\.05 s is not a "
                                          r"whole number of sample periods"):
-        dn.find_gaps(tj, 0.01, "log")
-    assert dn.find_gaps(t[keep], 0.01) == [(9, 2)]
-    b = dn.bridge_gaps(t, x, x, 0.01, "refuse")
+        find_gaps(tj, 0.01, "log")
+    assert find_gaps(t[keep], 0.01) == [(9, 2)]
+    b = bridge_gaps(t, x, x, 0.01, "refuse")
     assert b.gaps == [] and not b.bridged.any()
 
 
@@ -576,30 +586,30 @@ def test_gap_errors():
 def test_monitor_errors(linear_model):
     m = linear_model
     with pytest.raises(ValueError, match=r"window of 99 epochs does not fit 20 epochs"):
-        dn.window_test(np.zeros((1, 20)), 6, 99, 0.01)
+        window_test(np.zeros((1, 20)), 6, 99, 0.01)
     with pytest.raises(ValueError, match=r"false-alarm probability must be in \(0, 1\), got 1\.5"):
-        dn.window_test(np.zeros((1, 20)), 6, 5, 1.5)
-    inn = dn.innovations(m, np.zeros((m.t.size, m.m)))
+        window_test(np.zeros((1, 20)), 6, 5, 1.5)
+    inn = innovations(m, np.zeros((m.t.size, m.m)))
     with pytest.raises(ValueError, match="no g-sensitivity candidates"):
-        dn.gsens_estimates(inn, (), 0.01)
+        gsens_estimates(inn, (), 0.01)
     with pytest.raises(ValueError, match=r"false-alarm probability must be in \(0, 1\), got 0"):
-        dn.gsens_estimates(inn, m.candidates, 0.0)
+        gsens_estimates(inn, m.candidates, 0.0)
     dead = dataclasses.replace(inn, rho=np.zeros_like(inn.rho))
     with pytest.raises(ValueError, match=r"candidates x/x, .* have no signature in this flight"):
-        dn.gsens_estimates(dead, m.candidates, 0.01)
-    soft = dn.gsens_estimates(dead, m.candidates, 0.01, strict=False)
+        gsens_estimates(dead, m.candidates, 0.01)
+    soft = gsens_estimates(dead, m.candidates, 0.01, strict=False)
     assert np.isnan(soft.estimate).all() and np.isinf(soft.sigma).all() and not soft.detected.any()
     with pytest.raises(ValueError, match=r"z must have shape \(M, 21, 6\), got \(1, 3, 6\)"):
-        dn.innovations(m, np.zeros((3, 6)))
-    assert dn.flagged_intervals(np.array([False, True, True, False, True]), np.arange(10.0), 3) == [(1.0, 6.0)]
+        innovations(m, np.zeros((3, 6)))
+    assert flagged_intervals(np.array([False, True, True, False, True]), np.arange(10.0), 3) == [(1.0, 6.0)]
 
 
 def _static_log(rate, seconds, t0=0.0):
-    from covtool.trajectory import static
+    from covtool.nav.trajectory.profiles import static
 
     traj = static(seconds + 1.0, lat=0.6, lon=2.2, h=50.0, heading=0.5, dt=1.0)
     rec = ideal_increments(traj, rate, t0=t0, duration=seconds)
-    return dn.BridgedLog(rec.t, rec.dtheta, rec.dv, rec.dt, [], np.zeros(rec.t.size, bool))
+    return BridgedLog(rec.t, rec.dtheta, rec.dv, rec.dt, [], np.zeros(rec.t.size, bool))
 
 
 @pytest.fixture(scope="module")
@@ -614,30 +624,30 @@ def setup_static():
 def test_run_dual_errors(setup_static):
     setup = setup_static
     main, kimu = _static_log(100.0, 20.0), _static_log(400.0, 20.0)
-    r = dn.run_dual(main, kimu, setup)                      # at rest, error-free: the two agree
+    r = run_dual(main, kimu, setup)                      # at rest, error-free: the two agree
     assert np.abs(r.z[0, :, 3:6]).max() < 1e-9 and np.abs(r.z[0, :, 6:]).max() < 1e-9
     assert r.unused == {"main": (0, 0), "kimu": (0, 0)}
     # a KIMU log that starts 0.5 s late and a main log 0.37 s longer: the unused samples are counted
-    r = dn.run_dual(_static_log(100.0, 20.37), _static_log(400.0, 19.5, t0=0.5), setup)
+    r = run_dual(_static_log(100.0, 20.37), _static_log(400.0, 19.5, t0=0.5), setup)
     assert r.t[0] == pytest.approx(5.5) and r.unused == {"main": (50, 87), "kimu": (0, 200)}   # whole epochs end at 19.5 s
     late = dataclasses.replace(kimu, t=kimu.t + 30.0)
     with pytest.raises(InputError, match=r"logs: the main log \[0, 20\] s and the KIMU log \[30, 50\] s share no "
                                          r"main interval"):
-        dn.run_dual(main, late, setup)
+        run_dual(main, late, setup)
     with pytest.raises(InputError, match=r"KIMU log: delivers 2 samples per main interval, the study declares a rate "
                                          r"ratio of 4"):
-        dn.run_dual(main, _static_log(200.0, 20.0), setup)
+        run_dual(main, _static_log(200.0, 20.0), setup)
     holey = dataclasses.replace(kimu, t=np.delete(kimu.t, 500), dtheta=np.delete(kimu.dtheta, 500, axis=0),
                                 dv=np.delete(kimu.dv, 500, axis=0))
     with pytest.raises(InputError, match=r"KIMU log: main interval 125 .* holds 3 samples, expected 4"):
-        dn.run_dual(main, holey, setup)
+        run_dual(main, holey, setup)
     with pytest.raises(InputError, match=r"alignment time: 5\.005 s is not a whole number of main samples"):
-        dn.run_dual(main, kimu, dataclasses.replace(setup, align_time=5.005))
+        run_dual(main, kimu, dataclasses.replace(setup, align_time=5.005))
     with pytest.raises(InputError, match=r"logs: 2 s of data after the 5 s alignment is shorter than one comparison "
                                          r"window \(5 s\)"):
-        dn.run_dual(_static_log(100.0, 7.0), _static_log(400.0, 7.0), setup)
+        run_dual(_static_log(100.0, 7.0), _static_log(400.0, 7.0), setup)
     with pytest.raises(ValueError, match="compare_every must be a multiple of substep, and substep even"):
-        dn.run_dual(main, kimu, dataclasses.replace(setup, substep=3))
+        run_dual(main, kimu, dataclasses.replace(setup, substep=3))
 
 
 def test_difference_model_errors(short_study):
@@ -645,13 +655,13 @@ def test_difference_model_errors(short_study):
     gm = load_imu_grade("main_imu").to_model()
     ctx = Context(np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.tile([1.0, 0, 0, 0], (3, 1)), np.zeros((3, 3)),
                   np.zeros((3, 3)))
-    lin = dn.ImuLinearization(gm, ctx, np.tile([1.0, 0, 0, 0], (3, 4)), ctx, 5.0, 0.0)
+    lin = ImuLinearization(gm, ctx, np.tile([1.0, 0, 0, 0], (3, 4)), ctx, 5.0, 0.0)
     t = np.arange(3.0)
     with pytest.raises(ValueError, match=r"main: context has 3 steps, expected 50"):
-        dn.difference_model(lin, lin, t_epochs=t, lat_epochs=t, h_epochs=t, substeps_per_epoch=25, dt_sub=0.04,
+        difference_model(lin, lin, t_epochs=t, lat_epochs=t, h_epochs=t, substeps_per_epoch=25, dt_sub=0.04,
                             heading_sigma=0.0)
     with pytest.raises(ValueError, match=r"products must have shape \(3, 3, 3\) for the fault candidates"):
-        dn.difference_model(lin, lin, t_epochs=np.arange(2.0), lat_epochs=t, h_epochs=t, substeps_per_epoch=3,
+        difference_model(lin, lin, t_epochs=np.arange(2.0), lat_epochs=t, h_epochs=t, substeps_per_epoch=3,
                             dt_sub=0.04, heading_sigma=0.0, candidates=((0, 0),))
     assert r.model.n == 92
 
@@ -785,7 +795,7 @@ def log_files(tmp_path_factory):
 
 
 def _parser():
-    from covtool.cli_dualnav import add_parser
+    from covtool.cli import add_dualnav_parser as add_parser
 
     p = argparse.ArgumentParser(prog="covtool")
     add_parser(p.add_subparsers(dest="command", required=True))
@@ -854,20 +864,20 @@ def test_bridging_keeps_recorded_times_with_a_200_ppm_clock(setup_static):
     kimu = _clocked(400.0, 20.0, PPM, "kimu.csv")           # synchronised to the main IMU: the same clock
     keep = np.ones(main.t.size, bool)
     keep[1000:1003] = False
-    b = dn.bridge_gaps(main.t[keep], main.dtheta[keep], main.dv[keep], 0.01, "interpolate", imu="main",
+    b = bridge_gaps(main.t[keep], main.dtheta[keep], main.dv[keep], 0.01, "interpolate", imu="main",
                        where="main.csv")
     np.testing.assert_array_equal(b.t[~b.bridged], main.t[keep])          # recorded times, exactly
     assert b.bridged.sum() == 3 and b.bridged[1000:1003].all()
     # inserted samples evenly between the recorded neighbours: the drifting grid itself, to rounding
     np.testing.assert_allclose(b.t[1000:1003], main.t[1000:1003], rtol=0, atol=1e-12)
     assert b.t[-1] - 0.01 * 2000 == pytest.approx(PPM * 1e-6 * 20.0, rel=1e-9)     # 4 ms = 0.4 period off nominal
-    assert b.clock_ppm == pytest.approx(PPM, abs=dn.CLOCK_PPM_TOL)
+    assert b.clock_ppm == pytest.approx(PPM, abs=CLOCK_PPM_TOL)
     assert b.where == "main.csv"
-    r = dn.run_dual(b, dn.bridge_gaps(kimu.t, kimu.dtheta, kimu.dv, 0.0025, "interpolate", where="kimu.csv"),
+    r = run_dual(b, bridge_gaps(kimu.t, kimu.dtheta, kimu.dv, 0.0025, "interpolate", where="kimu.csv"),
                     setup_static)
-    assert r.clock["main"] == pytest.approx(PPM, abs=dn.CLOCK_PPM_TOL)
-    assert r.clock["kimu"] == pytest.approx(PPM, abs=dn.CLOCK_PPM_TOL)
-    assert abs(r.clock["mismatch"]) < dn.CLOCK_PPM_TOL
+    assert r.clock["main"] == pytest.approx(PPM, abs=CLOCK_PPM_TOL)
+    assert r.clock["kimu"] == pytest.approx(PPM, abs=CLOCK_PPM_TOL)
+    assert abs(r.clock["mismatch"]) < CLOCK_PPM_TOL
     assert np.abs(r.z[0, :, 3:6]).max() < 1e-9                             # at rest, error-free: they agree
 
 
@@ -875,10 +885,10 @@ def test_clock_rate_is_measured_across_gaps():
     t = 0.0025 * np.arange(1, 8001) * (1.0 + PPM * 1e-6)
     keep = np.ones(t.size, bool)
     keep[[100, 4000, 4001, 4002]] = False
-    period, ppm = dn.clock_rate(t[keep], 0.0025)
+    period, ppm = clock_rate(t[keep], 0.0025)
     assert period == pytest.approx(0.0025 * (1 + PPM * 1e-6), rel=1e-12)
-    assert ppm == pytest.approx(PPM, abs=dn.CLOCK_PPM_TOL)
-    assert dn.ppm_text(-1e-9) == "+0.0" and dn.ppm_text(199.96) == "+200.0"
+    assert ppm == pytest.approx(PPM, abs=CLOCK_PPM_TOL)
+    assert ppm_text(-1e-9) == "+0.0" and ppm_text(199.96) == "+200.0"
 
 
 @pytest.mark.parametrize("late, match", [
@@ -891,7 +901,7 @@ def test_clock_mismatch_names_the_log_whose_clock_is_off(setup_static, late, mat
     main = _clocked(100.0, 20.0, PPM if late == "main" else 0.0, "main.csv")
     kimu = _clocked(400.0, 20.0, PPM if late == "kimu" else 0.0, "kimu.csv")
     with pytest.raises(InputError, match=match):
-        dn.run_dual(main, kimu, setup_static)
+        run_dual(main, kimu, setup_static)
 
 
 def test_a_kimu_gap_names_the_kimu_log_file(setup_static):
@@ -899,10 +909,10 @@ def test_a_kimu_gap_names_the_kimu_log_file(setup_static):
     holey = dataclasses.replace(kimu, t=np.delete(kimu.t, 500), dtheta=np.delete(kimu.dtheta, 500, axis=0),
                                 dv=np.delete(kimu.dv, 500, axis=0), where="flight/kimu.csv")
     with pytest.raises(InputError, match=r"^flight/kimu\.csv: main interval 125 .* holds 3 samples, expected 4"):
-        dn.run_dual(main, holey, setup_static)
+        run_dual(main, holey, setup_static)
     late = dataclasses.replace(kimu, t=kimu.t + 30.0, where="k.csv")
     with pytest.raises(InputError, match=r"logs: the main log \[0, 20\] s and the KIMU log k\.csv \[30, 50\] s share"):
-        dn.run_dual(main, late, setup_static)
+        run_dual(main, late, setup_static)
 
 
 def test_nan_statistics_are_never_a_negative_detection(linear_model):
@@ -910,15 +920,15 @@ def test_nan_statistics_are_never_a_negative_detection(linear_model):
     from covtool.errors import NumericalError
 
     m = linear_model
-    inn = dn.innovations(m, np.zeros((m.t.size, m.m)))
+    inn = innovations(m, np.zeros((m.t.size, m.m)))
     bad = dataclasses.replace(inn, nu=np.where(np.arange(inn.nu.shape[1])[None, :, None] == 3, np.nan, inn.nu))
     with pytest.raises(NumericalError, match=r"g-sensitivity test: the GLR statistic of run 0 is not finite"):
-        dn.gsens_estimates(bad, m.candidates, 0.01)
+        gsens_estimates(bad, m.candidates, 0.01)
     nis = np.ones((2, 20))
     nis[1, 7] = np.nan
     with pytest.raises(NumericalError, match=r"window test: the normalised innovation of run 1 at epoch 7 is not "
                                              r"finite"):
-        dn.window_test(nis, 6, 5, 0.01)
+        window_test(nis, 6, 5, 0.01)
 
 
 def _edited_log(src, dst, edit):

@@ -8,7 +8,7 @@ Somigliana constant or a spherical radius fails these tests.
 import numpy as np
 import pytest
 
-from covtool import earth
+from covtool.nav import earth
 
 # TR8350.2 Table 3.1 (defining) and Table 3.3/3.4 (derived) parameters
 A = 6378137.0                        # semi-major axis [m]

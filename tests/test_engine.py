@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 import covtool
-from covtool.covariance import propagate_with_filter
-from covtool.engine import System, compose, events, run_batch, sandwich
-from covtool.filters import zupt_matrices
-from covtool.quaternion import attitude_error_matrix
+from covtool.lincov.reference import propagate_with_filter
+from covtool.lincov.batch import System, compose, events, run_batch, sandwich
+from covtool.lincov.reduced import zupt_matrices
+from covtool.nav.attitude import attitude_error_matrix
 
 
 def test_sandwich_equals_per_case_products():
@@ -45,7 +45,7 @@ def _physical(P, q):
 
 @pytest.fixture(scope="module")
 def setup():
-    from covtool.studies.zupt import setup as zsetup
+    from covtool.studies.zupt_setup import setup as zsetup
     import tomllib
     from pathlib import Path
     path = Path(__file__).resolve().parents[1] / "studies" / "zupt_filter_order.toml"

@@ -10,9 +10,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from covtool.filters import (equivalent_noise_source, equivalent_white_noise, pointwise_overstatement,
-                             tail_integral, zupt_intervals)
-from covtool.model.spec import State
+from covtool.lincov.equivalent_noise import (equivalent_noise_source, equivalent_white_noise,
+                                             pointwise_overstatement, tail_integral, zupt_intervals)
+from covtool.lincov.model.spec import State
 
 
 def _state(process="constant", sigma=2.0, tau=None, distance=None, rw=0.0):

@@ -11,12 +11,14 @@ import numpy as np
 import pytest
 
 import covtool
-from covtool.covariance import propagate_with_filter, truth_update
+from covtool.lincov.reference import propagate_with_filter
+from covtool.lincov.kalman import truth_update
 from covtool.errors import ModelFileError, NumericalError, StudyFileError
-from covtool.filters import equivalent_white_noise, filters_from_dict, load_filters, absorbed_coupling
-from covtool.covariance import check_covariance
-from covtool.model.loader import load_model
-from covtool.model.spec import State
+from covtool.lincov.equivalent_noise import equivalent_white_noise, absorbed_coupling
+from covtool.io.filters import filters_from_dict, load_filters
+from covtool.lincov.kalman import check_covariance
+from covtool.io.model_file import load_model
+from covtool.lincov.model.spec import State
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
@@ -49,8 +51,8 @@ def test_model_A_truth_equals_filter_at_every_step(run_A):
     """
     run = run_A.data["runs"]["A"]
     # physical coordinates: δq → φ = −2 R(q)ᵀ δq (tilt, azimuth); the quaternion
-    # norm direction is structurally zero (see covtool.dynamics) and carries only round-off
-    from covtool.quaternion import attitude_error_matrix
+    # norm direction is structurally zero (see covtool.lincov.dynamics) and carries only round-off
+    from covtool.nav.attitude import attitude_error_matrix
     q = run_A.data["trajectory"].q_nb
     n = PT_n = run.P_truth.shape[1]
     T = np.zeros((len(q), n - 1, n))

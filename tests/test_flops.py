@@ -1,6 +1,6 @@
 """FLOP counts of one on-board filter cycle (seed 002 Table 4).
 
-The closed forms of :mod:`covtool.flops` are checked against an explicit
+The closed forms of :mod:`covtool.analysis.cost` are checked against an explicit
 count: the same cycle written as naive Python loops in which every scalar
 add, subtract, multiply and divide increments a counter.  The naive cycle is
 also checked to compute the same numbers as the numpy cycle, and the numpy
@@ -14,9 +14,9 @@ import math
 import numpy as np
 import pytest
 
-from covtool import flops
-from covtool.covariance import filter_update, kalman_gain
-from covtool.discretize import taylor
+from covtool.analysis import cost
+from covtool.lincov.kalman import filter_update, kalman_gain
+from covtool.lincov.discretize import taylor
 
 
 class Counter:
@@ -97,7 +97,7 @@ class Counter:
 
 
 def naive_cycle(F, Qc, dt, P, H, R, order, form):
-    """The cycle of :func:`covtool.flops.onboard_cycle`, counted."""
+    """The cycle of :func:`covtool.analysis.cost.onboard_cycle`, counted."""
     c = Counter()
     F, Qc, P, H, R = (np.asarray(x, float).tolist() for x in (F, Qc, P, H, R))
     n = len(F)
@@ -161,7 +161,7 @@ def test_closed_forms_equal_an_explicit_count(n, m, order, form):
     """Every closed form equals the naive loops' count, exactly."""
     args = _problem(n, m, seed=n + 10 * m + 100 * order)
     _, _, counts = naive_cycle(*args, order, form)
-    assert flops.cycle_flops(n, m, order, form) == counts
+    assert cost.cycle_flops(n, m, order, form) == counts
 
 
 @pytest.mark.parametrize("form", ["joseph", "standard"])
@@ -169,7 +169,7 @@ def test_counted_cycle_is_the_numpy_cycle(form):
     """The counted loops compute what onboard_cycle does (1e-12)."""
     args = _problem(5, 3, seed=3)
     Pn, Kn, _ = naive_cycle(*args, 4, form)
-    P, K = flops.onboard_cycle(*args, 4, form)
+    P, K = cost.onboard_cycle(*args, 4, form)
     np.testing.assert_allclose(P, Pn, rtol=1e-12, atol=1e-12 * np.abs(P).max())
     np.testing.assert_allclose(K, Kn, rtol=1e-12, atol=1e-12 * np.abs(K).max())
 
@@ -178,7 +178,7 @@ def test_counted_cycle_is_the_numpy_cycle(form):
 def test_onboard_cycle_is_seed002_eq6_to_8(form):
     """onboard_cycle is seed 002 eq (6a)-(8) as covtool computes it.
 
-    Eq (6b)-(6d) by covtool.discretize.taylor, eq (6a), eq (7) and
+    Eq (6b)-(6d) by covtool.lincov.discretize.taylor, eq (6a), eq (7) and
     eq (8) or Joseph by covtool.covariance.
     """
     F, Qc, dt, P, H, R = _problem(7, 3, seed=5)
@@ -187,7 +187,7 @@ def test_onboard_cycle_is_seed002_eq6_to_8(form):
     Pm = Phi[0] @ P @ Phi[0].T + Qd[0]
     K = kalman_gain(Pm, H, R)
     Pp = filter_update(Pm, K, H, R, form)
-    P1, K1 = flops.onboard_cycle(F, Qc, dt, P, H, R, order, form)
+    P1, K1 = cost.onboard_cycle(F, Qc, dt, P, H, R, order, form)
     np.testing.assert_allclose(K1, K, rtol=1e-11)
     np.testing.assert_allclose(P1, Pp, rtol=1e-10, atol=1e-12 * np.abs(Pp).max())
 
@@ -195,9 +195,9 @@ def test_onboard_cycle_is_seed002_eq6_to_8(form):
 def test_leading_term_is_cubic():
     """FLOPs/n³ → 2(2N_t − 4) + 4 (+ 4 with Joseph) for large n."""
     n, m, order = 20000, 3, 5
-    assert flops.cycle_flops(n, m, order, "standard")["total"] / n**3 == pytest.approx(2 * (2 * order - 4) + 4,
+    assert cost.cycle_flops(n, m, order, "standard")["total"] / n**3 == pytest.approx(2 * (2 * order - 4) + 4,
                                                                                       rel=1e-3)
-    assert flops.cycle_flops(n, m, order, "joseph")["total"] / n**3 == pytest.approx(2 * (2 * order - 4) + 8,
+    assert cost.cycle_flops(n, m, order, "joseph")["total"] / n**3 == pytest.approx(2 * (2 * order - 4) + 8,
                                                                                     rel=1e-3)
 
 
@@ -209,7 +209,7 @@ def test_taylor_terms_is_the_adaptive_series_length():
     adaptive sum is formed as Φ − I, then I added); a step
     that needs squaring is refused (one on-board cycle has no squarings).
     """
-    from covtool.discretize import THETA, taylor_terms
+    from covtool.lincov.discretize import THETA, taylor_terms
     from covtool.errors import InputError
 
     rng = np.random.default_rng(2)
@@ -218,7 +218,7 @@ def test_taylor_terms_is_the_adaptive_series_length():
     Qc = L @ np.swapaxes(L, 1, 2)
     info = taylor_terms(F, Qc, 1.0)
     assert not info.squarings.any()
-    assert flops.taylor_terms(F, Qc, 1.0) == info.terms.max()
+    assert cost.taylor_terms(F, Qc, 1.0) == info.terms.max()
     for j in range(4):
         Pa, Qa = taylor(F[j:j + 1], Qc[j:j + 1], 1.0)
         Pk, Qk = taylor(F[j:j + 1], Qc[j:j + 1], 1.0, order=int(info.terms[j]))
@@ -228,26 +228,26 @@ def test_taylor_terms_is_the_adaptive_series_length():
     a = 0.4
     i = next(i for i in range(1, 40)
              if a**i / math.factorial(i) * (a / (i + 1)) / (1 - a / (i + 1)) <= 2.0**-53 * (2 - math.exp(a)))
-    assert flops.taylor_terms(np.full((1, 1, 1), a), np.zeros((1, 1, 1)), 1.0) == i + 1
+    assert cost.taylor_terms(np.full((1, 1, 1), a), np.zeros((1, 1, 1)), 1.0) == i + 1
     assert a <= THETA
     with pytest.raises(InputError, match=r'taylor_order = "auto": at step 0 \(νΔt = 4 > 0.5\) the adaptive series '
                                          r"is summed over Δt/8 and squared"):
-        flops.taylor_terms(np.full((1, 1, 1), -4.0), np.ones((1, 1, 1)), 1.0)
+        cost.taylor_terms(np.full((1, 1, 1), -4.0), np.ones((1, 1, 1)), 1.0)
 
 
 def test_power_law_recovers_exponent():
     n = np.array([10, 16, 22, 58])
-    p, a = flops.power_law(n, 3.5 * n**3.2)
+    p, a = cost.power_law(n, 3.5 * n**3.2)
     assert p == pytest.approx(3.2, rel=1e-12)
     assert a == pytest.approx(3.5, rel=1e-12)
 
 
 @pytest.mark.parametrize("call,match", [
-    (lambda: flops.phi_flops(4, 1), "at least 2 terms"),
-    (lambda: flops.qd_flops(4, 2.5), "at least 2 terms"),
-    (lambda: flops.gain_flops(0, 3), "positive integers"),
-    (lambda: flops.propagation_flops(2.5), "positive integers"),
-    (lambda: flops.update_flops(4, 3, "kalman"), "unknown update form"),
+    (lambda: cost.phi_flops(4, 1), "at least 2 terms"),
+    (lambda: cost.qd_flops(4, 2.5), "at least 2 terms"),
+    (lambda: cost.gain_flops(0, 3), "positive integers"),
+    (lambda: cost.propagation_flops(2.5), "positive integers"),
+    (lambda: cost.update_flops(4, 3, "kalman"), "unknown update form"),
 ])
 def test_errors(call, match):
     with pytest.raises(ValueError, match=match):

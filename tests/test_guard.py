@@ -1,6 +1,6 @@
 """One covariance guard on every path; NaN, never 0; validity warnings (issue 9, cases 4-5, acceptance 3).
 
-Every covariance covtool produces passes :func:`covtool.covariance.check_covariance`
+Every covariance covtool produces passes :func:`covtool.lincov.kalman.check_covariance`
 (finite, symmetric, PSD within ``PSD_TOL`` on the correlation matrix); a metric
 of a covariance that fails it is NaN; a result outside the linear error
 model's domain is flagged in the summary and warned about, with its time.
@@ -17,14 +17,14 @@ import pandas as pd
 import pytest
 
 import covtool
-from covtool import earth
-from covtool.covariance import (PSD_TOL, check_covariance, covariance_status, propagate, propagate_with_filter,
-                                scale_groups)
-from covtool.engine import System, events, run_batch
+from covtool.nav import earth
+from covtool.lincov.kalman import PSD_TOL, check_covariance, covariance_status, scale_groups
+from covtool.lincov.reference import propagate, propagate_with_filter
+from covtool.lincov.batch import System, events, run_batch
 from covtool.errors import FlaggedCaseWarning, InputError, NumericalError, StudyFileError, ValidityWarning
-from covtool.metrics import (ALTITUDE_LIMIT, ATTITUDE_LIMIT, POSITION_LIMIT, cep, cep_approx, first_invalid,
-                             nav_metrics, validity, validity_text)
-from covtool.model.spec import Model
+from covtool.analysis.metrics import (ALTITUDE_LIMIT, ATTITUDE_LIMIT, POSITION_LIMIT, cep, cep_approx,
+                                      first_invalid, nav_metrics, validity, validity_text)
+from covtool.lincov.model.spec import Model
 
 ROOT = Path(__file__).resolve().parents[1]
 G0 = 9.80665
@@ -137,7 +137,7 @@ def test_pure_propagation_is_judged_at_the_scale_its_states_have_had():
     the largest σ the state has had (1) it is round-off, and the propagation passes the guard.
     The entries themselves match the closed form to 1e-12.
     """
-    from covtool.covariance import running_scale
+    from covtool.lincov.kalman import running_scale
     N = 400
     R = np.array([[np.cos(1.0), -np.sin(1.0)], [np.sin(1.0), np.cos(1.0)]])
     Phi = np.broadcast_to(R, (N, 2, 2)).copy()
@@ -244,7 +244,8 @@ def test_engine_flags_a_diverging_case_and_keeps_the_others():
 
 def test_dual_imu_whitener_guards_its_model():
     """The whitener refuses a NaN Q_d (names the epoch time) and a non-PSD P0 (names the joint state)."""
-    from covtool.dualnav import DifferenceModel, Whitener
+    from covtool.dualnav.difference import DifferenceModel
+    from covtool.dualnav.monitor import Whitener
     J = 5
     t = np.arange(J + 1) * 2.0
     Phi = np.broadcast_to(np.eye(2), (J, 2, 2)).copy()
@@ -512,15 +513,15 @@ def test_every_study_kind_refuses_an_invalid_initial_covariance(kind, bad, tmp_p
     (The seed 000 ad_reset study propagates no covariance: there is nothing to guard.)"""
     decl, _ = _study(kind, tmp_path)
     if kind == "dual_imu":
-        import covtool.dualnav as dn
-        original = dn.difference_model
+        from covtool.dualnav.difference import difference_model
+        original = difference_model
 
         def poisoned(*args, **kwargs):
             m = original(*args, **kwargs)
             m.P0 = _poison(m.P0, 10, bad)
             return m
 
-        monkeypatch.setattr(dn, "difference_model", poisoned)
+        monkeypatch.setattr("covtool.dualnav.run.difference_model", poisoned)
         pattern = r"^dual-IMU whitener: P0: covariance has a " + BAD[bad][1] + r".* state 'main:"
     else:
         original = Model.initial_covariance
@@ -540,10 +541,10 @@ def test_every_study_kind_refuses_an_invalid_initial_covariance(kind, bad, tmp_p
 def test_every_study_kind_refuses_an_invalid_process_noise(kind, bad, tmp_path, monkeypatch):
     """The same three values injected into the truth's discrete process noise Q_d at one step
     (the discretiser's output) stop the study with the step's time and the state."""
-    import covtool.studies.common as common
+    import covtool.studies.grid as grid
     decl, _ = _study(kind, tmp_path)
     value, problem = BAD[bad]
-    original = common.discretize_chunked
+    original = grid.discretize_chunked
     calls = []
 
     def poisoned(F, Qc, dt, method, order=None, **kw):
@@ -554,16 +555,16 @@ def test_every_study_kind_refuses_an_invalid_process_noise(kind, bad, tmp_path, 
         calls.append(1)
         return Phi, Qd
 
-    monkeypatch.setattr(common, "discretize_chunked", poisoned)
+    monkeypatch.setattr(grid, "discretize_chunked", poisoned)
     with pytest.raises(NumericalError, match=r": Q_d of the step at t = \d+\.0 s: covariance has a "
                                              + problem + r".* state 'dvN'"):
         covtool.run_study(decl)
 
 
 def test_dual_imu_refuses_an_invalid_process_noise(monkeypatch):
-    """dual_imu builds its own Q_d (covtool.dualnav.difference_model): a NaN there stops the whitener."""
-    import covtool.dualnav as dn
-    original = dn.difference_model
+    """dual_imu builds its own Q_d (covtool.dualnav.difference.difference_model): a NaN there stops the whitener."""
+    from covtool.dualnav.difference import difference_model
+    original = difference_model
 
     def poisoned(*args, **kwargs):
         m = original(*args, **kwargs)
@@ -571,7 +572,7 @@ def test_dual_imu_refuses_an_invalid_process_noise(monkeypatch):
         m.Qd[2, 4, 4] = np.nan
         return m
 
-    monkeypatch.setattr(dn, "difference_model", poisoned)
+    monkeypatch.setattr("covtool.dualnav.run.difference_model", poisoned)
     from test_dualnav import short_decl
     with pytest.raises(NumericalError, match=r"^dual-IMU whitener: Q_d of the epoch interval at t = [\d.]+ s: "
                                              r"covariance has a non-finite entry \(nan\) in state 'main:dvE'$"):
@@ -607,7 +608,7 @@ def test_trade_grid_flags_a_diverging_case(monkeypatch):
 # --------------------------------------------------------------------------
 
 def test_kalman_gain_refuses_a_singular_or_non_finite_innovation_covariance():
-    from covtool.covariance import kalman_gain
+    from covtool.lincov.kalman import kalman_gain
     H = np.array([[1.0, 0.0]])
     np.testing.assert_allclose(kalman_gain(np.eye(2), H, np.eye(1)), [[0.5], [0.0]], rtol=1e-15)   # P Hᵀ/(1+1)
     with pytest.raises(NumericalError, match=r"^innovation covariance H P Hᵀ \+ R is singular$"):
@@ -618,7 +619,7 @@ def test_kalman_gain_refuses_a_singular_or_non_finite_innovation_covariance():
 
 def test_a_singular_gain_is_named_with_its_filter_and_time():
     """R = 0 and a filter that knows its measured state exactly: S = 0 at the second update."""
-    from covtool.montecarlo import FeedbackFilter
+    from covtool.validation.feedback import FeedbackFilter
     N = 4
     Phi = np.broadcast_to(np.eye(2), (N, 2, 2)).copy()
     Qd = np.zeros((N, 2, 2))
@@ -658,7 +659,7 @@ def test_engine_refuses_bad_options():
 
 
 def test_check_finite_names_the_matrix_time_and_row():
-    from covtool.covariance import check_finite
+    from covtool.lincov.kalman import check_finite
     A = np.zeros((3, 2, 2))
     A[2, 1, 0] = np.inf
     with pytest.raises(NumericalError, match=r"^truth: Φ of the step at t = 20\.0 s: non-finite entry \(inf\) in the "
@@ -673,8 +674,8 @@ def test_covariance_status_refuses_a_non_square_array():
 
 def test_sweep_fit_leaves_out_flagged_cases():
     """A flagged (NaN) point is left out of the log-log fit; too few points give a NaN fit, not an error."""
-    from covtool.sensitivity import fit_loglog
-    from covtool.studies.sensitivity import _fit, _ratio
+    from covtool.analysis.sensitivity import fit_loglog
+    from covtool.studies.zupt_sensitivity import _fit, _ratio
     s = np.array([0.01, 0.1, 1.0, 10.0, 100.0])
     e = 3.0 * s ** 0.25
     e_bad = e.copy()

@@ -1,6 +1,6 @@
 """Dropped-state impact table (issue 11, acceptance 4): D'Appolito state deletion.
 
-Oracles: the step-by-step reference propagation (covtool.covariance) of the
+Oracles: the step-by-step reference propagation (covtool.lincov.reference) of the
 declared filter, and of an independently declared filter with the block put
 back.
 """
@@ -15,11 +15,12 @@ import pytest
 from threadpoolctl import threadpool_limits
 
 import covtool
-from covtool.covariance import propagate_with_filter
+from covtool.lincov.reference import propagate_with_filter
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
-from covtool.impact import BACK, NOMINAL, NONE, ONLY, CombinedNoise, dropped_blocks, impact_run
-from covtool.metrics import nav_metrics
+from covtool.lincov.reduced import zupt_matrices
+from covtool.lincov.impact import BACK, NOMINAL, NONE, ONLY, dropped_blocks, impact_run
+from covtool.lincov.noise import CombinedNoise
+from covtool.analysis.metrics import nav_metrics
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
@@ -42,7 +43,7 @@ def one_blas_thread():
 
 @pytest.fixture(scope="module")
 def S(tmp_path_factory):
-    from covtool.studies.zupt import setup
+    from covtool.studies.zupt_setup import setup
     ff = tmp_path_factory.mktemp("f") / "filters.toml"
     ff.write_text((ROOT / "models" / "filters" / "zupt_filters.toml").read_text() + EXTRA)
     d = tomllib.loads(FLAGSHIP.read_text())
@@ -133,12 +134,12 @@ def test_combined_noise_supports_only_member_slices():
 
 def test_equivalent_noise_sheet_reports_navigation_errors(S):
     """Issue 11 item 2: each dropped state's noise in the errors it drives, against an
-    independent composition (covtool.budget.compose_noise, exact per-step Q_d) of that
+    independent composition (covtool.lincov.noise.compose_noise, exact per-step Q_d) of that
     state's noise alone through the filter's Φ_f over each ZUPT interval."""
-    from covtool.budget import compose_noise
-    from covtool.filters import ewn_navigation_effect
-    from covtool.metrics import ned_position_covariance
-    from covtool.quaternion import attitude_error_matrix
+    from covtool.lincov.noise import compose_noise
+    from covtool.lincov.reduced import ewn_navigation_effect
+    from covtool.analysis.metrics import ned_position_covariance
+    from covtool.nav.attitude import attitude_error_matrix
 
     fm, Phi_f, _ = S.filter_model("B1")
     nodes = S.nodes
@@ -164,7 +165,7 @@ def test_equivalent_noise_sheet_reports_navigation_errors(S):
 
 def test_member_covariances_are_checked():
     from covtool.errors import NumericalError
-    from covtool.impact import check_members
+    from covtool.lincov.impact import check_members
     P = np.zeros((1, 1, 10, 10))
     P[0, 0] = np.eye(10)
     P[0, 0, 3, 3] = np.nan

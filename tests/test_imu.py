@@ -1,4 +1,4 @@
-"""Tests of covtool.imu: exact increments, sensor errors, grades, extras.
+"""Tests of covtool.nav.imu: exact increments, sensor errors, grades, extras.
 
 Oracles: adaptive quadrature of the trajectory's exact rates, the
 independent sensor-error equations of ``tests/nonlinear_reference.py``,
@@ -18,29 +18,19 @@ from scipy.integrate import quad
 from scipy.linalg import expm
 
 import nonlinear_reference as nr
-from covtool import earth
-from covtool import quaternion as quat
-from covtool import strapdown as sd
-from covtool.dynamics import error_dynamics
+from covtool.nav import earth
+from covtool.nav import attitude as quat
+from covtool.nav import strapdown as sd
+from covtool.lincov.dynamics import error_dynamics
 from covtool.errors import ModelFileError
-from covtool.imu import (
-    ImuSimulator,
-    RandomVibration,
-    SensorErrors,
-    Tone,
-    Vibration,
-    _right_jacobian_apply,
-    dump_imu_grade,
-    ideal_increments,
-    imu_grade_from_dict,
-    list_imu_grades,
-    load_imu_grade,
-    sample_states,
-)
-from covtool.model.library import load_model_by_name
-from covtool.model.loader import model_from_dict
-from covtool.studies.common import midpoint_context
-from covtool.trajectory import land_vehicle, static
+from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
+from covtool.nav.imu.vibration import RandomVibration, Tone, Vibration, right_jacobian_apply
+from covtool.validation.sensor_errors import SensorErrors, grade_simulator, sample_states
+from covtool.io.imu_grade import dump_imu_grade, imu_grade_from_dict, list_imu_grades, load_imu_grade
+from covtool.io.library import load_model_by_name
+from covtool.io.model_file import model_from_dict
+from covtool.studies.grid import midpoint_context
+from covtool.nav.trajectory.profiles import land_vehicle, static
 from covtool.units import parse_quantity
 
 LAT, LON, H = math.radians(36.37), math.radians(127.36), 60.0
@@ -281,7 +271,7 @@ def test_right_jacobian_is_the_body_rate():
         e = 1e-6
         qd = (quat.from_rotvec(theta(t + e)) - quat.from_rotvec(theta(t - e))) / (2 * e)
         w = 2.0 * quat.mul(quat.conj(quat.from_rotvec(theta(t))), qd)
-        np.testing.assert_allclose(w[1:], _right_jacobian_apply(theta(t), dtheta(t)), atol=1e-8)
+        np.testing.assert_allclose(w[1:], right_jacobian_apply(theta(t), dtheta(t)), atol=1e-8)
         assert abs(w[0]) < 1e-8
 
 
@@ -293,7 +283,7 @@ def test_vibration_is_a_consistent_motion(lv, capsys):
     vibration (5–40 Hz) realised per run: the 4-sample algorithm's error
     stays at the residual level, and the per-run truth includes the
     vibration.  (Above ~λ = 1, i.e. 60 Hz at 400 Hz, the residual of
-    :func:`covtool.strapdown.coning_residual` becomes visible: with the same
+    :func:`covtool.nav.coning.coning_residual` becomes visible: with the same
     random levels over 20–80 Hz the attitude drifts by ~1e-6 rad in 20 s.)
     """
     vib = Vibration((
@@ -399,19 +389,19 @@ def test_grade_model_and_round_trip(tmp_path):
 
 def test_simulator_from_grade(lv):
     kimu = load_imu_grade("kimu")
-    a = ImuSimulator.from_grade(lv, kimu, 3, rng=42, t0=100.0, duration=5.0)
-    b = ImuSimulator.from_grade(lv, kimu, 3, rng=42, t0=100.0, duration=5.0)
+    a = grade_simulator(lv, kimu, 3, rng=42, t0=100.0, duration=5.0)
+    b = grade_simulator(lv, kimu, 3, rng=42, t0=100.0, duration=5.0)
     ra, rb = a.record(), b.record()
     assert ra.dtheta.shape == (3, 2000, 3) and a.rate == pytest.approx(400.0)
     np.testing.assert_array_equal(ra.dtheta, rb.dtheta)
     assert not np.allclose(ra.dv[0], ra.dv[1])
     qa = kimu.quantization[0]
     assert np.allclose(ra.dtheta / qa, np.round(ra.dtheta / qa), atol=1e-6)
-    hist = sd.run(a.initial_state(), ImuSimulator.from_grade(lv, kimu, 3, rng=42, t0=100.0, duration=5.0), 4)
+    hist = sd.run(a.initial_state(), grade_simulator(lv, kimu, 3, rng=42, t0=100.0, duration=5.0), 4)
     assert hist.lat.shape == (501, 3)
     nogr = imu_grade_from_dict({"imu": {"name": "x"}})
     with pytest.raises(ValueError, match="IMU grade 'x' has no rate; pass rate="):
-        ImuSimulator.from_grade(lv, nogr, 1)
+        grade_simulator(lv, nogr, 1)
 
 
 BASE = {"imu": {"name": "t", "rate": "100 Hz"},

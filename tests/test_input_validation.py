@@ -24,11 +24,11 @@ import tomli_w
 import covtool
 from covtool.cli import main
 from covtool.errors import InputError, ModelFileError, StudyFileError, TrajectoryError
-from covtool.filters import filters_from_dict
-from covtool.imu import imu_grade_from_dict, load_imu_grade
+from covtool.io.filters import filters_from_dict
+from covtool.io.imu_grade import imu_grade_from_dict, load_imu_grade
 from covtool.io import config
-from covtool.model.library import resolve_model_path
-from covtool.model.loader import load_model, model_from_dict
+from covtool.io.library import resolve_model_path
+from covtool.io.model_file import load_model, model_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 SDINS = ROOT / "models" / "sdins58.toml"
@@ -143,13 +143,13 @@ def test_choice_compares_type_and_value():
 @pytest.mark.parametrize("text, expected", [("6 GB", 6e9), ("512 MiB", 512 * 2**20), ("1.5GiB", 1.5 * 2**30),
                                             (2_000_000, 2e6), ("100", 100.0)])
 def test_parse_bytes(text, expected):
-    from covtool.studies.common import parse_bytes
+    from covtool.studies.resources import parse_bytes
     assert parse_bytes(text, "w") == expected
 
 
 @pytest.mark.parametrize("text", ["6 GX", "-1 GB", "lots", True, 0, "0 GB"])
 def test_parse_bytes_refuses(text):
-    from covtool.studies.common import parse_bytes
+    from covtool.studies.resources import parse_bytes
     with pytest.raises(StudyFileError, match=r"w: .*(memory size|not a number)"):
         parse_bytes(text, "w")
 
@@ -246,7 +246,7 @@ def test_study_override_process_parameter_of_another_process_is_refused(state, k
 
 
 def test_study_override_of_the_right_process_parameter_is_applied():
-    from covtool.studies.common import load_truth
+    from covtool.studies.inputs import load_truth
     m = load_truth({"truth": {"override": {"gyro_markov_x": {"tau": "2 h"}}}}, "s.toml", None)
     assert m.states[m.index["gyro_markov_x"]].tau == 7200.0
 
@@ -435,7 +435,7 @@ def test_zupt_study_fields(mutate, match):
     ("cost", lambda c: c.update(paper_seconds={"A": math.inf}), r"\[cost\] paper_seconds A: inf is not finite"),
 ])
 def test_sensitivity_fields(section, mutate, match):
-    from covtool.studies.sensitivity import cost_options, sweep_options
+    from covtool.studies.zupt_sensitivity import cost_options, sweep_options
     cfg = {}
     mutate(cfg)
     fn = sweep_options if section == "sweep" else cost_options
@@ -449,7 +449,7 @@ def test_sensitivity_fields(section, mutate, match):
     ({"top": True}, r"\[budget\] top: True is not an integer"),
 ])
 def test_budget_fields(cfg, match):
-    from covtool.studies.budget import budget_options
+    from covtool.studies.error_budget import budget_options
     with pytest.raises(StudyFileError, match=match):
         budget_options({"budget": cfg}, "s.toml")
 
@@ -502,7 +502,7 @@ def _dual():
     (lambda d: d["study"].update(description=[]), r"\[study\] description: \[\] is not a string"),
 ])
 def test_dual_imu_fields(mutate, match):
-    from covtool.studies.dual_imu import parse_study
+    from covtool.studies.dual_imu_config import parse_study
     d = _dual()
     mutate(d)
     with pytest.raises(StudyFileError, match=rf"s\.toml: {match}"):
@@ -510,7 +510,7 @@ def test_dual_imu_fields(mutate, match):
 
 
 def test_vibration_tone_frequency_is_bounded():
-    from covtool.flight import flight_from_config
+    from covtool.io.flight import flight_from_config
     cfg = {"segment": [{"kind": "stand", "duration": "2 s"}], "initial": {"lat": "0 deg", "lon": "0 deg", "h": "0 m"},
            "vibration": [{"start": "0 s", "duration": "1 s", "tone": [{"kind": "angular", "axis": "x",
                                                                       "amplitude": "1 mrad", "frequency": "1e12 Hz"}]}]}
@@ -622,8 +622,8 @@ def _peak(decl):
 @pytest.mark.parametrize("make", [lambda: pure_decl("12 min"), lambda: order_decl(("A", "B3", "D"), "6 min")])
 def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
     """The estimate (reported in provenance) bounds the traced peak, and not by more than 30 %."""
-    from covtool.studies.common import memory_estimate, noise_columns
-    from covtool.studies.zupt import filter_dynamics, order_memory
+    from covtool.studies.resources import memory_estimate, noise_columns
+    from covtool.studies.zupt_setup import filter_dynamics, order_memory
     d = make()
     r, peak = _peak(d)
     truth = load_model(SDINS)
@@ -638,7 +638,7 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
 
 
 def test_trade_grid_memory_counts_the_workers():
-    from covtool.studies.trade import TradePlan
+    from covtool.studies.trade_grid import TradePlan
     plan = TradePlan(tomllib.loads((ROOT / "studies" / "trade_grid.toml").read_text()), ROOT / "studies" /
                      "trade_grid.toml")
     one, four = plan.memory(1), plan.memory(4)
@@ -659,7 +659,8 @@ def _model_variant(acc_bias):
 @pytest.fixture()
 def project(tmp_path):
     """parent/proj/{study.toml, m.toml, filters/f.toml, route.csv} and decoys of each in parent/."""
-    from covtool.trajectory import land_vehicle, save_trajectory_csv
+    from covtool.nav.trajectory.profiles import land_vehicle
+    from covtool.io.trajectory_csv import save_trajectory_csv
     parent = tmp_path / "parent"
     proj = parent / "proj"
     (proj / "filters").mkdir(parents=True)
@@ -748,7 +749,7 @@ def test_missing_relative_model_names_the_resolved_path(tmp_path):
 
 
 def test_imu_grade_path_is_relative_to_the_study(tmp_path, monkeypatch):
-    from covtool.studies.dual_imu import parse_study
+    from covtool.studies.dual_imu_config import parse_study
     sub = tmp_path / "proj"
     sub.mkdir()
     text = (ROOT / "models" / "imu" / "kimu.toml").read_text()

@@ -4,7 +4,7 @@ Issue 2, acceptance item 2.  The oracle is :mod:`nonlinear_reference`, an
 independent implementation of the navigation equations (Titterton & Weston
 2004, §3.7) with the sensor errors of seed 002 eq (3), (5) injected; its
 Jacobian at x = 0 is taken numerically and compared with
-:func:`covtool.dynamics.error_dynamics` along the land-vehicle route.
+:func:`covtool.lincov.dynamics.error_dynamics` along the land-vehicle route.
 
 Numerical differentiation
 -------------------------
@@ -41,9 +41,9 @@ import numpy as np
 import pytest
 
 import nonlinear_reference as nr
-from covtool.dynamics import Context, NavOptions, error_dynamics
-from covtool.model.loader import load_model
-from covtool.trajectory import land_vehicle
+from covtool.lincov.dynamics import Context, NavOptions, error_dynamics
+from covtool.io.model_file import load_model
+from covtool.nav.trajectory.profiles import land_vehicle
 
 SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
 
@@ -172,7 +172,7 @@ def test_tolerance_resolves_small_terms(complex_step, model, perturb):
     relative effect is far above the 1e-5 tolerance (measured: spherical
     −2g/R for ∂g/∂h 3.4e-3; the dropped terms ≫ 1 against the floor).
     """
-    from covtool import earth
+    from covtool.nav import earth
     s, F = complex_step["s"], complex_step["F"].copy()
     moving = np.linalg.norm(s.v_n, axis=1) > 10.0
     if perturb == "spherical dg/dh":

@@ -33,11 +33,11 @@ import numpy as np
 import pytest
 
 import nonlinear_reference as nr
-from covtool import earth
-from covtool import quaternion as quat
-from covtool.model.loader import load_model
-from covtool.studies.common import time_grid, truth_system
-from covtool.trajectory import land_vehicle
+from covtool.nav import earth
+from covtool.nav import attitude as quat
+from covtool.io.model_file import load_model
+from covtool.studies.grid import time_grid, truth_system
+from covtool.nav.trajectory.profiles import land_vehicle
 
 SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
 

@@ -68,7 +68,7 @@ def test_sweep_points_equal_flagship_runs(short, model, group, value):
 
 def test_threshold_is_interpolated_in_log_magnitude():
     """Ratios 1.2 at 1 and 1.8 at 4: 1.5 is crossed half-way in log, at 2."""
-    from covtool.model.library import load_model_by_name
+    from covtool.io.library import load_model_by_name
     truth = load_model_by_name("sdins58")
     sweep = pd.DataFrame({"group": "g", "filter": ["B1"] * 3 + ["D"] * 3, "magnitude": ["1", "4", "8"] * 2,
                           "magnitude [SI]": [1.0, 4.0, 8.0] * 2, "CEP / A [-]": [1.2, 1.8, 2.0, 1.6, 1.7, 1.9]})

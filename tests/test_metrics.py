@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from covtool import quaternion as quat
-from covtool.metrics import PE_FACTOR, cep, cep_approx
+from covtool.nav import attitude as quat
+from covtool.analysis.metrics import PE_FACTOR, cep, cep_approx
 
 
 def test_cep_circular_closed_form():

@@ -11,7 +11,7 @@ import pytest
 
 from covtool.cli import main
 from covtool.errors import ModelFileError
-from covtool.model.loader import dump_model, load_model, model_from_dict
+from covtool.io.model_file import dump_model, load_model, model_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 SDINS = ROOT / "models" / "sdins58.toml"
@@ -105,7 +105,7 @@ def test_toml_syntax_and_missing_file_errors(tmp_path):
 
 def test_initial_quaternion_covariance_keeps_physical_errors():
     """P0's δq block is rotated to the initial attitude; tilt and azimuth σ do not change."""
-    from covtool import quaternion as quat
+    from covtool.nav import attitude as quat
     m = load_model(SDINS)
     for yaw in (0.0, 1.0, np.pi):
         q0 = quat.from_euler(0.01, -0.02, yaw)
@@ -151,6 +151,46 @@ def test_ad_reset_states_take_sigma_from_board_parameters(decl):
 
 def test_truth_model_doc_is_in_step_with_the_model_file():
     """docs/truth_model.md carries the generated state table of the current model file."""
-    from covtool.model.library import markdown_table
+    from covtool.io.library import markdown_table
     doc = (ROOT / "docs" / "truth_model.md").read_text()
     assert markdown_table(load_model(SDINS)) in doc, "regenerate: covtool show sdins58 --markdown"
+
+
+def test_library_lists_truth_models_filters_and_imu_grades():
+    """`covtool models`: the truth models, every declared filter with its kept states (seed 002 Table 1:
+    58, 22, 22, 22, 16, 10) and the IMU grades, each with its file."""
+    from covtool.io.library import list_models
+
+    df = list_models()
+    assert set(df["kind"]) == {"truth model", "filter", "IMU grade"}
+    zupt = df[df["file"].str.endswith("zupt_filters.toml")].set_index("name")["states"].to_dict()
+    assert zupt == {"A": 58, "B1": 22, "B2": 22, "B3": 22, "C": 16, "D": 10}
+    grades = df[df["kind"] == "IMU grade"]
+    assert {"kimu", "main_imu", "nav_grade_sdins"} <= set(grades["name"])
+    assert all(Path(f).is_file() for f in df["file"])
+    assert not df["description"].str.startswith("INVALID").any()
+
+
+def test_library_listing_names_an_invalid_filter_file(tmp_path):
+    import shutil
+
+    from covtool.io.library import list_models
+
+    shutil.copy(ROOT / "models" / "sdins58.toml", tmp_path / "sdins58.toml")
+    (tmp_path / "filters").mkdir()
+    (tmp_path / "filters" / "two.toml").write_text(
+        '[[filter]]\nname = "a"\ntruth = "sdins58"\nkeep = "all"\n\n'
+        '[[filter]]\nname = "b"\ntruth = "other"\nkeep = "all"\n')
+    row = list_models(tmp_path).set_index("name").loc["two"]
+    assert row["kind"] == "filter" and row["states"] == 0
+    assert row["description"].startswith("INVALID: ") and row["description"].endswith(
+        "two.toml: truth: the filters name 2 truth models ('other', 'sdins58'); listing needs one")
+
+
+def test_library_listing_of_filters_without_a_truth_to_project(tmp_path):
+    from covtool.io.library import list_models
+
+    (tmp_path / "filters").mkdir()
+    (tmp_path / "filters" / "f.toml").write_text('[[filter]]\nname = "a"\nkeep = "all"\n')
+    row = list_models(tmp_path).set_index("name").loc["f"]
+    assert row["description"] == f"INVALID: {tmp_path / 'filters' / 'f.toml'}: no valid truth model in the library to project the filters of"

@@ -18,18 +18,20 @@ import numpy as np
 import pytest
 
 import covtool
-from covtool import montecarlo as mc
-from covtool.covariance import propagate_with_filter
+from covtool.analysis import consistency as mc
+from covtool.validation import feedback, monte_carlo
+from covtool.lincov.reference import propagate_with_filter
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
-from covtool.imu import ImuSimulator, SensorErrors, ideal_increments, sample_states
+from covtool.lincov.reduced import zupt_matrices
+from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
+from covtool.validation.sensor_errors import SensorErrors, sample_states
 from covtool.io.writers import write_outputs
-from covtool.metrics import ned_position_covariance
+from covtool.analysis.metrics import ned_position_covariance
 from covtool.parallel import ProcessBackend, SerialBackend
-from covtool.quaternion import attitude_error_matrix
+from covtool.nav.attitude import attitude_error_matrix
 from covtool.studies import monte_carlo as smc
-from covtool.studies.nav_covariance import load_trajectory
-from covtool.studies.zupt import setup
+from covtool.studies.inputs import load_trajectory
+from covtool.studies.zupt_setup import setup
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "monte_carlo_validation.toml"
@@ -141,7 +143,7 @@ def study(files):
 
 def _design(S, name):
     fm, Phi_f, Qd_f = S.filter_model(name)
-    ff = mc.FeedbackFilter.design(name, fm.names, Phi_f, Qd_f, fm.P0, S.filter_R(name), S.update_steps,
+    ff = feedback.FeedbackFilter.design(name, fm.names, Phi_f, Qd_f, fm.P0, S.filter_R(name), S.update_steps,
                                   form=S.specs[name].update)
     return fm, Phi_f, Qd_f, ff
 
@@ -183,13 +185,13 @@ def test_compensation_with_true_states_returns_ideal_increments(files, small):
     x0 = sample_states(truth, M, 5, q0=traj.sample([t0]).q_nb[0]) * 5.0       # 5 σ: well above round-off
     sim = ImuSimulator(traj, 100.0, t0=t0, duration=T, errors=SensorErrors(truth, x0, noise=False, process_dt=0.1))
     ideal = ideal_increments(traj, 100.0, t0=t0, duration=T)
-    fb = mc.SensorFeedback(truth, truth.names, M)
+    fb = feedback.SensorFeedback(truth, truth.names, M)
     fb.add(x0[:, 10:])
     rec = sim.record()
     worst = {}
     for a in range(0, rec.n_samples, 100):
         part = rec.slice(a, a + 100)
-        ctx = mc.RecordContext.along(traj, part.t0, part.dt, 100)
+        ctx = feedback.RecordContext.along(traj, part.t0, part.dt, 100)
         dth, dv = fb.compensate(part.dtheta, part.dv, part.dt, ctx)
         for nm, got, raw, ref in (("gyro", dth, part.dtheta, ideal.dtheta), ("accel", dv, part.dv, ideal.dv)):
             err = np.abs(got - ref[a:a + 100]).max() / np.abs(raw - ref[a:a + 100]).max()
@@ -226,8 +228,8 @@ def test_single_run_follows_the_linear_prediction(files, small, name, sources, c
             x[truth.index[nm]] = v
     x0 = x[None, :]
     sim = ImuSimulator(traj, 100.0, duration=S.t[-1], errors=SensorErrors(truth, x0, noise=False))
-    case = mc.EnsembleCase(name, ff)
-    _, errs = mc.run_ensemble(sim, x0, [case], S.t, samples_per_step=4, R=S.R, measurement_noise=False,
+    case = monte_carlo.EnsembleCase(name, ff)
+    _, errs = monte_carlo.run_ensemble(sim, x0, [case], S.t, samples_per_step=4, R=S.R, measurement_noise=False,
                               model=truth, record_errors=True)
     e = errs[name][:, 0, :]
     # linear prediction

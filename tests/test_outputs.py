@@ -213,9 +213,9 @@ def _model_decl():
 
 
 def test_every_shipped_name_is_accepted():
-    from covtool.filters import load_filters
-    from covtool.imu import load_imu_grade
-    from covtool.model.loader import load_model
+    from covtool.io.filters import load_filters
+    from covtool.io.imu_grade import load_imu_grade
+    from covtool.io.model_file import load_model
 
     m = load_model(ROOT / "models" / "sdins58.toml")
     names = [m.name, *m.names, *{s.block for s in m.states}]
@@ -239,7 +239,7 @@ def test_every_shipped_name_is_accepted():
     (lambda d: d["block"][1].update(name="a" * 64), r"is not a valid state name"),   # 64 + '_x' > 64
 ])
 def test_bad_model_names_refused_at_load(edit, match):
-    from covtool.model.loader import model_from_dict
+    from covtool.io.model_file import model_from_dict
 
     d = _model_decl()
     edit(d)
@@ -248,9 +248,9 @@ def test_bad_model_names_refused_at_load(edit, match):
 
 
 def test_bad_filter_and_grade_names_refused_at_load():
-    from covtool.filters import filters_from_dict
-    from covtool.imu import imu_grade_from_dict
-    from covtool.model.loader import model_from_dict
+    from covtool.io.filters import filters_from_dict
+    from covtool.io.imu_grade import imu_grade_from_dict
+    from covtool.io.model_file import model_from_dict
 
     truth = model_from_dict(_model_decl(), path="m.toml")
     with pytest.raises(ModelFileError, match=r"f.toml: filter 1: name: '=1\+2' is not a valid filter name"):
@@ -346,7 +346,7 @@ def test_output_dir_checks(tmp_path):
         check_output_dir(PACKAGE / "results")
     with pytest.raises(InputError, match=r"is inside the covtool package"):
         check_output_dir(PACKAGE)
-    from covtool.model.library import default_model_dir
+    from covtool.io.library import default_model_dir
     with pytest.raises(InputError, match=r"is inside the model library"):
         check_output_dir(Path(default_model_dir()) / "out")
     # a new nested directory is accepted and nothing is created by the check

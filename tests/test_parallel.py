@@ -4,7 +4,7 @@ A damaged store is verified, reported and recomputed; a second run into the
 same OUT is refused; SIGINT/SIGTERM stop the workers promptly and a killed
 parent leaves no worker behind (the store-level units are in test_store.py).
 
-Also the engine's rank-m update forms (covtool.engine._joseph) against the
+Also the engine's rank-m update forms (covtool.lincov.batch._joseph) against the
 product forms they replace.
 """
 
@@ -31,10 +31,12 @@ import pytest
 import tomli_w
 
 from covtool.cli import main
-from covtool.covariance import propagate_with_filter
-from covtool.engine import System, _joseph, events, run_batch
-from covtool.parallel import (LOCK_NAME, DaskBackend, ProcessBackend, ResultStore, SerialBackend, StoreError,
-                              WorkerError, _record_hash, call_limited, fingerprint, make_backend, run_chunks)
+from covtool.lincov.reference import propagate_with_filter
+from covtool.lincov.batch import System, _joseph, events, run_batch
+from covtool.io.lock import LOCK_NAME
+from covtool.parallel import (DaskBackend, ProcessBackend, SerialBackend, WorkerError, call_limited,
+                              make_backend, run_chunks)
+from covtool.io.store import ResultStore, StoreError, _record_hash, fingerprint
 
 ROOT = Path(__file__).resolve().parents[1]
 TRADE = ROOT / "studies" / "trade_grid.toml"
@@ -281,7 +283,7 @@ def test_damaged_store_is_verified_reported_and_recomputed(study, reference, tmp
     ch["g00-i02"].write_text(json.dumps(rec))
     d = small_decl()                                                            # another study's chunk ...
     d["grid"]["q_scale"] = [1.0, 2.0]
-    from covtool.studies.trade import TradePlan
+    from covtool.studies.trade_grid import TradePlan
     other = TradePlan(d, study)
     rec = json.loads(ch["g01-i00"].read_text())
     rec["plan"] = fingerprint(other.manifest(d))

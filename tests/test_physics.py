@@ -1,13 +1,13 @@
 """Pure-INS physics of the 58-state model against closed forms (issue 2, item 3).
 
-A static vehicle (``covtool.trajectory.static``, heading 0 so body x = north,
+A static vehicle (``covtool.nav.trajectory.profiles.static``, heading 0 so body x = north,
 y = east, z = down), no aiding, one error source at a time
 (``Model.only``), its 1σ as the initial covariance and no driving noise.
 Then every σ is the magnitude of the deterministic response to a 1σ source,
 and is compared with the textbook closed forms (Titterton & Weston 2004,
 §12.3; Britting 1971, ch. 7).
 
-The Schuler frequency is taken per axis from covtool.earth at the test
+The Schuler frequency is taken per axis from covtool.nav.earth at the test
 latitude L (h = 0)::
 
     ω_N = sqrt(g / (R_M + h))   north channel (driven by δv_N, tilt about east)
@@ -37,13 +37,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from covtool import earth
-from covtool.covariance import propagate
-from covtool.discretize import van_loan
-from covtool.dynamics import Context, error_dynamics
-from covtool.model.loader import load_model
-from covtool.studies.common import time_grid
-from covtool.trajectory import static
+from covtool.nav import earth
+from covtool.lincov.reference import propagate
+from covtool.lincov.discretize import van_loan
+from covtool.lincov.dynamics import Context, error_dynamics
+from covtool.io.model_file import load_model
+from covtool.studies.grid import time_grid
+from covtool.nav.trajectory.profiles import static
 
 SDINS58 = Path(__file__).resolve().parents[1] / "models" / "sdins58.toml"
 

@@ -3,7 +3,7 @@
 Seed 002 §3.2.
 
 Oracles: synthetic curves with known coefficients for the fit; the stepwise
-reference :func:`covtool.covariance.propagate_with_filter` with the same
+reference :func:`covtool.lincov.reference.propagate_with_filter` with the same
 scaled P_f(0), Q_f, R_f for the batched sweep; the flagship's own filter
 discretisation (declared Taylor series) for the nominal point.
 """
@@ -19,16 +19,17 @@ import pandas as pd
 import pytest
 from threadpoolctl import threadpool_limits
 
-from covtool.covariance import propagate_with_filter
-from covtool.engine import System, events
+from covtool.lincov.reference import propagate_with_filter
+from covtool.lincov.batch import System, events
 from covtool.errors import StudyFileError
-from covtool.filters import zupt_matrices
+from covtool.lincov.reduced import zupt_matrices
 from covtool.io.workbook import sheet_title
 from covtool.io.writers import write_outputs
-from covtool.metrics import nav_metrics
-from covtool.sensitivity import fit_loglog, run_sweep, scale_grid, sensitivity_figures, sweep_cases
-from covtool.studies import sensitivity as study
-from covtool.studies.common import FT, discretize_chunked
+from covtool.analysis.metrics import nav_metrics
+from covtool.analysis.sensitivity import fit_loglog, run_sweep, scale_grid, sensitivity_figures, sweep_cases
+from covtool.studies import zupt_sensitivity as study
+from covtool.units import FT
+from covtool.studies.grid import discretize_chunked
 
 ROOT = Path(__file__).resolve().parents[1]
 STUDY = ROOT / "studies" / "zupt_sensitivity.toml"
@@ -163,7 +164,7 @@ def test_joint_scaling_of_p0_q_r_leaves_the_truth_unchanged():
 
     Eq (6a)-(8) are homogeneous of degree one in (P_f, Q_f, R_f).
     """
-    from covtool.sensitivity import SweepCases
+    from covtool.analysis.sensitivity import SweepCases
     rng = np.random.default_rng(3)
     n, m, N = 5, 2, 30
     Phi = np.eye(n) + 0.05 * rng.standard_normal((N, n, n))
@@ -232,7 +233,7 @@ def test_sweep_point_equals_independent_stepwise_run(short, case, param, scale):
 @pytest.fixture(scope="module")
 def flagship():
     """The flagship study's own setup (Van Loan truth), shortened like ``short``."""
-    from covtool.studies.zupt import setup
+    from covtool.studies.zupt_setup import setup
     d = tomllib.loads(FLAGSHIP.read_text())
     d["study"]["duration"] = "11 min"
     d["output"]["report_times"] = ["11 min"]
@@ -267,8 +268,8 @@ def test_nominal_point_equals_the_flagship_run(short, flagship, case):
 def test_filter_a_reuses_the_truth_discretisation():
     """Filter A takes the truth's Φ, Q_d; that shortcut is right only if
     discretising A's own F, Q_c by its declared method gives them again."""
-    from covtool.discretize import discretize
-    from covtool.studies.zupt import setup
+    from covtool.lincov.discretize import discretize
+    from covtool.studies.zupt_setup import setup
 
     with threadpool_limits(limits=1, user_api="blas"):
         flagship = setup(short_decl(), path=STUDY, extra_sections=("sweep", "cost"))

@@ -16,8 +16,9 @@ import sys
 
 import pytest
 
-from covtool.parallel import (LOCK_NAME, DirLock, OutputLockedError, ResultStore, SerialBackend, StoreError,
-                              WorkerError, run_chunks)
+from covtool.io.lock import LOCK_NAME, DirLock, OutputLockedError
+from covtool.io.store import ResultStore, StoreError
+from covtool.parallel import SerialBackend, WorkerError, run_chunks
 
 PLAN = {"kind": "toy", "chunks": ["k0", "k1", "k2"]}
 OTHER = {"kind": "toy", "chunks": ["k0", "k1", "k2"], "q": 3.0}
@@ -87,7 +88,7 @@ def _foreign(d):
 
 def _cases(d):
     """A record whose case list is not the plan's, with a hash that matches (forged, not edited)."""
-    from covtool.parallel import _record_hash
+    from covtool.io.store import _record_hash
 
     rec = json.loads((d / "chunk-k1.json").read_text())
     rec["cases"] = [2, 3]
@@ -266,7 +267,7 @@ def test_fresh_run_over_an_incomplete_store_without_an_earlier_one_keeps_it(tmp_
 
 HOLD = """
 import sys, time
-from covtool.parallel import DirLock
+from covtool.io.lock import DirLock
 DirLock(sys.argv[1], command="holder").acquire()
 print("locked", flush=True)
 time.sleep(60)

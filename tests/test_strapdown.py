@@ -1,10 +1,10 @@
-"""Tests of covtool.strapdown: the nonlinear reference mechanization.
+"""Tests of covtool.nav.strapdown: the nonlinear reference mechanization.
 
 Oracles: the closed-form coning and sculling residuals of the n-sample +
 1-previous algorithm (Ignagni 1996; Roscoe 2001), exact error-free IMU data
 (the navigation errors are then the algorithm's own), the Schuler response
 to an accelerometer bias, and covtool's linear error model (ẋ = F x from
-covtool.dynamics) for injected sensor biases.
+covtool.lincov.dynamics) for injected sensor biases.
 """
 
 from __future__ import annotations
@@ -18,14 +18,15 @@ import pytest
 from scipy.linalg import expm
 from scipy.special import j1
 
-from covtool import earth
-from covtool import quaternion as quat
-from covtool import strapdown as sd
-from covtool.dynamics import error_dynamics
-from covtool.imu import ImuRecord, ImuSimulator, SensorErrors, ideal_increments
-from covtool.model.loader import model_from_dict
-from covtool.studies.common import midpoint_context
-from covtool.trajectory import land_vehicle, static
+from covtool.nav import earth
+from covtool.nav import attitude as quat
+from covtool.nav import strapdown as sd, coning
+from covtool.lincov.dynamics import error_dynamics
+from covtool.nav.imu.simulator import ImuRecord, ImuSimulator, ideal_increments
+from covtool.validation.sensor_errors import SensorErrors
+from covtool.io.model_file import model_from_dict
+from covtool.studies.grid import midpoint_context
+from covtool.nav.trajectory.profiles import land_vehicle, static
 from covtool.units import parse_quantity
 
 LAT, LON, H = math.radians(36.37), math.radians(127.36), 60.0
@@ -54,22 +55,22 @@ def _attitude(err, q):
 
 def test_coefficients_are_seed001_eq2():
     """The derivation reproduces seed 001 eq (2) and the classic 1/12."""
-    assert sd.coning_coefficients(4) == tuple(Fraction(k, 315) for k in (656, 262, 168, -1))
-    assert sd.coning_coefficients(1) == (Fraction(1, 12),)
+    assert coning.coning_coefficients(4) == tuple(Fraction(k, 315) for k in (656, 262, 168, -1))
+    assert coning.coning_coefficients(1) == (Fraction(1, 12),)
     with pytest.raises(ValueError, match=r"integer in 1\.\.6, got 0"):
-        sd.coning_coefficients(0)
+        coning.coning_coefficients(0)
     with pytest.raises(ValueError, match="got 2.5"):
-        sd.coning_coefficients(2.5)
+        coning.coning_coefficients(2.5)
 
 
 @pytest.mark.parametrize("n", [1, 2, 3, 4])
 def test_residual_order(n):
     """The n-sample residual is O(λ^(2n+3)); the uncompensated one O(λ³)."""
     lam = 0.3        # small enough for the leading term, large enough for double precision
-    r = sd.coning_residual(n, lam) / sd.coning_residual(n, lam / 2)
+    r = coning.coning_residual(n, lam) / coning.coning_residual(n, lam / 2)
     assert r == pytest.approx(2.0 ** (2 * n + 3), rel=0.03)
     lam = 0.02
-    ru = sd.coning_residual(n, lam, compensated=False) / sd.coning_residual(n, lam / 2, compensated=False)
+    ru = coning.coning_residual(n, lam, compensated=False) / coning.coning_residual(n, lam / 2, compensated=False)
     assert ru == pytest.approx(8.0, rel=0.01)
 
 
@@ -91,7 +92,7 @@ def _coning_drift(n, h, f, beta, duration, compensated=True):
     D = dth.reshape(S, n, 3)
     prev = np.concatenate([np.zeros((1, 3)), D[:-1, -1]])
     if compensated:
-        phi, _ = sd.body_increments(D, np.zeros_like(D), prev, np.zeros_like(prev))
+        phi, _ = coning.body_increments(D, np.zeros_like(D), prev, np.zeros_like(prev))
     else:
         phi = D.sum(axis=1)
     dq = quat.from_rotvec(phi)
@@ -116,9 +117,9 @@ def test_coning_motion_drift_matches_theory(n, f, capsys):
     """
     h, beta = 1.0 / 400.0, math.radians(0.05)
     lam = 2.0 * math.pi * f * h
-    theory = -math.sin(beta) ** 2 * sd.coning_residual(n, lam) / (n * h)
+    theory = -math.sin(beta) ** 2 * coning.coning_residual(n, lam) / (n * h)
     sim = _coning_drift(n, h, f, beta, 20.0)
-    theory_u = -math.sin(beta) ** 2 * sd.coning_residual(n, lam, compensated=False) / (n * h)
+    theory_u = -math.sin(beta) ** 2 * coning.coning_residual(n, lam, compensated=False) / (n * h)
     sim_u = _coning_drift(n, h, f, beta, 20.0, compensated=False)
     with capsys.disabled():
         print(f"\n[coning n={n}, f={f:g} Hz at 400 Hz, beta=0.05 deg] drift theory {theory:.4e} rad/s, "
@@ -147,7 +148,7 @@ def _sculling_error(n, h, f, th0, A, duration, extra=None):
     D, V = dth.reshape(S, n, 3), dv.reshape(S, n, 3)
     pth = np.concatenate([np.zeros((1, 3)), D[:-1, -1]])
     pdv = np.concatenate([np.zeros((1, 3)), V[:-1, -1]])
-    _, dvb = sd.body_increments(D, V, pth, pdv)
+    _, dvb = coning.body_increments(D, V, pth, pdv)
     if extra is not None:
         dvb = dvb + extra(pth, pdv, D, V)
     tm = t[::n][:-1]
@@ -166,13 +167,13 @@ def test_sculling_motion_error_matches_theory(capsys):
     """
     n, h, f, th0, A = 4, 1.0 / 400.0, 60.0, 1e-3, 10.0
     W, lam = 2.0 * math.pi * f, 2.0 * math.pi * f * h
-    theory = -(th0 * A / W) * sd.coning_residual(n, lam) / (n * h)
+    theory = -(th0 * A / W) * coning.coning_residual(n, lam) / (n * h)
     sim = _sculling_error(n, h, f, th0, A, 40.0)
     printed = _sculling_error(n, h, f, th0, A, 40.0,
                               extra=lambda pth, pdv, D, V: 2.0 / 315.0 * np.cross(pth, V[:, -1]))
-    theory_u = -(th0 * A / W) * sd.coning_residual(n, lam, compensated=False) / (n * h)
+    theory_u = -(th0 * A / W) * coning.coning_residual(n, lam, compensated=False) / (n * h)
     none = _sculling_error(n, h, f, th0, A, 40.0, extra=lambda pth, pdv, D, V: (
-        -sd.body_increments(D, V, pth, pdv)[1] + V.sum(1) + 0.5 * np.cross(D.sum(1), V.sum(1))))
+        -coning.body_increments(D, V, pth, pdv)[1] + V.sum(1) + 0.5 * np.cross(D.sum(1), V.sum(1))))
     with capsys.disabled():
         print(f"\n[sculling n=4, f=60 Hz at 400 Hz] error rate theory {theory:.4e} m/s^2, simulated {sim:.4e} "
               f"({100 * (sim / theory - 1):+.2f} %); eq (4) as printed {printed:.4e}; "
@@ -388,7 +389,7 @@ def _small_model(kinds):
 
 
 def _linear_response(model, traj, x0, T, dt=0.5):
-    """x(T) = Π expm(F_k dt) x0 with covtool.dynamics' F at step mid-points."""
+    """x(T) = Π expm(F_k dt) x0 with covtool.lincov.dynamics' F at step mid-points."""
     t = np.arange(0.0, T + 0.5 * dt, dt)
     F = error_dynamics(model, midpoint_context(traj, t)).F
     x = np.array(x0, dtype=float)

@@ -11,13 +11,14 @@ import pytest
 import tomli_w
 
 import covtool
-from covtool.covariance import propagate_with_filter
+from covtool.lincov.reference import propagate_with_filter
 from covtool.errors import InputError, StudyFileError
-from covtool.filters import zupt_matrices
-from covtool.metrics import nav_metrics
-from covtool.studies.common import ARCMIN, FT, load_truth
-from covtool.studies.trade import TradePlan, grade_truth, run
-from covtool.studies.zupt import setup
+from covtool.lincov.reduced import zupt_matrices
+from covtool.analysis.metrics import nav_metrics
+from covtool.units import ARCMIN, FT
+from covtool.studies.inputs import load_truth
+from covtool.studies.trade_grid import TradePlan, grade_truth, run
+from covtool.studies.zupt_setup import setup
 
 ROOT = Path(__file__).resolve().parents[1]
 TRADE = ROOT / "studies" / "trade_grid.toml"
@@ -27,7 +28,7 @@ def small_decl() -> dict:
     """8 min, 2 s steps; 2 grades x 2 intervals x 2 filters x 2 Q scales = 16 cases in 4 chunks.
 
     The turns are 45° at 2.5°/s, so that a 2 s step turns by 5° (within the 5.7° per step that holding F
-    constant allows, covtool.studies.common.check_step_motion).
+    constant allows, covtool.studies.grid.check_step_motion).
     """
     d = tomllib.loads(TRADE.read_text())
     d["study"].update(duration="8 min", dt="2 s")

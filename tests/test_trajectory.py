@@ -1,4 +1,4 @@
-"""Tests of covtool.trajectory: kinematics, mechanization, I/O.
+"""Tests of covtool.nav.trajectory: kinematics, mechanization, I/O.
 
 The oracle is the navigation equations themselves: the trajectory's own
 position, velocity and attitude, differentiated numerically, must satisfy
@@ -13,19 +13,13 @@ import numpy as np
 import pytest
 from scipy.integrate import quad
 
-from covtool import earth
-from covtool import quaternion as quat
+from covtool.nav import earth
+from covtool.nav import attitude as quat
 from covtool.errors import TrajectoryError
-from covtool.trajectory import (
-    CSV_COLUMNS,
-    Trajectory,
-    from_segments,
-    land_vehicle,
-    load_trajectory_csv,
-    save_trajectory_csv,
-    static,
-    trajectory_from_config,
-)
+from covtool.nav.trajectory.core import CSV_COLUMNS, Trajectory
+from covtool.io.trajectory import from_segments, trajectory_from_config
+from covtool.nav.trajectory.profiles import land_vehicle, static
+from covtool.io.trajectory_csv import load_trajectory_csv, save_trajectory_csv
 
 KMH = 1.0 / 3.6
 INITIAL = {"lat": "36.37 deg", "lon": "127.36 deg", "h": "60 m", "heading": "0 deg"}
@@ -530,8 +524,8 @@ def _antimeridian_csv(tmp_path, lons=(179.9999, -179.9999, -179.9997)):
 
 def test_csv_longitude_interpolates_across_the_antimeridian(tmp_path):
     """Before: lon 0.0° at t = 0.5 s (the long way round); after: ±180°."""
-    import covtool.strapdown as sd
-    from covtool.trajectory import wrap_longitude
+    import covtool.nav.strapdown as sd
+    from covtool.nav.trajectory.core import wrap_longitude
 
     traj = load_trajectory_csv(_antimeridian_csv(tmp_path))
     s = traj.sample([0.5, 1.5])
@@ -562,7 +556,7 @@ def test_csv_longitude_round_trips_wrapped(tmp_path):
 
 
 def test_wrap_longitude():
-    from covtool.trajectory import wrap_longitude
+    from covtool.nav.trajectory.core import wrap_longitude
 
     x = np.array([0.1, -math.pi, math.pi, 3 * math.pi / 2, -7.0])
     np.testing.assert_allclose(wrap_longitude(x), [0.1, -math.pi, -math.pi, -math.pi / 2, -7.0 + 2 * math.pi],
@@ -573,9 +567,9 @@ def test_wrap_longitude():
 
 def test_flight_across_the_antimeridian_navigates_the_short_way():
     """A declared flight east across 180°: continuous inside, wrapped in files, nav error tiny."""
-    import covtool.strapdown as sd
-    from covtool.flight import Segment, flight
-    from covtool.imu import ideal_increments
+    import covtool.nav.strapdown as sd
+    from covtool.nav.trajectory.flight import Segment, flight
+    from covtool.nav.imu.simulator import ideal_increments
 
     segs = [Segment("stand", 2.0), Segment("fly", 20.0, to_speed=250.0, transition=2.0)]
     traj = flight(segs, lat=math.radians(60.0), lon=math.radians(179.98), h=1000.0, heading=math.radians(90.0),

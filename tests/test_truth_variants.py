@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from covtool.errors import ModelFileError
-from covtool.model.loader import dump_model, load_model, model_from_dict, resolve_base
+from covtool.io.model_file import dump_model, load_model, model_from_dict, resolve_base
 from covtool.units import parse_quantity
 
 ROOT = Path(__file__).resolve().parents[1]

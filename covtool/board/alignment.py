@@ -19,9 +19,9 @@ import math
 
 import numpy as np
 
-from ..units import G0
-from . import adreset
-from .output_filter import butterworth_filter, filter_signal, moving_average_decimate
+from covtool.units import G0
+from covtool.board import adreset
+from covtool.board.output_filter import butterworth_filter, filter_signal, moving_average_decimate
 
 __all__ = [
     "leveling_loop",

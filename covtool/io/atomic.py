@@ -23,7 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
-from ..errors import InputError
+from covtool.errors import InputError
+from covtool.io.lock import pid_alive
 
 #: ``.staging-<pid>-<random>`` (new) or ``.staging-<random>`` (covtool <= 0.x, no PID)
 _STAGING = re.compile(r"^\.staging-(?:(\d+)-)?[A-Za-z0-9_]+$")
@@ -47,20 +48,6 @@ def current_umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
-
-
-def _pid_alive(pid: int) -> bool:
-    if pid == os.getpid():
-        return True
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:      # exists, owned by someone else
-        return True
-    except OSError:
-        return True
-    return True
 
 
 def remove_stale(directory: str | os.PathLike) -> list[Path]:
@@ -90,7 +77,7 @@ def remove_stale(directory: str | os.PathLike) -> list[Path]:
         m = _STAGING.match(p.name)
         if m and p.is_dir() and not p.is_symlink():
             if m.group(1) is not None:
-                stale = not _pid_alive(int(m.group(1)))
+                stale = not pid_alive(int(m.group(1)))
             else:
                 try:
                     stale = now - p.stat().st_mtime > _PIDLESS_STALE_AFTER
@@ -101,7 +88,7 @@ def remove_stale(directory: str | os.PathLike) -> list[Path]:
                 removed.append(p)
             continue
         m = _TMP.match(p.name)
-        if m and p.is_file() and not _pid_alive(int(m.group(1) or m.group(2))):
+        if m and p.is_file() and not pid_alive(int(m.group(1) or m.group(2))):
             with contextlib.suppress(OSError):
                 # a minute's grace: the PID may belong to a writer on another host of a shared disk
                 if now - p.stat().st_mtime > _TMP_GRACE:
@@ -185,7 +172,7 @@ def _package_dirs() -> list[tuple[Path, str]]:
     """Directories no output may go into: the package and the model library."""
     dirs = [(Path(__file__).resolve().parents[1], "the covtool package")]
     with contextlib.suppress(Exception):
-        from ..model.library import default_model_dir
+        from covtool.io.library import default_model_dir
 
         dirs.append((Path(default_model_dir()).resolve(), "the model library"))
     return dirs

@@ -20,8 +20,8 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
-from ..errors import InputError, UnitError
-from ..units import parse_quantity
+from covtool.errors import InputError, UnitError
+from covtool.units import parse_quantity
 
 
 #: largest TOML file read [bytes]; a model or study file is a few kB

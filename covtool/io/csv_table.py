@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..errors import InputError
+from covtool.errors import InputError
 
 __all__ = ["read_numeric_csv", "MAX_BYTES", "CHUNK_ROWS"]
 

@@ -13,7 +13,7 @@ File format (one row per IMU sample, comma separated, header first)::
 * Columns may come in any order and are matched by their header names,
   never by position; no other column is allowed.  Time must be strictly
   increasing.  Missing samples (telemetry gaps) are allowed: they are found
-  and bridged by :func:`covtool.dualnav.bridge_gaps`, never dropped
+  and bridged by :func:`covtool.dualnav.gaps.bridge_gaps`, never dropped
   silently.
 * Against the grade that produced it (:func:`check_imu_log`): no increment
   beyond the grade's range over one period, and the alignment window at
@@ -30,9 +30,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import InputError
-from ..units import from_si
-from .csv_table import read_numeric_csv
+from covtool.errors import InputError
+from covtool.units import from_si
+from covtool.io.csv_table import read_numeric_csv
 
 __all__ = ["LOG_COLUMNS", "ImuLog", "load_imu_log", "save_imu_log", "nominal_period", "check_imu_log",
            "RANGE_MARGIN", "REST_FORCE_TOL", "REST_RATE_MAX"]
@@ -120,7 +120,7 @@ def check_imu_log(log: ImuLog, *, period: float, gyro_range=None, accel_range=No
         Nominal sample period of the grade. [s]
     gyro_range, accel_range : float or None
         The grade's rate range [rad/s] and specific-force range [m/s²]
-        (:attr:`covtool.imu.ImuGrade.range`); None skips the check.
+        (:attr:`covtool.io.imu_grade.ImuGrade.range`); None skips the check.
     align_time : float
         Span at the start of the log during which the vehicle is at rest
         (the alignment); 0 skips the rest check. [s]
@@ -188,7 +188,7 @@ def save_imu_log(path, t, dtheta, dv) -> None:
     ValueError
         Shapes that do not match.
     """
-    from .atomic import write_text
+    from covtool.io.atomic import write_text
 
     t = np.asarray(t, float)
     dtheta = np.asarray(dtheta, float)

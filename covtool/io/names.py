@@ -19,7 +19,7 @@ from __future__ import annotations
 import re
 from pathlib import PurePath
 
-from ..errors import InputError
+from covtool.errors import InputError
 
 #: longest accepted name [characters]
 MAX_NAME = 64

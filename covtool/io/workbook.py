@@ -23,7 +23,7 @@ from openpyxl.chart import LineChart, Reference, ScatterChart, Series
 from openpyxl.styles import Font
 from openpyxl.utils import get_column_letter
 
-from .cells import is_formula_like, nonfinite_text, printable
+from covtool.io.cells import is_formula_like, nonfinite_text, printable
 
 _MAX_SHEET = 31
 

@@ -16,13 +16,13 @@ from pathlib import Path
 
 import tomli_w
 
-from .. import __version__
-from ..results import StudyResult
-from ..errors import InputError
-from .atomic import staging_dir
-from .cells import write_csv
-from .names import check_file_stem
-from .workbook import build_workbook
+from covtool.version import __version__
+from covtool.results import StudyResult
+from covtool.errors import InputError
+from covtool.io.atomic import staging_dir
+from covtool.io.cells import write_csv
+from covtool.io.names import check_file_stem
+from covtool.io.workbook import build_workbook
 
 
 def _toml_safe(obj):

@@ -1,4 +1,4 @@
-"""Study runners: one module per study kind, dispatched on ``[study] kind``.
+"""Study runners: one module per study kind, named as the kind, dispatched on ``[study] kind``.
 
 A runner module exposes ``run(decl: dict, *, path: Path | None, progress: bool)
 -> StudyResult``.  Runners compute only; :mod:`covtool.io.writers` writes.
@@ -8,25 +8,18 @@ from __future__ import annotations
 
 import copy
 import importlib
-import os
 import inspect
+import os
 from pathlib import Path
 
-from ..errors import InputError, StudyFileError
-from ..io.config import load_toml
+from covtool.errors import InputError, StudyFileError
+from covtool.io.config import load_toml
 
-#: study kind -> runner module (imported lazily)
-RUNNERS = {
-    "pure_ins": "covtool.studies.nav_covariance",
-    "zupt_filter_order": "covtool.studies.zupt",
-    "ad_reset": "covtool.studies.ad_reset",
-    "zupt_sensitivity": "covtool.studies.sensitivity",
-    "error_budget": "covtool.studies.budget",
-    "trade_grid": "covtool.studies.trade",
-    "monte_carlo": "covtool.studies.monte_carlo",
-    "dual_imu": "covtool.studies.dual_imu",
-    "magnitude_sweep": "covtool.studies.magnitude_sweep",
-}
+#: study kinds; each runs in the module of the same name, ``covtool.studies.<kind>`` (imported lazily)
+KINDS = ("pure_ins", "zupt_filter_order", "ad_reset", "zupt_sensitivity", "error_budget", "trade_grid", "monte_carlo",
+         "dual_imu", "magnitude_sweep")
+#: study kind -> runner module
+RUNNERS = {kind: f"covtool.studies.{kind}" for kind in KINDS}
 
 
 def load_study(path_or_dict):
@@ -65,15 +58,31 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     if refused:
         raise InputError(f"{where}: [study] kind", f"{kind!r} runs in-process in one piece; it takes no "
                          f"{' or '.join(refused)} (--workers, --scheduler, --resume)")
-    # covtool's matrices are small to medium (n <= 116): OpenBLAS's thread pool was
-    # measured 3-30x slower than one thread for them on a loaded 2-core machine;
-    # parallelism comes from processes (covtool.parallel) instead.
-    from threadpoolctl import threadpool_limits
-    with threadpool_limits(limits=1, user_api="blas"):
+    with one_blas_thread():
         result = module.run(decl, path=path, progress=progress, **options)
     if path is not None:
         result.resolved = absolute_paths(result.resolved, path.parent)
     return result
+
+
+def one_blas_thread():
+    """The BLAS thread pool limited to one thread, for the duration of a study.
+
+    The one place the pool is limited in-process (worker processes limit
+    theirs in :mod:`covtool.parallel`): covtool's matrices are small to
+    medium (n ≤ 116), and OpenBLAS's thread pool was measured 3–30× slower
+    than one thread for them on a loaded two-core machine; parallelism comes
+    from processes instead.  Used by :func:`run_study` and by
+    ``covtool dualnav`` (:func:`covtool.studies.dual_imu.compare_logs`).
+
+    Returns
+    -------
+    threadpoolctl.threadpool_limits
+        A context manager.
+    """
+    from threadpoolctl import threadpool_limits
+
+    return threadpool_limits(limits=1, user_api="blas")
 
 
 def absolute_paths(decl: dict, base_dir) -> dict:
@@ -84,7 +93,7 @@ def absolute_paths(decl: dict, base_dir) -> dict:
     written beside the results re-runs from anywhere.  Library names
     (``"sdins58"``) stay names.
     """
-    from ..io.config import is_library_name
+    from covtool.io.config import is_library_name
 
     out = copy.deepcopy(decl)
 

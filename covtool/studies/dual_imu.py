@@ -18,7 +18,7 @@ Study file (datasheet units)::
     name = "dual_imu_flight"
 
     [trajectory]
-    builtin = "high_dynamics_flight"     # or segment/initial/vibration (covtool.flight)
+    builtin = "high_dynamics_flight"     # or segment/initial/vibration (covtool.nav.trajectory.flight)
 
     [imu.main]
     grade = "main_imu"                   # models/imu/*.toml
@@ -66,238 +66,37 @@ Study file (datasheet units)::
 
 from __future__ import annotations
 
-import time
-from dataclasses import dataclass
 from pathlib import Path
+import time
 
 import numpy as np
 import pandas as pd
 
-from .. import dualnav as dn
-from .. import earth
-from .. import quaternion as quat
-from ..errors import InputError, ModelFileError, StudyFileError
-from ..io.config import check_keys, choice, integer, names, number, quantity, string, table
-from ..io.imu_log import check_imu_log
-from ..io.names import check_study_name
-from ..results import StudyResult
-from .common import input_file
+from covtool.dualnav.difference import DIFF_NAMES
+from covtool.dualnav.gaps import bridge_gaps, GapReport
+from covtool.dualnav.monitor import candidate_label
+from covtool.dualnav.run import as_runs, DualRun, DualSetup, ppm_text, run_dual
+from covtool.errors import InputError, StudyFileError
+from covtool.io.imu_log import check_imu_log
+from covtool.nav import attitude as quat, earth
+from covtool.results import StudyResult
+from covtool.studies.dual_imu_config import DualConfig, parse_study, PPM_G
+from covtool.studies.inputs import input_file
+from covtool.validation.sensor_errors import GSensitiveErrors
 
-COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
+
 #: display units of the difference components
 DIFF_UNITS = {"pos": ("m", 1.0), "vel": ("m/s", 1.0), "att": ("mrad", 1e3)}
-PPM_G = 1e-6 / dn.G0          # 1 ppm/g in 1/(m/s²)
-_TOP = {"study", "trajectory", "imu", "alignment", "comparison", "monitor", "gaps", "simulation"}
 
 
-@dataclass(frozen=True)
-class DualConfig:
-    """A validated dual-IMU study (SI)."""
-
-    name: str
-    description: str
-    grades: dict            # "main"/"kimu" -> ImuGrade
-    mounting: dict          # "main"/"kimu" -> quaternion
-    ratio: int
-    align_time: float
-    heading_sigma: float
-    initial: dict           # lat, lon, h, heading (may be partial)
-    interval: float
-    model_step: float
-    components: tuple
-    noise: np.ndarray
-    window: float
-    false_alarm: float
-    candidates: tuple
-    gap_policy: str
-    gap_window: int
-    gap_trials: int
-    runs: int
-    fault_runs: int
-    batch: int
-    seed: int
-    fault: tuple | None     # (gyro axis, accel axis, coefficient SI)
-    gaps: tuple             # ((imu, start, duration), ...)
-
-
-def _axis(value, where):
-    return "xyz".index(choice(value, ("x", "y", "z"), where, StudyFileError))
-
-
-def _candidate(text, where):
-    if not isinstance(text, str) or len(text.split("/")) != 2:
-        raise StudyFileError(where, f"{text!r} is not 'gyro axis/accel axis', e.g. 'z/x'")
-    g, a = text.split("/")
-    return (_axis(g.strip(), where), _axis(a.strip(), where))
-
-
-def gsens_coefficient(value, where) -> float:
-    """A g-sensitive scale factor (``"1000 ppm/g"``) in 1/(m/s²)."""
-    from ..units import parse_quantity
-    from ..errors import UnitError
-
-    if not isinstance(value, str):
-        raise StudyFileError(where, f"{value!r} is not a quantity such as '1000 ppm/g'")
-    try:
-        return parse_quantity(value, "inverse_acceleration", where=where)
-    except UnitError:
-        raise StudyFileError(where, f"{value!r} is not a scale factor per g (e.g. '1000 ppm/g')") from None
-
-
-def parse_study(decl: dict, where: str, base_dir=None) -> DualConfig:
-    """Validate a ``dual_imu`` declaration.
-
-    Raises
-    ------
-    StudyFileError
-        Naming the file, the table and key, and the problem.
-    """
-    from ..imu import load_imu_grade
-
-    check_keys(decl, _TOP, where, StudyFileError)
-    st = table(decl.get("study", {}), f"{where}: [study]", StudyFileError)
-    check_keys(st, {"kind", "name", "description"}, f"{where}: [study]", StudyFileError)
-    name = check_study_name(st, where, StudyFileError, default="dual_imu")
-    string(st.get("description", ""), f"{where}: [study] description", StudyFileError)
-    imu = table(decl.get("imu", {}), f"{where}: [imu]", StudyFileError)
-    check_keys(imu, {"main", "kimu"}, f"{where}: [imu]", StudyFileError)
-    grades, mounting = {}, {}
-    defaults = {"main": "main_imu", "kimu": "kimu"}
-    ratio = 4
-    for key in ("main", "kimu"):
-        w = f"{where}: [imu.{key}]"
-        t = table(imu.get(key, {}), w, StudyFileError)
-        check_keys(t, {"grade", "mounting", "ratio"} if key == "kimu" else {"grade", "mounting"}, w, StudyFileError)
-        g = string(t.get("grade", defaults[key]), f"{w} grade", StudyFileError, nonempty=True)
-        try:
-            # a library name, or a path relative to the study file
-            grades[key] = load_imu_grade(g, base_dir=base_dir)
-        except ModelFileError as exc:
-            raise StudyFileError(f"{w} grade", str(exc)) from None
-        if grades[key].rate is None:
-            raise StudyFileError(f"{w} grade", f"IMU grade {grades[key].name!r} declares no rate")
-        m = t.get("mounting", ["0 deg", "0 deg", "0 deg"])
-        if not isinstance(m, list) or len(m) != 3:
-            raise StudyFileError(f"{w} mounting", "expected [roll, pitch, yaw] of the sensor frame in the body")
-        ang = [quantity(v, "angle", f"{w} mounting[{i}]", StudyFileError) for i, v in enumerate(m)]
-        mounting[key] = np.asarray(quat.from_euler(*ang), float)
-        if key == "kimu" and "ratio" in t:
-            ratio = integer(t["ratio"], f"{w} ratio", StudyFileError, limit="kimu_ratio")
-    r_rates = grades["kimu"].rate / grades["main"].rate
-    if abs(r_rates - ratio) > 1e-9 * ratio:
-        raise StudyFileError(f"{where}: [imu.kimu] ratio", f"{ratio} does not match the grades' rates "
-                             f"({grades['kimu'].rate:g} Hz / {grades['main'].rate:g} Hz = {r_rates:g})")
-    w = f"{where}: [alignment]"
-    al = table(decl.get("alignment", {}), w, StudyFileError)
-    check_keys(al, {"duration", "heading_sigma", "lat", "lon", "h", "heading"}, w, StudyFileError)
-    align = quantity(al.get("duration", "10 s"), "time", f"{w} duration", StudyFileError, positive=True)
-    hsig = quantity(al.get("heading_sigma", "0.1 deg"), "angle", f"{w} heading_sigma", StudyFileError,
-                    nonnegative=True)
-    initial = {}
-    for key, dim in (("lat", "angle"), ("lon", "angle"), ("h", "length"), ("heading", "angle")):
-        if key in al:
-            initial[key] = quantity(al[key], dim, f"{w} {key}", StudyFileError)
-    if "lat" in initial and not abs(initial["lat"]) < np.radians(89.9):
-        raise StudyFileError(f"{w} lat", f"{al['lat']!r} is not within ±89.9 deg (the NED frame is singular at "
-                             "the poles)")
-    if "lon" in initial and not abs(initial["lon"]) <= np.pi:
-        raise StudyFileError(f"{w} lon", f"{al['lon']!r} is not within ±180 deg")
-    w = f"{where}: [comparison]"
-    cp = table(decl.get("comparison", {}), w, StudyFileError)
-    check_keys(cp, {"interval", "model_step", "components", "noise"}, w, StudyFileError)
-    interval = quantity(cp.get("interval", "1 s"), "time", f"{w} interval", StudyFileError, positive=True)
-    step = quantity(cp.get("model_step", "0.04 s"), "time", f"{w} model_step", StudyFileError, positive=True)
-    hm = 1.0 / grades["main"].rate
-    for key, val in (("interval", interval), ("model_step", step)):
-        n = round(val / hm)
-        if n < 1 or abs(n * hm - val) > 1e-6 * hm:
-            raise StudyFileError(f"{w} {key}", f"{val:g} s is not a whole number of main samples ({hm:g} s)")
-    n_step, n_int = round(step / hm), round(interval / hm)
-    if n_step % 2 or n_int % n_step:
-        raise StudyFileError(f"{w} model_step", f"{step:g} s must be an even number of main samples and divide "
-                             f"the interval {interval:g} s")
-    comps = names(cp.get("components", ["velocity", "attitude"]), f"{w} components", StudyFileError,
-                  known=list(COMPONENT_GROUPS), what="component")
-    components = tuple(sorted({i for c in comps for i in COMPONENT_GROUPS[c]}))
-    nz = table(cp.get("noise", {}), f"{w} noise", StudyFileError)
-    check_keys(nz, set(COMPONENT_GROUPS), f"{w} noise", StudyFileError)
-    dims = {"position": "length", "velocity": "velocity", "attitude": "angle"}
-    dflt = {"position": "1 mm", "velocity": "0.1 mm/s", "attitude": "2 urad"}
-    noise = np.zeros(9)
-    for key, idx in COMPONENT_GROUPS.items():
-        noise[list(idx)] = quantity(nz.get(key, dflt[key]), dims[key], f"{w} noise.{key}", StudyFileError,
-                                    nonnegative=True)
-    w = f"{where}: [monitor]"
-    mo = table(decl.get("monitor", {}), w, StudyFileError)
-    check_keys(mo, {"window", "false_alarm", "candidates"}, w, StudyFileError)
-    window = quantity(mo.get("window", "10 s"), "time", f"{w} window", StudyFileError, positive=True)
-    if round(window / interval) < 1 or abs(round(window / interval) * interval - window) > 1e-6 * interval:
-        raise StudyFileError(f"{w} window", f"{window:g} s is not a whole number of comparison intervals "
-                             f"({interval:g} s)")
-    fa = number(mo.get("false_alarm", 0.01), f"{w} false_alarm", StudyFileError, lo=0.0, hi=1.0, lo_open=True,
-                hi_open=True, why="a probability")
-    cands = mo.get("candidates", "all")
-    if cands == "all":
-        candidates = tuple((i, j) for i in range(3) for j in range(3))
-    elif isinstance(cands, list) and cands:
-        candidates = tuple(_candidate(c, f"{w} candidates[{k}]") for k, c in enumerate(cands))
-        if len(set(candidates)) != len(candidates):
-            raise StudyFileError(f"{w} candidates", "lists a candidate twice")
-    else:
-        raise StudyFileError(f"{w} candidates", f"{cands!r}: expected 'all' or a list such as ['z/x']")
-    w = f"{where}: [gaps]"
-    gp = table(decl.get("gaps", {}), w, StudyFileError)
-    check_keys(gp, {"policy", "window", "trials"}, w, StudyFileError)
-    policy = choice(gp.get("policy", "interpolate"), tuple(dn.GAP_POLICIES), f"{w} policy", StudyFileError)
-    gwin = integer(gp.get("window", 10), f"{w} window", StudyFileError, limit="gap_window")
-    trials = integer(gp.get("trials", 8), f"{w} trials", StudyFileError, limit="gap_trials")
-    w = f"{where}: [simulation]"
-    sim = table(decl.get("simulation", {}), w, StudyFileError)
-    check_keys(sim, {"runs", "fault_runs", "batch", "seed", "fault", "gap"}, w, StudyFileError)
-    runs = integer(sim.get("runs", 100), f"{w} runs", StudyFileError, limit="dual_runs")
-    fruns = integer(sim.get("fault_runs", 20), f"{w} fault_runs", StudyFileError, limit="dual_runs")
-    batch = integer(sim.get("batch", 50), f"{w} batch", StudyFileError, limit="dual_batch")
-    seed = integer(sim.get("seed", 1), f"{w} seed", StudyFileError, limit="seed")
-    fault = None
-    if "fault" in sim:
-        wf = f"{where}: [simulation.fault]"
-        f = table(sim["fault"], wf, StudyFileError)
-        check_keys(f, {"gyro", "accel", "coefficient"}, wf, StudyFileError)
-        for key in ("gyro", "accel", "coefficient"):
-            if key not in f:
-                raise StudyFileError(wf, f"missing required key {key!r}")
-        fault = (_axis(f["gyro"], f"{wf} gyro"), _axis(f["accel"], f"{wf} accel"),
-                 gsens_coefficient(f["coefficient"], f"{wf} coefficient"))
-        if (fault[0], fault[1]) not in candidates:
-            raise StudyFileError(wf, f"the injected {dn.candidate_label(fault)} is not among [monitor] candidates")
-    elif fruns:
-        raise StudyFileError(w, f"fault_runs = {fruns} needs a [simulation.fault] table")
-    gaps = []
-    glist = sim.get("gap", [])
-    if not isinstance(glist, list):
-        raise StudyFileError(f"{w} gap", "expected an array of tables [[simulation.gap]]")
-    for k, g in enumerate(glist):
-        wg = f"{where}: [[simulation.gap]][{k}]"
-        check_keys(g, {"imu", "start", "duration"}, wg, StudyFileError)
-        choice(g.get("imu"), ("main", "kimu"), f"{wg} imu", StudyFileError)
-        for key in ("start", "duration"):
-            if key not in g:
-                raise StudyFileError(wg, f"missing required key {key!r}")
-        gaps.append((g["imu"], quantity(g["start"], "time", f"{wg} start", StudyFileError, nonnegative=True),
-                     quantity(g["duration"], "time", f"{wg} duration", StudyFileError, positive=True)))
-    return DualConfig(name, st.get("description", ""), grades, mounting, ratio, align, hsig, initial, interval, step,
-                      components, noise, window, float(fa), candidates, policy, gwin, trials, runs, fruns, batch,
-                      seed, fault, tuple(gaps))
-
-
-def make_setup(cfg: DualConfig, initial: dict, where: str) -> dn.DualSetup:
-    """The numeric setup of :func:`covtool.dualnav.run_dual`."""
+def make_setup(cfg: DualConfig, initial: dict, where: str) -> DualSetup:
+    """The numeric setup of :func:`covtool.dualnav.run.run_dual`."""
     for key in ("lat", "lon", "h", "heading"):
         if key not in initial:
             raise StudyFileError(f"{where}: [alignment]", f"missing {key!r}: the logs need the input position and "
                                  "heading (lat, lon, h, heading)")
     hm = 1.0 / cfg.grades["main"].rate
-    return dn.DualSetup(
+    return DualSetup(
         cfg.grades["main"].to_model(), cfg.grades["kimu"].to_model(), cfg.mounting["main"], cfg.mounting["kimu"],
         cfg.ratio, cfg.align_time, initial["lat"], initial["lon"], initial["h"], initial["heading"],
         cfg.heading_sigma, int(round(cfg.model_step / hm)), int(round(cfg.interval / hm)), cfg.components,
@@ -310,7 +109,7 @@ def make_setup(cfg: DualConfig, initial: dict, where: str) -> dn.DualSetup:
 
 
 def _trajectory(decl, where):
-    from ..flight import flight_from_config
+    from covtool.io.flight import flight_from_config
 
     cfg = decl.get("trajectory", {"builtin": "high_dynamics_flight"})
     return flight_from_config(cfg, where=f"{where}: [trajectory]", dt=0.1)
@@ -333,8 +132,9 @@ def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
     removed : dict of str to list of (ndarray, ndarray, ndarray)
         Per IMU and gap: the removed sample indices and their true increments.
     """
-    from ..flight import quadrature_nodes
-    from ..imu import ImuSimulator, sample_states
+    from covtool.nav.trajectory.flight import quadrature_nodes
+    from covtool.nav.imu.simulator import ImuSimulator
+    from covtool.validation.sensor_errors import sample_states
 
     logs, removed = {}, {}
     for key in ("main", "kimu"):
@@ -344,7 +144,7 @@ def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
         gs = ()
         if key == "kimu" and fault is not None:
             gs = (fault,)
-        err = dn.GSensitiveErrors(model, x0, rng, gsens=gs)
+        err = GSensitiveErrors(model, x0, rng, gsens=gs)
         sim = ImuSimulator(traj, g.rate, errors=err, quantization=g.quantization, saturation=g.range,
                            mounting=cfg.mounting[key], nodes=quadrature_nodes(traj, g.rate))
         rec = sim.record()
@@ -367,7 +167,7 @@ def bridge(logs, cfg: DualConfig, where="logs"):
     for key in ("main", "kimu"):
         t, th, dv, dt = logs[key]
         m = cfg.grades[key].to_model()
-        out[key] = dn.bridge_gaps(t, th, dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
+        out[key] = bridge_gaps(t, th, dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
                                   window=cfg.gap_window, trials=cfg.gap_trials, where=f"{where} ({key})")
     return out
 
@@ -381,8 +181,8 @@ def _actual_gap_errors(bridged, removed):
         for (idx, th, dv), rep in zip(lst, b.gaps):
             # the bridged samples of this gap are the n filled ones after rep.after
             sel = filled[(b.t[filled] > rep.after + 1e-9) & (b.t[filled] < rep.before - 1e-9)]
-            e_th = dn._runs(b.dtheta)[:, sel].sum(axis=1) - th.sum(axis=1)
-            e_v = dn._runs(b.dv)[:, sel].sum(axis=1) - dv.sum(axis=1)
+            e_th = as_runs(b.dtheta)[:, sel].sum(axis=1) - th.sum(axis=1)
+            e_v = as_runs(b.dv)[:, sel].sum(axis=1) - dv.sum(axis=1)
             rows.append((np.sqrt(np.mean(e_th**2, axis=0)), np.sqrt(np.mean(e_v**2, axis=0))))
     return rows
 
@@ -412,7 +212,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             logs, removed = simulate_logs(traj, cfg, b, rng, fault=fault)
             bridged = bridge(logs, cfg, where=f"{where}: simulated logs")
             psi = initial["heading"] + cfg.heading_sigma * rng.standard_normal(b)
-            r = dn.run_dual(bridged["main"], bridged["kimu"], setup, heading=psi)
+            r = run_dual(bridged["main"], bridged["kimu"], setup, heading=psi)
             res.append(r)
             if not gap_rows:
                 actual = _actual_gap_errors(bridged, removed)
@@ -423,7 +223,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     return _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed)
 
 
-def _gap_row(rep: dn.GapReport, actual_att=None, actual_vel=None) -> dict:
+def _gap_row(rep: GapReport, actual_att=None, actual_vel=None) -> dict:
     row = {"imu": rep.imu, "after [s]": rep.after, "before [s]": rep.before, "samples bridged": rep.samples,
            "duration [ms]": 1e3 * (rep.before - rep.after), "policy": rep.policy, "trials": rep.trials}
     for k, a in enumerate("xyz"):
@@ -438,11 +238,11 @@ def _gap_row(rep: dn.GapReport, actual_att=None, actual_vel=None) -> dict:
     return row
 
 
-def _history(run: dn.DualRun, i: int, label: str) -> pd.DataFrame:
+def _history(run: DualRun, i: int, label: str) -> pd.DataFrame:
     comps = run.model.components
     df = pd.DataFrame({"case": label, "run": i, "t [s]": run.t})
     for c_i, c in enumerate(comps):
-        name = dn.DIFF_NAMES[c]
+        name = DIFF_NAMES[c]
         unit, scale = DIFF_UNITS[name[:3]]
         df[f"{name} [{unit}]"] = scale * run.z[i, :, c]
         df[f"{name} 1sigma [{unit}]"] = scale * run.envelope[:, c_i]
@@ -467,7 +267,7 @@ def _run_rows(runs, label, cfg, truth=None):
                    "flagged intervals [s]": "; ".join(f"{a:.0f}-{b:.0f}" for a, b in r.intervals[i]),
                    "max GLR": float(gs.glr[i, best]), "GLR threshold": gs.threshold,
                    "g-sensitivity detected": bool(gs.detected[i]),
-                   "identified": dn.candidate_label(gs.candidates[best])}
+                   "identified": candidate_label(gs.candidates[best])}
             if truth is not None:
                 c = gs.candidates.index((truth[0], truth[1]))
                 est = gs.estimate[i, c]
@@ -488,7 +288,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
         ("flight duration", traj.duration, "s", traj.name),
         ("IMUs", f"{cfg.grades['main'].name} @ {cfg.grades['main'].rate:g} Hz, "
                  f"{cfg.grades['kimu'].name} @ {cfg.grades['kimu'].rate:g} Hz", "", "seed 001 Table 2 grades"),
-        ("compared components", ", ".join(dn.DIFF_NAMES[c] for c in cfg.components), "",
+        ("compared components", ", ".join(DIFF_NAMES[c] for c in cfg.components), "",
          f"every {cfg.interval:g} s after a {cfg.align_time:g} s alignment"),
         ("false-alarm design per flight", 100.0 * cfg.false_alarm, "%",
          f"each test; window test Bonferroni over sliding {cfg.window:g} s windows, GLR over "
@@ -513,7 +313,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
         err = t_fault["error [%]"].to_numpy()
         est = t_fault["estimate [ppm/g]"].to_numpy()
         summary += [
-            ("g-sensitivity injected", f"KIMU gyro {dn.candidate_label(cfg.fault)}: {cfg.fault[2] / PPM_G:g}",
+            ("g-sensitivity injected", f"KIMU gyro {candidate_label(cfg.fault)}: {cfg.fault[2] / PPM_G:g}",
              "ppm/g", "δω_i = k f_j ω_i (seed 001 Fig 16)"),
             ("flights with the fault", n1, "", ""),
             ("detected (GLR)", 100.0 * det / n1, "%", f"{det} of {n1}"),
@@ -531,7 +331,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     summary["value"] = summary["value"].astype(object)
     tables = {"summary": summary, "fault_free_runs": t_free, "fault_runs": t_fault}
     ref = (free or fault)[0]
-    cand = {"candidate": [dn.candidate_label(c) for c in cfg.candidates],
+    cand = {"candidate": [candidate_label(c) for c in cfg.candidates],
             "1sigma [ppm/g]": ref.gsens.sigma / PPM_G}
     if fault:
         g = np.concatenate([r.gsens.glr for r in fault])
@@ -561,6 +361,103 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     )
 
 
+# --------------------------------------------------------------------------
+# recorded logs
+# --------------------------------------------------------------------------
+
+
+def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
+    """The dual-IMU comparison of two recorded logs.
+
+    Parameters
+    ----------
+    main_log, kimu_log : covtool.io.imu_log.ImuLog
+        Logs from the start of the alignment (vehicle at rest).
+    decl : dict
+        A ``dual_imu`` study declaration; ``[alignment]`` must give the
+        input ``lat``, ``lon``, ``h`` and ``heading``; ``[trajectory]`` and
+        ``[simulation]`` are ignored.
+    path : Path, optional
+        The study file (messages, relative grade paths).
+
+    Returns
+    -------
+    StudyResult
+        Tables ``summary``, ``history``, ``gaps`` (every bridged interval),
+        ``intervals`` (flagged spans), ``candidates``; figures.
+
+    Raises
+    ------
+    InputError
+        Bad logs (columns, time), rates that do not match the grades, gaps
+        with policy ``refuse``, logs too short for the alignment and a
+        window.
+    """
+    where = str(path) if path else "<study>"
+    base_dir = path.parent if path else None
+    t0 = time.perf_counter()
+    cfg = parse_study(decl, where, base_dir)
+    setup = make_setup(cfg, cfg.initial, where)
+    bridged = {}
+    for key, log in (("main", main_log), ("kimu", kimu_log)):
+        rate = cfg.grades[key].rate
+        dt = 1.0 / rate
+        measured = log.period
+        if abs(measured - dt) > 0.01 * dt:
+            raise InputError(f"{log.path}: column 't [s]'", f"median sample period {measured:.9g} s does not match "
+                             f"the {key} grade's rate {rate:g} Hz ({dt:.9g} s)")
+        gyro_range, accel_range = cfg.grades[key].range
+        check_imu_log(log, period=dt, gyro_range=gyro_range, accel_range=accel_range, align_time=cfg.align_time,
+                      gravity=float(np.linalg.norm(earth.gravity_n(setup.lat, setup.h))), label=key)
+        m = cfg.grades[key].to_model()
+        bridged[key] = bridge_gaps(log.t, log.dtheta, log.dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
+                                      window=cfg.gap_window, trials=cfg.gap_trials, where=log.path)
+    r = run_dual(bridged["main"], bridged["kimu"], setup)
+    elapsed = time.perf_counter() - t0
+    gs = r.gsens
+    best = int(gs.identified[0])
+    summary = [
+        ("main log", main_log.path, "", f"{main_log.t.size} samples"),
+        ("KIMU log", kimu_log.path, "", f"{kimu_log.t.size} samples"),
+        ("compared span", f"{r.t[0]:.3f} to {r.t[-1]:.3f}", "s", f"{r.t.size} epochs"),
+        ("samples not compared (before, after)",
+         f"main {r.unused['main'][0]}, {r.unused['main'][1]}; KIMU {r.unused['kimu'][0]}, {r.unused['kimu'][1]}", "",
+         "outside the common span or after the last whole comparison interval"),
+        ("clock rates", f"main {ppm_text(r.clock['main'])}, KIMU {ppm_text(r.clock['kimu'])}; mismatch "
+         f"{ppm_text(r.clock['mismatch'])}",
+         "ppm", "measured from the recorded times, against the grades' nominal rates"),
+        ("bridged gaps", len(bridged["main"].gaps) + len(bridged["kimu"].gaps), "",
+         f"{int(bridged['main'].bridged.sum()) + int(bridged['kimu'].bridged.sum())} samples, policy "
+         f"{cfg.gap_policy!r}"),
+        ("window alarms", len(r.intervals[0]), "intervals",
+         "; ".join(f"{a:.1f}-{b:.1f} s" for a, b in r.intervals[0]) or "none"),
+        ("window threshold", r.window_threshold, "", f"α = {cfg.false_alarm:g} per flight"),
+        ("max window chi2", float(r.window_stat[0].max()), "", ""),
+        ("g-sensitivity detected", bool(gs.detected[0]), "", f"GLR {gs.glr[0, best]:.1f} vs {gs.threshold:.1f}"),
+        ("most likely candidate", candidate_label(gs.candidates[best]), "", "gyro axis / accel axis"),
+        ("its coefficient", gs.estimate[0, best] / PPM_G, "ppm/g", f"1σ {gs.sigma[best] / PPM_G:.1f} ppm/g"),
+        ("wall time", elapsed, "s", ""),
+    ]
+    summary = pd.DataFrame(summary, columns=["item", "value", "unit", "note"])
+    summary["value"] = summary["value"].astype(object)
+    gaps = pd.DataFrame([_gap_row(g) for g in bridged["main"].gaps + bridged["kimu"].gaps])
+    intervals = pd.DataFrame([{"start [s]": a, "end [s]": b} for a, b in r.intervals[0]],
+                             columns=["start [s]", "end [s]"])
+    cand = pd.DataFrame({"candidate": [candidate_label(c) for c in gs.candidates],
+                         "estimate [ppm/g]": gs.estimate[0] / PPM_G, "1sigma [ppm/g]": gs.sigma / PPM_G,
+                         "GLR": gs.glr[0]})
+    tables = {"summary": summary, "history": _history(r, 0, "logs"), "gaps": gaps, "intervals": intervals,
+              "candidates": cand}
+    return StudyResult(
+        name=f"dualnav_{Path(main_log.path).stem}", kind="dualnav", tables=tables,
+        figures=_figures(cfg, [r], [], estimates=False, labels=("logs", "")),
+        resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},
+        provenance={**input_file("main_grade", cfg.grades["main"].path),
+                    **input_file("kimu_grade", cfg.grades["kimu"].path), "compute_seconds": f"{elapsed:.2f}"},
+        data={"run": r, "bridged": bridged, "config": cfg},
+    )
+
+
 def _figures(cfg, free, fault, estimates=True, labels=("fault-free", "g-sensitivity injected")):
     def fig_difference():
         import matplotlib.pyplot as plt
@@ -569,7 +466,7 @@ def _figures(cfg, free, fault, estimates=True, labels=("fault-free", "g-sensitiv
         fig, axs = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
         for k, c in enumerate(comps[-6:]):
             ax = axs.flat[k]
-            name = dn.DIFF_NAMES[c]
+            name = DIFF_NAMES[c]
             unit, scale = DIFF_UNITS[name[:3]]
             ref = free[0] if free else fault[0]
             ci = list(ref.model.components).index(c)
@@ -636,100 +533,3 @@ def _figures(cfg, free, fault, estimates=True, labels=("fault-free", "g-sensitiv
     if cfg.fault and estimates:
         figs["gsens_estimates"] = fig_estimates
     return figs
-
-
-# --------------------------------------------------------------------------
-# recorded logs
-# --------------------------------------------------------------------------
-
-
-def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
-    """The dual-IMU comparison of two recorded logs.
-
-    Parameters
-    ----------
-    main_log, kimu_log : covtool.io.imu_log.ImuLog
-        Logs from the start of the alignment (vehicle at rest).
-    decl : dict
-        A ``dual_imu`` study declaration; ``[alignment]`` must give the
-        input ``lat``, ``lon``, ``h`` and ``heading``; ``[trajectory]`` and
-        ``[simulation]`` are ignored.
-    path : Path, optional
-        The study file (messages, relative grade paths).
-
-    Returns
-    -------
-    StudyResult
-        Tables ``summary``, ``history``, ``gaps`` (every bridged interval),
-        ``intervals`` (flagged spans), ``candidates``; figures.
-
-    Raises
-    ------
-    InputError
-        Bad logs (columns, time), rates that do not match the grades, gaps
-        with policy ``refuse``, logs too short for the alignment and a
-        window.
-    """
-    where = str(path) if path else "<study>"
-    base_dir = path.parent if path else None
-    t0 = time.perf_counter()
-    cfg = parse_study(decl, where, base_dir)
-    setup = make_setup(cfg, cfg.initial, where)
-    bridged = {}
-    for key, log in (("main", main_log), ("kimu", kimu_log)):
-        rate = cfg.grades[key].rate
-        dt = 1.0 / rate
-        measured = log.period
-        if abs(measured - dt) > 0.01 * dt:
-            raise InputError(f"{log.path}: column 't [s]'", f"median sample period {measured:.9g} s does not match "
-                             f"the {key} grade's rate {rate:g} Hz ({dt:.9g} s)")
-        gyro_range, accel_range = cfg.grades[key].range
-        check_imu_log(log, period=dt, gyro_range=gyro_range, accel_range=accel_range, align_time=cfg.align_time,
-                      gravity=float(np.linalg.norm(earth.gravity_n(setup.lat, setup.h))), label=key)
-        m = cfg.grades[key].to_model()
-        bridged[key] = dn.bridge_gaps(log.t, log.dtheta, log.dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
-                                      window=cfg.gap_window, trials=cfg.gap_trials, where=log.path)
-    r = dn.run_dual(bridged["main"], bridged["kimu"], setup)
-    elapsed = time.perf_counter() - t0
-    gs = r.gsens
-    best = int(gs.identified[0])
-    summary = [
-        ("main log", main_log.path, "", f"{main_log.t.size} samples"),
-        ("KIMU log", kimu_log.path, "", f"{kimu_log.t.size} samples"),
-        ("compared span", f"{r.t[0]:.3f} to {r.t[-1]:.3f}", "s", f"{r.t.size} epochs"),
-        ("samples not compared (before, after)",
-         f"main {r.unused['main'][0]}, {r.unused['main'][1]}; KIMU {r.unused['kimu'][0]}, {r.unused['kimu'][1]}", "",
-         "outside the common span or after the last whole comparison interval"),
-        ("clock rates", f"main {dn.ppm_text(r.clock['main'])}, KIMU {dn.ppm_text(r.clock['kimu'])}; mismatch "
-         f"{dn.ppm_text(r.clock['mismatch'])}",
-         "ppm", "measured from the recorded times, against the grades' nominal rates"),
-        ("bridged gaps", len(bridged["main"].gaps) + len(bridged["kimu"].gaps), "",
-         f"{int(bridged['main'].bridged.sum()) + int(bridged['kimu'].bridged.sum())} samples, policy "
-         f"{cfg.gap_policy!r}"),
-        ("window alarms", len(r.intervals[0]), "intervals",
-         "; ".join(f"{a:.1f}-{b:.1f} s" for a, b in r.intervals[0]) or "none"),
-        ("window threshold", r.window_threshold, "", f"α = {cfg.false_alarm:g} per flight"),
-        ("max window chi2", float(r.window_stat[0].max()), "", ""),
-        ("g-sensitivity detected", bool(gs.detected[0]), "", f"GLR {gs.glr[0, best]:.1f} vs {gs.threshold:.1f}"),
-        ("most likely candidate", dn.candidate_label(gs.candidates[best]), "", "gyro axis / accel axis"),
-        ("its coefficient", gs.estimate[0, best] / PPM_G, "ppm/g", f"1σ {gs.sigma[best] / PPM_G:.1f} ppm/g"),
-        ("wall time", elapsed, "s", ""),
-    ]
-    summary = pd.DataFrame(summary, columns=["item", "value", "unit", "note"])
-    summary["value"] = summary["value"].astype(object)
-    gaps = pd.DataFrame([_gap_row(g) for g in bridged["main"].gaps + bridged["kimu"].gaps])
-    intervals = pd.DataFrame([{"start [s]": a, "end [s]": b} for a, b in r.intervals[0]],
-                             columns=["start [s]", "end [s]"])
-    cand = pd.DataFrame({"candidate": [dn.candidate_label(c) for c in gs.candidates],
-                         "estimate [ppm/g]": gs.estimate[0] / PPM_G, "1sigma [ppm/g]": gs.sigma / PPM_G,
-                         "GLR": gs.glr[0]})
-    tables = {"summary": summary, "history": _history(r, 0, "logs"), "gaps": gaps, "intervals": intervals,
-              "candidates": cand}
-    return StudyResult(
-        name=f"dualnav_{Path(main_log.path).stem}", kind="dualnav", tables=tables,
-        figures=_figures(cfg, [r], [], estimates=False, labels=("logs", "")),
-        resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},
-        provenance={**input_file("main_grade", cfg.grades["main"].path),
-                    **input_file("kimu_grade", cfg.grades["kimu"].path), "compute_seconds": f"{elapsed:.2f}"},
-        data={"run": r, "bridged": bridged, "config": cfg},
-    )

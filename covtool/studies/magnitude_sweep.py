@@ -38,9 +38,9 @@ Study file::
 How it is computed: the truth Φ and F do not depend on the magnitudes, and
 the truth P0, the truth noise (gravity's Markov driving noise ∝ σ²), the
 filters' P_f(0) and their equivalent noise (∝ P0) are linear in the swept
-variances.  Each noise source is composed once (:func:`covtool.budget.compose_noise`)
+variances.  Each noise source is composed once (:func:`covtool.lincov.noise.compose_noise`)
 and every sweep point is a member of one batched engine call per filter
-(:func:`covtool.engine.run_batch`) with its own combination.
+(:func:`covtool.lincov.batch.run_batch`) with its own combination.
 """
 
 from __future__ import annotations
@@ -50,16 +50,18 @@ import time
 import numpy as np
 import pandas as pd
 
-from ..budget import compose_noise
-from ..engine import System, events, run_batch
-from ..errors import StudyFileError
-from ..filters import zupt_matrices
-from ..impact import CombinedNoise, _compose_phi, _factor, check_members
-from ..io.config import check_keys, quantity
-from ..metrics import nav_metrics
-from ..results import StudyResult
-from .common import ARCMIN, FT, progress_bar
-from .zupt import setup
+from covtool.analysis.metrics import nav_metrics
+from covtool.errors import StudyFileError
+from covtool.io.config import check_keys, quantity
+from covtool.lincov.batch import events, run_batch, System
+from covtool.lincov.impact import check_members
+from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transition, restricted_noise
+from covtool.lincov.reduced import zupt_matrices
+from covtool.plotting.magnitude_sweep import sweep_figure
+from covtool.results import StudyResult
+from covtool.studies.resources import progress_bar
+from covtool.studies.zupt_setup import setup
+from covtool.units import ARCMIN, FT
 
 
 def sweep_options(decl: dict, where: str, truth) -> dict:
@@ -151,7 +153,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     own = [src for src in S.dyn.noise if src.name in names_sw]
     rest = [src for src in S.dyn.noise if src.name not in names_sw]
     allrows = np.arange(truth.n)
-    tfac = [_factor("rest", rest, allrows)] + [_factor(src.name, [src], allrows) for src in own]
+    tfac = [restricted_noise("rest", rest, allrows)] + [restricted_noise(src.name, [src], allrows) for src in own]
     Qt = compose_noise(S.Phi, S.dyn.F, tfac, dt, ev)
     tcoef = np.ones((B, len(tfac)))
     for k, src in enumerate(own, start=1):
@@ -166,10 +168,10 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             dyn = S._dyn_cache.get(_key(fm.spec.options), S.dyn)
             fown = [src for src in dyn.noise if src.name in names_sw]
             frest = [src for src in dyn.noise if src.name not in names_sw]
-            fac = [_factor("rest", frest, kidx)] + [_factor(src.name, [src], kidx) for src in fown]
+            fac = [restricted_noise("rest", frest, kidx)] + [restricted_noise(src.name, [src], kidx) for src in fown]
             coef_idx = [None] + [ix[src.name] for src in fown]
             for src in fm.ewn_noise:
-                fac.append(_factor(f"ewn {src.name}", [src], np.arange(src.G.shape[1])))
+                fac.append(restricted_noise(f"ewn {src.name}", [src], np.arange(src.G.shape[1])))
                 coef_idx.append(ix[src.name])
             QF = compose_noise(Phi_f, fm.F, fac, dt, ev)
             fcoef = np.ones((B, len(fac)))
@@ -185,7 +187,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             Pf0 = sk[:, :, None] * P0n[None] * sk[:, None, :]
             for nm, a in fm.ewn_absorb.items():
                 Pf0 += (scale[:, ix[nm]] * sig[ix[nm]])[:, None, None] ** 2 * np.outer(a, a)[None]
-            fsys = System(ev, _compose_phi(Phi_f, ev), np.zeros((len(ev) - 1, 0, 0)))
+            fsys = System(ev, compose_transition(Phi_f, ev), np.zeros((len(ev) - 1, 0, 0)))
             res = run_batch(tsys, P0s, S.H, S.R, fm.D, S.update_steps, rep, filt=fsys, Pf0=Pf0,
                             Hf=zupt_matrices(fm.names), Rf=S.filter_R(name)[None], filter_Q=filt_Q,
                             truth_Q=truth_Q, form=fm.spec.update)
@@ -216,13 +218,13 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                   "compute_seconds": f"{elapsed:.2f}"}
     return StudyResult(
         name=S.hdr["name"], kind="magnitude_sweep", tables={"summary": thresholds, "sweep": sweep},
-        figures={"magnitude_sweep": _figure(sweep, opts, truth)},
+        figures={"magnitude_sweep": sweep_figure(sweep, opts, truth)},
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
         data={"setup": S, "results": results, "members": members, "metrics": mets, "report_steps": rep})
 
 
 def _key(options):
-    from .zupt import dyn_key
+    from covtool.lincov.dynamics import dyn_key
     return dyn_key(options)
 
 
@@ -255,40 +257,9 @@ def threshold_table(sweep: pd.DataFrame, thr: float, groups, filters, truth, opt
                 row["crossing [SI]"] = float(np.exp(lx))
                 unit = opts["groups"][gi]["unit_text"]
                 if unit:
-                    from ..units import from_si
+                    from covtool.units import from_si
                     row["crossing"] = f"{float(from_si(np.exp(lx), unit)):.3g} {unit}"
                 else:
                     row["crossing"] = f"{np.exp(lx):.4g}"
             rows.append(row)
     return pd.DataFrame(rows)
-
-
-def _figure(sweep: pd.DataFrame, opts: dict, truth):
-    def make():
-        import matplotlib.pyplot as plt
-        from ..units import from_si
-        groups = opts["groups"]
-        fig, axes = plt.subplots(1, len(groups), figsize=(4.2 * len(groups), 4.2), squeeze=False, sharey=True)
-        for ax, g in zip(axes[0], groups):
-            unit = g["unit_text"]
-            s = sweep[sweep["group"] == g["name"]]
-            for f in dict.fromkeys(s["filter"]):
-                if f == "A":
-                    continue
-                gg = s[s["filter"] == f].sort_values("magnitude [SI]")
-                x = [float(from_si(v, unit)) if unit else v for v in gg["magnitude [SI]"]]
-                ax.plot(x, gg["CEP / A [-]"], marker="o", ms=3, label=f)
-            ax.axhline(opts["threshold"], color="k", ls="--", lw=1, label=f"{opts['threshold']:g} x A")
-            dsig = truth.states[truth.index[g["states"][0]]].sigma
-            ax.axvline(float(from_si(dsig, unit)) if unit else dsig, color="0.5", ls=":", lw=1,
-                       label="declared")
-            ax.set_xscale("log")
-            ax.set_xlabel(f"{g['name']} 1sigma [{unit}]" if unit else g["name"])
-            ax.set_title(g["name"])
-            ax.grid(True, which="both", alpha=0.3)
-        axes[0, 0].set_ylabel("true CEP / CEP of optimal filter A at the report time")
-        axes[0, -1].legend(fontsize=8)
-        fig.suptitle("Where the reduced filters stop being within the threshold of the optimal filter")
-        fig.tight_layout()
-        return fig
-    return make

@@ -1,11 +1,11 @@
 """Monte Carlo validation of the covariance analysis (issue 6).
 
-N nonlinear INS runs (:mod:`covtool.strapdown`) on simulated IMU data with
-errors drawn from the truth model (:mod:`covtool.imu`), unaided and under
+N nonlinear INS runs (:mod:`covtool.nav.strapdown`) on simulated IMU data with
+errors drawn from the truth model (:mod:`covtool.nav.imu`), unaided and under
 each declared ZUPT filter running as a real feedback filter
-(:mod:`covtool.montecarlo`), against the linear covariance analysis of the
-same setup (:func:`covtool.covariance.propagate`,
-:func:`~covtool.covariance.propagate_with_filter`).
+(:mod:`covtool.validation.monte_carlo`), against the linear covariance analysis of the
+same setup (:func:`covtool.lincov.reference.propagate`,
+:func:`~covtool.lincov.reference.propagate_with_filter`).
 
 Study file (the ``zupt_filter_order`` sections plus ``[monte_carlo]``)::
 
@@ -56,19 +56,29 @@ import time
 import numpy as np
 import pandas as pd
 
-from .. import __version__
-from ..covariance import propagate, propagate_with_filter
-from ..errors import StudyFileError
-from ..filters import zupt_matrices
-from ..io.config import boolean, check_keys, integer, LIMITS, number, quantity
-from ..metrics import nav_metrics, ned_position_covariance, validity_text
-from ..montecarlo import (REDUCED_NAV, EnsembleCase, EnsembleSums, FeedbackFilter, expected_nees,
-                          horizontal_dof, inside_fraction, nees_bounds, nees_whitening, rms_bounds, simulate_chunk)
-from ..results import StudyResult
-from ..strapdown import MAX_SAMPLES, NAV_STATES
-from .common import (ARCMIN, case_validity, FT, memory_estimate, noise_columns, resource_provenance, study_header,
-                     study_inputs)
-from .zupt import setup
+from covtool.analysis.consistency import (expected_nees, horizontal_dof, inside_fraction, nees_bounds,
+                                          nees_whitening, REDUCED_NAV, rms_bounds)
+from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text
+from covtool.errors import StudyFileError
+from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
+from covtool.lincov.reduced import zupt_matrices
+from covtool.lincov.reference import propagate, propagate_with_filter
+from covtool.nav.coning import MAX_SAMPLES
+from covtool.nav.strapdown import NAV_STATES
+from covtool.results import StudyResult
+from covtool.studies.inputs import study_header, study_inputs
+from covtool.studies.resources import memory_estimate, noise_columns, resource_provenance, run_in_chunks
+from covtool.studies.tables import case_validity
+from covtool.studies.zupt_setup import setup
+from covtool.units import ARCMIN, FT
+from covtool.validation.feedback import FeedbackFilter
+from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, simulate_chunk
+from covtool.version import __version__
+
+__all__ = [
+    "run", "mc_options",
+]
+
 
 MC_KEYS = ("runs", "runs_per_chunk", "seed", "imu_rate", "samples_per_step", "confidence", "nees_every",
            "sensor_noise", "measurement_noise", "process_dt")
@@ -147,7 +157,7 @@ def _chunks(runs: int, per: int) -> list[int]:
 def _linear(P, nodes, case=None) -> dict:
     """σ of the compared quantities, the horizontal dof per run and the validity.
 
-    ``first``: :func:`covtool.metrics.first_invalid` of the linear
+    ``first``: :func:`covtool.analysis.metrics.first_invalid` of the linear
     prediction (a :class:`covtool.errors.ValidityWarning` names ``case``).
     """
     m = nav_metrics(P, nodes.lat, nodes.h, nodes.q_nb)
@@ -186,8 +196,9 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     resume : bool
         Reuse the chunks already in ``store``.
     """
-    from ..parallel import ResultStore, file_sha256, make_backend, run_chunks
-    from .trade import _store_checks, trajectory_csv_sha256
+    from covtool.io.config import file_sha256
+    from covtool.studies.inputs import trajectory_csv_sha256
+    from covtool.studies.resources import store_checks
 
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
@@ -249,26 +260,17 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     keys = [f"runs-{i:04d}" for i in range(len(sizes))]
     first = np.cumsum([0] + sizes)
     run_ids = [list(range(int(first[i]), int(first[i + 1]))) for i in range(len(sizes))]
-    rs = None
-    if store is not None:
-        manifest = {"kind": "monte_carlo", "covtool_version": __version__, "study": decl,
-                    "truth_model_sha256": truth.sha256,
-                    "filter_file_sha256": file_sha256(S.filter_file),
-                    "trajectory_csv_sha256": trajectory_csv_sha256(decl, path.parent if path else None),
-                    "chunks": keys, "runs": sizes}
-        rs = ResultStore(store, manifest, resume=resume)
-    own = backend is None or isinstance(backend, str)
-    try:
-        be = make_backend(backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"))
-        try:
-            results, stats = run_chunks(simulate_chunk, tasks, keys, run_ids, backend=be, store=rs,
-                                        progress=progress, desc="Monte Carlo runs")
-        finally:
-            if own:
-                be.close()
-    finally:
-        if rs is not None:
-            rs.close()
+    def manifest():
+        return {"kind": "monte_carlo", "covtool_version": __version__, "study": decl,
+                "truth_model_sha256": truth.sha256,
+                "filter_file_sha256": file_sha256(S.filter_file),
+                "trajectory_csv_sha256": trajectory_csv_sha256(decl, path.parent if path else None),
+                "chunks": keys, "runs": sizes}
+
+    results, stats, rs = run_in_chunks(
+        simulate_chunk, tasks, keys, run_ids, store=store, manifest=manifest, resume=resume, progress=progress,
+        backend=backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"),
+        desc="Monte Carlo runs")
     names = [c.name for c in cases]
     sums = {}
     for res in results:
@@ -410,7 +412,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                   "chunks_computed": stats["computed"], "chunks_reused": stats["reused"],
                   "compute_seconds": f"{elapsed:.2f}", "monte_carlo_seconds": f"{stats['seconds']:.2f}",
                   "result_store": str(store) if store is not None else "",
-                  "result_store_checks": _store_checks(rs, stats)}
+                  "result_store_checks": store_checks(rs, stats)}
     return StudyResult(
         name=S.hdr["name"], kind="monte_carlo", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
@@ -422,15 +424,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
 
 def _trajectory(decl, where, path):
-    from .nav_covariance import load_trajectory
+    from covtool.studies.inputs import load_trajectory
 
     hdr = study_header(decl, where)
     return load_trajectory(decl, where, path.parent if path else None, hdr["dt"])
 
-
-# --------------------------------------------------------------------------
-# figures
-# --------------------------------------------------------------------------
 
 _LABELS = {"horizontal": "horizontal position (radial)", "altitude": "altitude", "azimuth": "azimuth"}
 
@@ -523,6 +521,3 @@ def _nees_figure(names, t, nees_stats, N, conf):
         fig.tight_layout()
         return fig
     return make
-
-
-__all__ = ["run", "mc_options"]

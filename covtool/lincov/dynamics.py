@@ -1,0 +1,376 @@
+"""Error dynamics F(t) and process noise along a trajectory (seed 002, eq (1)–(5)).
+
+State order and meaning follow :class:`covtool.lincov.model.spec.Model`; the first
+ten states are the navigation errors of seed 002, eq (14)::
+
+    x = [δL δl δh | δV_N δV_E δV_D | δq0 δq1 δq2 δq3 | sensor/environment states]
+
+Error = computed − true.  The continuous model is ``ẋ = F x + G w`` with
+``E[w wᵀ] = W δ(t−s)``; this module returns ``F`` and ``Q_c = G W Gᵀ``, both
+for every trajectory sample at once (shape ``(N, n, n)``).
+
+Navigation error equations (derivation in docs/error_model.md)
+---------------------------------------------------------------
+Position (perturbation of ``L̇ = v_N/(R_M+h)``, ``l̇ = v_E/((R_N+h)cos L)``,
+``ḣ = −v_D``), including the latitude dependence of the radii.
+
+Velocity, seed 002 eq (4)::
+
+    δv̇ = C_b^n δf^b + J(q, f^b) δq − (2δω_ie + δω_en) × v
+          − (2ω_ie + ω_en) × δv + δg
+
+where ``J = ∂(C(q/|q|) f)/∂q`` (:func:`covtool.nav.attitude.dcm_times_vector_jacobian`,
+the quaternion scale error ignored as in seed 002 §2.1), ``δω_ie``, ``δω_en``
+are the perturbations of Earth and transport rate through ``δL, δh, δv`` and
+``δg`` is the normal-gravity perturbation through ``δL, δh`` (the ``−2g/R``
+term makes the vertical channel unstable) plus the gravity-disturbance block.
+
+Attitude, seed 002 eq (1)::
+
+    δq̇ = ½[ω_ib^b] δq − ½[ω_in^n] δq + ½ Q(q) δω_ib^b − ½ R(q) δω_in^n
+
+Sensor errors enter through ``δf^b`` (seed 002 eq (5)) and ``δω_ib^b``
+(seed 002 eq (3)); each block kind supplies its sensitivity
+(:mod:`covtool.lincov.model.blocks`).
+
+Quaternion constraint
+---------------------
+``qᵀδq`` (the norm error) is an invariant of these equations: ``qᵀQ(q) =
+qᵀR(q) = 0`` and the skew parts conserve it, and ``J`` has no component
+along ``q``.  The norm error therefore neither grows nor affects any other
+state; with the seed 002 Table 2 initial σ (δq0 = 0 at q = 1) it is zero and P
+has one structural zero eigenvalue.  Physical attitude errors are
+``φ = −2 R(q)ᵀ δq`` (:func:`covtool.nav.attitude.attitude_error_matrix`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
+from covtool.lincov.model.spec import Model
+from covtool.nav import attitude as quat, earth
+
+I_L, I_l, I_H, I_VN, I_VE, I_VD = range(6)
+I_Q = slice(6, 10)
+POS = slice(0, 3)
+VEL = slice(3, 6)
+VERTICAL = (I_H, I_VD)
+HORIZONTAL = (I_L, I_l, I_VN, I_VE, 6, 7, 8, 9)
+
+
+@dataclass(frozen=True)
+class NavOptions:
+    """Simplifications of the navigation error equations (seed 002, Table 1).
+
+    Attributes
+    ----------
+    coriolis : bool
+        Keep the Coriolis terms ``−2ω_ie × δv`` and ``−2δω_ie × v`` of eq (4).
+        Filter B3 drops them.
+    couple_vertical : bool
+        Keep the coupling between the vertical channel (δh, δV_D) and the
+        horizontal/attitude states.  Filter B2 drops it.
+    """
+
+    coriolis: bool = True
+    couple_vertical: bool = True
+
+
+@dataclass
+class Context:
+    """Trajectory quantities needed by the error equations, shape ``(N, ...)``."""
+
+    lat: np.ndarray
+    h: np.ndarray
+    v_n: np.ndarray
+    q: np.ndarray
+    f_b: np.ndarray
+    w_ib_b: np.ndarray
+    C: np.ndarray = field(init=False)
+    speed: np.ndarray = field(init=False)
+    g: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        self.lat = np.atleast_1d(np.asarray(self.lat, float))
+        self.h = np.atleast_1d(np.asarray(self.h, float))
+        self.v_n = np.atleast_2d(np.asarray(self.v_n, float))
+        self.q = np.atleast_2d(np.asarray(self.q, float))
+        self.f_b = np.atleast_2d(np.asarray(self.f_b, float))
+        self.w_ib_b = np.atleast_2d(np.asarray(self.w_ib_b, float))
+        self.C = quat.dcm(self.q)
+        self.speed = np.linalg.norm(self.v_n[:, :2], axis=-1)
+        self.g = earth.gravity(self.lat, self.h)
+
+    @classmethod
+    def from_trajectory(cls, traj) -> "Context":
+        """Context from a :class:`covtool.nav.trajectory.core.Trajectory` (all its samples)."""
+        return cls(traj.lat, traj.h, traj.v_n, traj.q_nb, traj.f_b, traj.w_ib_b)
+
+    @property
+    def n(self) -> int:
+        return self.lat.shape[0]
+
+
+@dataclass
+class NoiseSource:
+    """One white driving noise: ``Q_c += G diag(psd) Gᵀ``.
+
+    Attributes
+    ----------
+    name : str
+    G : ndarray, shape (N, n, k)
+    psd : ndarray, shape (N, k)
+    """
+
+    name: str
+    G: np.ndarray
+    psd: np.ndarray
+
+    def qc(self) -> np.ndarray:
+        """Contribution to ``Q_c``, shape ``(N, n, n)``."""
+        return (self.G * self.psd[:, None, :]) @ np.swapaxes(self.G, 1, 2)
+
+
+@dataclass
+class ErrorDynamics:
+    """F(t), Q_c(t) and the noise sources of a model along a trajectory."""
+
+    names: list
+    F: np.ndarray
+    noise: list
+
+    @property
+    def Qc(self) -> np.ndarray:
+        """Continuous process-noise PSD matrix ``G W Gᵀ``, shape ``(N, n, n)``."""
+        if getattr(self, "_qc", None) is None:
+            out = np.zeros_like(self.F)
+            for src in self.noise:
+                nz = np.flatnonzero(np.any(src.G != 0, axis=(0, 2)))
+                if nz.size == 0:
+                    continue
+                G = src.G[:, nz, :]
+                out[:, nz[:, None], nz[None, :]] += (G * src.psd[:, None, :]) @ np.swapaxes(G, 1, 2)
+            self._qc = out
+        return self._qc
+
+
+def transport_rate_partials(lat, h, v_n):
+    """Partials of ω_en^n with respect to L, h and v^n.
+
+    Returns
+    -------
+    dL : ndarray, shape (N, 3)
+    dh : ndarray, shape (N, 3)
+    dv : ndarray, shape (N, 3, 3)
+    """
+    rm, rn = earth.radii(lat)
+    drm, drn = earth.radii_derivatives(lat)
+    rmh, rnh = rm + h, rn + h
+    vn, ve = v_n[:, 0], v_n[:, 1]
+    t = np.tan(lat)
+    dL = np.stack([-ve * drn / rnh**2, vn * drm / rmh**2,
+                   -ve * (1.0 / np.cos(lat) ** 2 / rnh - t * drn / rnh**2)], -1)
+    dh = np.stack([-ve / rnh**2, vn / rmh**2, ve * t / rnh**2], -1)
+    dv = np.zeros((lat.shape[0], 3, 3))
+    dv[:, 0, 1] = 1.0 / rnh
+    dv[:, 1, 0] = -1.0 / rmh
+    dv[:, 2, 1] = -t / rnh
+    return dL, dh, dv
+
+
+def nav_matrix(ctx: Context, options: NavOptions = NavOptions()) -> np.ndarray:
+    """The 10×10 navigation block of F, shape ``(N, 10, 10)`` (see module notes)."""
+    N = ctx.n
+    lat, h, v = ctx.lat, ctx.h, ctx.v_n
+    F = np.zeros((N, 10, 10))
+    rm, rn = earth.radii(lat)
+    drm, drn = earth.radii_derivatives(lat)
+    rmh, rnh = rm + h, rn + h
+    cl, sl = np.cos(lat), np.sin(lat)
+    vn, ve = v[:, 0], v[:, 1]
+    # position
+    F[:, I_L, I_VN] = 1.0 / rmh
+    F[:, I_L, I_L] = -vn * drm / rmh**2
+    F[:, I_L, I_H] = -vn / rmh**2
+    F[:, I_l, I_VE] = 1.0 / (rnh * cl)
+    F[:, I_l, I_L] = -ve * drn / (rnh**2 * cl) + ve * sl / (rnh * cl**2)
+    F[:, I_l, I_H] = -ve / (rnh**2 * cl)
+    F[:, I_H, I_VD] = -1.0
+    # rates and their partials
+    w_ie = earth.earth_rate_n(lat)
+    w_en = earth.transport_rate_n(lat, h, v)
+    dwie_dL = np.stack([-earth.OMEGA_IE * sl, np.zeros_like(sl), -earth.OMEGA_IE * cl], -1)
+    dwen_dL, dwen_dh, dwen_dv = transport_rate_partials(lat, h, v)
+    cor = 2.0 if options.coriolis else 0.0
+    vx = quat.skew(v)
+    # velocity, seed 002 eq (4)
+    F[:, VEL, I_L] = np.einsum("tij,tj->ti", vx, cor * dwie_dL + dwen_dL)
+    F[:, VEL, I_H] = np.einsum("tij,tj->ti", vx, dwen_dh)
+    F[:, VEL, VEL] = -quat.skew(cor * w_ie + w_en) + vx @ dwen_dv
+    dg_dL, dg_dh = earth.gravity_derivatives(lat, h)
+    F[:, I_VD, I_L] += dg_dL
+    F[:, I_VD, I_H] += dg_dh
+    F[:, VEL, I_Q] = quat.dcm_times_vector_jacobian(ctx.q, ctx.f_b)
+    # attitude, seed 002 eq (1)
+    w_in = w_ie + w_en
+    F[:, I_Q, I_Q] = 0.5 * quat.omega_body(ctx.w_ib_b) - 0.5 * quat.omega_nav(w_in)
+    mR = -0.5 * quat.R_matrix(ctx.q)                       # (N,4,3)
+    F[:, I_Q, I_L] = np.einsum("tij,tj->ti", mR, dwie_dL + dwen_dL)
+    F[:, I_Q, I_H] = np.einsum("tij,tj->ti", mR, dwen_dh)
+    F[:, I_Q, VEL] = mR @ dwen_dv
+    if not options.couple_vertical:
+        F[:, np.ix_(VERTICAL, HORIZONTAL)[0], np.ix_(VERTICAL, HORIZONTAL)[1]] = 0.0
+        F[:, np.ix_(HORIZONTAL, VERTICAL)[0], np.ix_(HORIZONTAL, VERTICAL)[1]] = 0.0
+    return F
+
+
+def error_dynamics(model: Model, ctx: Context, options: NavOptions = NavOptions()) -> ErrorDynamics:
+    """Build F(t) and the noise sources of ``model`` along ``ctx``.
+
+    Parameters
+    ----------
+    model : Model
+        Error-state model whose first ten states are the navigation states.
+    ctx : Context
+        Trajectory samples (usually the mid-points of the propagation steps).
+    options : NavOptions
+        Simplifications of the navigation block (filters B2, B3).
+
+    Returns
+    -------
+    ErrorDynamics
+        ``F`` of shape ``(N, n, n)`` and the list of :class:`NoiseSource`.
+    """
+    N, n = ctx.n, model.n
+    F = np.zeros((N, n, n))
+    F[:, :10, :10] = nav_matrix(ctx, options)
+    noise: list[NoiseSource] = []
+    halfQ = 0.5 * quat.Q_matrix(ctx.q)                     # (N,4,3)
+    C = ctx.C
+    if model.arw > 0:
+        G = np.zeros((N, n, 3))
+        G[:, I_Q, :] = halfQ
+        noise.append(NoiseSource("arw", G, np.full((N, 3), model.arw**2)))
+    if model.vrw > 0:
+        G = np.zeros((N, n, 3))
+        G[:, VEL, :] = C
+        noise.append(NoiseSource("vrw", G, np.full((N, 3), model.vrw**2)))
+    # sensor and environment blocks
+    for block in model.block_names():
+        idx = [i for i, s in enumerate(model.states) if s.block == block]
+        states = [model.states[i] for i in idx]
+        kind = states[0].kind
+        if kind == "navigation":
+            continue
+        bk = BLOCK_KINDS[kind]
+        cols = np.array(idx)
+        if bk.sensor == "accel":
+            S = bk.sensitivity(ctx.f_b, ctx.w_ib_b)
+            F[:, VEL, cols] = C @ S
+        elif bk.sensor == "gyro":
+            S = bk.sensitivity(ctx.f_b, ctx.w_ib_b)
+            F[:, I_Q, cols] = halfQ @ S
+        elif bk.sensor == "gravity":
+            F[:, VEL, cols] = gravity_sensitivity(ctx.g)
+        elif bk.sensor == "ad_reset":
+            # the bounded velocity error e enters as δf^b = ė (seed 000 → seed 002 eq (4))
+            inv_tau = np.array([1.0 / s.tau for s in states])
+            F[:, VEL, cols] = -C * inv_tau[None, None, :]
+        # own dynamics and driving noise
+        for k, (i, s) in enumerate(zip(idx, states)):
+            if s.process == "markov":
+                F[:, i, i] = -1.0 / s.tau
+            elif s.process == "markov_distance":
+                F[:, i, i] = -ctx.speed / s.distance
+            psd = s.psd(ctx.speed)
+            if np.any(np.asarray(psd) > 0):
+                G = np.zeros((N, n, 1))
+                G[:, i, 0] = 1.0
+                if bk.sensor == "ad_reset":
+                    G[:, VEL, 0] = C[:, :, k]
+                noise.append(NoiseSource(s.name, G, np.broadcast_to(np.asarray(psd, float), (N,))[:, None].copy()))
+    return ErrorDynamics(model.names, F, noise)
+
+
+def attitude_errors(P_qq: np.ndarray, q: np.ndarray) -> np.ndarray:
+    """Covariance of the NED attitude error φ from that of δq.
+
+    Parameters
+    ----------
+    P_qq : ndarray, shape (..., 4, 4)
+    q : ndarray, shape (..., 4)
+
+    Returns
+    -------
+    ndarray, shape (..., 3, 3)
+        Covariance of (north tilt, east tilt, azimuth). [rad²]
+    """
+    M = quat.attitude_error_matrix(q)
+    return M @ P_qq @ np.swapaxes(M, -1, -2)
+
+
+def nav_error_matrix(q, lat=None, h=None) -> np.ndarray:
+    """Map from the navigation error state to physical errors, 9 × 10.
+
+    The one home of the "physical navigation" transform: the velocity
+    errors unchanged, the quaternion error to the attitude error
+    ``φ = −2 R(q)ᵀ δq`` (north tilt, east tilt, azimuth;
+    :func:`covtool.nav.attitude.attitude_error_matrix`), and the position
+    errors ``(δL, δl, δh)`` either unchanged or, given ``lat`` and ``h``, in
+    metres north, east and down: ``δN = (R_M + h) δL``,
+    ``δE = (R_N + h) cos L δl``, ``δD = −δh``.
+
+    Parameters
+    ----------
+    q : array_like, shape (..., 4)
+        Attitude quaternion (body→NED).
+    lat, h : float or array_like, shape (...), optional
+        Geodetic latitude [rad] and height [m]; None keeps the position
+        errors in ``(δL, δl, δh)``.
+
+    Returns
+    -------
+    ndarray, shape (..., 9, 10)
+        Rows: position (3), velocity N/E/D (3), north tilt, east tilt,
+        azimuth; columns: the navigation states of seed 002 eq (14).
+    """
+    q = np.asarray(q, float)
+    T = np.zeros(q.shape[:-1] + (9, 10))
+    if lat is None:
+        T[..., :3, :3] = np.eye(3)
+    else:
+        rm, rn = earth.radii(lat)
+        T[..., 0, 0] = rm + h
+        T[..., 1, 1] = (rn + h) * np.cos(lat)
+        T[..., 2, 2] = -1.0
+    T[..., 3:6, 3:6] = np.eye(3)
+    T[..., 6:9, 6:10] = quat.attitude_error_matrix(q)
+    return T
+
+
+def physical_nav(P: np.ndarray, q) -> np.ndarray:
+    """Navigation block in physical coordinates (δq → tilt, azimuth).
+
+    Parameters
+    ----------
+    P : ndarray, shape (..., n_rec, 10, 10)
+    q : ndarray, shape (n_rec, 4)
+
+    Returns
+    -------
+    ndarray, shape (..., n_rec, 9, 9)
+        Position (δL, δl, δh), velocity, then (north tilt, east tilt, azimuth):
+        ``T P Tᵀ`` with ``T`` of :func:`nav_error_matrix`.
+    """
+    T = nav_error_matrix(q)
+    return T @ P @ np.swapaxes(T, -1, -2)
+
+
+def dyn_key(options):
+    """Cache key of a NavOptions (None: the truth's own)."""
+    if options is None:
+        return (True, True)
+    return (options.coriolis, options.couple_vertical)

@@ -1,0 +1,314 @@
+"""Resources of a study, checked before any computation: steps, peak memory, the memory limit, progress."""
+
+from __future__ import annotations
+
+import math
+import os
+from pathlib import Path
+
+from covtool.errors import InputError, StudyFileError, UnitError
+from covtool.io.config import number
+from covtool.lincov.model.spec import Model
+from covtool.units import from_si, parse_quantity
+
+
+def progress_bar(total: int, desc: str, enabled: bool):
+    """A tqdm bar shown only if the work lasts longer than about one second."""
+    from tqdm.auto import tqdm
+
+    return tqdm(total=total, desc=desc, disable=not enabled, delay=1.0, leave=False, unit="step")
+
+
+# ---------------------------------------------------------------------------
+# resources: step count and peak memory, checked before any computation
+# ---------------------------------------------------------------------------
+
+#: steps discretised at once by :func:`covtool.studies.grid.discretize_chunked` (bounds its workspace)
+DISCRETIZE_CHUNK = 150
+
+_F8 = 8                 # bytes of one float64
+#: float64 per grid step outside the matrices: trajectory samples, mid-point context, metrics, history table
+_GRID_FLOATS = 800
+
+
+def steps_of(duration: float, dt: float) -> int:
+    """Number of propagation steps of :func:`time_grid` (without building it)."""
+    return int(math.ceil(duration / dt - 1e-9))
+
+
+def noise_columns(model: Model) -> int:
+    """Columns of the noise-source matrices G of ``model``: ARW and VRW (3 each), one per driven state."""
+    return 6 + sum(1 for st in model.states if st.process not in ("constant", "navigation"))
+
+
+def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histories=(), noise: int | None = None,
+                    extra: float = 0.0, parallel: int = 1) -> dict:
+    """Peak memory of a study on the propagation grid (an upper estimate).
+
+    This is the one place that knows what the covariance code keeps for a
+    whole grid; change it together with :func:`truth_system`,
+    :func:`discretize_chunked`,
+    :meth:`covtool.studies.zupt_setup.ZuptSetup.filter_system`,
+    :func:`covtool.lincov.reference.propagate` and
+    :func:`~covtool.lincov.reference.propagate_with_filter`.
+
+    Parameters
+    ----------
+    steps : int
+        Propagation steps N.
+    n : int
+        Truth states.
+    filters : sequence of int
+        States of every filter whose system is built (and cached) at once.
+    dynamics : int
+        Truth error dynamics built: one per distinct set of navigation
+        options among the truth and the filters (``error_dynamics``).
+    histories : sequence of int
+        State counts of the ``(N+1)·m²`` covariance histories held at once
+        (``propagate``: the truth; ``propagate_with_filter``: truth and filter).
+    noise : int, optional
+        Noise-source columns of the truth model (:func:`noise_columns`;
+        default ``n``).
+    extra : float
+        Kind-specific bytes outside these arrays (a composed noise stack, a
+        batch of cases).
+    parallel : int
+        Copies held at once (worker processes each building one system).
+
+    Returns
+    -------
+    dict
+        ``bytes`` (total), ``steps`` and ``parts`` (label -> bytes).
+
+    Notes
+    -----
+    Per step, in doubles: the truth keeps F, Q_c, Φ, Q_d (4 n²) and the
+    noise-source matrices G (n × columns); every other truth dynamics
+    another F, Q_c, G; every filter F_f, Q_c,f, Φ_f, Q_d,f (4 n_f²) and,
+    while it is built, the (N, n_f, n) slice of F it is cut from; every
+    history (N+1) m².  Van Loan works on :data:`DISCRETIZE_CHUNK` steps of
+    2n × 2n at a time (about five such stacks inside ``expm``), freed
+    before the histories are allocated, so only the larger of the two
+    counts.  Against ``tracemalloc`` peaks of the shipped studies the
+    estimate is high by 5-15 % (``tests/test_input_validation.py`` keeps it
+    an upper bound within 30 %).
+    """
+    N = int(steps)
+    c = n if noise is None else int(noise)
+    parts = {
+        "truth F, Q_c, G, Phi, Q_d": (4 * n * n + n * c) * N * _F8,
+        "discretisation workspace": 5 * DISCRETIZE_CHUNK * (2 * n) ** 2 * _F8,
+        "trajectory and grid": _GRID_FLOATS * (N + 1) * _F8,
+    }
+    if dynamics > 1:
+        parts["other truth dynamics"] = (dynamics - 1) * (2 * n * n + n * c) * N * _F8
+    if len(filters):
+        parts["filter F, Q_c, Phi, Q_d"] = sum(4 * N * m * m * _F8 for m in filters) + N * max(filters) * n * _F8
+    if len(histories):
+        parts["covariance histories"] = sum((N + 1) * m * m * _F8 for m in histories)
+    if extra:
+        parts["other"] = float(extra)
+    # the Van Loan workspace is freed before the histories are allocated
+    total = sum(parts.values()) - min(parts["discretisation workspace"], parts.get("covariance histories", 0.0))
+    if parallel > 1:
+        parts = {k: v * parallel for k, v in parts.items()}
+        total *= parallel
+    return {"bytes": float(total), "steps": N, "parts": parts, "parallel": int(parallel)}
+
+
+def parse_bytes(value, where: str, error=StudyFileError) -> float:
+    """A memory size in bytes: ``"6 GB"``, ``"512 MiB"`` or a bare number of bytes.
+
+    Raises
+    ------
+    InputError
+        (``error``) Not a positive, finite memory size.
+    """
+    if isinstance(value, bool):
+        raise error(where, f"{value!r} is not a memory size such as '6 GB'")
+    if isinstance(value, str):
+        try:
+            value = float(value)
+        except ValueError:
+            try:
+                x = from_si(parse_quantity(value, "memory", where=where), "B")
+            except UnitError as exc:
+                raise error(where, f"{value!r} is not a memory size such as '6 GB' or '512 MiB' "
+                                   f"({exc.problem})") from None
+            if not x > 0:
+                raise error(where, f"{value!r} must be a positive memory size")
+            return x
+    return number(value, where, error, lo=0.0, lo_open=True)
+
+
+def _meminfo(key: str) -> float | None:
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith(key + ":"):
+                    return float(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def _read_number(path) -> float | None:
+    try:
+        text = Path(path).read_text().strip()
+    except OSError:
+        return None
+    return float(text) if text.isdigit() else None
+
+
+def memory_limit(max_memory: float | None = None) -> tuple[float, str]:
+    """Memory a study may use, and where the figure comes from.
+
+    ``[study] max_memory`` wins, then ``$COVTOOL_MAX_MEMORY``; otherwise the
+    smallest of the memory available on the machine (``MemAvailable``), the
+    address-space limit (``ulimit -v``) less what this process already maps,
+    and the cgroup limit less its usage.
+    """
+    if max_memory is not None:
+        return float(max_memory), "[study] max_memory"
+    env = os.environ.get("COVTOOL_MAX_MEMORY")
+    if env:
+        return parse_bytes(env, "COVTOOL_MAX_MEMORY", InputError), "COVTOOL_MAX_MEMORY"
+    cands = []
+    avail = _meminfo("MemAvailable")
+    if avail is None:
+        try:
+            avail = float(os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+        except (ValueError, OSError, AttributeError):
+            avail = None
+    if avail is not None:
+        cands.append((avail, "available on this machine"))
+    try:
+        import resource
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+        if soft != resource.RLIM_INFINITY:
+            used = 0.0
+            try:
+                for line in Path("/proc/self/status").read_text().splitlines():
+                    if line.startswith("VmSize:"):
+                        used = float(line.split()[1]) * 1024
+            except OSError:
+                pass
+            cands.append((soft - used, "left under the address-space limit (ulimit -v)"))
+    except (ImportError, ValueError, OSError):
+        pass
+    cg_max, cg_cur = _read_number("/sys/fs/cgroup/memory.max"), _read_number("/sys/fs/cgroup/memory.current")
+    if cg_max is not None:
+        cands.append((cg_max - (cg_cur or 0.0), "left under the cgroup memory limit"))
+    if not cands:
+        return math.inf, "unknown"
+    return min(cands)
+
+
+def _size(x: float) -> str:
+    for unit, f in (("TB", 1e12), ("GB", 1e9), ("MB", 1e6)):
+        if x >= f:
+            return f"{x / f:.3g} {unit}"
+    return f"{x / 1e3:.3g} kB"
+
+
+def check_memory(estimate: dict, where: str, max_memory: float | None, shrink: str) -> dict:
+    """Refuse a study whose estimated peak memory exceeds the limit.
+
+    Parameters
+    ----------
+    estimate : dict
+        From :func:`memory_estimate`.
+    where : str
+        The study file.
+    max_memory : float or None
+        ``[study] max_memory`` [bytes].
+    shrink : str
+        The options that shrink this study, for the message.
+
+    Returns
+    -------
+    dict
+        ``estimate`` with ``limit`` and ``limit_source`` added.
+
+    Raises
+    ------
+    StudyFileError
+        One line: the estimate and its largest parts, the limit and where it
+        comes from, and the options that shrink the study.
+    """
+    limit, source = memory_limit(max_memory)
+    out = {**estimate, "limit": limit, "limit_source": source}
+    if estimate["bytes"] > limit:
+        top = sorted(estimate["parts"].items(), key=lambda kv: -kv[1])[:3]
+        parts = ", ".join(f"{k} {_size(v)}" for k, v in top)
+        par = f" in {estimate['parallel']} workers" if estimate.get("parallel", 1) > 1 else ""
+        raise StudyFileError(f"{where}: [study]",
+                             f"needs about {_size(estimate['bytes'])} of memory{par} ({estimate['steps']:,} steps; "
+                             f"{parts}), more than the {_size(limit)} {source}; shrink it with {shrink}, "
+                             "or set [study] max_memory (or COVTOOL_MAX_MEMORY) if more is available")
+    return out
+
+
+def resource_provenance(est: dict) -> dict:
+    """Provenance rows of a resource estimate."""
+    return {"steps": est["steps"], "estimated_peak_memory": _size(est["bytes"]),
+            "memory_limit": f"{_size(est['limit'])} ({est['limit_source']})" if math.isfinite(est["limit"])
+            else "unknown"}
+
+
+def store_checks(rs, stats: dict) -> str:
+    """Provenance line of the result store's verification (notes joined)."""
+    if rs is None:
+        return ""
+    head = (f"{stats['reused']} chunks verified and reused, {stats['rejected']} rejected, "
+            f"{stats['computed']} computed")
+    return "; ".join([head] + rs.notes)
+
+
+def run_in_chunks(fn, tasks, keys, cases, *, backend, store, manifest, resume: bool, progress: bool, desc: str):
+    """Run the chunks of a study on a backend, through the verified result store.
+
+    Parameters
+    ----------
+    fn : callable
+        ``fn(task) -> dict`` for one chunk (picklable, JSON-serialisable result).
+    tasks, keys, cases : sequences
+        Per chunk: its input, its key and its list of case labels
+        (:func:`covtool.parallel.run_chunks`).
+    backend : backend, str or None
+        :func:`covtool.parallel.make_backend`; a backend made here is closed here.
+    store : path or None
+        Directory of the result store (:class:`covtool.io.store.ResultStore`);
+        None keeps the results in memory only.
+    manifest : callable
+        ``manifest() -> dict``: the store's plan (called only with a store).
+    resume, progress : bool
+    desc : str
+        Label of the progress bar.
+
+    Returns
+    -------
+    results : list
+        One result per chunk, in chunk order.
+    stats : dict
+        Chunks reused, rejected and computed (:func:`covtool.parallel.run_chunks`).
+    store : ResultStore or None
+        The (closed) store, for its notes (:func:`store_checks`).
+    """
+    from covtool.io.store import ResultStore
+    from covtool.parallel import make_backend, run_chunks
+
+    rs = ResultStore(store, manifest(), resume=resume) if store is not None else None
+    own = backend is None or isinstance(backend, str)
+    try:
+        be = make_backend(backend)
+        try:
+            results, stats = run_chunks(fn, tasks, keys, cases, backend=be, store=rs, progress=progress, desc=desc)
+        finally:
+            if own:
+                be.close()
+    finally:
+        if rs is not None:
+            rs.close()
+    return results, stats, rs

@@ -1,0 +1,256 @@
+"""ZUPT filter-order trade: reduced filters run against the truth (seed 002, §3.1).
+
+Study file::
+
+    [study]
+    kind = "zupt_filter_order"
+    duration = "30 min"
+    dt = "1 s"
+
+    [trajectory]
+    builtin = "land_vehicle"
+
+    [truth]
+    model = "sdins58"
+
+    [filters]
+    file = "../models/filters/zupt_filters.toml"   # default: the library's
+    cases = ["A", "B1", "B2", "B3", "C", "D"]
+    pure_ins = true
+
+    [zupt]
+    interval = "5 min"       # Δt_s: a ZUPT stop every interval (eq (12)-(13))
+    duration = "30 s"        # measurement window ending at each k·interval
+    rate = "1 Hz"            # updates per second inside the window
+    sigma = "0.01 ft/s"      # true ZUPT noise 1σ per axis (R); filters may assume another
+
+    [impact]                 # dropped-state impact table (covtool.lincov.impact)
+    filters = ["B1", "C", "D"]   # default: every reduced filter of the run; [] for none
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pandas as pd
+
+from covtool.analysis.metrics import nav_metrics
+from covtool.errors import StudyFileError
+from covtool.io.config import check_keys
+from covtool.lincov.reduced import ewn_navigation_effect, zupt_matrices
+from covtool.lincov.reference import propagate, propagate_with_filter
+from covtool.plotting.zupt_filter_order import impact_figure
+from covtool.results import StudyResult
+from covtool.studies.inputs import study_inputs
+from covtool.studies.resources import progress_bar, resource_provenance
+from covtool.studies.tables import case_validity, history_frame, summary_row
+from covtool.studies.zupt_setup import order_memory, setup, ZuptSetup
+from covtool.units import ARCMIN, FT
+
+
+def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+    """Run the filter-order trade; see the module docstring."""
+    t_start = time.perf_counter()
+    pure = (decl.get("filters") or {}).get("pure_ins", True) if isinstance(decl.get("filters", {}), dict) else True
+    imp = decl.get("impact")
+    S = setup(decl, path=path, progress=progress, extra_sections=("impact",),
+              memory=order_memory(pure is not False, not (isinstance(imp, dict) and imp.get("filters") == [])))
+    imp_filters = impact_filters(decl, S)
+    hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth
+    Phi, Qd, P0, H, R, upd = S.Phi, S.Qd, S.P0, S.H, S.R, S.update_steps
+    cases, every, rtimes, ffile = S.cases, S.every, S.report_times, S.filter_file
+    dt_s, zsig, mean_speed = S.zupt_interval, S.zupt_sigma, S.mean_speed
+    fcfg = decl.get("filters", {})
+    metrics, runs, fmodels, claimed = {}, {}, {}, {}
+    where = S.where
+    if fcfg.get("pure_ins", True):
+        metrics["pure_ins"] = nav_metrics(propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names,
+                                                    times=t, system_checked=True),
+                                          nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+    with progress_bar(len(cases), "filters", progress) as bar:
+        for c in cases:
+            spec = S.specs[c]
+            fm, Phi_f, Qd_f = S.filter_model(c)
+            Hf = zupt_matrices(fm.names)
+            run_ = propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, fm.P0, H, Hf, fm.D, R, upd, Rf=S.filter_R(c),
+                                         form=spec.update, label=f"{where}: filter {c}", times=t,
+                                         names=truth.names, filter_names=fm.names, system_checked=True)
+            runs[c], fmodels[c] = run_, fm
+            metrics[c] = nav_metrics(run_.P_truth, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+            claimed[c] = nav_metrics(run_.P_filter[:, :10, :10], nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+            bar.update(1)
+    elapsed = time.perf_counter() - t_start
+
+    rows = []
+    for case, m in metrics.items():
+        first = case_validity(case, m, t)
+        for tr in rtimes:
+            k = int(np.argmin(np.abs(t - tr)))
+            row = summary_row(case, m, k, t[k], float(nodes.distance[k]), first=first)
+            row["states"] = truth.n if case == "pure_ins" else fmodels[case].spec.n
+            if case in claimed:
+                row["filter-claimed CEP [ft]"] = claimed[case]["cep"][k] / FT
+                row["filter-claimed alt PE [ft]"] = claimed[case]["alt_pe"][k] / FT
+                row["filter-claimed azimuth [arcmin]"] = claimed[case]["sigma_azimuth"][k] / ARCMIN
+            if "pure_ins" in metrics and case != "pure_ins":
+                row["position improvement over pure INS [x]"] = metrics["pure_ins"]["cep"][k] / m["cep"][k]
+                row["altitude improvement over pure INS [x]"] = metrics["pure_ins"]["alt_pe"][k] / m["alt_pe"][k]
+            rows.append(row)
+    summary = pd.DataFrame(rows)
+    order = ["case", "states"] + [c for c in summary.columns if c not in ("case", "states")]
+    summary = summary[order]
+
+    hist = pd.concat([history_frame(c, t, m, every) for c, m in metrics.items()], ignore_index=True)
+    ewn = equivalent_noise_table(S, fmodels)
+    fstates = []
+    for c, fm in fmodels.items():
+        sig0 = np.sqrt(np.clip(np.diag(fm.P0), 0, None))
+        for nm, s0 in zip(fm.names, sig0):
+            st = truth.states[truth.index[nm]]
+            fstates.append({"filter": c, "state": nm, "symbol": st.symbol, "unit": st.unit,
+                            "P0 1sigma [SI]": s0, "process": st.process,
+                            "options": f"coriolis={fm.spec.options.coriolis}, "
+                                       f"vertical_coupled={fm.spec.options.couple_vertical}"})
+    tables = {"summary": summary, "history": hist, "truth_states": truth.state_table(),
+              "filter_states": pd.DataFrame(fstates)}
+    if len(ewn):
+        tables["equivalent_noise"] = ewn
+    figures = {}
+    t_imp = time.perf_counter()
+    if imp_filters:
+        with progress_bar(len(imp_filters), "dropped-state impact", progress) as bar:
+            tables["impact"] = impact_table(S, imp_filters, metrics, bar)
+        figures["impact_dropped_states"] = impact_figure(tables["impact"], S.report_times[-1])
+    t_imp = time.perf_counter() - t_imp
+    upd_t = t[upd]
+    zupt_marks = np.unique(np.round(upd_t[np.r_[True, np.diff(upd_t) > 2 * hdr["dt"]]]))
+
+    def fig(kind):
+        def make():
+            import matplotlib.pyplot as plt
+            fig, ax = plt.subplots(figsize=(9, 5))
+            for c, m in metrics.items():
+                y = m["cep"] / FT if kind == "horizontal" else m["alt_pe"] / FT
+                ax.plot(t / 60, y, label=c, lw=1.2)
+            for z in zupt_marks:
+                ax.axvline(z / 60, color="0.7", lw=0.6, ls=":")
+            ax.set_yscale("log")
+            ax.set_ylim(bottom=1.0)
+            ax.set_xlabel("time [min]")
+            ax.set_ylabel("horizontal CEP [ft]" if kind == "horizontal" else "altitude PE [ft]")
+            ax.set_title(("Fig 6: horizontal position error" if kind == "horizontal" else
+                          "Fig 7: altitude error") + " by filter model (dotted: ZUPT stops)")
+            ax.grid(True, which="both", alpha=0.3)
+            ax.legend(ncol=4)
+            return fig
+        return make
+
+    provenance = {**study_inputs(path, decl, truth, ffile), "truth_model": truth.name,
+                  "truth_model_sha256": truth.sha256, "zupt_updates": int(len(upd)), "zupt_interval_s": dt_s,
+                  "zupt_sigma_m_s": zsig, "mean_moving_speed_m_s": mean_speed, **resource_provenance(S.resources),
+                  "compute_seconds": f"{elapsed:.2f}", "impact_compute_seconds": f"{t_imp:.2f}"}
+    return StudyResult(
+        name=hdr["name"], kind="zupt_filter_order", tables=tables,
+        figures={"fig6_horizontal_cep": fig("horizontal"), "fig7_altitude_pe": fig("altitude"), **figures},
+        resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}}, provenance=provenance,
+        charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [ft]"], "title": "CEP (all cases, stacked rows)",
+                 "y_title": "ft", "anchor": "S2"}],
+        data={"t": t, "runs": runs, "filters": fmodels, "metrics": metrics, "claimed": claimed,
+              "update_steps": upd, "trajectory": nodes, "truth": truth, "P0": P0, "Phi": Phi, "Qd": Qd,
+              "H": H, "R": R},
+    )
+
+
+def equivalent_noise_table(S: ZuptSetup, fmodels: dict) -> pd.DataFrame:
+    """The ``equivalent_noise`` sheet: rule per dropped state and what it does to navigation.
+
+    Each filter's rows of :attr:`FilterModel.ewn_table` (rule applied,
+    pointwise overstatement) joined with
+    :func:`covtool.lincov.reduced.ewn_navigation_effect` (the 1σ each dropped
+    state's noise adds per ZUPT interval in tilt, azimuth, velocity and
+    position, and its share).
+    """
+    frames = []
+    for c, fm in fmodels.items():
+        if not len(fm.ewn_table):
+            continue
+        _, Phi_f, _ = S.filter_model(c)
+        eff = ewn_navigation_effect(fm, Phi_f, S.t, S.nodes.lat, S.nodes.h, S.nodes.q_nb)
+        tab = fm.ewn_table
+        if len(eff):
+            tab = tab.merge(eff, on=["filter", "dropped state"], how="left")
+        frames.append(tab)
+    return pd.concat(frames, ignore_index=True) if frames else pd.DataFrame()
+
+
+def impact_filters(decl: dict, S: ZuptSetup) -> list[str]:
+    """Validated ``[impact] filters``: reduced filters of the run (default: all of them).
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key, not a list, a filter not among the run's cases, or a
+        filter that drops no truth state.
+    """
+    cfg = decl.get("impact", {})
+    w = f"{S.where}: [impact]"
+    if not isinstance(cfg, dict):
+        raise StudyFileError(w, f"expected a table, got {type(cfg).__name__}")
+    check_keys(cfg, {"filters"}, w, StudyFileError)
+    reduced = [c for c in S.cases if S.specs[c].n < S.truth.n]
+    if "filters" not in cfg:
+        return reduced
+    fl = cfg["filters"]
+    if not isinstance(fl, list) or not all(isinstance(x, str) for x in fl):
+        raise StudyFileError(f"{w} filters", "expected a list of filter names")
+    for x in fl:
+        if x not in S.cases:
+            raise StudyFileError(f"{w} filters", f"{x!r} is not one of the run's cases ({', '.join(S.cases)})")
+        if x not in reduced:
+            raise StudyFileError(f"{w} filters", f"filter {x!r} keeps every truth state: it drops nothing")
+    return list(fl)
+
+
+def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None) -> pd.DataFrame:
+    """The ``impact`` sheet: every reduced filter × dropped block (D'Appolito state deletion).
+
+    For each filter (:func:`covtool.lincov.impact.impact_run`, one batched pass
+    per filter against one shared truth) and report time: the true CEP,
+    altitude PE and azimuth of the nominal filter, without equivalent
+    noise, with eq (11)–(13) noise from each dropped block alone, and with
+    each dropped block put back as filter states; ratios to the nominal
+    and to filter A when it is in the run.
+    """
+    from covtool.lincov.batch import System, events
+    from covtool.lincov.impact import impact_run
+
+    N = S.t.size - 1
+    rep = sorted({int(np.argmin(np.abs(S.t - tr))) for tr in S.report_times})
+    ev = events(N, S.update_steps, rep)
+    truth_sys = System.from_steps(S.Phi, S.Qd, ev)
+    nodes = S.nodes
+    rows = []
+    for name in names:
+        r = impact_run(S, name, rep, truth_system=truth_sys)
+        rs = r.record_steps
+        ms = [nav_metrics(r.P[b], nodes.lat[rs], nodes.h[rs], nodes.q_nb[rs]) for b in range(len(r.variants))]
+        nstates = {b: sum(1 for s in S.truth.states if s.block == b) for _, b in r.variants if b}
+        for k, step in enumerate(rs):
+            nom = ms[0]
+            for (variant, block), m in zip(r.variants, ms):
+                row = {"filter": name, "t [min]": S.t[step] / 60.0, "variant": variant,
+                       "block": block or "", "block states": nstates.get(block, 0),
+                       "CEP [ft]": m["cep"][k] / FT, "alt PE [ft]": m["alt_pe"][k] / FT,
+                       "azimuth 1sigma [arcmin]": m["sigma_azimuth"][k] / ARCMIN,
+                       "CEP / nominal [-]": m["cep"][k] / nom["cep"][k],
+                       "alt PE / nominal [-]": m["alt_pe"][k] / nom["alt_pe"][k],
+                       "azimuth / nominal [-]": m["sigma_azimuth"][k] / nom["sigma_azimuth"][k]}
+                if "A" in metrics:
+                    row["CEP / A [-]"] = m["cep"][k] / metrics["A"]["cep"][step]
+                    row["alt PE / A [-]"] = m["alt_pe"][k] / metrics["A"]["alt_pe"][step]
+                row["filter noise vs its own Q_f (max rel.)"] = r.noise_check
+                rows.append(row)
+        if bar is not None:
+            bar.update(1)
+    return pd.DataFrame(rows)

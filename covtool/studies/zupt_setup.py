@@ -1,0 +1,289 @@
+"""The ZUPT study setup shared by every ZUPT study kind: schedule, truth, filters on one grid.
+
+:func:`setup` validates the ``[study]``, ``[trajectory]``, ``[truth]``,
+``[filters]`` and ``[zupt]`` tables once and builds a :class:`ZuptSetup`
+(the truth's Φ and Q_d on the grid, the ZUPT update steps, the filters'
+models), used by the filter-order, sensitivity, budget, Monte Carlo,
+trade-grid and magnitude-sweep runners.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from covtool.errors import StudyFileError
+from covtool.io.config import boolean, check_keys, names, quantity, resolve_input, table
+from covtool.io.filters import default_filter_file, load_filters
+from covtool.lincov.dynamics import dyn_key, error_dynamics
+from covtool.lincov.kalman import check_system
+from covtool.lincov.reduced import build_filter, zupt_matrices
+from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
+from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header
+from covtool.studies.resources import check_memory, memory_estimate, noise_columns, steps_of
+
+
+ZUPT_KEYS = {"interval", "duration", "rate", "sigma", "first"}
+
+
+def zupt_options(cfg: dict, where: str, dt: float, duration: float) -> dict:
+    """Validate ``[zupt]`` against the grid step ``dt`` and the study ``duration`` [s].
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key, bad unit or sign, a window not shorter than the
+        interval, an interval shorter than ``dt``, a rate above ``1/dt``
+        (at most one update per propagation step) or a first ZUPT after the
+        end of the study.
+    """
+    w = f"{where}: [zupt]"
+    table(cfg, w, StudyFileError)
+    check_keys(cfg, ZUPT_KEYS, w, StudyFileError)
+    o = {
+        "interval": quantity(cfg.get("interval", "5 min"), "time", f"{w} interval", StudyFileError, positive=True),
+        "duration": quantity(cfg.get("duration", "30 s"), "time", f"{w} duration", StudyFileError,
+                             nonnegative=True),
+        "rate": quantity(cfg.get("rate", "1 Hz"), "frequency", f"{w} rate", StudyFileError, positive=True),
+        # σ = 0 makes S = H P_f Hᵀ + R of eq (7) singular once P_f's velocity block is (a previous
+        # exact ZUPT leaves it zero): the gain is undefined, so the noise must be positive
+        "sigma": quantity(cfg.get("sigma", "0.01 ft/s"), "velocity", f"{w} sigma", StudyFileError, positive=True),
+    }
+    o["first"] = quantity(cfg.get("first", cfg.get("interval", "5 min")), "time", f"{w} first", StudyFileError,
+                          positive=True)
+    if o["duration"] >= o["interval"]:
+        raise StudyFileError(f"{w} duration", f"the ZUPT window ({o['duration']:g} s) must be shorter than the "
+                             "interval")
+    if o["interval"] < dt * (1 - 1e-9):
+        raise StudyFileError(f"{w} interval", f"{o['interval']:g} s is shorter than the propagation step dt = "
+                             f"{dt:g} s")
+    if o["rate"] * dt > 1 + 1e-9:
+        raise StudyFileError(f"{w} rate", f"{o['rate']:g} Hz is more than one update per propagation step "
+                             f"(dt = {dt:g} s, at most {1 / dt:g} Hz)")
+    if o["first"] > duration + 1e-9:
+        raise StudyFileError(f"{w} first", f"the first ZUPT ({o['first']:g} s) is after the end of the study "
+                             f"({duration:g} s): nothing would be aided")
+    return o
+
+
+def zupt_update_count(o: dict, duration: float) -> int:
+    """Number of ZUPT updates of validated :func:`zupt_options` ``o`` in a study of ``duration`` [s]."""
+    if o["first"] > duration + 1e-9:
+        return 0
+    windows = int(np.floor((duration - o["first"]) / o["interval"] + 1e-9)) + 1
+    return windows * (int(np.floor(o["duration"] * o["rate"] + 1e-9)) + 1)
+
+
+def zupt_schedule(cfg: dict, where: str, t: np.ndarray, traj) -> tuple[np.ndarray, float, float]:
+    """Grid indices of the ZUPT updates, the interval Δt_s and R's σ.
+
+    Raises
+    ------
+    StudyFileError
+        Bad keys, units or ranges (:func:`zupt_options`), update times off
+        the grid, or an update outside the trajectory's stationary intervals
+        (the message names the time and the nearest stationary interval).
+    """
+    w = f"{where}: [zupt]"
+    dt = t[1] - t[0]
+    o = zupt_options(cfg, where, dt, t[-1])
+    interval, dur, rate, sigma, first = o["interval"], o["duration"], o["rate"], o["sigma"], o["first"]
+    ends = np.arange(first, t[-1] + 1e-9, interval)
+    times = []
+    for e in ends:
+        n = int(np.floor(dur * rate + 1e-9))
+        times.extend(e - np.arange(n, -1, -1) / rate)
+    times = np.array(times)
+    idx = np.round(times / dt).astype(int)
+    if np.any(np.abs(idx * dt - times) > 1e-6 * dt) or np.any(idx >= t.size) or np.any(idx < 0):
+        bad = times[np.argmax(np.abs(idx * dt - times) + (idx < 0) * dt)]
+        raise StudyFileError(f"{w} rate", f"update time {bad:g} s is not on the {dt:g} s propagation grid; "
+                             "choose a rate that divides 1/dt")
+    stat = traj.stationary_mask(times)
+    if not np.all(stat):
+        bad = times[~stat][0]
+        iv = traj.stationary
+        near = min(iv, key=lambda ab: min(abs(bad - ab[0]), abs(bad - ab[1]))) if iv else None
+        hint = f"nearest stationary interval [{near[0]:g}, {near[1]:g}] s" if near else "the trajectory never stops"
+        raise StudyFileError(w, f"ZUPT at t = {bad:g} s is outside the trajectory's stationary intervals ({hint})")
+    return idx, interval, sigma
+
+
+def filters_file(cfg, where, base_dir) -> Path:
+    if "file" not in cfg:
+        return default_filter_file()
+    # relative to the study file that names it, never the current directory
+    return resolve_input(cfg["file"], base_dir, f"{where}: [filters] file", StudyFileError, what="filter file")
+
+
+def filter_cases(fcfg: dict, specs: dict, ffile, where: str, *, nonempty: bool = False) -> list:
+    """``[filters] cases``: declared filter names, each once (default: every filter).
+
+    An empty list is allowed unless ``nonempty`` (a pure-INS-only run).
+    """
+    if "cases" not in fcfg:
+        return list(specs)
+    return names(fcfg["cases"], f"{where}: [filters] cases", StudyFileError, known=list(specs), nonempty=nonempty,
+                 what="filter")
+
+
+def filter_dynamics(specs: dict, cases) -> int:
+    """Distinct truth dynamics the cases need (the truth's own and one per other NavOptions)."""
+    return len({dyn_key(None)} | {dyn_key(specs[c].options) for c in cases})
+
+
+@dataclass
+class ZuptSetup:
+    """Everything a ZUPT study shares between its cases (truth system, schedule, filters).
+
+    Built by :func:`setup`; used by the filter-order, sensitivity, budget and
+    trade-grid studies.  Filter models and their discretisation are built on
+    demand and cached (:meth:`filter_model`).
+    """
+
+    hdr: dict
+    where: str
+    t: np.ndarray
+    nodes: object
+    truth: object
+    ctx: object
+    dyn: object
+    Phi: np.ndarray
+    Qd: np.ndarray
+    P0: np.ndarray
+    H: np.ndarray
+    R: np.ndarray
+    update_steps: np.ndarray
+    zupt_interval: float
+    zupt_sigma: float
+    specs: dict
+    cases: list
+    mean_speed: float | None
+    filter_file: Path
+    every: float
+    report_times: list
+    resources: dict = field(default_factory=dict)
+    _dyn_cache: dict = field(default_factory=dict)
+    _filters: dict = field(default_factory=dict)
+
+    def filter_system(self, name: str, discretization: str | None = None):
+        """``(FilterModel, Φ_f, Q_f, reused)`` of a declared filter, cached.
+
+        Parameters
+        ----------
+        name : str
+            Declared filter.
+        discretization : {None, "declared", "taylor", "van_loan"}
+            Override of the filter's declared discretisation (sweeps).
+
+        Notes
+        -----
+        A filter with exactly the truth's F and Q_c, discretised by the
+        truth's method (filter A with the same method), has the truth's Φ and
+        Q_d: they are returned as they are (``reused = True``), not computed again.
+        """
+        ckey = (name, None if discretization == "declared" else discretization)
+        if ckey not in self._filters:
+            spec = self.specs[name]
+            if ckey[1] is not None:
+                spec = dataclasses.replace(spec, discretization=ckey[1])
+            key = dyn_key(spec.options)
+            if key not in self._dyn_cache:
+                self._dyn_cache[key] = self.dyn if key == dyn_key(None) else error_dynamics(
+                    self.truth, self.ctx, spec.options)
+            fm = build_filter(spec, self.truth, self.ctx, zupt_interval=self.zupt_interval,
+                              q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
+                              mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
+                              update_steps=self.update_steps)
+            same_method = spec.discretization == self.hdr["discretization"] and (
+                spec.discretization == "van_loan" or spec.taylor_order is None)
+            if same_method and fm.F.shape == self.dyn.F.shape and np.array_equal(fm.F, self.dyn.F) \
+                    and np.array_equal(fm.Qc, self.dyn.Qc):
+                self._filters[ckey] = (fm, self.Phi, self.Qd, True)
+            else:
+                Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(self.t), spec.discretization,
+                                                 spec.taylor_order, what=f"{spec.path}: filter {name!r}",
+                                                 times=self.t[:-1])
+                # guarded once here; the runs that use them are told so (system_checked)
+                check_system(f"{self.where}: filter {name}", Phi_f, Qd_f, names=fm.names, times=self.t)
+                self._filters[ckey] = (fm, Phi_f, Qd_f, False)
+        return self._filters[ckey]
+
+    def filter_model(self, name: str):
+        """``(FilterModel, Φ_f, Q_f)`` of a declared filter, cached (see :meth:`filter_system`)."""
+        return self.filter_system(name)[:3]
+
+    def filter_R(self, name: str) -> np.ndarray:
+        """The measurement noise the filter assumes (its ``zupt_sigma`` or the study's)."""
+        zs = self.specs[name].zupt_sigma
+        return np.eye(3) * (zs if zs is not None else self.zupt_sigma) ** 2
+
+
+def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), memory=None,
+          shrink: str = "a larger [study] dt, a shorter duration or fewer [filters] cases") -> ZuptSetup:
+    """Validate a ZUPT study declaration and build the shared truth system.
+
+    Parameters
+    ----------
+    memory : callable, optional
+        ``memory(steps, truth, filter_sizes, dynamics) -> dict`` from
+        :func:`covtool.studies.resources.memory_estimate`: what the calling
+        study holds at its peak.  Checked against the memory limit before
+        anything is built; ``None`` skips the check (a worker of a plan
+        that was checked as a whole).
+    shrink : str
+        The options that shrink the study, for the refusal message.
+    """
+    where = str(path) if path else "<study>"
+    base_dir = path.parent if path else None
+    check_keys(decl, {"study", "trajectory", "truth", "filters", "zupt", "output", *extra_sections}, where,
+               StudyFileError)
+    hdr = study_header(decl, where)
+    every, rtimes = output_options(decl, where, hdr["duration"])
+    fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
+    check_keys(fcfg, {"file", "cases", "pure_ins"}, f"{where}: [filters]", StudyFileError)
+    if "pure_ins" in fcfg:
+        boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
+    zupt_options(table(decl.get("zupt", {}), f"{where}: [zupt]", StudyFileError), where, hdr["dt"],
+                 hdr["duration"])
+    truth = load_truth(decl, where, base_dir)
+    ffile = filters_file(fcfg, where, base_dir)
+    specs = load_filters(ffile, truth)
+    cases = filter_cases(fcfg, specs, ffile, where)
+    est = {}
+    if memory is not None:
+        est = check_memory(memory(steps_of(hdr["duration"], hdr["dt"]), truth, [specs[c].n for c in cases],
+                                  filter_dynamics(specs, cases)), where, hdr["max_memory"], shrink)
+    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
+    t = time_grid(hdr["duration"], hdr["dt"], where)
+    upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
+    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
+    nodes = traj.sample(t)
+    P0 = initial_covariance(truth, nodes, where)
+    moving = t[-1] - t[0] - sum(max(0.0, min(b, t[-1]) - max(a, t[0])) for a, b in traj.stationary)
+    mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
+    H = zupt_matrices(truth.names)
+    R = np.eye(3) * zsig**2
+    return ZuptSetup(hdr, where, t, nodes, truth, ctx, dyn, Phi, Qd, P0, H, R, upd, dt_s, zsig, specs, cases,
+                     mean_speed, ffile, every, rtimes, est)
+
+
+def order_memory(pure: bool, impact: bool = True):
+    """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter).
+
+    With the dropped-state impact table (``impact``) it also holds, per
+    filter in turn, the truth transition under the filter's options and
+    the per-source noise series (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).
+    """
+    from covtool.lincov.noise import COMPOSE_WORKSPACE
+
+    def memory(steps, truth, filters, dynamics):
+        n = truth.n
+        hist = ([n] if pure else []) + [m for nf in filters for m in (n, nf)]
+        extra = COMPOSE_WORKSPACE + 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
+        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=hist,
+                               noise=noise_columns(truth), extra=extra)
+    return memory

@@ -1,0 +1,314 @@
+"""The feedback filter of the Monte Carlo ensemble (seed 002, Fig 1, eq (6)–(10)).
+
+*Covariance and gain.*  The filter propagates its covariance with its own
+model, ``P_f ← Φ_f P_f Φ_fᵀ + Q_f`` (eq (6a)–(6d)), and at a ZUPT computes
+``K = P_f H_fᵀ (H_f P_f H_fᵀ + R_f)⁻¹`` (eq (7)) and updates ``P_f`` (eq (8)
+or Joseph) with the kernel (:mod:`covtool.lincov.kalman`).  ``F_f`` is
+evaluated along the **reference trajectory**, not along each run's own
+navigation solution.  The two differ by the navigation errors (feet,
+arcminutes), a second-order change of the gains; with the reference the
+covariance and the gains are the same for every run, so they are computed
+once for the whole ensemble (:meth:`FeedbackFilter.design`), and the
+ensemble tests exactly what the linear analysis assumes (eq (16) takes
+``K`` from one filter covariance history).
+
+*Measurement.*  At a ZUPT the vehicle is known to stand still, so the
+measurement is the INS velocity itself, ``z = v̂^n − 0 + ν``, ``ν ~ N(0, R)``
+with the *study's* (true) ``R``; the filter's gain may assume another
+``R_f``.  The estimate is ``x̂ = K z``: the filter's prior estimate is zero
+because every earlier estimate was fed back (eq (9)).
+
+*Feedback* (eq (10), ``x ← x − D x̂``):
+
+* navigation states: :func:`covtool.nav.strapdown.correct` subtracts
+  ``(δL̂, δl̂, δĥ, δv̂, δq̂)`` from the navigation state (quaternion
+  renormalised);
+* sensor and environment states: every run keeps an accumulated estimate
+  ``ĉ`` of each sensor state its filter carries (:class:`SensorFeedback`);
+  an update adds ``x̂_s`` to ``ĉ``.  Every IMU sample is then compensated
+  through the same block sensitivities that inject the errors
+  (:mod:`covtool.lincov.model.blocks`, :class:`covtool.validation.sensor_errors.SensorErrors`)::
+
+      Δθ_c = Δθ − h S_g(f̄, ω̄) ĉ_g,     Δv_c = Δv − h S_a(f̄, ω̄) ĉ_a
+             − h C_n^b diag(g, g, −1) ĉ_grav − Δĉ_AD
+
+  with ``f̄ = Δv/h``, ``ω̄ = Δθ/h`` the raw measured sample means (what an
+  on-board system has).  The residual sensor error is then
+  ``S (x − ĉ)`` to first order: the truth state after feedback is
+  ``x − ĉ``, exactly the ``x ← x − x̂`` of eq (10).
+* Between updates ``ĉ`` follows the *mean* dynamics of its state, so that
+  ``x − ĉ`` obeys the truth model's ``ẋ = F x + w``: random constants and
+  random walks stay, first-order Markov states decay as ``e^{−Δt/τ}``
+  (in distance: ``e^{−Δd/d}``).  The AD-reset state is a velocity error
+  whose rate is a specific-force error, so only the *change* of ``ĉ``
+  between updates is subtracted from the increments, never its jump at an
+  update.  The gravity term is rotated with the reference attitude (an
+  on-board system would use its own; the difference is arcmin × µGal).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from covtool.errors import NumericalError
+from covtool.lincov.kalman import (check_covariance, check_system, filter_update, kalman_gain, symmetrize,
+                                   time_text)
+from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
+from covtool.lincov.reduced import zupt_matrices
+from covtool.nav import attitude as quat, earth
+from covtool.nav.strapdown import NAV_STATES
+
+__all__ = [
+    "FeedbackFilter", "SensorFeedback", "RecordContext",
+]
+
+
+# --------------------------------------------------------------------------
+# the filter (covariance and gains: the same for every run)
+# --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FeedbackFilter:
+    """A ZUPT feedback filter's gain schedule and claimed covariance.
+
+    Attributes
+    ----------
+    name : str
+    names : tuple of str
+        The filter's states (truth state names, seed 002 eq (14) order first).
+    gains : dict of int to ndarray, shape (n_f, 3)
+        ``K`` at each update grid index (eq (7)).
+    P : ndarray, shape (N+1, n_f, n_f)
+        The filter's own (claimed) covariance at every grid time, posterior
+        at update times.
+    """
+
+    name: str
+    names: tuple
+    gains: dict
+    P: np.ndarray
+
+    @classmethod
+    def design(cls, name, names, Phi_f, Qd_f, P0, Rf, update_steps, *, form: str = "joseph",
+               times=None) -> "FeedbackFilter":
+        """Run the filter's covariance recursion (seed 002, eq (6)–(8)).
+
+        Parameters
+        ----------
+        name : str
+        names : sequence of str
+            Filter state names (must contain the velocity states).
+        Phi_f, Qd_f : ndarray, shape (N, n_f, n_f)
+            The filter's own transition and noise along the reference
+            trajectory (eq (6b)–(6d)).
+        P0 : ndarray, shape (n_f, n_f)
+        Rf : ndarray, shape (3, 3)
+            Measurement noise the filter assumes.
+        update_steps : iterable of int
+            Grid indices of the ZUPT updates.
+        form : {"joseph", "standard"}
+        times : ndarray, shape (N+1,), optional
+            Grid times, for error messages. [s]
+
+        Returns
+        -------
+        FeedbackFilter
+
+        Raises
+        ------
+        NumericalError
+            An input (P0, Φ_f, Q_f, R_f) or a covariance of the history is
+            not finite, symmetric and PSD (:func:`covtool.lincov.kalman.check_covariance`);
+            the message names the filter, the time and the state.
+
+        Notes
+        -----
+        The operations are those of
+        :func:`covtool.lincov.reference.propagate_with_filter`, in the same order,
+        so ``P`` and ``gains`` equal its ``P_filter`` and ``gains`` bit for bit.
+        """
+        names = tuple(names)
+        Hf = zupt_matrices(names)
+        N, nf, _ = Phi_f.shape
+        if nf != len(names):
+            raise ValueError(f"filter {name!r}: Phi_f has {nf} states, names has {len(names)}")
+        label = f"Monte Carlo filter {name}"
+        check_system(label, Phi=Phi_f, Qd=Qd_f, P0=P0, R=Rf, names=names, times=times)
+        upd = set(int(k) for k in update_steps)
+        P = np.full((N + 1, nf, nf), np.nan)
+        gains = {}
+        Pf = symmetrize(np.asarray(P0, float))
+        k = 0
+        try:
+            with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported by the guard
+                for k in range(N + 1):
+                    if k in upd:
+                        K = kalman_gain(Pf, Hf, Rf)
+                        gains[k] = K
+                        Pf = filter_update(Pf, K, Hf, Rf, form)
+                    P[k] = Pf
+                    if k < N:
+                        Pf = symmetrize(Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k])
+        except NumericalError as exc:
+            check_covariance(P[:k], label, names=names, times=times)
+            when = time_text(float(times[k])) if times is not None else f"step {k}"
+            raise NumericalError(f"{label}: gain at {when}: {exc}") from None
+        check_covariance(P, label, names=names, times=times)
+        return cls(name, names, gains, P)
+
+
+# --------------------------------------------------------------------------
+# sensor-error feedback into the IMU increments
+# --------------------------------------------------------------------------
+
+
+@dataclass
+class _Block:
+    kind: str
+    sensor: str
+    sensitivity: object
+    cols: np.ndarray        # columns within the block kept by the filter
+    idx: np.ndarray         # positions in the feedback vector
+
+
+class SensorFeedback:
+    """Accumulated sensor-error estimates of M runs, fed back.
+
+    Parameters
+    ----------
+    model : covtool.lincov.model.spec.Model
+        The truth model (states, blocks, processes).
+    names : sequence of str
+        The filter's states; the non-navigation ones are fed back here.
+    n_runs : int
+
+    Attributes
+    ----------
+    names : tuple of str
+        The fed-back states, in filter order.
+    c : ndarray, shape (M, n_s)
+        Accumulated estimate ``ĉ`` of each state at the current time.
+    """
+
+    def __init__(self, model, names, n_runs: int):
+        self.names = tuple(n for n in names if n not in NAV_STATES)
+        ix = model.index
+        for n in self.names:
+            if n not in ix:
+                raise ValueError(f"filter state {n!r} is not a state of truth model {model.name!r}")
+        self.c = np.zeros((int(n_runs), len(self.names)))
+        pos = {n: j for j, n in enumerate(self.names)}
+        self.blocks: list[_Block] = []
+        for block in model.block_names():
+            members = [s for s in model.states if s.block == block]
+            kept = [(k, pos[s.name]) for k, s in enumerate(members) if s.name in pos]
+            if not kept or members[0].kind == "navigation":
+                continue
+            bk = BLOCK_KINDS[members[0].kind]
+            self.blocks.append(_Block(bk.kind, bk.sensor, bk.sensitivity, np.array([k for k, _ in kept]),
+                                      np.array([j for _, j in kept])))
+        states = [model.states[ix[n]] for n in self.names]
+        self.tau = np.array([s.tau if s.process == "markov" else np.inf for s in states])
+        self.dist = np.array([s.distance if s.process == "markov_distance" else np.inf for s in states])
+        self.dynamic = np.isfinite(self.tau) | np.isfinite(self.dist)
+        self.needs_context = any(b.sensor == "gravity" for b in self.blocks) or bool(np.isfinite(self.dist).any())
+
+    @property
+    def n(self) -> int:
+        return len(self.names)
+
+    def add(self, dx) -> None:
+        """Accumulate the estimates of one update, ``ĉ ← ĉ + x̂_s``."""
+        self.c = self.c + dx
+
+    def _factors(self, t_rel, d_rel):
+        """Mean-dynamics factors ``e^{−t/τ − d/D}``, shape (k, n_s)."""
+        with np.errstate(divide="ignore"):
+            return np.exp(-np.asarray(t_rel)[:, None] / self.tau[None, :]
+                          - np.asarray(d_rel)[:, None] / self.dist[None, :])
+
+    def compensate(self, dtheta, dv, h: float, ctx: "RecordContext | None" = None):
+        """Compensated increments of one record; advances ``ĉ`` to its end.
+
+        Parameters
+        ----------
+        dtheta, dv : ndarray, shape (M, k, 3)
+            Raw increments of the record. [rad], [m/s]
+        h : float
+            Sample period. [s]
+        ctx : RecordContext, optional
+            Reference attitude, gravity and distance in the record (needed
+            for gravity-disturbance and Markov-in-distance states).
+
+        Returns
+        -------
+        dtheta_c, dv_c : ndarray, shape (M, k, 3)
+        """
+        if not self.n:
+            return dtheta, dv
+        M, k, _ = dtheta.shape
+        if self.needs_context and ctx is None:
+            raise ValueError("gravity-disturbance and Markov-in-distance feedback need the record context")
+        t_mid = (np.arange(k) + 0.5) * h
+        t_edge = np.arange(k + 1) * h
+        d_mid = ctx.d_mid if ctx is not None else np.zeros(k)
+        d_edge = ctx.d_edge if ctx is not None else np.zeros(k + 1)
+        dyn = self.dynamic.any()
+        f_mid = self._factors(t_mid, d_mid) if dyn else None            # (k, n_s)
+        f_edge = self._factors(t_edge, d_edge) if dyn else None         # (k+1, n_s)
+        fbar = (dv / h).reshape(M * k, 3)
+        wbar = (dtheta / h).reshape(M * k, 3)
+        corr = {"gyro": np.zeros((M, k, 3)), "accel": np.zeros((M, k, 3))}
+        ad = np.zeros((M, k, 3))
+        for b in self.blocks:
+            c = self.c[:, b.idx]                                       # (M, nb)
+            if b.sensor == "ad_reset":
+                # δΔv = Δe per sample: the change of ĉ under its mean dynamics
+                step = f_edge[1:, b.idx] - f_edge[:-1, b.idx]          # (k, nb)
+                for j, col in enumerate(b.cols):
+                    ad[:, :, col] += c[:, j, None] * step[None, :, j]
+                continue
+            cs = c[:, None, :] * f_mid[None, :, b.idx] if self.dynamic[b.idx].any() else c[:, None, :]
+            if b.sensor == "gravity":
+                S = ctx.gravity_sensitivity[:, :, b.cols]             # (k, 3, nb)
+                corr["accel"] += np.einsum("kin,mkn->mki", S, np.broadcast_to(cs, (M, k, b.idx.size)))
+                continue
+            S = b.sensitivity(fbar, wbar).reshape(M, k, 3, -1)[..., b.cols]
+            corr[b.sensor] += np.einsum("mkin,mkn->mki", S, np.broadcast_to(cs, (M, k, b.idx.size)))
+        if dyn:
+            self.c = self.c * f_edge[-1][None, :]
+        return dtheta - h * corr["gyro"], dv - h * corr["accel"] - ad
+
+
+@dataclass(frozen=True)
+class RecordContext:
+    """Reference quantities inside one record (shared by all runs).
+
+    Attributes
+    ----------
+    d_mid, d_edge : ndarray, shape (k,), (k+1,)
+        Distance travelled since the record start at the sample mid-points
+        and edges. [m]
+    gravity_sensitivity : ndarray, shape (k, 3, 3)
+        ``C_n^b diag(g, g, −1)`` at the sample mid-points (reference
+        attitude and normal gravity).
+    """
+
+    d_mid: np.ndarray
+    d_edge: np.ndarray
+    gravity_sensitivity: np.ndarray
+
+    @classmethod
+    def along(cls, traj, t0: float, h: float, k: int, mounting=None) -> "RecordContext":
+        """Context of ``k`` samples of period ``h`` from ``t0``."""
+        te = t0 + h * np.arange(k + 1)
+        tm = t0 + h * (np.arange(k) + 0.5)
+        hi = float(traj.t[-1])
+        se = traj.sample(np.minimum(te, hi))
+        sm = traj.sample(np.minimum(tm, hi))
+        q = sm.q_nb if mounting is None else quat.mul(sm.q_nb, mounting)
+        S = np.einsum("kji,kjl->kil", quat.dcm(q), gravity_sensitivity(earth.gravity(sm.lat, sm.h)))
+        return cls(sm.distance - se.distance[0], se.distance - se.distance[0], S)

@@ -1,0 +1,315 @@
+"""Monte Carlo validation: real feedback filters on a simulated INS.
+
+Pure numeric core (arrays in, arrays out): an ensemble of M nonlinear
+strapdown INS runs (:mod:`covtool.nav.strapdown`) driven by an IMU simulator
+(:mod:`covtool.nav.imu.simulator`) with errors drawn from a truth model
+(:mod:`covtool.validation.sensor_errors`), each optionally aided by a reduced
+ZUPT Kalman filter that runs as a *real* indirect feedback filter (seed 002,
+Fig 1, eq (6)–(10); :mod:`covtool.validation.feedback`).  For every case and
+grid time the ensemble sums ``Σx`` and ``Σx²`` of the NED position errors,
+the velocity errors and the attitude errors (``φ = −2R(q)ᵀδq``) are kept
+(:class:`EnsembleSums`, additive over chunks of runs), and the sums of NEES
+values of the filter's claimed covariance and of the linear analysis's
+truth covariance (:class:`covtool.analysis.consistency.Nees`); the χ² bounds
+they are compared with are in :mod:`covtool.analysis.consistency`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from covtool.analysis.consistency import REDUCED_NAV
+from covtool.nav import attitude as quat, earth, strapdown as sd
+from covtool.validation.feedback import FeedbackFilter, RecordContext, SensorFeedback
+
+__all__ = [
+    "QUANTITIES", "EnsembleCase", "EnsembleSums", "run_ensemble", "simulate_chunk",
+]
+
+
+#: quantities summed per grid time: NED position [m], NED velocity [m/s], tilts and azimuth [rad]
+QUANTITIES = ("north", "east", "down", "vn", "ve", "vd", "tilt_n", "tilt_e", "azimuth")
+
+
+_NAV = sd.NAV_STATES
+
+
+@dataclass(frozen=True)
+class EnsembleCase:
+    """One case of an ensemble run.
+
+    Attributes
+    ----------
+    name : str
+    filter : FeedbackFilter or None
+        None: pure (unaided) INS.  Only ``names`` and ``gains`` are used
+        here (``P`` may be empty); see :meth:`FeedbackFilter.design`.
+    nees : dict of str to Nees
+        NEES specifications to accumulate, e.g. ``{"filter": …, "truth": …}``.
+    """
+
+    name: str
+    filter: FeedbackFilter | None = None
+    nees: dict = field(default_factory=dict)
+
+
+@dataclass
+class EnsembleSums:
+    """Ensemble sums of one case, additive over chunks of runs.
+
+    Attributes
+    ----------
+    n_runs : int
+    s1, s2 : ndarray, shape (N+1, 9)
+        ``Σ x`` and ``Σ x²`` over runs of :data:`QUANTITIES` at each grid time.
+    s_ne : ndarray, shape (N+1,)
+        ``Σ δN δE``.
+    nees : dict of str to ndarray, shape (J,)
+        ``Σ ε`` over runs at the NEES steps.
+    """
+
+    n_runs: int
+    s1: np.ndarray
+    s2: np.ndarray
+    s_ne: np.ndarray
+    nees: dict = field(default_factory=dict)
+
+    @classmethod
+    def zeros(cls, n_times: int, nees: dict | None = None) -> "EnsembleSums":
+        z = len(QUANTITIES)
+        return cls(0, np.zeros((n_times, z)), np.zeros((n_times, z)), np.zeros(n_times),
+                   {k: np.zeros(v.steps.size) for k, v in (nees or {}).items()})
+
+    def __add__(self, other: "EnsembleSums") -> "EnsembleSums":
+        return EnsembleSums(self.n_runs + other.n_runs, self.s1 + other.s1, self.s2 + other.s2,
+                            self.s_ne + other.s_ne, {k: self.nees[k] + other.nees[k] for k in self.nees})
+
+    def to_json(self) -> dict:
+        return {"n_runs": self.n_runs, "s1": self.s1.tolist(), "s2": self.s2.tolist(), "s_ne": self.s_ne.tolist(),
+                "nees": {k: v.tolist() for k, v in self.nees.items()}}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "EnsembleSums":
+        return cls(int(d["n_runs"]), np.array(d["s1"], float), np.array(d["s2"], float), np.array(d["s_ne"], float),
+                   {k: np.array(v, float) for k, v in d["nees"].items()})
+
+    def rms(self, quantity: str) -> np.ndarray:
+        """Ensemble RMS about zero of a quantity.
+
+        One of :data:`QUANTITIES`, or ``"horizontal"`` (radial).
+        """
+        if quantity == "horizontal":
+            return np.sqrt((self.s2[:, 0] + self.s2[:, 1]) / self.n_runs)
+        return np.sqrt(self.s2[:, QUANTITIES.index(quantity)] / self.n_runs)
+
+    def mean(self, quantity: str) -> np.ndarray:
+        """Ensemble mean of one of :data:`QUANTITIES`."""
+        return self.s1[:, QUANTITIES.index(quantity)] / self.n_runs
+
+
+def _truth_frames(traj, t, mounting=None):
+    tr = sd.truth_state(traj, t, mounting=mounting)
+    rm, rn = earth.radii(tr.lat)
+    return tr, rm + tr.h, (rn + tr.h) * np.cos(tr.lat), quat.attitude_error_matrix(tr.q)
+
+
+def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measurement_noise: bool = True,
+                 model=None, record_errors: bool = False):
+    """Run every case of an ensemble in lock step on shared IMU data.
+
+    Parameters
+    ----------
+    sim : covtool.nav.imu.simulator.ImuSimulator
+        Raw IMU increments of the M runs (sensor errors included); one pass
+        of its records drives every case, so all cases see the same sensor
+        realisations (common random numbers).
+    x0 : ndarray, shape (M, n_truth)
+        The truth states of the runs (initial navigation errors in the first
+        ten columns; random-constant sensor states for NEES).
+    cases : sequence of EnsembleCase
+    t : ndarray, shape (N+1,)
+        Uniform grid of the linear analysis: updates and statistics at
+        these times. [s]
+    samples_per_step : int
+        IMU samples per navigation step n (``dt·rate`` must be a multiple).
+    R : ndarray, shape (3, 3)
+        True ZUPT measurement noise. [m²/s²]
+    rng : numpy.random.Generator or int, optional
+        Measurement noise (one draw per update, shared by the cases).
+    measurement_noise : bool
+        False: noise-free ZUPTs (deterministic checks).
+    model : covtool.lincov.model.spec.Model
+        The truth model (required when a filter feeds back sensor states or
+        NEES involves them).
+    record_errors : bool
+        Also return the navigation errors of every run at every grid time
+        (memory ``(N+1)·M·10`` per case; for tests).
+
+    Returns
+    -------
+    sums : dict of str to EnsembleSums
+    errors : dict of str to ndarray, shape (N+1, M, 10)
+        Only if ``record_errors``.
+    """
+    rng = np.random.default_rng(rng)
+    t = np.asarray(t, float)
+    dt = float(t[1] - t[0])
+    if not np.allclose(np.diff(t), dt, rtol=0, atol=1e-9 * dt):
+        raise ValueError("the Monte Carlo grid must be uniform")
+    h = sim.dt
+    per_step = dt / h
+    spr = int(round(per_step))
+    n = int(samples_per_step)
+    if abs(per_step - spr) > 1e-6 or spr % n:
+        raise ValueError(f"a grid step of {dt:g} s holds {per_step:g} IMU samples, not a multiple of "
+                         f"{n} samples per navigation step")
+    if abs(sim.t0 - t[0]) > 1e-9 or sim.t0 + sim.n_samples * h < t[-1] - 1e-6 * h:
+        raise ValueError("the IMU simulator does not cover the grid")
+    M = sim.n_runs
+    C = len(cases)
+    x0 = np.asarray(x0, float)
+    N = t.size - 1
+    tr, rmh, rnhc, Aq = _truth_frames(sim.traj, t, sim.mounting)
+    Lr = np.linalg.cholesky(np.asarray(R, float)) if measurement_noise else None
+    # all cases in one navigation state: case i holds rows i·M … (i+1)·M − 1, so one strapdown
+    # step advances every run of every case (the step cost is mostly per call, not per run)
+    s0 = sim.initial_state(x0[:, :10])
+    state = sd.NavState(s0.t, *(np.concatenate([a] * C) for a in (s0.lat, s0.lon, s0.h, s0.v_n, s0.q,
+                                                                   s0.dtheta_prev, s0.dv_prev)))
+    run = []
+    for i, c in enumerate(cases):
+        f = c.filter
+        fb = SensorFeedback(model, f.names, M) if f is not None and any(nm not in _NAV for nm in f.names) else None
+        run.append({"case": c, "rows": slice(i * M, (i + 1) * M), "fb": fb,
+                    "nav_cols": [f.names.index(nm) if nm in f.names else -1 for nm in _NAV] if f else None,
+                    "sens_cols": [f.names.index(nm) for nm in fb.names] if fb is not None else [],
+                    "sums": EnsembleSums.zeros(N + 1, c.nees),
+                    "nees_pos": {key: {int(st): j for j, st in enumerate(v.steps)} for key, v in c.nees.items()},
+                    "errors": np.empty((N + 1, M, 10)) if record_errors else None})
+    upd_steps = sorted({k for c in cases if c.filter is not None for k in c.filter.gains})
+    noise = {k: rng.standard_normal((M, 3)) @ Lr.T for k in upd_steps} if Lr is not None else {}
+    need_ctx = any(r["fb"] is not None and r["fb"].needs_context for r in run)
+    truth_idx = model.index if model is not None else {}
+
+    def observe(k):
+        ti = sd.NavState(float(t[k]), tr.lat[k:k + 1], tr.lon[k:k + 1], tr.h[k:k + 1], tr.v_n[k:k + 1],
+                         tr.q[k:k + 1], np.zeros((1, 3)), np.zeros((1, 3)))
+        E = sd.nav_errors(state, ti)
+        PHI = E[:, 6:10] @ Aq[k].T
+        X_all = np.column_stack([E[:, 0] * rmh[k], E[:, 1] * rnhc[k], -E[:, 2], E[:, 3:6], PHI])
+        for r in run:
+            e, phi, X = E[r["rows"]], PHI[r["rows"]], X_all[r["rows"]]
+            if r["errors"] is not None:
+                r["errors"][k] = e
+            s = r["sums"]
+            s.s1[k] += X.sum(axis=0)
+            s.s2[k] += (X * X).sum(axis=0)
+            s.s_ne[k] += float(np.dot(X[:, 0], X[:, 1]))
+            for key, spec in r["case"].nees.items():
+                j = r["nees_pos"][key].get(k)
+                if j is None:
+                    continue
+                vec = np.empty((M, len(spec.labels)))
+                for col, lab in enumerate(spec.labels):
+                    if lab in REDUCED_NAV[:6]:
+                        vec[:, col] = e[:, _NAV.index(lab)]
+                    elif lab in ("phiN", "phiE", "phiD"):
+                        vec[:, col] = phi[:, "NED".index(lab[-1])]
+                    else:
+                        fb = r["fb"]
+                        est = fb.c[:, fb.names.index(lab)] if fb is not None and lab in fb.names else 0.0
+                        vec[:, col] = x0[:, truth_idx[lab]] - est
+                u = np.einsum("ij,mj->mi", spec.W[j], vec / spec.scale[j])
+                s.nees[key][j] += float(np.sum(u * u))
+
+    def update(k):
+        dx = None
+        for r in run:
+            f = r["case"].filter
+            if f is None or k not in f.gains:
+                continue
+            z = state.v_n[r["rows"]] - 0.0                              # ZUPT: the true velocity is zero
+            if Lr is not None:
+                z = z + noise[k]
+            xh = z @ f.gains[k].T                                       # x̂ = K z, (M, n_f)
+            if dx is None:
+                dx = np.zeros((C * M, 10))
+            for i, col in enumerate(r["nav_cols"]):
+                if col >= 0:
+                    dx[r["rows"], i] = xh[:, col]
+            if r["fb"] is not None:
+                r["fb"].add(xh[:, r["sens_cols"]])
+        return state if dx is None else sd.correct(state, dx)
+
+    records = sim.records(chunk=spr * max(1, int(round(60.0 / dt))))
+    buf, pos = None, 0
+    for k in range(N + 1):
+        state = update(k)
+        observe(k)
+        if k == N:
+            break
+        if buf is None or pos >= buf.dtheta.shape[-2]:
+            buf, pos = next(records), 0
+        rec = buf.slice(pos, pos + spr)
+        pos += spr
+        ctx = RecordContext.along(sim.traj, rec.t0, h, spr, sim.mounting) if need_ctx else None
+        raw_th = np.broadcast_to(rec.dtheta, (M, spr, 3))
+        raw_dv = np.broadcast_to(rec.dv, (M, spr, 3))
+        parts = [r["fb"].compensate(raw_th, raw_dv, h, ctx) if r["fb"] is not None else (raw_th, raw_dv)
+                 for r in run]
+        dth = np.concatenate([p[0] for p in parts])
+        dvv = np.concatenate([p[1] for p in parts])
+        hist = sd.run(state, type(rec)(rec.t0, h, dth, dvv), n, every=10**9)
+        state = hist.state(-1).replace(t=float(t[k + 1]), dtheta_prev=dth[:, -1, :].copy(),
+                                       dv_prev=dvv[:, -1, :].copy())
+    for r in run:
+        r["sums"].n_runs = M
+    sums = {r["case"].name: r["sums"] for r in run}
+    if record_errors:
+        return sums, {r["case"].name: r["errors"] for r in run}
+    return sums
+
+
+def simulate_chunk(task: dict) -> dict:
+    """One chunk of runs of a Monte Carlo study (runs in a worker).
+
+    Parameters
+    ----------
+    task : dict
+        ``traj``, ``model`` (truth), ``t`` (grid), ``runs`` (M), ``seed``
+        (a :class:`numpy.random.SeedSequence` entropy/spawn key pair),
+        ``imu_rate``, ``samples_per_step``, ``R``, ``cases`` (list of
+        :class:`EnsembleCase`), ``sensor_noise``, ``measurement_noise``,
+        ``process_dt``.
+
+    Returns
+    -------
+    dict
+        ``sums``: case → :meth:`EnsembleSums.to_json`; ``seconds``.
+
+    Notes
+    -----
+    The chunk's three random streams (initial states, sensor noise, ZUPT
+    noise) are children of ``SeedSequence(seed, spawn_key=(chunk,))``, so a
+    chunk's result depends only on the study seed and its index, never on
+    the backend or the order in which chunks finish.
+    """
+    import time
+
+    from covtool.nav.imu.simulator import ImuSimulator
+    from covtool.validation.sensor_errors import SensorErrors, sample_states
+
+    t0 = time.perf_counter()
+    ss = np.random.SeedSequence(task["seed"], spawn_key=(int(task["chunk"]),))
+    r_x0, r_sensor, r_meas = (np.random.default_rng(s) for s in ss.spawn(3))
+    traj, model, t = task["traj"], task["model"], np.asarray(task["t"], float)
+    M = int(task["runs"])
+    x0 = sample_states(model, M, r_x0, q0=traj.sample([t[0]]).q_nb[0])
+    errors = SensorErrors(model, x0, r_sensor, noise=task.get("sensor_noise", True),
+                          process_dt=task.get("process_dt", 0.1))
+    sim = ImuSimulator(traj, task["imu_rate"], t0=float(t[0]), duration=float(t[-1] - t[0]), errors=errors)
+    sums = run_ensemble(sim, x0, task["cases"], t, samples_per_step=task["samples_per_step"], R=task["R"],
+                        rng=r_meas, measurement_noise=task.get("measurement_noise", True), model=model)
+    return {"sums": {k: v.to_json() for k, v in sums.items()}, "seconds": time.perf_counter() - t0}

@@ -1,0 +1,378 @@
+"""Sensor errors drawn from an error-state model, injected into IMU increments.
+
+One realisation per run of the error states of a model, ``x`` of shape
+``(M, n_states)`` (e.g. drawn by :func:`sample_states` from the model's
+P0), propagated with the model's own processes and injected with the
+sensitivities of :mod:`covtool.lincov.model.blocks` — the very functions
+that define the linear model's sensor error equations (seed 002, eq (3) and
+(5)).  This is how the nonlinear reference (:mod:`covtool.validation.monte_carlo`)
+realises the truth model the linear analysis propagates.
+
+Sensor-error increments
+-----------------------
+With ``ω̄ = Δθ/h`` and ``f̄ = Δv/h`` the sample means and ``x̄`` the mean
+error state over the sample::
+
+    δΔθ = h S_g(f̄, ω̄) x̄ + ARW noise,   δΔv = h S_a(f̄, ω̄) x̄ + VRW noise
+
+with ``S`` the block sensitivities (exact for the terms linear in ``f`` and
+``ω``: biases, scale factors, misalignments, g-sensitivity).  The
+gravity-disturbance block enters as the specific-force error
+``C_n^b diag(g, g, −1) x`` the accelerometers would sense, and the AD-reset
+block (seed 000) as the velocity increment ``Δe`` of its state.  White
+noises: ``N(0, arw² h)`` and ``N(0, vrw² h)`` per sample and axis
+(root-PSDs of :attr:`Model.arw`, :attr:`Model.vrw`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+import math
+
+import numpy as np
+
+from covtool.lincov.kalman import symmetrize
+from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
+from covtool.lincov.model.spec import Model
+from covtool.nav import attitude as quat
+from covtool.nav.imu.simulator import ImuSimulator
+
+__all__ = [
+    "sample_states", "SensorErrors", "grade_simulator",
+]
+
+
+# --------------------------------------------------------------------------
+# error states
+# --------------------------------------------------------------------------
+
+
+def sample_states(model: Model, n_runs: int, rng=None, *, q0=None) -> np.ndarray:
+    """Draw initial error-state vectors from a model's P0.
+
+    Parameters
+    ----------
+    model : Model
+    n_runs : int
+        Number of runs M.
+    rng : numpy.random.Generator or int, optional
+    q0 : array_like, shape (4,), optional
+        Initial attitude (see :meth:`Model.initial_covariance`).
+
+    Returns
+    -------
+    ndarray, shape (M, n_states)
+        Zero-mean Gaussian samples with covariance P0 (P0 may be singular).
+    """
+    rng = np.random.default_rng(rng)
+    P = model.initial_covariance(q0)
+    w, V = np.linalg.eigh(symmetrize(P))
+    L = V * np.sqrt(np.clip(w, 0.0, None))
+    return rng.standard_normal((int(n_runs), model.n)) @ L.T
+
+
+@dataclass
+class _Group:
+    """A block of sensor states and its sensitivity."""
+
+    kind: str
+    sensor: str
+    cols: np.ndarray          # indices into the model state vector
+    sensitivity: object
+
+
+class SensorErrors:
+    """One realisation per run of a model's sensor-error states.
+
+    Parameters
+    ----------
+    model : Model
+        Error-state model (a truth model, or :meth:`covtool.io.imu_grade.ImuGrade.to_model`).
+    x0 : ndarray, shape (M, n_states)
+        Initial error states (only the sensor and environment states are
+        used here; the first ten, the navigation errors, belong to the
+        initial :class:`~covtool.nav.strapdown.NavState`).
+    rng : numpy.random.Generator or int, optional
+        Source of the driving and white noises.
+    noise : bool
+        False: no driving noise, no ARW/VRW — every state then follows its
+        deterministic mean (constants stay, Markov states decay), which is
+        what ``ẋ = F x`` of the linear model describes.
+    process_dt : float
+        Step of the exact discretisation of the state processes; the states
+        are interpolated linearly between steps. [s]
+
+    Notes
+    -----
+    Processes (exactly discretised over ``Δ``): random constant;
+    random walk ``x += rw √Δ w``; Markov ``x = e^{−Δ/τ} x +
+    σ √(1 − e^{−2Δ/τ}) w``; Markov in distance the same with the horizontal
+    distance travelled over ``Δ`` in place of ``Δ/τ·d``.  These are the
+    processes behind the model's F and Q_c (:func:`covtool.lincov.dynamics.error_dynamics`).
+    """
+
+    def __init__(self, model: Model, x0, rng=None, *, noise: bool = True, process_dt: float = 0.1):
+        x0 = np.atleast_2d(np.asarray(x0, dtype=float))
+        if x0.ndim != 2 or x0.shape[1] != model.n:
+            raise ValueError(f"x0 must have shape (M, {model.n}) for model {model.name!r}, got {x0.shape}")
+        if not process_dt > 0:
+            raise ValueError(f"process_dt must be positive, got {process_dt!r}")
+        self.model = model
+        self.x0 = x0
+        self.n_runs = x0.shape[0]
+        self.rng = np.random.default_rng(rng)
+        self.noise = bool(noise)
+        self.process_dt = float(process_dt)
+        self.arw = model.arw if noise else 0.0
+        self.vrw = model.vrw if noise else 0.0
+        self.groups: list[_Group] = []
+        for block in model.block_names():
+            idx = [i for i, s in enumerate(model.states) if s.block == block]
+            kind = model.states[idx[0]].kind
+            if kind == "navigation":
+                continue
+            bk = BLOCK_KINDS[kind]
+            self.groups.append(_Group(kind, bk.sensor, np.array(idx), bk.sensitivity))
+        sensor_cols = [i for g in self.groups for i in g.cols]
+        self.dynamic = np.array([i for i in sensor_cols if model.states[i].process != "constant"], dtype=int)
+        self.needs_speed = any(model.states[i].process == "markov_distance" for i in self.dynamic)
+        self.needs_attitude = any(g.sensor == "gravity" for g in self.groups)
+        # process state: values at the last process node
+        self._x_dyn = x0[:, self.dynamic].copy()
+        self._node_t = None
+        self._node_x = None
+
+    @classmethod
+    def from_grade(cls, grade, n_runs: int, rng=None, **kw) -> "SensorErrors":
+        """Draw M realisations of a grade's errors (:meth:`covtool.io.imu_grade.ImuGrade.to_model`)."""
+        rng = np.random.default_rng(rng)
+        model = grade.to_model()
+        return cls(model, sample_states(model, n_runs, rng), rng, **kw)
+
+    # ---- processes -------------------------------------------------------
+    def _coefficients(self, dt, dist):
+        """Transition ``a`` and noise scale ``b`` of every dynamic state.
+
+        ``dist`` (horizontal distance of each step, shape (J,)) may be None
+        when no state is Markov in distance.  Returns arrays of shape
+        (J, n_dyn).
+        """
+        J = 1 if dist is None else dist.size
+        a = np.ones((J, self.dynamic.size))
+        b = np.zeros((J, self.dynamic.size))
+        for j, i in enumerate(self.dynamic):
+            s = self.model.states[i]
+            if s.process == "markov":
+                a[:, j] = math.exp(-dt / s.tau)
+                b[:, j] = s.sigma * math.sqrt(max(0.0, 1.0 - a[0, j] ** 2))
+            elif s.process == "markov_distance":
+                a[:, j] = np.exp(-dist / s.distance)
+                b[:, j] = s.sigma * np.sqrt(np.clip(1.0 - a[:, j] ** 2, 0.0, None))
+            else:  # random walk
+                b[:, j] = s.rw * math.sqrt(dt)
+        if not self.noise:
+            b[:] = 0.0
+        return a, b
+
+    def _dynamic_path(self, t_edges, speed_fn):
+        """Dynamic states at the sample edges, shape (M, K+1, n_dyn)."""
+        nd = self.dynamic.size
+        if nd == 0:
+            return np.zeros((self.n_runs, t_edges.size, 0))
+        if self._node_t is None:
+            self._node_t = np.array([float(t_edges[0])])
+            self._node_x = self._x_dyn[:, None, :]
+        # new process nodes up to the end of the chunk, exactly discretised
+        last = self._node_t[-1]
+        J = max(0, int(math.ceil((t_edges[-1] - last) / self.process_dt - 1e-9)))
+        if J:
+            tn = last + self.process_dt * np.arange(1, J + 1)
+            dist = None
+            if self.needs_speed:
+                if speed_fn is None:
+                    raise ValueError("Markov-in-distance states need the horizontal speed (speed_fn)")
+                dist = np.asarray(speed_fn(tn - 0.5 * self.process_dt), float) * self.process_dt
+            a, b = self._coefficients(self.process_dt, dist)
+            a = np.broadcast_to(a, (J, nd))
+            b = np.broadcast_to(b, (J, nd))
+            w = self.rng.standard_normal((J, self.n_runs, nd)) if self.noise else np.zeros((J, 1, nd))
+            xs = np.empty((self.n_runs, J, nd))
+            x = self._node_x[:, -1, :]
+            for j in range(J):
+                x = a[j] * x + b[j] * w[j]
+                xs[:, j] = x
+            self._node_t = np.concatenate([self._node_t, tn])
+            self._node_x = np.concatenate([self._node_x, xs], axis=1)
+        # keep the nodes from the one at or before the chunk start
+        keep = max(0, int(np.searchsorted(self._node_t, t_edges[0] + 1e-12, side="right")) - 1)
+        self._node_t = self._node_t[keep:]
+        self._node_x = self._node_x[:, keep:]
+        nt, nx = self._node_t, self._node_x
+        if nt.size == 1:
+            return np.repeat(nx, t_edges.size, axis=1)
+        j = np.clip(np.searchsorted(nt, t_edges, side="right") - 1, 0, nt.size - 2)
+        u = ((t_edges - nt[j]) / (nt[j + 1] - nt[j]))[None, :, None]
+        return nx[:, j] + u * (nx[:, j + 1] - nx[:, j])
+
+    # ---- injection ---------------------------------------------------------
+    def increment_errors(self, t0, h, dtheta, dv, *, speed_fn=None, attitude=None, gravity=None):
+        """Errors of one chunk of samples (advances the processes).
+
+        Parameters
+        ----------
+        t0 : float
+            Start of the chunk. [s]
+        h : float
+            Sample period. [s]
+        dtheta, dv : ndarray, shape (Mv, k, 3)
+            True increments (``Mv`` = 1 or M).
+        speed_fn : callable, optional
+            Horizontal speed at an array of times [m/s] (Markov-in-distance
+            states).
+        attitude : ndarray, shape (k, 4), optional
+            True ``q_ns`` at the sample mid-points (gravity block).
+        gravity : ndarray, shape (k,), optional
+            Normal gravity at the sample mid-points. [m/s²]
+
+        Returns
+        -------
+        ddtheta, ddv : ndarray, shape (M, k, 3)
+            Errors to add to the increments. [rad], [m/s]
+        """
+        M = self.n_runs
+        k = dtheta.shape[-2]
+        t_edges = t0 + h * np.arange(k + 1)
+        path = self._dynamic_path(t_edges, speed_fn)                   # (M, k+1, nd)
+        xbar_dyn = 0.5 * (path[:, 1:] + path[:, :-1])                  # (M, k, nd)
+        dyn_pos = {int(i): j for j, i in enumerate(self.dynamic)}
+        Mv = dtheta.shape[0]
+        fbar = (dv / h).reshape(Mv * k, 3)
+        wbar = (dtheta / h).reshape(Mv * k, 3)
+        # collect the sensitivities per sensor, constant and dynamic states apart
+        parts = {(t, d): ([], []) for t in ("gyro", "accel") for d in (False, True)}
+        for g in self.groups:
+            if g.sensor == "ad_reset":
+                continue
+            if g.sensor == "gravity":
+                if attitude is None or gravity is None:
+                    raise ValueError("the gravity-disturbance block needs the true attitude and gravity")
+                S = np.einsum("kji,kjl->kil", quat.dcm(attitude), gravity_sensitivity(gravity))[None]
+                target = "accel"
+            else:
+                S = g.sensitivity(fbar, wbar).reshape(Mv, k, 3, g.cols.size)
+                target = g.sensor
+            for j, i in enumerate(g.cols):
+                dyn = int(i) in dyn_pos
+                Ss, cols = parts[(target, dyn)]
+                Ss.append(np.broadcast_to(S[..., j], (Mv, k, 3)))
+                cols.append(dyn_pos[int(i)] if dyn else int(i))
+        out = {}
+        for target in ("gyro", "accel"):
+            acc = np.zeros((M, k, 3))
+            Ss, cols = parts[(target, False)]
+            if cols:
+                S = np.stack(Ss, axis=-1)                                  # (Mv, k, 3, nc)
+                xc = self.x0[:, cols]                                      # (M, nc)
+                if Mv == 1:   # one matrix product for all runs
+                    acc += (S[0].reshape(k * 3, -1) @ xc.T).T.reshape(M, k, 3)
+                else:
+                    acc += np.einsum("mkij,mj->mki", S, xc)
+            Ss, cols = parts[(target, True)]
+            if cols:
+                S = np.stack(Ss, axis=-1)                                  # (Mv, k, 3, nd)
+                acc += np.einsum("vkij,mkj->mki", S, xbar_dyn[:, :, cols]) if Mv == 1 else \
+                    np.einsum("mkij,mkj->mki", S, xbar_dyn[:, :, cols])
+            out[target] = acc
+        ddth = out["gyro"] * h
+        ddv = out["accel"] * h
+        for g in self.groups:
+            if g.sensor == "ad_reset":
+                # δf^b = ė: the velocity-increment error is the change of e
+                cols = [dyn_pos[int(i)] for i in g.cols]
+                ddv += path[:, 1:, cols] - path[:, :-1, cols]
+        if self.arw > 0:
+            ddth += self.arw * math.sqrt(h) * self.rng.standard_normal((M, k, 3))
+        if self.vrw > 0:
+            ddv += self.vrw * math.sqrt(h) * self.rng.standard_normal((M, k, 3))
+        return ddth, ddv
+
+
+def grade_simulator(traj, grade, n_runs: int, rng=None, *, extras: bool = True, rate=None, noise: bool = True,
+                    **kw) -> ImuSimulator:
+    """Simulator of M runs of an IMU grade (errors drawn from its model).
+
+    Parameters
+    ----------
+    traj : covtool.nav.trajectory.core.Trajectory
+        True motion.
+    grade : covtool.io.imu_grade.ImuGrade
+        The grade (its model, quantisation, range and rate).
+    n_runs : int
+        Number of runs M.
+    rng : numpy.random.Generator or int, optional
+    extras : bool
+        Apply the grade's quantisation and range saturation.
+    rate : float, optional
+        Sample rate (default: the grade's). [Hz]
+    noise : bool
+        See :class:`SensorErrors`.
+    **kw
+        Passed to :class:`~covtool.nav.imu.simulator.ImuSimulator` (``t0``,
+        ``duration``, ``vibration``, ``mounting`` …).
+
+    Raises
+    ------
+    ValueError
+        The grade has no rate and none is given.
+    """
+    rng = np.random.default_rng(rng)
+    rate = grade.rate if rate is None else rate
+    if rate is None:
+        raise ValueError(f"IMU grade {grade.name!r} has no rate; pass rate=")
+    errors = SensorErrors.from_grade(grade, n_runs, rng, noise=noise)
+    if extras:
+        kw.setdefault("quantization", grade.quantization)
+        kw.setdefault("saturation", grade.range)
+    return ImuSimulator(traj, rate, errors=errors, rng=rng, **kw)
+
+
+# --------------------------------------------------------------------------
+# fault injection
+# --------------------------------------------------------------------------
+
+
+class GSensitiveErrors(SensorErrors):
+    """Sensor errors plus a g-sensitive gyro scale-factor error.
+
+    Parameters
+    ----------
+    model, x0, rng, **kw
+        As for :class:`covtool.validation.sensor_errors.SensorErrors`.
+    gsens : sequence of (int, int, float)
+        ``(i, j, k)``: the scale factor of gyro ``i`` changes by ``k f_j``,
+        ``δω_i = k f_j ω_i`` (seed 001, Fig 16 and ref [9]: a parallel-plate
+        sense electrode moved by the acceleration along it). ``k`` in
+        [1/(m/s²)].
+
+    Notes
+    -----
+    The term is added per sample from the true sample means
+    ``f̄ = Δv/h``, ``ω̄ = Δθ/h``: ``δΔθ_i = k (Δv_j/h) Δθ_i``.
+    """
+
+    def __init__(self, model: Model, x0, rng=None, *, gsens=(), **kw):
+        super().__init__(model, x0, rng, **kw)
+        out = []
+        for item in gsens:
+            i, j, k = item
+            if int(i) not in (0, 1, 2) or int(j) not in (0, 1, 2):
+                raise ValueError(f"g-sensitive scale factor axes must be 0, 1 or 2, got {item!r}")
+            out.append((int(i), int(j), float(k)))
+        self.gsens = tuple(out)
+
+    def increment_errors(self, t0, h, dtheta, dv, **kw):
+        """Sensor-error increments plus the g-sensitive term."""
+        ddth, ddv = super().increment_errors(t0, h, dtheta, dv, **kw)
+        for i, j, k in self.gsens:
+            ddth[..., i] += k * (dv[..., j] / h) * dtheta[..., i]
+        return ddth, ddv
