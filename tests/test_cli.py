@@ -384,13 +384,20 @@ def test_numbers_for_the_console():
 def test_console_table_fits_and_names_what_it_leaves_out():
     wide = pd.DataFrame({"case": ["pure_ins", "B1"], "t [min]": [30.0, 30.0],
                          **{f"horizontal CEP variant {k} [ft]": [6763.123456, 11.81] for k in range(12)},
-                         "horizontal top sources": ["initial tilt 93.6 %; initial azimuth 2.6 %"] * 2})
+                         "horizontal top sources": ["initial tilt 93.6 %", "initial azimuth 2.6 %"],
+                         "validity": ["ok", "beyond the linear domain after 20 min"]})
     text = console_table(wide, width=100, file_hint="summary.csv")
     lines = text.splitlines()
     assert max(len(x) for x in lines) <= 100
     assert "6763" in text and "11.81" in text and "6763.12" not in text
+    assert "beyond the linear domain" in text                     # validity is never left out
+    assert "every row: t [min] = 30" in text                      # a constant column is said once
     note = " ".join(lines[lines.index(next(x for x in lines if x.startswith("("))):])
-    assert "more columns in summary.csv" in note and "horizontal top sources" in note
+    # the explanation goes first, then the rightmost numbers; the note lists them in the table's order
+    m = re.match(r"\((\d+) more columns in summary\.csv: horizontal CEP variant (\d+) \[ft\]", note)
+    first = int(m.group(2))
+    assert int(m.group(1)) == 12 - first + 1 and 0 < first < 12
+    assert note.endswith("variant 11 [ft]; horizontal top sources)")
 
 
 def test_progress_is_shown_on_a_terminal_or_when_asked_never_with_quiet():

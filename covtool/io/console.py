@@ -21,8 +21,11 @@ WIDTH = 110
 
 #: columns left out first when a table is too wide: explanations, check figures and the
 #: repeated "nominal run" figures, which the files keep
-_SECONDARY = re.compile(r"top sources|residual|nominal run|\bnote\b|\bstatus\b|\bsource\b|provenance|description"
+_SECONDARY = re.compile(r"top sources|residual|nominal run|\bnote\b|\bsource\b|provenance|description"
                         r"|wall time|seconds|\bpaper\b|flops", re.IGNORECASE)
+#: columns never left out: whether the row's numbers can be trusted
+_KEY = re.compile(r"^(validity|status)$", re.IGNORECASE)
+_UNIT = re.compile(r"^(.*\S) \[[^\]]*\]$")
 #: longest text cell shown [characters]
 MAX_TEXT = 36
 
@@ -97,16 +100,28 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
     str
         Numbers to four significant digits (:func:`format_number`), text
         cut at ``max_text`` characters, headers wrapped to their
-        column; columns that do not fit are left out, explanations and
-        check figures first, and named in a last line.
+        column.  A column with the same value in every row is said once
+        below the table.  Columns that do not fit are left out (an
+        explanation, a check figure or a quantity repeated in another
+        unit first; ``validity`` and ``status`` never) and named in a
+        last line.
     """
     shown = df if max_rows is None or len(df) <= max_rows else df.head(max_rows)
-    cols = []
-    for name in df.columns:
+    cols, same = [], []
+    seen_base = set()
+    for k, name in enumerate(df.columns):
         cells, right = _cells(shown[name], max_text)
-        w = max([len(c) for c in cells] + [min(len(str(name)), 10)] +
-                [len(word) for word in str(name).split()])
-        cols.append({"name": str(name), "cells": cells, "right": right, "width": w})
+        full, _ = _cells(df[name], max_text)
+        if k > 0 and len(df) > 1 and len(set(full)) == 1 and not _KEY.match(str(name)):
+            same.append(f"{name} = {full[0]}")       # the same in every row: said once, below the table
+            continue
+        m = _UNIT.match(str(name))
+        twin = bool(m) and m.group(1) in seen_base   # the same quantity again in another unit
+        if m:
+            seen_base.add(m.group(1))
+        w = max([len(c) for c in cells] + [len(word) for word in str(name).split()])
+        cols.append({"name": str(name), "cells": cells, "right": right, "width": w,
+                     "secondary": twin or bool(_SECONDARY.search(str(name))), "key": bool(_KEY.match(str(name)))})
 
     def total(cs):
         return sum(c["width"] for c in cs) + 2 * (len(cs) - 1)
@@ -123,7 +138,7 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
         for c in reversed(cols[1:]):
             if total(kept) <= width:
                 break
-            if c in kept and (not secondary or _SECONDARY.search(c["name"])):
+            if c in kept and not c["key"] and (not secondary or c["secondary"]):
                 kept.remove(c)
                 omitted.append(c["name"])
     heads = [_header(c["name"], c["width"]) for c in kept]
@@ -141,6 +156,8 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
         lines.append("  ".join(parts).rstrip())
     if len(shown) < len(df):
         lines.append(f"... {len(df) - len(shown)} more rows in {file_hint}")
+    if same:
+        lines += textwrap.wrap(f"every row: {'; '.join(same)}", width=width, break_long_words=False)
     if omitted:
         order = [c["name"] for c in cols if c["name"] in omitted]
         lines += textwrap.wrap(f"({len(order)} more columns in {file_hint}: {'; '.join(order)})", width=width,
