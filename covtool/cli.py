@@ -145,7 +145,7 @@ def _cmd_models(args) -> int:
         if not len(g):
             print("  (none)")
             continue
-        text = console_table(g[cols], width=width - 2, max_text=width, stretch="description")
+        text = console_table(g[cols], width=width - 2, max_text=width, stretch="description", fold_constant=False)
         print("\n".join("  " + ln for ln in text.splitlines()))
     print("\ncovtool show NAME prints one of them (values in datasheet units and SI).")
     return 0
@@ -167,13 +167,15 @@ def _cmd_show(args) -> int:
                              "model's state table")
         print(markdown_table(truths[0].obj), end="")
         return 0
-    if len(entries) > 1:
-        where = "; ".join(f"{e.kind} in {e.path}" for e in entries)
-        print(f"{args.model}: {len(entries)} entries of that name ({where}); each is shown below. "
-              "A path selects one file.\n")
     from covtool.io.console import console_width
 
     width = console_width()
+    if len(entries) > 1:
+        import textwrap
+
+        where = "; ".join(f"{e.kind} in {e.path}" for e in entries)
+        print(textwrap.fill(f"{args.model}: {len(entries)} entries of that name ({where}); each is shown below. "
+                            "A path selects one file.", width=width, break_long_words=False) + "\n")
     print(("\n" + "=" * min(width, 100) + "\n\n").join(describe(e, width=min(width, 100)) for e in entries), end="")
     return 0
 
@@ -211,6 +213,17 @@ def _version() -> str:
     return f"covtool {v} from {Path(covtool.__file__).parent} (Python {platform.python_version()})"
 
 
+class _VersionAction(argparse.Action):
+    """``--version``: one unwrapped line on stdout, exit 0."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(_version())
+        parser.exit()
+
+
 _MODELS_ENV = ("The model library is $COVTOOL_MODELS if set, else the one installed with covtool "
                "(the repository's models/): truth models *.toml, filters filters/*.toml, IMU grades imu/*.toml. "
                "A study names them by library name or by a path relative to the study file.")
@@ -219,7 +232,7 @@ _MODELS_ENV = ("The model library is $COVTOOL_MODELS if set, else the one instal
 def build_parser() -> argparse.ArgumentParser:
     p = _Parser(prog="covtool", description=__doc__.split("\n\n")[0],
                 epilog="Run 'covtool COMMAND --help' for a command's options. " + _MODELS_ENV)
-    p.add_argument("--version", action="version", version=_version())
+    p.add_argument("--version", action=_VersionAction, help="print covtool's version and where it runs from")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
     r = sub.add_parser("run", help="run a study file and write its outputs",
                        description="Run a study file (studies/*.toml) and write its tables, workbook, figures and "

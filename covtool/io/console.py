@@ -77,7 +77,8 @@ def _header(name: str, width: int) -> list[str]:
 
 
 def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None = None,
-                  file_hint: str = "the output files", max_text: int = MAX_TEXT, stretch: str | None = None) -> str:
+                  file_hint: str = "the output files", max_text: int = MAX_TEXT, stretch: str | None = None,
+                  fold_constant: bool = True) -> str:
     """Render ``df`` for the terminal within ``width`` columns.
 
     Parameters
@@ -94,6 +95,9 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
     stretch : str, optional
         A text column that is cut to the width left by the others instead
         of being left out (a description).
+    fold_constant : bool
+        Say a column with the same value in every row once, below the
+        table, instead of in every row.
 
     Returns
     -------
@@ -112,7 +116,7 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
     for k, name in enumerate(df.columns):
         cells, right = _cells(shown[name], max_text)
         full, _ = _cells(df[name], max_text)
-        if k > 0 and len(df) > 1 and len(set(full)) == 1 and not _KEY.match(str(name)):
+        if fold_constant and k > 0 and len(df) > 1 and len(set(full)) == 1 and not _KEY.match(str(name)):
             same.append(f"{name} = {full[0]}")       # the same in every row: said once, below the table
             continue
         m = _UNIT.match(str(name))
