@@ -239,7 +239,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "resolved_study.toml to --out.")
     r.add_argument("study", help="study file, e.g. studies/zupt_filter_order.toml")
     r.add_argument("--out", help="output directory (default out/<study name>), checked before anything runs")
-    r.add_argument("--quiet", action="store_true", help="print nothing but errors: no progress bar, no summary")
+    r.add_argument("--quiet", action="store_true",
+                   help="no progress bars and no summary (warnings and errors still print)")
     r.add_argument("--progress", action="store_true",
                    help="show progress bars even when stderr is not a terminal (default: only on a terminal)")
     r.add_argument("--no-figures", action="store_true", help="skip PNG figures")
@@ -473,7 +474,8 @@ def add_dualnav_parser(subparsers):
     p.add_argument("--study", default=None,
                    help="dual_imu study file (default: studies/dual_imu_flight.toml)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--quiet", action="store_true", help="print nothing but errors: no progress bar, no summary")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bars and no summary (warnings and errors still print)")
     p.add_argument("--progress", action="store_true",
                    help="show progress bars even when stderr is not a terminal (default: only on a terminal)")
     p.add_argument("--no-figures", action="store_true", help="skip PNG figures")

@@ -296,7 +296,8 @@ def test_show_truth_model_gives_datasheet_and_exact_si(capsys):
     # the navigation block's white noise: ARW 0.002 deg/sqrt(h), VRW 5 ug/sqrt(Hz) (models/sdins58.toml)
     arw = 0.002 * math.pi / 180 / 60                   # deg/√h → rad/√s
     vrw = 5e-6 * G0                                    # µg/√Hz → m/s/√s
-    for key, shown, closed, held in (("ARW", ["0.002", "deg/√h"], arw, m.arw), ("VRW", ["5", "µg/√Hz"], vrw, m.vrw)):
+    for key, shown, closed, held in (("ARW", ["0.002", "deg/√h"], arw, m.arw),
+                                     ("VRW", ["5", "µg/√Hz"], vrw, m.vrw)):
         cells = next(x for x in out.splitlines() if x.startswith(key)).split()
         assert cells[-6:-4] == shown
         assert float(cells[-4]) == held and float(cells[-2]) == held * held       # full precision
