@@ -440,3 +440,22 @@ def test_run_prints_a_summary_that_fits(tmp_path, capsys):
     assert "wrote" in out
     status, out, err = _call(["run", str(study), "--out", str(tmp_path / "o2"), "--no-figures", "--quiet"], capsys)
     assert status == 0 and out == "" and err == ""
+
+
+def test_readme_is_self_contained_and_ci_runs_its_test_command():
+    """Before: the README pointed at ../shared/BRIEF.md and named the papers only as seed 000/001/002."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert not re.search(r"\.\./|/work/|shared/", text)                  # no path outside the repository
+    for target in re.findall(r"\]\(([^)#:]+)\)", text):                  # every relative link exists
+        assert (ROOT / target).exists(), target
+    # the papers cited with title and authors (seed 001 with its journal, volume, pages and DOI)
+    flat = " ".join(text.split())
+    assert "Effects of Accelerometer Signal Processing Errors on Inertial Navigation Systems" in flat
+    assert "Journal of The Korean Society for Aeronautical and Space Sciences **45**(1), 36–45 (2017)" in flat
+    assert "doi:10.5139/JKSAS.2017.45.1.36" in flat
+    assert "Design and Performance Analysis of a Zero-velocity Update Kalman Filter for SDINS" in flat
+    # CI runs the README's second quick-start command
+    quick = re.search(r"# 2\. .*\n(.*)\n", text).group(1)
+    test_cmd = quick.split("&& ")[-1].strip()
+    assert test_cmd == "python -m pytest -q -n 2"
+    assert f"pip install '.[test]' && {test_cmd}" in (ROOT / ".ci" / "run").read_text()
