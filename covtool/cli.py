@@ -134,9 +134,8 @@ def _cmd_models(args) -> int:
     groups = [("truth models", df[df["kind"] == "truth model"])]
     for file, g in df[df["kind"] == "filter"].groupby("file", sort=False):
         rel = os.path.relpath(file, d)
-        truths = set(g["description"].str.extract(r"\(of (\S+)\)$", expand=False).dropna())
-        groups.append((f"filters in {rel}" + (f" (projections of {', '.join(sorted(truths))})" if truths else ""),
-                       g.assign(description=g["description"].str.replace(r"\s*\(of \S+\)$", "", regex=True))))
+        truths = sorted(set(g["truth"]) - {""})
+        groups.append((f"filters in {rel}" + (f" (projections of {', '.join(truths)})" if truths else ""), g))
     groups.append(("IMU grades", df[df["kind"] == "IMU grade"]))
     for title, g in groups:
         cols = ["name", "states", "base", "description"] if g["base"].astype(bool).any() else \

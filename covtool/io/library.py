@@ -161,10 +161,11 @@ def list_models(directory=None) -> pd.DataFrame:
         Columns ``kind`` (``"truth model"``, ``"filter"``, ``"IMU grade"``),
         ``name``, ``states`` (of the truth model, kept by the filter, of the
         grade's error model), ``base`` (a filter's base filter, a truth
-        model's base model; empty otherwise), ``description`` and ``file``.
-        A filter file that names no truth (it projects whichever truth a
-        study runs) is listed against ``sdins58`` (else the library's first
-        valid truth model).  A file that does not validate is listed once,
+        model's base model; empty otherwise), ``truth`` (the truth model a
+        filter is projected onto), ``description`` and ``file``.  A filter
+        file that names no truth (it projects whichever truth a study runs)
+        is listed against ``sdins58`` (else the library's first valid truth
+        model).  A file that does not validate is listed once,
         its description ``INVALID:`` and the error.
     """
     from covtool.io.config import load_toml
@@ -173,9 +174,9 @@ def list_models(directory=None) -> pd.DataFrame:
     d = Path(directory) if directory else default_model_dir()
     rows = []
 
-    def row(kind, name, states, base, description, path):
-        rows.append({"kind": kind, "name": name, "states": states, "base": base, "description": description,
-                     "file": str(path)})
+    def row(kind, name, states, base, description, path, truth=""):
+        rows.append({"kind": kind, "name": name, "states": states, "base": base, "truth": truth,
+                     "description": description, "file": str(path)})
 
     for p in model_files(d):
         try:
@@ -191,8 +192,8 @@ def list_models(directory=None) -> pd.DataFrame:
             truth, specs, raw = load_filter_file(p, d, default_truth=default)
             for fname, spec in specs.items():
                 base = raw.get(fname, {}).get("base", "")
-                row("filter", fname, len(spec.kept), base if isinstance(base, str) else "",
-                    f"{spec.description} (of {truth.name})".lstrip(), p)
+                row("filter", fname, len(spec.kept), base if isinstance(base, str) else "", spec.description, p,
+                    truth.name)
         except InputError as exc:
             row("filter", p.stem, 0, "", f"INVALID: {exc}", p)
     for p in sorted((d / "imu").glob("*.toml")):
@@ -201,7 +202,7 @@ def list_models(directory=None) -> pd.DataFrame:
             row("IMU grade", g.name, g.to_model().n, "", g.description, p)
         except InputError as exc:
             row("IMU grade", p.stem, 0, "", f"INVALID: {exc}", p)
-    return pd.DataFrame(rows, columns=["kind", "name", "states", "base", "description", "file"])
+    return pd.DataFrame(rows, columns=["kind", "name", "states", "base", "truth", "description", "file"])
 
 
 def markdown_table(model) -> str:
