@@ -401,15 +401,22 @@ def default_study() -> Path:
     """The study file used when ``--study`` is not given.
 
     ``$COVTOOL_DUALNAV_STUDY``, else ``./studies/dual_imu_flight.toml``,
-    else the repository's.
+    else the one of the source checkout covtool runs from.
+
+    Raises
+    ------
+    InputError
+        None of them exists (an installed covtool ships no study files).
     """
     env = os.environ.get("COVTOOL_DUALNAV_STUDY")
     if env:
         return Path(env)
-    cwd = Path.cwd() / "studies" / "dual_imu_flight.toml"
-    if cwd.is_file():
-        return cwd
-    return Path(__file__).resolve().parents[1] / "studies" / "dual_imu_flight.toml"
+    for c in (Path.cwd() / "studies" / "dual_imu_flight.toml",
+              Path(__file__).resolve().parents[1] / "studies" / "dual_imu_flight.toml"):
+        if c.is_file():
+            return c
+    raise InputError("--study", "not given, and there is no $COVTOOL_DUALNAV_STUDY nor ./studies/dual_imu_flight.toml;"
+                     " name a dual_imu study file (the repository's studies/dual_imu_flight.toml is one)")
 
 
 def cmd_dualnav(args) -> int:

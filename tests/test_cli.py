@@ -130,6 +130,9 @@ BAD = [
     ("dualnav: --workers (it has none)", lambda d: ["dualnav", "a.csv", "b.csv", "--out", "o", "--workers", "2"],
      r"covtool: unrecognized arguments: --workers 2"),
     ("dualnav: missing --out", lambda d: ["dualnav", "a.csv", "b.csv"], r"required: --out"),
+    ("dualnav: no study anywhere", lambda d: ["dualnav", "a.csv", "b.csv", "--out", str(d / "o")],
+     r"covtool: error: --study: not given, and there is no \$COVTOOL_DUALNAV_STUDY nor "
+     r"\./studies/dual_imu_flight\.toml"),
     ("top level: unknown command", lambda d: ["frobnicate"], r"invalid choice: 'frobnicate'"),
     ("top level: no command", lambda d: [], r"the following arguments are required: COMMAND"),
     ("top level: unknown option", lambda d: ["--bogus", "models"], r"unrecognized arguments: --bogus"),
@@ -153,8 +156,14 @@ if "new" in _subcommands():          # `covtool new STUDY_KIND` (a starting stud
 
 
 @pytest.mark.parametrize("case", BAD, ids=[c[0] for c in BAD])
-def test_every_subcommand_refuses_bad_input_in_one_line(case, files, capsys):
+def test_every_subcommand_refuses_bad_input_in_one_line(case, files, capsys, monkeypatch):
     _, argv, pattern = case
+    if case[0] == "dualnav: no study anywhere":       # an installed covtool, run outside a checkout
+        import covtool.cli
+
+        monkeypatch.chdir(files)
+        monkeypatch.delenv("COVTOOL_DUALNAV_STUDY", raising=False)
+        monkeypatch.setattr(covtool.cli, "__file__", str(files / "site-packages" / "covtool" / "cli.py"))
     before = sorted(p.name for p in files.iterdir())
     _one_line_error(*_call(argv(files), capsys), pattern)
     assert sorted(p.name for p in files.iterdir()) == before          # nothing written
