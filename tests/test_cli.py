@@ -327,7 +327,9 @@ def test_show_truth_model_gives_datasheet_and_exact_si(capsys):
     q = 2 * (0.005 * DEG_H) ** 2 / 3600.0
     line = next(x for x in out.splitlines() if x.startswith("gyro_markov_x ") and "2σ²/τ" in x)
     assert float(line.split()[2]) == pytest.approx(q, rel=1e-15)
-    assert "Markov, τ 30 min" in out and "Markov, d 20 km" in out
+    assert re.search(r"acc_markov_x .* Markov, τ 30 min\n", out)
+    assert re.search(r"gyro_markov_x .* Markov, τ 1 h\n", out)
+    assert re.search(r"grav_dg .* Markov, d 20 km\n", out) and re.search(r"acc_ad_x .* Markov, τ 20 s\n", out)
 
 
 def test_show_filter_gives_base_options_and_p0(tmp_path, capsys):

@@ -370,8 +370,9 @@ def _si_unit(dimension: str) -> str:
 
 
 def _span(seconds: float) -> str:
-    for unit, f in (("h", 3600.0), ("min", 60.0)):
-        if seconds >= 2 * f:
+    """A time span in h (from 1 h), min (from 2 min) or s: 3600 → '1 h', 1800 → '30 min', 20 → '20 s'."""
+    for unit, f, lo in (("h", 3600.0, 3600.0), ("min", 60.0, 120.0)):
+        if seconds >= lo:
             return f"{seconds / f:.6g} {unit}"
     return f"{seconds:.6g} s"
 
