@@ -75,7 +75,7 @@ def _progress(args) -> bool:
 
 
 def _cmd_run(args) -> int:
-    from covtool.io.console import console_table, console_width
+    from covtool.io.console import console_table, console_width, KEY_COLUMNS
     from covtool.io.writers import write_outputs
     from covtool.io.lock import DirLock
     from covtool.studies import run_study
@@ -112,7 +112,7 @@ def _cmd_run(args) -> int:
     if not args.quiet:
         width = console_width()
         print(console_table(result.summary, width=width, max_rows=MAX_SUMMARY_ROWS,
-                            file_hint=str(out / "summary.csv")))
+                            file_hint=str(out / "summary.csv"), prefer=KEY_COLUMNS.get(result.kind, ())))
         if len(result.summary) > MAX_SUMMARY_ROWS and "pivot_cep" in result.tables:
             print("\n" + console_table(result.tables["pivot_cep"], width=width, file_hint=str(out)))
         print(f"\nwrote {len(files)} files to {out}/ in {dt:.1f} s")

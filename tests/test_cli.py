@@ -470,3 +470,17 @@ def test_readme_is_self_contained_and_ci_runs_its_test_command():
     test_cmd = quick.split("&& ")[-1].strip()
     assert test_cmd == "python -m pytest -q -n 2"
     assert f"pip install '.[test]' && {test_cmd}" in (ROOT / ".ci" / "run").read_text()
+
+
+def test_console_shows_a_study_kinds_key_columns_first():
+    from covtool.io.console import KEY_COLUMNS
+
+    df = pd.DataFrame({"filter": ["A", "B1"], "states [-]": [58, 22], "horizontal RMS [ft]": [13.4, 14.2],
+                       "max sensitivity horizontal [-]": [0.811, 2.365], "FLOPs/cycle [FLOP]": [9614006, 502608],
+                       "validity": ["ok", "ok"]})
+    header = console_table(df, prefer=KEY_COLUMNS["zupt_sensitivity"]).splitlines()
+    text = "\n".join(header)
+    # max sensitivity (seed 002 Fig 8) and FLOPs/cycle (Table 4) before the RMS; the cost in whole FLOPs
+    assert text.index("9614006") < text.index("13.4") and text.index("2.365") < text.index("14.2")
+    one = console_table(df.head(1))                  # one row: nothing is folded into "every row"
+    assert "every row" not in one and "9614006" in one and "58" in one

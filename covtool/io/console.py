@@ -14,7 +14,7 @@ import textwrap
 
 import pandas as pd
 
-__all__ = ["WIDTH", "console_width", "format_number", "console_table"]
+__all__ = ["WIDTH", "KEY_COLUMNS", "console_width", "format_number", "console_table"]
 
 #: default width of console tables [characters]
 WIDTH = 110
@@ -22,12 +22,25 @@ WIDTH = 110
 #: columns left out first when a table is too wide: explanations, check figures and the
 #: repeated "nominal run" figures, which the files keep
 _SECONDARY = re.compile(r"top sources|residual|nominal run|\bnote\b|\bsource\b|provenance|description"
-                        r"|wall time|seconds|\bpaper\b|flops", re.IGNORECASE)
+                        r"|wall time|flops", re.IGNORECASE)
 #: columns never left out: whether the row's numbers can be trusted
 _KEY = re.compile(r"^(validity|status)$", re.IGNORECASE)
 _UNIT = re.compile(r"^(.*\S) \[[^\]]*\]$")
 #: longest text cell shown [characters]
 MAX_TEXT = 36
+
+#: per study kind, the summary columns the console shows first (after the first column), when present;
+#: the others follow while there is room
+KEY_COLUMNS = {
+    # seed 002 Fig 8 and Table 4: the largest sensitivity of each channel and the cost per cycle
+    "zupt_sensitivity": ["states [-]", "CEP [ft]", "alt PE [ft]", "azimuth 1sigma [arcmin]",
+                         "max sensitivity horizontal [-]", "max sensitivity altitude [-]", "FLOPs/cycle [FLOP]"],
+    # seed 002 Table 3
+    "zupt_filter_order": ["states", "CEP [ft]", "alt PE [ft]", "azimuth 1sigma [arcmin]"],
+    # the cases' parameters, then the three figures of merit
+    "trade_grid": ["grade", "ZUPT interval [min]", "filter", "ZUPT sigma [ft/s]", "Q scale", "CEP [ft]",
+                   "alt PE [ft]", "azimuth 1sigma [arcmin]"],
+}
 
 
 def console_width(default: int = WIDTH) -> int:
@@ -78,7 +91,7 @@ def _header(name: str, width: int) -> list[str]:
 
 def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None = None,
                   file_hint: str = "the output files", max_text: int = MAX_TEXT, stretch: str | None = None,
-                  fold_constant: bool = True) -> str:
+                  fold_constant: bool = True, prefer=()) -> str:
     """Render ``df`` for the terminal within ``width`` columns.
 
     Parameters
@@ -98,6 +111,9 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
     fold_constant : bool
         Say a column with the same value in every row once, below the
         table, instead of in every row.
+    prefer : sequence of str
+        Columns shown first, after the first column, in this order (those
+        present; :data:`KEY_COLUMNS` of the study kind).
 
     Returns
     -------
@@ -110,6 +126,9 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
         unit first; ``validity`` and ``status`` never) and named in a
         last line.
     """
+    first = list(df.columns[:1])
+    front = [c for c in prefer if c in df.columns and c not in first]
+    df = df[first + front + [c for c in df.columns[1:] if c not in front]]
     shown = df if max_rows is None or len(df) <= max_rows else df.head(max_rows)
     cols, same = [], []
     seen_base = set()
@@ -125,7 +144,8 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
             seen_base.add(m.group(1))
         w = max([len(c) for c in cells] + [len(word) for word in str(name).split()])
         cols.append({"name": str(name), "cells": cells, "right": right, "width": w,
-                     "secondary": twin or bool(_SECONDARY.search(str(name))), "key": bool(_KEY.match(str(name)))})
+                     "secondary": (twin or bool(_SECONDARY.search(str(name)))) and name not in front,
+                     "key": bool(_KEY.match(str(name)))})
 
     def total(cs):
         return sum(c["width"] for c in cs) + 2 * (len(cs) - 1)
@@ -159,11 +179,12 @@ def console_table(df: pd.DataFrame, *, width: int = WIDTH, max_rows: int | None 
         parts = [c["cells"][i].rjust(c["width"]) if c["right"] else c["cells"][i].ljust(c["width"]) for c in kept]
         lines.append("  ".join(parts).rstrip())
     if len(shown) < len(df):
-        lines.append(f"... {len(df) - len(shown)} more rows in {file_hint}")
+        n = len(df) - len(shown)
+        lines.append(f"... {n} more row{'s' if n > 1 else ''} in {file_hint}")
     if same:
         lines += textwrap.wrap(f"every row: {'; '.join(same)}", width=width, break_long_words=False)
     if omitted:
         order = [c["name"] for c in cols if c["name"] in omitted]
-        lines += textwrap.wrap(f"({len(order)} more columns in {file_hint}: {'; '.join(order)})", width=width,
-                               break_long_words=False)
+        lines += textwrap.wrap(f"({len(order)} more column{'s' if len(order) > 1 else ''} in {file_hint}: "
+                               f"{'; '.join(order)})", width=width, break_long_words=False)
     return "\n".join(lines)
