@@ -174,7 +174,8 @@ def _cmd_show(args) -> int:
 
         where = "; ".join(f"{e.kind} in {e.path}" for e in entries)
         print(textwrap.fill(f"{args.model}: {len(entries)} entries of that name ({where}); each is shown below. "
-                            "A path selects one file.", width=width, break_long_words=False) + "\n")
+                            "A path selects one file.", width=width, break_long_words=False,
+                            break_on_hyphens=False) + "\n")
     print(("\n" + "=" * min(width, 100) + "\n\n").join(describe(e, width=min(width, 100)) for e in entries), end="")
     return 0
 
