@@ -1,9 +1,15 @@
 """Command-line interface: parse arguments, call the library, write results.
 
-``covtool run STUDY``, ``covtool models``, ``covtool show MODEL`` and
+``covtool run STUDY``, ``covtool models``, ``covtool show NAME`` and
 ``covtool dualnav MAIN.csv KIMU.csv [--study S] --out DIR`` (seed 001,
 method II, on two recorded logs; the logs are CSV files with the columns of
 :data:`covtool.io.imu_log.LOG_COLUMNS` from the start of the alignment).
+
+Exit status: 0; 2 for a mistake in a file or an argument (one line
+``covtool: error: <file>: <field>: <problem>``); 70 for an internal error
+(a bug: one line with the exception type; ``COVTOOL_DEBUG=1`` shows the
+traceback); 128 + the signal number after SIGINT (130), SIGTERM (143) or
+a closed output pipe (141, ``covtool show sdins58 | head``).
 """
 
 from __future__ import annotations
@@ -11,17 +17,23 @@ from __future__ import annotations
 import argparse
 import os
 from pathlib import Path
+import re
 import signal
 import sys
 import threading
 import time
 import warnings
 
-from covtool.errors import CovtoolError, CovtoolWarning
+from covtool.errors import CovtoolError, CovtoolWarning, InputError
 
+
+#: exit status of an internal error (a bug), EX_SOFTWARE of sysexits.h
+EXIT_BUG = 70
+#: exit status of a mistake in a file or an argument
+EXIT_INPUT = 2
 
 #: longer summaries are abbreviated on the console (the files hold every row)
-MAX_SUMMARY_ROWS = 60
+MAX_SUMMARY_ROWS = 40
 
 
 def _output_dir(args) -> Path:
@@ -33,13 +45,44 @@ def _output_dir(args) -> Path:
     return check_output_dir(Path("out") / Path(args.study).stem, "default output directory (--out)")
 
 
+def _refuse_unused_options(args) -> None:
+    """One line, before any worker starts, when the study's kind cannot use an option given."""
+    import importlib
+    import inspect
+
+    from covtool.studies import load_study, RUNNERS
+
+    decl, path = load_study(args.study)
+    study = decl.get("study")
+    kind = study.get("kind") if isinstance(study, dict) else None
+    if not isinstance(kind, str) or kind not in RUNNERS:
+        return                                   # run_study names the problem
+    accepts = inspect.signature(importlib.import_module(RUNNERS[kind]).run).parameters
+    asked = [opt for opt, param, on in (("--workers", "backend", args.workers is not None),
+                                        ("--scheduler", "backend", args.scheduler is not None),
+                                        ("--resume", "resume", args.resume)) if on and param not in accepts]
+    if asked:
+        can = ", ".join(k for k in sorted(RUNNERS) if "backend" in inspect.signature(
+            importlib.import_module(RUNNERS[k]).run).parameters)
+        raise InputError(f"{path}: [study] kind", f"{kind!r} runs in one process in one piece; it takes no "
+                         f"{' or '.join(asked)} (kinds that do: {can})")
+
+
+def _progress(args) -> bool:
+    from covtool.progress import wanted
+
+    return wanted(quiet=args.quiet, force=getattr(args, "progress", False))
+
+
 def _cmd_run(args) -> int:
+    from covtool.io.console import console_table, console_width, KEY_COLUMNS
     from covtool.io.writers import write_outputs
     from covtool.io.lock import DirLock
     from covtool.studies import run_study
 
     t0 = time.perf_counter()
     out = _output_dir(args)
+    _refuse_unused_options(args)
     args.store_dir = out / "cases"                        # named in the interrupt message
     # one run at a time per output directory: outputs and the result store are written by one process
     with DirLock(out, command=f"covtool run {args.study}"):
@@ -51,7 +94,7 @@ def _cmd_run(args) -> int:
                 backend = make_backend(workers=args.workers, scheduler=args.scheduler)
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always", CovtoolWarning)
-                result = run_study(args.study, progress=not args.quiet, backend=backend, store=out / "cases",
+                result = run_study(args.study, progress=_progress(args), backend=backend, store=out / "cases",
                                    resume=args.resume)
         except BaseException:
             if backend is not None:
@@ -61,42 +104,79 @@ def _cmd_run(args) -> int:
             backend.close()
         for w in caught:      # one line each (validity, flagged cases); other warnings as Python shows them
             if issubclass(w.category, CovtoolWarning):
-                print(f"covtool: warning: {w.message}", file=sys.stderr)
+                print(f"covtool: warning: {_one_line(w.message)}", file=sys.stderr)
             else:
                 warnings.showwarning(w.message, w.category, w.filename, w.lineno)
         files = write_outputs(result, out, figures=not args.no_figures)
     dt = time.perf_counter() - t0
     if not args.quiet:
-        s = result.summary
-        if len(s) <= MAX_SUMMARY_ROWS:
-            print(s.to_string(index=False))
-        else:
-            print(s.head(10).to_string(index=False))
-            print(f"... {len(s) - 10} more rows in {out / 'summary.csv'}")
-            if "pivot_cep" in result.tables:
-                print("\n" + result.tables["pivot_cep"].to_string(index=False))
+        width = console_width()
+        print(console_table(result.summary, width=width, max_rows=MAX_SUMMARY_ROWS,
+                            file_hint=str(out / "summary.csv"), prefer=KEY_COLUMNS.get(result.kind, ())))
+        if len(result.summary) > MAX_SUMMARY_ROWS and "pivot_cep" in result.tables:
+            print("\n" + console_table(result.tables["pivot_cep"], width=width, file_hint=str(out)))
         print(f"\nwrote {len(files)} files to {out}/ in {dt:.1f} s")
     return 0
 
 
 def _cmd_models(args) -> int:
-    from covtool.io.library import list_models
+    from covtool.io.console import console_table, console_width
+    from covtool.io.library import default_model_dir, list_models
 
-    df = list_models(args.dir)
-    print(df.to_string(index=False))
+    d = Path(args.dir) if args.dir else default_model_dir()
+    if not d.is_dir():
+        raise InputError(f"--dir {str(d)!r}" if args.dir else f"$COVTOOL_MODELS {str(d)!r}",
+                         "is not a directory (a model library holds *.toml, filters/ and imu/)")
+    df = list_models(d)
+    width = console_width()
+    print(f"model library: {d}" + ("" if args.dir or os.environ.get("COVTOOL_MODELS") else
+                                   "  (set $COVTOOL_MODELS or --dir for another)"))
+    groups = [("truth models", df[df["kind"] == "truth model"])]
+    for file, g in df[df["kind"] == "filter"].groupby("file", sort=False):
+        rel = os.path.relpath(file, d)
+        truths = sorted(set(g["truth"]) - {""})
+        groups.append((f"filters in {rel}" + (f" (projections of {', '.join(truths)})" if truths else ""), g))
+    groups.append(("IMU grades", df[df["kind"] == "IMU grade"]))
+    for title, g in groups:
+        cols = ["name", "states", "base", "description"] if g["base"].astype(bool).any() else \
+            ["name", "states", "description"]
+        print(f"\n{title}:")
+        if not len(g):
+            print("  (none)")
+            continue
+        text = console_table(g[cols], width=width - 2, max_text=width, stretch="description", fold_constant=False)
+        print("\n".join("  " + ln for ln in text.splitlines()))
+    print("\ncovtool show NAME prints one of them (values in datasheet units and SI).")
     return 0
 
 
 def _cmd_show(args) -> int:
-    from covtool.io.library import load_model_by_name
+    from covtool.io.library import describe, lookup
 
-    model = load_model_by_name(args.model, args.dir)
+    if args.dir and not Path(args.dir).is_dir():
+        raise InputError(f"--dir {args.dir!r}", "is not a directory (a model library holds *.toml, filters/ "
+                         "and imu/)")
+    entries = lookup(args.model, args.dir)
     if args.markdown:
         from covtool.io.library import markdown_table
-        print(markdown_table(model), end="")
+
+        truths = [e for e in entries if e.kind == "truth model"]
+        if not truths:
+            raise InputError(f"--markdown {args.model!r}", f"is a {entries[0].kind}; --markdown prints a truth "
+                             "model's state table")
+        print(markdown_table(truths[0].obj), end="")
         return 0
-    print(f"{model.name}: {model.n} states, {model.description} [{model.path}]\n")
-    print(model.state_table().to_string(index=False))
+    from covtool.io.console import console_width
+
+    width = console_width()
+    if len(entries) > 1:
+        import textwrap
+
+        where = "; ".join(f"{e.kind} in {e.path}" for e in entries)
+        print(textwrap.fill(f"{args.model}: {len(entries)} entries of that name ({where}); each is shown below. "
+                            "A path selects one file.", width=width, break_long_words=False,
+                            break_on_hyphens=False) + "\n")
+    print(("\n" + "=" * min(width, 100) + "\n\n").join(describe(e, width=min(width, 100)) for e in entries), end="")
     return 0
 
 
@@ -110,31 +190,90 @@ def _positive_int(text: str) -> int:
     return n
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse with covtool's one-line error (no usage block), exit status 2."""
+
+    def error(self, message):
+        self.exit(EXIT_INPUT, f"covtool: error: {self.prog}: {_one_line(message)} (see '{self.prog} --help')\n")
+
+
+def _version() -> str:
+    """``covtool X.Y.Z from <package folder> (Python X.Y.Z)``, the version from the package metadata."""
+    import importlib.metadata
+    import platform
+
+    import covtool
+
+    try:
+        v = importlib.metadata.version("covtool")
+    except importlib.metadata.PackageNotFoundError:     # a source checkout on PYTHONPATH, never installed
+        v = f"{covtool.__version__} (not installed)"
+    if v.split()[0] != covtool.__version__:             # metadata of another installed copy
+        v = f"{covtool.__version__} (the installed distribution says {v})"
+    return f"covtool {v} from {Path(covtool.__file__).parent} (Python {platform.python_version()})"
+
+
+class _VersionAction(argparse.Action):
+    """``--version``: one unwrapped line on stdout, exit 0."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        print(_version())
+        parser.exit()
+
+
+_MODELS_ENV = ("The model library is $COVTOOL_MODELS if set, else the one installed with covtool "
+               "(the repository's models/): truth models *.toml, filters filters/*.toml, IMU grades imu/*.toml. "
+               "A study names them by library name or by a path relative to the study file.")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="covtool", description=__doc__)
-    sub = p.add_subparsers(dest="command", required=True)
-    r = sub.add_parser("run", help="run a study file and write its outputs")
-    r.add_argument("study", help="studies/*.toml")
-    r.add_argument("--out", help="output directory (default out/<study name>)")
-    r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    p = _Parser(prog="covtool", description=__doc__.split("\n\n")[0],
+                epilog="Run 'covtool COMMAND --help' for a command's options. " + _MODELS_ENV)
+    p.add_argument("--version", action=_VersionAction, help="print covtool's version and where it runs from")
+    sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    r = sub.add_parser("run", help="run a study file and write its outputs",
+                       description="Run a study file (studies/*.toml) and write its tables, workbook, figures and "
+                                   "resolved_study.toml to --out.")
+    r.add_argument("study", help="study file, e.g. studies/zupt_filter_order.toml")
+    r.add_argument("--out", help="output directory (default out/<study name>), checked before anything runs")
+    r.add_argument("--quiet", action="store_true",
+                   help="no progress bars and no summary (warnings and errors still print)")
+    r.add_argument("--progress", action="store_true",
+                   help="show progress bars even when stderr is not a terminal (default: only on a terminal)")
     r.add_argument("--no-figures", action="store_true", help="skip PNG figures")
-    r.add_argument("--workers", type=_positive_int, metavar="N",
-                   help="run chunks of cases in N local processes (or N workers of '--scheduler local')")
+    r.add_argument("-j", "--workers", "--jobs", dest="workers", type=_positive_int, metavar="N",
+                   help="run chunks of cases in N local processes (or N workers of '--scheduler local'); "
+                        "study kinds trade_grid and monte_carlo")
     r.add_argument("--scheduler", metavar="ADDRESS",
                    help="run chunks on a Dask cluster: a scheduler address (tcp://host:8786) or 'local'")
     r.add_argument("--resume", action="store_true",
                    help="reuse the cases an interrupted run stored in OUT/cases/ and compute only the rest")
     r.set_defaults(func=_cmd_run)
-    m = sub.add_parser("models", help="list the model library")
-    m.add_argument("--dir", default=None, help="model directory (default: models/)")
+    m = sub.add_parser("models", help="list the model library: truth models, filters, IMU grades",
+                       description="List the truth models (state counts), the filters of every filter file (kept "
+                                   "states, base filter) and the IMU grades. " + _MODELS_ENV)
+    m.add_argument("--dir", default=None, help="model library folder (default: $COVTOOL_MODELS, else the installed "
+                                                "library)")
     m.set_defaults(func=_cmd_models)
-    s = sub.add_parser("show", help="print a model's state table")
-    s.add_argument("model", help="model name or path to a .toml file")
-    s.add_argument("--dir", default=None, help="model directory (default: models/)")
-    s.add_argument("--markdown", action="store_true", help="print the table as Markdown (docs/)")
+    s = sub.add_parser("show", help="show a truth model, filter or IMU grade",
+                       description="Show a truth model (its states, noise densities and sources), a filter (kept "
+                                   "states, options, P0) or an IMU grade (every value), by library name or file, "
+                                   "in datasheet units and in SI at full precision. " + _MODELS_ENV)
+    s.add_argument("model", metavar="NAME", help="library name (sdins58, B1, kimu) or path to a .toml file")
+    s.add_argument("--dir", default=None, help="model library folder (default: $COVTOOL_MODELS, else the installed "
+                                                "library)")
+    s.add_argument("--markdown", action="store_true", help="print a truth model's state table as Markdown (docs/)")
     s.set_defaults(func=_cmd_show)
     add_dualnav_parser(sub)
     return p
+
+
+def _one_line(message) -> str:
+    """A message on one line (an error or warning is one line on stderr)."""
+    return re.sub(r"\s*\n\s*", "; ", str(message).strip())
 
 
 class Interrupted(KeyboardInterrupt):
@@ -171,11 +310,44 @@ def _interrupt_message(args, signum: int) -> str:
     return f"covtool: interrupted by {name}; earlier outputs are untouched"
 
 
+def _stdout_closed() -> bool:
+    """True if stdout is a pipe whose reader has gone (``covtool show sdins58 | head``).
+
+    The write end of such a pipe polls as an error (POLLERR).  stdout then
+    goes to /dev/null, so that the interpreter's last flush stays quiet.
+    """
+    import select
+
+    try:
+        fd = sys.stdout.fileno()
+        poller = select.poll()
+        poller.register(fd, select.POLLOUT)
+        closed = any(ev & select.POLLERR for _, ev in poller.poll(0))
+    except (OSError, ValueError, AttributeError):       # no real stdout (captured, closed)
+        return False
+    if closed:
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, fd)
+            os.close(devnull)
+        except OSError:
+            pass
+    return closed
+
+
 def main(argv=None) -> int:
     """Entry point of the ``covtool`` command.
 
-    Returns the exit status: 0, 2 for an input error, 128 + the signal
-    number after SIGINT (130) or SIGTERM (143), with one line on stderr.
+    Returns
+    -------
+    int
+        The exit status: 0; 2 for a mistake in a file or an argument
+        (one line ``covtool: error: ...`` on stderr); 70 for an internal
+        error, a bug (one line naming the exception type, the traceback
+        with ``COVTOOL_DEBUG=1``); 128 + the signal number after SIGINT
+        (130), SIGTERM (143) or a closed stdout pipe (141).  Argument
+        errors raise ``SystemExit(2)`` after their one line, as argparse
+        does.
     """
     args = build_parser().parse_args(argv)
     handlers = {}
@@ -183,17 +355,43 @@ def main(argv=None) -> int:
         for s in (signal.SIGINT, signal.SIGTERM):
             handlers[s] = signal.signal(s, _on_signal)
     try:
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()                      # a closed pipe is found here, not at interpreter exit
+        return status
     except CovtoolError as exc:
-        print(f"covtool: error: {exc}", file=sys.stderr)
-        return 2
+        print(f"covtool: error: {_one_line(exc)}", file=sys.stderr)
+        return EXIT_INPUT
     except KeyboardInterrupt as exc:
         signum = exc.signum if isinstance(exc, Interrupted) else signal.SIGINT
         print(_interrupt_message(args, signum), file=sys.stderr)
         return 128 + signum
+    except BrokenPipeError as exc:
+        if _stdout_closed():
+            return 128 + signal.SIGPIPE
+        return _internal_error(exc)
+    except OSError as exc:               # the system refused a file operation: named, not a bug
+        if os.environ.get("COVTOOL_DEBUG") == "1":
+            raise
+        name = f"{exc.filename}: " if exc.filename else ""
+        print(f"covtool: error: {name}{exc.strerror or _one_line(exc)}", file=sys.stderr)
+        return EXIT_INPUT
+    except MemoryError:
+        print("covtool: error: out of memory (shorten the study or lower [resources] memory_limit)", file=sys.stderr)
+        return EXIT_INPUT
+    except Exception as exc:                 # noqa: BLE001  (everything else is a bug)
+        return _internal_error(exc)
     finally:
         for s, h in handlers.items():
             signal.signal(s, h)
+
+
+def _internal_error(exc: BaseException) -> int:
+    """One line for a bug, or the traceback with ``COVTOOL_DEBUG=1``."""
+    if os.environ.get("COVTOOL_DEBUG") == "1":
+        raise exc
+    print(f"covtool: internal error (a bug in covtool, please report it with the command): "
+          f"{type(exc).__name__}: {_one_line(exc)} (COVTOOL_DEBUG=1 shows the traceback)", file=sys.stderr)
+    return EXIT_BUG
 
 
 if __name__ == "__main__":
@@ -204,15 +402,22 @@ def default_study() -> Path:
     """The study file used when ``--study`` is not given.
 
     ``$COVTOOL_DUALNAV_STUDY``, else ``./studies/dual_imu_flight.toml``,
-    else the repository's.
+    else the one of the source checkout covtool runs from.
+
+    Raises
+    ------
+    InputError
+        None of them exists (an installed covtool ships no study files).
     """
     env = os.environ.get("COVTOOL_DUALNAV_STUDY")
     if env:
         return Path(env)
-    cwd = Path.cwd() / "studies" / "dual_imu_flight.toml"
-    if cwd.is_file():
-        return cwd
-    return Path(__file__).resolve().parents[1] / "studies" / "dual_imu_flight.toml"
+    for c in (Path.cwd() / "studies" / "dual_imu_flight.toml",
+              Path(__file__).resolve().parents[1] / "studies" / "dual_imu_flight.toml"):
+        if c.is_file():
+            return c
+    raise InputError("--study", "not given, and there is no $COVTOOL_DUALNAV_STUDY nor ./studies/dual_imu_flight.toml;"
+                     " name a dual_imu study file (the repository's studies/dual_imu_flight.toml is one)")
 
 
 def cmd_dualnav(args) -> int:
@@ -235,17 +440,20 @@ def cmd_dualnav(args) -> int:
     main = load_imu_log(args.main)
     kimu = load_imu_log(args.kimu)
     with one_blas_thread():
-        result = compare_logs(main, kimu, decl, path=path)
+        result = compare_logs(main, kimu, decl, path=path, progress=_progress(args))
     files = write_outputs(result, out, figures=not args.no_figures)
     if not args.quiet:
-        print(result.summary.to_string(index=False))
+        from covtool.io.console import console_table, console_width
+
+        width = console_width()
+        print(console_table(result.summary, width=width, file_hint=str(out / "summary.csv")))
         gaps = result.tables["gaps"]
         if len(gaps):
             cols = ["imu", "after [s]", "before [s]", "samples bridged", "policy",
                     "predicted att x [urad]", "predicted att y [urad]", "predicted att z [urad]",
                     "predicted vel x [mm/s]", "predicted vel y [mm/s]", "predicted vel z [mm/s]"]
             print("\nbridged gaps:")
-            print(gaps[cols].to_string(index=False))
+            print(console_table(gaps[cols], width=width, file_hint=str(out)))
         print(f"\nwrote {len(files)} files to {out}/ in {time.perf_counter() - t0:.1f} s")
     return 0
 
@@ -273,7 +481,10 @@ def add_dualnav_parser(subparsers):
     p.add_argument("--study", default=None,
                    help="dual_imu study file (default: studies/dual_imu_flight.toml)")
     p.add_argument("--out", required=True, help="output directory")
-    p.add_argument("--quiet", action="store_true", help="print nothing")
+    p.add_argument("--quiet", action="store_true",
+                   help="no progress bars and no summary (warnings and errors still print)")
+    p.add_argument("--progress", action="store_true",
+                   help="show progress bars even when stderr is not a terminal (default: only on a terminal)")
     p.add_argument("--no-figures", action="store_true", help="skip PNG figures")
     p.set_defaults(func=cmd_dualnav)
     return p

@@ -496,7 +496,7 @@ def run_chunks(fn: Callable[[Any], Any], items: Sequence, keys: Sequence[str], c
     backend's ``abort`` cancels the pending chunks and stops the workers
     before the exception propagates; the chunks stored so far stay.
     """
-    from tqdm.auto import tqdm
+    from covtool.progress import progress_bar
 
     if len(set(keys)) != len(keys):
         raise ValueError("chunk keys are not unique")
@@ -517,8 +517,7 @@ def run_chunks(fn: Callable[[Any], Any], items: Sequence, keys: Sequence[str], c
     n_cases = sum(len(c) for c in cases)
     n_done = n_cases - sum(len(cases[i]) for i in todo)
     t0 = time.perf_counter()
-    with tqdm(total=n_cases, initial=n_done, desc=desc, unit="case", disable=not progress, leave=False,
-              smoothing=0.1) as bar:
+    with progress_bar(n_cases, desc, progress, unit="case", initial=n_done) as bar:
         if todo:
             try:
                 for j, (res, secs) in backend.imap_unordered(_Timed(fn), [items[i] for i in todo]):

@@ -203,7 +203,7 @@ def _fig3(p, d, tables, figs, charts):
 
 
 def _table1_fig4(p, d, tables, figs, charts, summary, progress):
-    from tqdm import tqdm
+    from covtool.progress import progress_iter
 
     filt, t = d["filt"], d["thresholds"]
     ref = p["ref"].get("table1")
@@ -238,7 +238,7 @@ def _table1_fig4(p, d, tables, figs, charts, summary, progress):
 
     accs = np.linspace(*p["fig4"], 2 * p["points"])
     rows = []
-    for a in tqdm(accs, desc="fig 4", disable=not progress, leave=False):
+    for a in progress_iter(accs, "fig 4", progress, unit="input"):
         hi, lo = output_error(p, d, a)
         hin, lon = output_error(p, d, a, factor=p["decim"])
         row = {"input acceleration [m/s^2]": a, "N_a used [samples]": _period(p, d, a)}
@@ -255,7 +255,7 @@ def _table1_fig4(p, d, tables, figs, charts, summary, progress):
 
 
 def _tables23_fig5(p, d, tables, figs, charts, summary, progress):
-    from tqdm import tqdm
+    from covtool.progress import progress_iter
 
     gains = p["coarse"]
     as_ = from_si(1.0, "arcsec")
@@ -296,7 +296,7 @@ def _tables23_fig5(p, d, tables, figs, charts, summary, progress):
 
     accs = np.linspace(*p["fig5"], p["points"])
     rows = []
-    for a in tqdm(accs, desc="fig 5", disable=not progress, leave=False):
+    for a in progress_iter(accs, "fig 5", progress, unit="input"):
         row = {"input acceleration [mg]": a / (1e-3 * p["g"])}
         for pre, tag in ((False, ""), (True, " pre-filter")):
             # the tilt error is linear in the pulse height; compute for the first ratio and scale

@@ -79,6 +79,7 @@ from covtool.dualnav.run import as_runs, DualRun, DualSetup, ppm_text, run_dual
 from covtool.errors import InputError, StudyFileError
 from covtool.io.imu_log import check_imu_log
 from covtool.nav import attitude as quat, earth
+from covtool.progress import progress_bar
 from covtool.results import StudyResult
 from covtool.studies.dual_imu_config import DualConfig, parse_study, PPM_G
 from covtool.studies.inputs import input_file
@@ -203,6 +204,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     ss_free, ss_fault = root.spawn(2)
     outcome = {}
     gap_rows = []
+    bar = progress_bar(cfg.runs + cfg.fault_runs, "flights", progress, unit="flight")   # closed below or by GC
     for label, n_runs, ss, fault in (("fault_free", cfg.runs, ss_free, None),
                                      ("fault", cfg.fault_runs, ss_fault, cfg.fault)):
         batches = [min(cfg.batch, n_runs - a) for a in range(0, n_runs, cfg.batch)]
@@ -218,7 +220,9 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                 actual = _actual_gap_errors(bridged, removed)
                 for rep, (a_th, a_v) in zip(bridged["main"].gaps + bridged["kimu"].gaps, actual):
                     gap_rows.append(_gap_row(rep, a_th, a_v))
+            bar.update(b)
         outcome[label] = res
+    bar.close()
     elapsed = time.perf_counter() - t0
     return _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed)
 
@@ -366,7 +370,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
 # --------------------------------------------------------------------------
 
 
-def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
+def compare_logs(main_log, kimu_log, decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     """The dual-IMU comparison of two recorded logs.
 
     Parameters
@@ -379,6 +383,8 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         ``[simulation]`` are ignored.
     path : Path, optional
         The study file (messages, relative grade paths).
+    progress : bool
+        Show a bar of the three phases (two logs bridged, then navigated).
 
     Returns
     -------
@@ -399,7 +405,9 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
     cfg = parse_study(decl, where, base_dir)
     setup = make_setup(cfg, cfg.initial, where)
     bridged = {}
+    bar = progress_bar(3, "logs", progress, unit="phase")   # bridge main, bridge KIMU, navigate and compare
     for key, log in (("main", main_log), ("kimu", kimu_log)):
+        bar.update(0 if key == "main" else 1)
         rate = cfg.grades[key].rate
         dt = 1.0 / rate
         measured = log.period
@@ -412,7 +420,10 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
         m = cfg.grades[key].to_model()
         bridged[key] = bridge_gaps(log.t, log.dtheta, log.dv, dt, cfg.gap_policy, arw=m.arw, vrw=m.vrw, imu=key,
                                       window=cfg.gap_window, trials=cfg.gap_trials, where=log.path)
+    bar.update(1)
     r = run_dual(bridged["main"], bridged["kimu"], setup)
+    bar.update(1)
+    bar.close()
     elapsed = time.perf_counter() - t0
     gs = r.gsens
     best = int(gs.identified[0])

@@ -12,11 +12,11 @@ from covtool.lincov.model.spec import Model
 from covtool.units import from_si, parse_quantity
 
 
-def progress_bar(total: int, desc: str, enabled: bool):
-    """A tqdm bar shown only if the work lasts longer than about one second."""
-    from tqdm.auto import tqdm
+def progress_bar(total: int, desc: str, enabled: bool, unit: str = "step"):
+    """A bar shown only if the work lasts longer than about one second (:func:`covtool.progress.progress_bar`)."""
+    from covtool.progress import progress_bar as bar
 
-    return tqdm(total=total, desc=desc, disable=not enabled, delay=1.0, leave=False, unit="step")
+    return bar(total, desc, enabled, unit=unit)
 
 
 # ---------------------------------------------------------------------------
