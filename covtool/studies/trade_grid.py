@@ -149,6 +149,8 @@ def grade_truth(truth_decl: dict, grade: dict, model) -> dict:
         ov.setdefault(nm, {}).update(v)
     if ov:
         out["override"] = ov
+    # the designer is assumed to know the grade's IMU (module docstring): filters follow the grade
+    out["override_filters"] = True
     for key in ("arw", "vrw"):
         if key in grade:
             out[key] = grade[key]
@@ -371,7 +373,7 @@ class TradePlan:
         """
         return {"kind": "trade_grid", "covtool_version": __version__, "study": decl,
                 "truth_model_sha256": self.truth_sha256,
-                "filter_file_sha256": file_sha256(self.filter_file),
+                "filter_file_sha256": [file_sha256(p) for p in self.filter_file],
                 "trajectory_csv_sha256": trajectory_csv_sha256(decl, self.path.parent if self.path else None),
                 "chunks": [c["key"] for c in self.chunks], "cases": self.n_cases}
 

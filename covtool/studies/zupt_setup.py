@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from covtool.errors import StudyFileError
-from covtool.io.config import boolean, check_keys, names, quantity, resolve_input, table
+from covtool.io.config import boolean, check_keys, is_library_name, names, quantity, resolve_input, table
 from covtool.io.filters import default_filter_file, load_filters
 from covtool.lincov.dynamics import dyn_key, error_dynamics
 from covtool.lincov.kalman import check_system
@@ -112,11 +112,44 @@ def zupt_schedule(cfg: dict, where: str, t: np.ndarray, traj) -> tuple[np.ndarra
     return idx, interval, sigma
 
 
-def filters_file(cfg, where, base_dir) -> Path:
+def filters_file(cfg, where, base_dir) -> tuple[Path, ...]:
+    """The study's filter files: ``[filters] file``, one or a list (default: the library's).
+
+    Each entry is a path relative to the study file (never the current
+    directory) or a bare name of the library's ``filters/`` folder
+    (``"zupt_filters"``).  A filter's ``base`` may name a filter of any of
+    them (:func:`covtool.io.filters.filters_from_files`).
+
+    Raises
+    ------
+    StudyFileError
+        Not a string or a non-empty list of strings, a file named twice, or
+        no such file.
+    """
     if "file" not in cfg:
-        return default_filter_file()
-    # relative to the study file that names it, never the current directory
-    return resolve_input(cfg["file"], base_dir, f"{where}: [filters] file", StudyFileError, what="filter file")
+        return (default_filter_file(),)
+    w = f"{where}: [filters] file"
+    value = cfg["file"]
+    many = isinstance(value, list)
+    if many and not value:
+        raise StudyFileError(w, "expected a filter file or a non-empty list of filter files, got []")
+    out = []
+    for i, v in enumerate(value if many else [value]):
+        wi = f"{w}[{i}]" if many else w
+        if isinstance(v, str) and is_library_name(v):
+            from covtool.io.library import default_model_dir
+
+            p = default_model_dir() / "filters" / f"{v}.toml"
+            if not p.is_file():
+                raise StudyFileError(wi, f"no filter file {v!r} in the library ({p.parent}); give a path "
+                                     "relative to the study file (\"my_filters.toml\")")
+        else:
+            # relative to the study file that names it, never the current directory
+            p = resolve_input(v, base_dir, wi, StudyFileError, what="filter file")
+        if p in out:
+            raise StudyFileError(wi, f"{str(p)!r} is named twice")
+        out.append(p)
+    return tuple(out)
 
 
 def filter_cases(fcfg: dict, specs: dict, ffile, where: str, *, nonempty: bool = False) -> list:
@@ -162,12 +195,20 @@ class ZuptSetup:
     specs: dict
     cases: list
     mean_speed: float | None
-    filter_file: Path
+    filter_files: tuple
     every: float
     report_times: list
     resources: dict = field(default_factory=dict)
+    #: the model the filters are built from: the truth, or the truth without the study's
+    #: overrides (``[truth] override_filters = false``, :func:`covtool.studies.inputs.load_truth`)
+    filter_truth: object = None
     _dyn_cache: dict = field(default_factory=dict)
     _filters: dict = field(default_factory=dict)
+
+    @property
+    def filter_file(self) -> Path:
+        """The first of :attr:`filter_files` (the only one in most studies)."""
+        return self.filter_files[0]
 
     def filter_system(self, name: str, discretization: str | None = None):
         """``(FilterModel, Φ_f, Q_f, reused)`` of a declared filter, cached.
@@ -191,10 +232,11 @@ class ZuptSetup:
             if ckey[1] is not None:
                 spec = dataclasses.replace(spec, discretization=ckey[1])
             key = dyn_key(spec.options)
+            ftruth = self.filter_truth if self.filter_truth is not None else self.truth
             if key not in self._dyn_cache:
-                self._dyn_cache[key] = self.dyn if key == dyn_key(None) else error_dynamics(
-                    self.truth, self.ctx, spec.options)
-            fm = build_filter(spec, self.truth, self.ctx, zupt_interval=self.zupt_interval,
+                self._dyn_cache[key] = self.dyn if key == dyn_key(None) and ftruth is self.truth else \
+                    error_dynamics(ftruth, self.ctx, spec.options)
+            fm = build_filter(spec, ftruth, self.ctx, zupt_interval=self.zupt_interval,
                               q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
                               mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
                               update_steps=self.update_steps)
@@ -249,7 +291,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
         boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
     zupt_options(table(decl.get("zupt", {}), f"{where}: [zupt]", StudyFileError), where, hdr["dt"],
                  hdr["duration"])
-    truth = load_truth(decl, where, base_dir)
+    truth, ftruth = load_truth(decl, where, base_dir, for_filters=True)
     ffile = filters_file(fcfg, where, base_dir)
     specs = load_filters(ffile, truth)
     cases = filter_cases(fcfg, specs, ffile, where)
@@ -268,7 +310,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
     H = zupt_matrices(truth.names)
     R = np.eye(3) * zsig**2
     return ZuptSetup(hdr, where, t, nodes, truth, ctx, dyn, Phi, Qd, P0, H, R, upd, dt_s, zsig, specs, cases,
-                     mean_speed, ffile, every, rtimes, est)
+                     mean_speed, ffile, every, rtimes, est, None if ftruth is truth else ftruth)
 
 
 def order_memory(pure: bool, impact: bool = True):
