@@ -47,7 +47,9 @@ def _wrap(check):
         try:
             return check(value)
         except InputError as exc:
-            raise PydanticCustomError("covtool", "{problem}", {"problem": exc.problem}) from None
+            # exc.where is the helper's own suffix (``[i]`` of a list item), "" otherwise
+            raise PydanticCustomError("covtool", "{problem}", {"problem": exc.problem,
+                                                               "suffix": exc.where or ""}) from None
     return validate
 
 
@@ -157,8 +159,9 @@ class StudySection(Section):
     doc: ClassVar[str] = "What the study is and its time grid."
     kind: OneOf("pure_ins", "zupt_filter_order", "ad_reset", "zupt_sensitivity", "error_budget", "trade_grid",
                 "monte_carlo", "dual_imu", "magnitude_sweep") = F(..., "The study kind: the runner and its tables.")
-    name_: Text(nonempty=True) | None = Field(None, alias="name", description=(
-        "Name of the outputs (`<name>.xlsx`); default: the study file's stem."))
+    # checked by covtool.io.names.check_study_name (a safe file name), which knows the file's stem
+    name_: Annotated[Any, Kind("string (a file name)")] = Field(None, alias="name", description=(
+        "Name of the outputs (`<name>.xlsx`): letters, digits, `_`, `-`, `.`; default: the study file's stem."))
     description: Text() = F("", "One line shown in the workbook's provenance.")
     duration: Quantity("time", positive=True) = F("30 min", "Length of the study (the propagation span).")
     dt: Quantity("time", positive=True) = F("1 s", "Propagation step: F is held constant over one step; "
@@ -178,8 +181,9 @@ class StudySectionShort(Section):
     name: ClassVar[str] = "study"
     doc: ClassVar[str] = "What the study is (the time grid comes from the sensor rates)."
     kind: OneOf("ad_reset", "dual_imu") = F(..., "The study kind.")
-    name_: Text(nonempty=True) | None = Field(None, alias="name", description=(
-        "Name of the outputs (`<name>.xlsx`); default: the study file's stem."))
+    # checked by covtool.io.names.check_study_name (a safe file name), which knows the file's stem
+    name_: Annotated[Any, Kind("string (a file name)")] = Field(None, alias="name", description=(
+        "Name of the outputs (`<name>.xlsx`): letters, digits, `_`, `-`, `.`; default: the study file's stem."))
     description: Text() = F("", "One line shown in the workbook's provenance.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
@@ -194,7 +198,7 @@ class OutputSection(Section):
     doc: ClassVar[str] = "What the tables hold."
     history_every: Quantity("time", positive=True) = F("10 s", "Spacing of the rows of `history.csv`.")
     report_times: QuantityList("time", limit="report_times", nonnegative=True) | None = F(
-        None, "Times of the summary rows, each within the study (default: the end).", example=["30 min"])
+        None, "Times of the summary rows, each within the study (default: the end).")
 
 
 class OverrideEntry(Section):
@@ -421,7 +425,7 @@ class CostSection(Section):
     measure: Bool = F(True, "Time one filter cycle on this machine.")
     repeats: Integer(limit="repeats") = F(7, "Timings per filter (the median is reported).")
     taylor_order: Raw = F("auto", "'auto' or the Taylor terms of eq (6b) used for the flop count (2..40).")
-    paper_seconds: Table("table filter = seconds") = F(None, "The paper's Table 4 times, compared with the "
+    paper_seconds: Table("table filter = seconds") | None = F(None, "The paper's Table 4 times, compared with the "
                                                              "flop counts (default: seed 002's).")
 
 
@@ -513,6 +517,43 @@ class ImuSection(Section):
     kimu: Table("[imu.kimu] table") = F({}, "The KIMU.")
 
 
+class FlightSegment(Section):
+    name: ClassVar[str] = "[trajectory.segment]] (flight)"
+    doc: ClassVar[str] = "One piece of a flight: `stand` (duration) or `fly`."
+    kind: OneOf("stand", "fly") = F(..., "The segment kind.", example="stand")
+    duration: Quantity("time") | None = F(None, "Duration.")
+    to_speed: Quantity("velocity") | None = F(None, "fly: speed at the end.")
+    to_pitch: Quantity("angle") | None = F(None, "fly: pitch at the end.")
+    to_roll: Quantity("angle") | None = F(None, "fly: roll at the end.")
+    turn: Quantity("angle") | None = F(None, "fly: heading change.")
+    transition: Quantity("time") | None = F(None, "fly: ramp time of the changes.")
+
+
+class FlightInitial(Section):
+    name: ClassVar[str] = "trajectory.initial (flight)"
+    doc: ClassVar[str] = "Start of a flight."
+    lat: Quantity("angle") = F(..., "Latitude.", example="36.37 deg")
+    lon: Quantity("angle") = F(..., "Longitude.", example="127.36 deg")
+    h: Quantity("length") = F(..., "Height.", example="60 m")
+    heading: Quantity("angle") = F("0 deg", "Heading.")
+    pitch: Quantity("angle") = F("0 deg", "Pitch.")
+
+
+class FlightTrajectory(Section):
+    name: ClassVar[str] = "trajectory (dual_imu flight)"
+    doc: ClassVar[str] = ("The flight of a dual-IMU study: `builtin = \"high_dynamics_flight\"` (seed 001's "
+                          "profile), or `segment` and `initial`.")
+    nested: ClassVar[dict] = {"initial": FlightInitial, "segment": [FlightSegment]}
+    builtin: OneOf("high_dynamics_flight") | None = F(None, "A built-in flight.", example="high_dynamics_flight")
+    vibration: Raw = F(True, "Add the flight's vibration to the sensed motion (true/false, or a vibration "
+                             "table for a segment flight).")
+    segment: Raw = F(None, "The segments: [[trajectory.segment]] tables.")
+    initial: Raw = F(None, "The start: [trajectory.initial].")
+    name_: Text() | None = Field(None, alias="name", description="Label of the flight.")
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+
 class DualAlignment(Section):
     name: ClassVar[str] = "alignment"
     doc: ClassVar[str] = "Initial alignment of the pair."
@@ -587,13 +628,13 @@ class Simulation(Section):
 class Board(Section):
     name: ClassVar[str] = "board"
     doc: ClassVar[str] = "The A/D-reset accelerometer board (seed 000)."
-    sample_rate: Quantity("frequency", positive=True) = F(..., "Board sample rate.", example="1 kHz")
-    n_t: Number(lo=0.0, lo_open=True) = F(..., "Nominal counts N_t.", example=1000)
-    error_ratios: Raw = F(..., "Reset scale-error ratios, each non-zero within (-0.5, 0.5).", example=[0.02])
+    sample_rate: Quantity("frequency", positive=True) = F(..., "Board sample rate.", example="2400 Hz")
+    n_t: Number(lo=0.0, lo_open=True) = F(..., "Nominal counts N_t.", example=1066.5)
+    error_ratios: Raw = F(..., "Reset scale-error ratios, each non-zero within (-0.5, 0.5).", example=[0.02, 0.05, 0.10])
     n_e_stated: Number() | None = F(None, "Stated error counts (default error_ratios[0]·n_t).")
     v_bound: Number(lo=0.0, lo_open=True) | None = F(None, "Counter bound, > n_t/2 (default n_t).")
     reset_period_reference: Quantity("acceleration", positive=True) | None = F(
-        None, "Input at which N_a = 2π/ω_n (give this or scale_factor).")
+        None, "Input at which N_a = 2π/ω_n (give this or scale_factor).", example="0.9 m/s^2")
     scale_factor: Quantity("velocity", positive=True) | None = F(None, "Velocity per reset pulse.")
     period_rounding: OneOf("floor", "round", "ceil") = F("floor", "How the reset period rounds to samples.")
 
@@ -602,7 +643,7 @@ class OutputFilter(Section):
     name: ClassVar[str] = "output_filter"
     doc: ClassVar[str] = "The board's second-order output filter."
     cutoff: Quantity("frequency", positive=True) = F(..., "Cut-off (below half the sample rate).",
-                                                     example="50 Hz")
+                                                     example="20 Hz")
     damping: Number(lo=0.0, lo_open=True) = F(1 / math.sqrt(2), "Damping ratio.")
 
 
@@ -617,15 +658,15 @@ class BoardNavigation(Section):
 class Gains(Section):
     name: ClassVar[str] = "alignment.coarse / alignment.fine"
     doc: ClassVar[str] = "Alignment loop gains."
-    k: Number(lo=0.0, lo_open=True) = F(..., "Loop gain.", example=0.1)
-    kb_g: Number(lo=0.0, lo_open=True) = F(..., "Bias gain per g.", example=0.001)
+    k: Number(lo=0.0, lo_open=True) = F(..., "Loop gain.", example=1.0)
+    kb_g: Number(lo=0.0, lo_open=True) = F(..., "Bias gain per g.", example=0.25)
 
 
 class Prefilter(Section):
     name: ClassVar[str] = "alignment.prefilter"
     doc: ClassVar[str] = "Alignment prefilter."
     cutoff: Quantity("frequency", positive=True) = F(..., "Cut-off (below half the navigation rate).",
-                                                     example="1 Hz")
+                                                     example="0.1 Hz")
     order: OneOf(1, 2) = F(1, "Filter order.")
 
 
@@ -642,10 +683,11 @@ class BoardAlignment(Section):
 class Sweeps(Section):
     name: ClassVar[str] = "sweeps"
     doc: ClassVar[str] = "Ranges of the board figures."
-    fig2: Raw = F(..., "[low, high] input accelerations of Fig 2.", example=["0.01 g", "1 g"])
-    fig3: Raw = F(..., "[low, high] pulse periods in samples (low >= 2).", example=[2, 1000])
-    fig4: Raw = F(..., "[low, high] accelerations of Fig 4.", example=["0.01 g", "1 g"])
-    fig5: Raw = F(..., "[low, high] accelerations of Fig 5.", example=["0.01 g", "1 g"])
+    fig2: Raw = F(..., "[low, high] input accelerations of Fig 2 (N_a > 2π/ω_n).",
+                  example=["0.05 m/s^2", "0.9 m/s^2"])
+    fig3: Raw = F(..., "[low, high] pulse periods N_a in samples (low >= 2).", example=[2, 400])
+    fig4: Raw = F(..., "[low, high] accelerations of Fig 4 (N_a < 2π/ω_n).", example=["0.9 m/s^2", "20 m/s^2"])
+    fig5: Raw = F(..., "[low, high] accelerations of Fig 5.", example=["0.5 mg", "5 mg"])
     points: Integer(lo=5, hi=2000) = F(60, "Points per curve.")
 
 
@@ -742,7 +784,7 @@ class TradeGridConfig(ZuptStudyConfig):
 class DualImuConfig(StudyConfig):
     kind_doc: ClassVar[str] = "Dual-IMU comparison and g-sensitivity fault monitor (seed 001)."
     study: StudySectionShort
-    trajectory: Raw = F(None, "The flight: a trajectory table (segments or a builtin).")
+    trajectory: FlightTrajectory = F({"builtin": "high_dynamics_flight"}, FlightTrajectory.doc)
     imu: ImuSection = F({}, ImuSection.doc)
     alignment: DualAlignment = F({}, DualAlignment.doc)
     comparison: Comparison = F({}, Comparison.doc)
@@ -823,8 +865,9 @@ def _raise(exc: ValidationError, where: str, prefix: tuple, error):
         raise error(_where(where, loc[:-1]), f"missing required key {loc[-1]!r}") from None
     if e["type"] == "extra_forbidden":
         raise error(_where(where, loc[:-1]), f"unknown key {loc[-1]!r}") from None
-    problem = e["ctx"]["problem"] if e["type"] == "covtool" else e["msg"]
-    raise error(_where(where, loc), problem) from None
+    if e["type"] == "covtool":
+        raise error(_where(where, loc) + e["ctx"].get("suffix", ""), e["ctx"]["problem"]) from None
+    raise error(_where(where, loc), e["msg"]) from None
 
 
 def load_config(decl: dict, where: str = "<study>") -> StudyConfig:

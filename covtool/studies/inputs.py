@@ -19,22 +19,26 @@ __all__ = [
 ]
 
 
-def study_header(decl: dict, where: str, extra_keys=()) -> dict:
-    """Validate ``[study]``: name, kind, duration, dt, discretization, max_memory."""
+def study_header(decl: dict, where: str) -> dict:
+    """Validate ``[study]`` (:class:`covtool.studies.config.StudySection`): the header as a dict.
+
+    Keys ``kind``, ``name`` (checked to be a safe file name, default the
+    study file's stem), ``description``, ``duration`` and ``dt`` [s],
+    ``discretization``, ``max_memory`` [bytes] or None.
+    """
+    from covtool.studies.config import StudySection, parse_section
+
     st = table(decl["study"], f"{where}: [study]", StudyFileError)
-    check_keys(st, {"kind", "name", "description", "duration", "dt", "discretization", "max_memory", *extra_keys},
-               f"{where}: [study]", StudyFileError)
+    sec = parse_section(StudySection, st, where, "study")
     w = f"{where}: [study]"
     out = {
-        "kind": st["kind"],
+        "kind": sec.kind,
         "name": check_study_name(st, where, StudyFileError, default=st["kind"]),
-        "description": string(st.get("description", ""), f"{w} description", StudyFileError),
-        "duration": quantity(st.get("duration", "30 min"), "time", f"{w} duration", StudyFileError, positive=True),
-        "dt": quantity(st.get("dt", "1 s"), "time", f"{w} dt", StudyFileError, positive=True),
-        "discretization": choice(st.get("discretization", "van_loan"), ("van_loan", "taylor"),
-                                 f"{w} discretization", StudyFileError),
-        "max_memory": (parse_bytes(st["max_memory"], f"{w} max_memory", StudyFileError)
-                       if "max_memory" in st else None),
+        "description": sec.description,
+        "duration": sec.duration,
+        "dt": sec.dt,
+        "discretization": sec.discretization,
+        "max_memory": sec.max_memory,
     }
     if out["dt"] > out["duration"] * (1 + 1e-12):
         raise StudyFileError(f"{w} dt", f"{st.get('dt', '1 s')!r} is longer than the duration "
@@ -199,13 +203,13 @@ def study_inputs(path, decl: dict, truth: Model | None = None, filter_file=None)
     return rows
 
 
-def report_times(decl_out: dict, where: str, duration: float) -> list[float]:
+def report_times(decl_out: dict, where: str, duration: float, parsed=None) -> list[float]:
     """``[output] report_times`` in seconds, each within the study (default: the end)."""
     if "report_times" not in decl_out:
         return [duration]
     w = f"{where}: [output] report_times"
-    out = quantity_list(decl_out["report_times"], "time", w, StudyFileError, limit="report_times",
-                        nonnegative=True)
+    out = list(parsed) if parsed is not None else quantity_list(
+        decl_out["report_times"], "time", w, StudyFileError, limit="report_times", nonnegative=True)
     for i, (v, x) in enumerate(zip(decl_out["report_times"], out)):
         if x > duration + 1e-9:
             raise StudyFileError(f"{w}[{i}]", f"{v!r} is after the end of the study ({duration:g} s)")
@@ -227,12 +231,12 @@ def load_trajectory(decl, where, base_dir, dt, duration=None):
 
 
 def output_options(decl, where, duration):
+    from covtool.studies.config import OutputSection, parse_section
+
     out = decl.get("output", {})
-    check_keys(out, {"history_every", "report_times"}, f"{where}: [output]", StudyFileError)
+    sec = parse_section(OutputSection, out, where, "output")
     # any spacing is bounded: the history never holds more rows than grid steps
-    every = quantity(out.get("history_every", "10 s"), "time", f"{where}: [output] history_every",
-                     StudyFileError, positive=True)
-    return every, report_times(out, where, duration)
+    return sec.history_every, report_times(out, where, duration, sec.report_times)
 
 
 def trajectory_csv_sha256(decl: dict, base_dir) -> str:

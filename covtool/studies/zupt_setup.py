@@ -26,9 +26,6 @@ from covtool.studies.inputs import load_trajectory, load_truth, output_options, 
 from covtool.studies.resources import check_memory, memory_estimate, noise_columns, steps_of
 
 
-ZUPT_KEYS = {"interval", "duration", "rate", "sigma", "first"}
-
-
 def zupt_options(cfg: dict, where: str, dt: float, duration: float) -> dict:
     """Validate ``[zupt]`` against the grid step ``dt`` and the study ``duration`` [s].
 
@@ -40,20 +37,14 @@ def zupt_options(cfg: dict, where: str, dt: float, duration: float) -> dict:
         (at most one update per propagation step) or a first ZUPT after the
         end of the study.
     """
+    from covtool.studies.config import ZuptSection, parse_section
+
     w = f"{where}: [zupt]"
-    table(cfg, w, StudyFileError)
-    check_keys(cfg, ZUPT_KEYS, w, StudyFileError)
-    o = {
-        "interval": quantity(cfg.get("interval", "5 min"), "time", f"{w} interval", StudyFileError, positive=True),
-        "duration": quantity(cfg.get("duration", "30 s"), "time", f"{w} duration", StudyFileError,
-                             nonnegative=True),
-        "rate": quantity(cfg.get("rate", "1 Hz"), "frequency", f"{w} rate", StudyFileError, positive=True),
-        # σ = 0 makes S = H P_f Hᵀ + R of eq (7) singular once P_f's velocity block is (a previous
-        # exact ZUPT leaves it zero): the gain is undefined, so the noise must be positive
-        "sigma": quantity(cfg.get("sigma", "0.01 ft/s"), "velocity", f"{w} sigma", StudyFileError, positive=True),
-    }
-    o["first"] = quantity(cfg.get("first", cfg.get("interval", "5 min")), "time", f"{w} first", StudyFileError,
-                          positive=True)
+    # σ = 0 makes S = H P_f Hᵀ + R of eq (7) singular once P_f's velocity block is (a previous
+    # exact ZUPT leaves it zero): the gain is undefined, so the noise must be positive (declared so)
+    z = parse_section(ZuptSection, cfg, where, "zupt")
+    o = {"interval": z.interval, "duration": z.duration, "rate": z.rate, "sigma": z.sigma,
+         "first": z.interval if z.first is None else z.first}
     if o["duration"] >= o["interval"]:
         raise StudyFileError(f"{w} duration", f"the ZUPT window ({o['duration']:g} s) must be shorter than the "
                              "interval")
