@@ -178,9 +178,10 @@ class StudySection(Section):
 class StudySectionShort(Section):
     """``[study]`` of the board and dual-IMU kinds: no time grid (their grid comes from the IMU rates)."""
 
-    name: ClassVar[str] = "study"
+    name: ClassVar[str] = "study (dual_imu)"
     doc: ClassVar[str] = "What the study is (the time grid comes from the sensor rates)."
     kind: OneOf("ad_reset", "dual_imu") = F(..., "The study kind.")
+    # (the board and dual-IMU kinds take no duration, dt, discretization or max_memory)
     # checked by covtool.io.names.check_study_name (a safe file name), which knows the file's stem
     name_: Annotated[Any, Kind("string (a file name)")] = Field(None, alias="name", description=(
         "Name of the outputs (`<name>.xlsx`): letters, digits, `_`, `-`, `.`; default: the study file's stem."))
@@ -190,6 +191,7 @@ class StudySectionShort(Section):
 
 
 class AdResetStudySection(StudySectionShort):
+    name: ClassVar[str] = "study (ad_reset)"
     title: Text() | None = F(None, "Figure title (default: the name).")
 
 
@@ -407,7 +409,7 @@ class Scales(Section):
 
 
 class SensitivitySweep(Section):
-    name: ClassVar[str] = "sweep"
+    name: ClassVar[str] = "sweep (zupt_sensitivity)"
     doc: ClassVar[str] = "Scale each filter's P0, Q_f or R_f and watch the navigation errors (seed 002 §3.2)."
     nested: ClassVar[dict] = {"scales": Scales}
     parameters: Names(known=["P0", "Q", "R"], what="parameter") = F(["P0", "Q", "R"], "Filter parameters "
@@ -459,7 +461,7 @@ class SweepGroup(Section):
 
 
 class MagnitudeSweep(Section):
-    name: ClassVar[str] = "sweep"
+    name: ClassVar[str] = "sweep (magnitude_sweep)"
     doc: ClassVar[str] = "Set each group's 1σ to every value and find where the navigation errors grow."
     nested: ClassVar[dict] = {"group": [SweepGroup]}
     values: Raw = F(..., "The magnitudes (in the groups' unit), >= 0.", example=["5 arcsec", "30 arcsec"])
@@ -555,7 +557,7 @@ class FlightTrajectory(Section):
 
 
 class DualAlignment(Section):
-    name: ClassVar[str] = "alignment"
+    name: ClassVar[str] = "alignment (dual_imu)"
     doc: ClassVar[str] = "Initial alignment of the pair."
     duration: Quantity("time", positive=True) = F("10 s", "Alignment duration.")
     heading_sigma: Quantity("angle", nonnegative=True) = F("0.1 deg", "Heading 1σ after alignment.")
@@ -671,7 +673,7 @@ class Prefilter(Section):
 
 
 class BoardAlignment(Section):
-    name: ClassVar[str] = "alignment"
+    name: ClassVar[str] = "alignment (ad_reset)"
     doc: ClassVar[str] = "Leveling alignment of the board."
     nested: ClassVar[dict] = {"coarse": Gains, "fine": Gains, "prefilter": Prefilter}
     gravity: Quantity("acceleration", positive=True) = F("1 g", "Gravity magnitude.")
