@@ -58,7 +58,7 @@ def test_quantities_are_si_and_defaults_come_from_the_declarations():
     ({"study": {"kind": "pure_ins"}, "trajectory": {"builtin": "land_vehicle", "perod": "5 min"}},
      r"^s.toml: \[trajectory\]: unknown key 'perod'"),
     ({"study": {"kind": "pure_ins"}, "output": {"report_times": ["1 min", "2 kg"]}},
-     r"^s.toml: \[output\] report_times: .*'2 kg' is not a time"),
+     r"^s.toml: \[output\] report_times\[1\]: '2 kg' is not a time"),
 ])
 def test_refusals_are_one_line_naming_file_section_key(decl, match):
     with pytest.raises(StudyFileError, match=match):
@@ -71,3 +71,17 @@ def test_parse_section_refuses_unknown_keys_first():
         parse_section(ZuptSection, {"intreval": "3 min", "sigma": -1}, "s.toml", "zupt")
     with pytest.raises(StudyFileError, match=r"^s.toml: \[study\]: expected a table, got list"):
         parse_section(StudySection, [1], "s.toml", "study")
+
+
+def test_land_vehicle_declared_defaults_are_the_profiles():
+    """The reference and `covtool new` show the declared defaults; the route must use the same ones."""
+    import inspect
+
+    from covtool.nav.trajectory.profiles import land_vehicle
+    from covtool.studies.config import LandVehicle
+
+    declared = LandVehicle()
+    params = inspect.signature(land_vehicle).parameters
+    for key in LandVehicle.model_fields:
+        if key in params:
+            assert getattr(declared, key) == pytest.approx(params[key].default, rel=1e-15), key

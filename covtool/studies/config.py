@@ -31,7 +31,7 @@ from covtool.io import config as fields
 from covtool.io.config import LIMITS
 from covtool.units import DIMENSIONS
 
-__all__ = ["Section", "KINDS", "SECTIONS", "load_config", "dump_config", "config_class", "parse_section"]
+__all__ = ["si_text", "Section", "KINDS", "SECTIONS", "load_config", "dump_config", "config_class", "parse_section"]
 
 
 # ---------------------------------------------------------------------------
@@ -911,7 +911,7 @@ def load_config(decl: dict, where: str = "<study>") -> StudyConfig:
         _raise(exc, where, (), StudyFileError)
 
 
-def _si_text(value: float, dimension: str):
+def si_text(value: float, dimension: str):
     """An SI value as a quantity string that parses back exactly (a bare number when dimensionless)."""
     unit = "Hz" if dimension == "frequency" else DIMENSIONS[dimension][0]   # '1/s' is not a unit string
     if value == 0 or not unit:
@@ -933,8 +933,8 @@ def _dump(model: BaseModel) -> dict:
         if isinstance(v, BaseModel):
             out[key] = _dump(v)
         elif kind is not None and kind.dimension and kind.dimension != "memory":
-            out[key] = [_si_text(x, kind.dimension) for x in v] if isinstance(v, tuple) else \
-                _si_text(v, kind.dimension)
+            out[key] = [si_text(x, kind.dimension) for x in v] if isinstance(v, tuple) else \
+                si_text(v, kind.dimension)
         elif kind is not None and kind.dimension == "memory":
             out[key] = f"{v!r} B"
         elif isinstance(v, tuple):
