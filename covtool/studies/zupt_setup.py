@@ -18,7 +18,10 @@ import numpy as np
 from covtool.errors import StudyFileError
 from covtool.io.config import boolean, check_keys, is_library_name, names, quantity, resolve_input, table
 from covtool.io.filters import default_filter_file, load_filters
-from covtool.lincov.dynamics import dyn_key, error_dynamics
+from covtool.lincov.dynamics import Context, dyn_key, error_dynamics, ErrorDynamics
+from covtool.lincov.model.spec import Model
+from covtool.lincov.reduced import FilterSpec
+from covtool.nav.trajectory.core import Trajectory
 from covtool.lincov.kalman import check_system
 from covtool.lincov.reduced import build_filter, zupt_matrices
 from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
@@ -165,34 +168,50 @@ class ZuptSetup:
 
     Built by :func:`setup`; used by the filter-order, sensitivity, budget and
     trade-grid studies.  Filter models and their discretisation are built on
-    demand and cached (:meth:`filter_model`).
+    demand and cached (:meth:`filter_model`).  Shapes: N grid steps, n truth
+    states; times in s.
     """
 
+    #: ``[study]`` as validated (:func:`covtool.studies.inputs.study_header`)
     hdr: dict
+    #: the study file, for messages
     where: str
+    #: time grid, shape (N+1,) [s]
     t: np.ndarray
-    nodes: object
-    truth: object
-    ctx: object
-    dyn: object
+    #: the trajectory sampled on ``t``
+    nodes: Trajectory
+    truth: Model
+    #: the trajectory at the propagation mid-points
+    ctx: Context
+    #: the truth's F and Q_c along the grid
+    dyn: ErrorDynamics
+    #: the truth's transition and process noise, shape (N, n, n)
     Phi: np.ndarray
     Qd: np.ndarray
+    #: the truth's initial covariance, shape (n, n)
     P0: np.ndarray
+    #: ZUPT measurement matrix, shape (3, n), and its true noise, shape (3, 3)
     H: np.ndarray
     R: np.ndarray
+    #: grid indices of the ZUPT updates
     update_steps: np.ndarray
+    #: Δt_s of eq (11)-(13) [s] and the true ZUPT 1σ [m/s]
     zupt_interval: float
     zupt_sigma: float
-    specs: dict
-    cases: list
+    #: declared filters by name, and the cases run
+    specs: dict[str, FilterSpec]
+    cases: list[str]
+    #: mean moving speed [m/s] (None: the trajectory never moves)
     mean_speed: float | None
-    filter_files: tuple
+    #: the filter files, as resolved
+    filter_files: tuple[Path, ...]
+    #: ``[output] history_every`` [s] and ``report_times`` [s]
     every: float
-    report_times: list
+    report_times: list[float]
     resources: dict = field(default_factory=dict)
     #: the model the filters are built from: the truth, or the truth without the study's
     #: overrides (``[truth] override_filters = false``, :func:`covtool.studies.inputs.load_truth`)
-    filter_truth: object = None
+    filter_truth: Model | None = None
     _dyn_cache: dict = field(default_factory=dict)
     _filters: dict = field(default_factory=dict)
 
