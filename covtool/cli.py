@@ -180,6 +180,13 @@ def _cmd_show(args) -> int:
     return 0
 
 
+def _cmd_new(args) -> int:
+    from covtool.studies.reference import new_study
+
+    sys.stdout.write(new_study(args.kind))
+    return 0
+
+
 def _positive_int(text: str) -> int:
     try:
         n = int(text)
@@ -267,6 +274,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                 "library)")
     s.add_argument("--markdown", action="store_true", help="print a truth model's state table as Markdown (docs/)")
     s.set_defaults(func=_cmd_show)
+    from covtool.studies import KINDS as _KINDS
+    n = sub.add_parser("new", help="print a commented starting study file of a kind (docs/study_files.md)")
+    n.add_argument("kind", choices=_KINDS, metavar="KIND", help="study kind: " + ", ".join(_KINDS))
+    n.set_defaults(func=_cmd_new)
     add_dualnav_parser(sub)
     return p
 

@@ -234,7 +234,7 @@ def test_filter_for_another_truth_model_is_a_clear_error(truth):
 
 
 def test_filter_with_unknown_truth_state_is_a_clear_error(truth):
-    with pytest.raises(ModelFileError, match=r"f.toml: filter 'X': keep/drop: unknown truth state or block "
+    with pytest.raises(ModelFileError, match=r"f.toml: filter 'X': keep: unknown truth state or block "
                                              r"'acc_bias_w'"):
         filters_from_dict({"filter": [{"name": "X", "keep": ["nav", "acc_bias_w"]}]}, truth, path="f.toml")
 

@@ -153,7 +153,7 @@ def _bad(mutate, tmp_path=None):
     (lambda d: d["grade"].append({"name": "y", "override": {"gyro_bias_z": 3}}),
      r"#3 override: expected a table of state tables"),
     (lambda d: d["grade"].append({"name": "y", "override": {"no_such_state": {"sigma": "1 ug"}}}),
-     r"\[\[grade\]\] 'y'.*unknown state 'no_such_state'"),
+     r"\[\[grade\]\] 'y'.*unknown state or block 'no_such_state'"),
     (lambda d: d["grade"].append({"name": "y", "override": {"gyro_bias_z": {"sigma": "1 ug"}}}),
      r"\[\[grade\]\] 'y'.*'1 ug' is not an angular rate"),
     (lambda d: d["filters"].update(cases=["B1", "Z9"]), r"unknown filter 'Z9'"),

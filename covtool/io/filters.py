@@ -14,7 +14,8 @@ Filter file (``models/filters/*.toml``)::
                                       # path relative to this file ("../sdins58.toml")
     description = "22 states, eq (14)"
     keep = ["nav", "acc_bias", "gyro_bias", "acc_sf", "gyro_sf"]   # blocks or states
-    # base = "B1"; drop = [...]       # or derive from another filter
+    # base = "B1"; drop = [...]       # or derive from another filter (of any filter file the study names)
+    # add = ["acc_markov"]            #   and keep extra truth states or blocks
     decouple_vertical = false         # B2
     coriolis = true                   # B3: false
     equivalent_noise = "interval"     # eq (11)-(13) for the dropped states (or "pointwise", "matched", false)
@@ -43,21 +44,32 @@ from covtool.lincov.reduced import FilterSpec
 
 
 _FILTER_KEYS = {"name", "truth", "description", "keep", "base", "drop", "decouple_vertical", "coriolis",
-                "equivalent_noise", "discretization", "taylor_order", "update", "P0", "zupt_sigma", "source"}
+                "equivalent_noise", "discretization", "taylor_order", "update", "P0", "zupt_sigma", "source",
+                "add"}
 
 
 def load_filters(path, truth: Model) -> dict[str, FilterSpec]:
-    """Load every ``[[filter]]`` of a filter file, validated against ``truth``.
+    """Load every ``[[filter]]`` of one or several filter files, validated against ``truth``.
+
+    Parameters
+    ----------
+    path : path-like or list of path-like
+        One filter file, or several (``[filters] file = ["a.toml", "b.toml"]``);
+        a filter's ``base`` may name a filter of any of them.
+    truth : Model
 
     Raises
     ------
     ModelFileError
         Unknown key, unknown truth state, a filter declared for another truth
         model, a P0 override of a state the filter does not keep, a filter
-        without the velocity states that ZUPT measures, ...
+        without the velocity states that ZUPT measures, a filter name
+        declared twice (in one file or across files), an unknown or
+        circular ``base``, ...
     """
-    decl = load_toml(path, ModelFileError)
-    return filters_from_dict(decl, truth, path=str(path))
+    paths = list(path) if isinstance(path, (list, tuple)) else [path]
+    files = [(str(p), load_toml(p, ModelFileError)) for p in paths]
+    return filters_from_files(files, truth)
 
 
 #: a filter name: it becomes a case label, a column header and part of a sheet name
@@ -66,41 +78,89 @@ _EWN = (False, True, "eq11-13", "interval", "pointwise", "matched")
 
 
 def filters_from_dict(decl: dict, truth: Model, *, path: str = "<dict>") -> dict[str, FilterSpec]:
-    """Validate filter declarations; see :func:`load_filters`.
+    """Validate the filter declarations of one file; see :func:`load_filters`.
 
     A ``truth`` given as a path (``"../sdins58.toml"``) resolves against the
     directory of the filter file and must be the study's truth model file.
     """
-    check_keys(decl, {"filter"}, path, ModelFileError)
-    raw = decl.get("filter", [])
-    if not isinstance(raw, list) or not raw:
-        raise ModelFileError(path, "no [[filter]] declared")
-    base_dir = Path(path).parent if path != "<dict>" else None
-    by_name: dict[str, dict] = {}
+    return filters_from_files([(path, decl)], truth)
+
+
+def filters_from_files(files, truth: Model) -> dict[str, FilterSpec]:
+    """Validate the filter declarations of several files, ``base`` resolved across them.
+
+    Parameters
+    ----------
+    files : list of (str, dict)
+        ``(path, parsed TOML)`` of each filter file, in the order the study
+        names them; the filters come out in that order.
+    truth : Model
+
+    Notes
+    -----
+    A derived filter (``base = "B1"``) starts from its base's resolved
+    declaration (its kept states, options and P0), without the base's
+    ``drop`` and ``description``; its own keys replace the base's, ``add``
+    appends truth states or blocks to the kept set and ``drop`` removes
+    them.  The base may be declared anywhere in the files (before or after,
+    in the same file or another); a cycle is refused.
+    """
+    raw: dict[str, tuple[str, dict, str]] = {}
+    order = []
+    for path, decl in files:
+        check_keys(decl, {"filter"}, path, ModelFileError)
+        lst = decl.get("filter", [])
+        if not isinstance(lst, list) or not lst:
+            raise ModelFileError(path, "no [[filter]] declared")
+        for i, f in enumerate(lst):
+            where = (f"{path}: filter {f.get('name', i + 1)!r}" if isinstance(f, dict)
+                     else f"{path}: filter {i + 1}")
+            check_keys(f, _FILTER_KEYS, where, ModelFileError)
+            if "name" not in f:
+                raise ModelFileError(where, "missing required key 'name'")
+            name = check_name(f["name"], f"{path}: filter {i + 1}: name", ModelFileError, what="filter name")
+            if name in raw:
+                other = raw[name][0]
+                raise ModelFileError(where, "duplicate filter name" + ("" if other == path else
+                                                                       f" (also declared in {other})"))
+            raw[name] = (path, f, where)
+            order.append(name)
+    resolved: dict[str, dict] = {}
     out: dict[str, FilterSpec] = {}
-    for i, f in enumerate(raw):
-        where = f"{path}: filter {f.get('name', i + 1)!r}" if isinstance(f, dict) else f"{path}: filter {i + 1}"
-        check_keys(f, _FILTER_KEYS, where, ModelFileError)
-        if "name" not in f:
-            raise ModelFileError(where, "missing required key 'name'")
-        name = check_name(f["name"], f"{path}: filter {i + 1}: name", ModelFileError, what="filter name")
-        if name in by_name:
-            raise ModelFileError(where, "duplicate filter name")
+
+    def resolve(name: str, chain: tuple) -> dict:
+        if name in resolved:
+            return resolved[name]
+        path, f, where = raw[name]
+        base_dir = Path(path).parent if path != "<dict>" else None
+        f = dict(f)
+        if isinstance(f.get("truth"), str) and not is_library_name(f["truth"]):
+            # a path is relative to the file that declares it, also when a derived filter inherits it
+            f["truth"] = str(resolve_input(f["truth"], base_dir, f"{where}: truth", ModelFileError,
+                                           what="truth model file"))
         if "base" in f:
-            if not isinstance(f["base"], str) or f["base"] not in by_name:
-                raise ModelFileError(f"{where}: base", f"unknown base filter {f['base']!r} (declare it first)")
-            merged = copy.deepcopy(by_name[f["base"]])
-            merged.pop("drop", None)
+            b = f["base"]
+            if not isinstance(b, str) or b not in raw:
+                raise ModelFileError(f"{where}: base", f"unknown base filter {b!r} (declared in none of the "
+                                     f"filter files: {', '.join(sorted({p for p, _, _ in raw.values()}))})")
+            if b in chain or b == name:
+                raise ModelFileError(f"{where}: base", "circular base: " + " -> ".join((*chain, name, b)))
+            merged = copy.deepcopy(resolve(b, (*chain, name)))
             merged.pop("description", None)
-            base_keep = merged["keep"]
-            merged.update({k: v for k, v in f.items() if k not in ("base",)})
-            merged["keep"] = f.get("keep", base_keep)
+            merged.update({k: v for k, v in f.items() if k not in ("base", "keep")})
+            if "keep" in f:
+                merged["keep"] = f["keep"]
             f = merged
-        out[name] = _spec(f, truth, where, path, base_dir)
-        resolved = {k: v for k, v in f.items() if k != "drop"}
-        resolved["keep"] = list(out[name].kept)
-        by_name[name] = resolved
-    return out
+        spec = _spec(f, truth, where, path, base_dir)
+        out[name] = spec
+        res = {k: v for k, v in f.items() if k not in ("drop", "add", "base")}
+        res["keep"] = list(spec.kept)
+        resolved[name] = res
+        return res
+
+    for name in order:
+        resolve(name, ())
+    return {name: out[name] for name in order}
 
 
 def _check_truth(tname, truth: Model, where: str, base_dir) -> None:
@@ -133,13 +193,24 @@ def _spec(f: dict, truth: Model, where: str, path: str, base_dir=None) -> Filter
         names(keep, f"{where}: keep", ModelFileError, what="truth state or block")
     drop = names(f.get("drop", []), f"{where}: drop", ModelFileError, nonempty=False,
                  what="truth state or block")
-    try:
-        kept = truth.names if keep == "all" else truth.states_of(keep)
-        dropped = set(truth.states_of(drop))
-    except KeyError as exc:
-        raise ModelFileError(f"{where}: keep/drop", f"unknown truth state or block {exc.args[0]!r} "
-                             f"(truth model {truth.name!r})") from None
-    kept_set = set(kept) - dropped
+    add = f.get("add", [])
+    add = names([add] if isinstance(add, str) else add, f"{where}: add", ModelFileError, nonempty=False,
+                what="truth state or block")
+
+    def expand(sel, key):
+        try:
+            return truth.states_of(sel)
+        except KeyError as exc:
+            raise ModelFileError(f"{where}: {key}", f"unknown truth state or block {exc.args[0]!r} "
+                                 f"(truth model {truth.name!r})") from None
+
+    kept = truth.names if keep == "all" else expand(keep, "keep")
+    added = expand(add, "add")
+    dropped = set(expand(drop, "drop"))
+    both = dropped & set(added)
+    if both:
+        raise ModelFileError(f"{where}: add", f"state {sorted(both)[0]!r} is both added and dropped")
+    kept_set = (set(kept) | set(added)) - dropped
     kept = tuple(nm for nm in truth.names if nm in kept_set)   # truth order
     for v in NAV_STATES:
         if v not in kept_set:

@@ -148,7 +148,8 @@ def from_segments(segments, initial, *, dt=1.0, name="", where="trajectory") -> 
     return b.build(dt=dt, name=name, where=where)
 
 
-def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: float) -> Trajectory:
+def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: float,
+                           duration: float | None = None) -> Trajectory:
     """Trajectory from a study-file table.
 
     Parameters
@@ -167,6 +168,9 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
         (the current directory if None).
     dt : float
         Time step of generated profiles (a CSV keeps its own grid). [s]
+    duration : float, optional
+        The study's duration: the ``static`` builtin's span when its own
+        ``duration`` is not given (else 30 min). [s]
 
     Returns
     -------
@@ -227,7 +231,7 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
         for key in ("lat", "lon", "h"):
             if key not in params:
                 raise TrajectoryError(w, f"missing required key {key!r}")
-        return static_profile(w, duration=params.get("duration", 1800.0), lat=params["lat"], lon=params["lon"],
+        return static_profile(w, duration=params.get("duration", 1800.0 if duration is None else duration), lat=params["lat"], lon=params["lon"],
                        h=params["h"], heading=params.get("heading", 0.0), dt=dt, name=name or "static")
     defaults = {k: p.default for k, p in inspect.signature(land_vehicle).parameters.items()
                 if k in spec}

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import tomli_w
 
-from covtool.version import __version__
+from covtool.version import __version__, source_revision
 from covtool.results import StudyResult
 from covtool.errors import InputError
 from covtool.io.atomic import staging_dir
@@ -42,6 +42,7 @@ def provenance_rows(result: StudyResult) -> dict:
     rows = {
         "tool": "covtool",
         "tool_version": __version__,
+        "tool_commit": source_revision(),
         "study": result.name,
         "kind": result.kind,
         "created_utc": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -82,7 +83,7 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
         build_workbook(result.tables, provenance_rows(result), result.charts,
                        path=_inside(stage, f"{result.name}.xlsx"))
         (stage / "resolved_study.toml").write_text(
-            f"# resolved by covtool {__version__}\n" + tomli_w.dumps(_toml_safe(result.resolved)), encoding="utf-8")
+            f"# resolved by covtool {__version__}, source {source_revision()}\n" + tomli_w.dumps(_toml_safe(result.resolved)), encoding="utf-8")
         if figures and result.figures:
             import matplotlib
             matplotlib.use("Agg")

@@ -130,7 +130,9 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     factors = [restricted_noise("kept", dyn.noise, kidx)]
     ewn_of = {b: [src for src in fm.ewn_noise if state_block[src.name] == b] for b in blocks}
     ewn_blocks = [b for b in blocks if ewn_of[b]]
-    factors += [restricted_noise(f"ewn {b}", ewn_of[b], kidx) for b in ewn_blocks]
+    # the equivalent noises already live in the filter's space (rows = its kept states in order),
+    # not the truth's: restricting them by kidx was right only while the kept states led the truth
+    factors += [restricted_noise(f"ewn {b}", ewn_of[b], np.arange(len(kidx))) for b in ewn_blocks]
     own_noise = {b: [src for src in dyn.noise if src.name in {truth.states[i].name for i in block_states[b]}]
                  for b in blocks}
     noisy = [b for b in blocks if own_noise[b]]

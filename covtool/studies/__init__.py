@@ -97,14 +97,21 @@ def absolute_paths(decl: dict, base_dir) -> dict:
 
     out = copy.deepcopy(decl)
 
-    def fix(tab, key, library):
-        v = tab.get(key) if isinstance(tab, dict) else None
+    def absolute(v, library):
         if isinstance(v, str) and v.strip() and not (library and is_library_name(v)):
             p = Path(v).expanduser()
-            tab[key] = str(Path(os.path.abspath(p if p.is_absolute() else Path(base_dir) / p)))
+            return str(Path(os.path.abspath(p if p.is_absolute() else Path(base_dir) / p)))
+        return v
+
+    def fix(tab, key, library):
+        v = tab.get(key) if isinstance(tab, dict) else None
+        if isinstance(v, list):
+            tab[key] = [absolute(x, library) for x in v]
+        elif v is not None:
+            tab[key] = absolute(v, library)
 
     fix(out.get("truth"), "model", True)
-    fix(out.get("filters"), "file", False)
+    fix(out.get("filters"), "file", True)   # a bare name is a filter file of the library
     fix(out.get("trajectory"), "csv", False)
     imu = out.get("imu")
     if isinstance(imu, dict):

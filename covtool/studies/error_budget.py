@@ -174,11 +174,11 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     tables = _tables(cases, runs, var, nominal, residuals, t, rec, S, lat, h, first)
     tables["sources"] = _source_table(sources, factors)
     provenance = {"truth_model": truth_model.name, "truth_model_file": truth_model.path,
-                  "truth_model_sha256": truth_model.sha256, "filter_file": str(S.filter_file),
+                  "truth_model_sha256": truth_model.sha256, "filter_file": ", ".join(map(str, S.filter_files)),
                   "resolution": opts["resolution"], "sources": len(sources), "zupt_updates": int(len(S.update_steps)),
                   "per-source Q_d sum vs study Q_d (composed, max relative)": f"{q_check:.3g}",
                   **resource_provenance(S.resources), "compute_seconds": f"{elapsed:.2f}"}
-    provenance.update(study_inputs(path, decl, truth_model, S.filter_file))
+    provenance.update(study_inputs(path, decl, truth_model, S.filter_files))
     for c in cases:
         provenance[f"{c}: sum-to-total residual (same Q_d)"] = f"{residuals[c]['same']:.3g}"
         provenance[f"{c}: sum vs nominal run residual"] = f"{residuals[c]['nominal']:.3g}"

@@ -213,7 +213,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                                  [c for c in S.cases if c != "A"], truth, opts)
     elapsed = time.perf_counter() - t_start
     provenance = {"truth_model": truth.name, "truth_model_file": truth.path, "truth_model_sha256": truth.sha256,
-                  "filter_file": str(S.filter_file), "zupt_updates": int(len(S.update_steps)),
+                  "filter_file": ", ".join(map(str, S.filter_files)), "zupt_updates": int(len(S.update_steps)),
                   "threshold CEP / A": opts["threshold"], "members per filter": B,
                   "compute_seconds": f"{elapsed:.2f}"}
     return StudyResult(

@@ -263,7 +263,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     def manifest():
         return {"kind": "monte_carlo", "covtool_version": __version__, "study": decl,
                 "truth_model_sha256": truth.sha256,
-                "filter_file_sha256": file_sha256(S.filter_file),
+                "filter_file_sha256": [file_sha256(p) for p in S.filter_files],
                 "trajectory_csv_sha256": trajectory_csv_sha256(decl, path.parent if path else None),
                 "chunks": keys, "runs": sizes}
 
@@ -405,7 +405,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     figures = {f"mc_{c}": _case_figure(c, t, band[c], zupt_marks, N, conf) for c in names}
     figures["mc_ratio"] = _ratio_figure(names, t, band, N, conf)
     figures["mc_nees"] = _nees_figure(names, t, nees_stats, N, conf)
-    provenance = {**study_inputs(path, decl, truth, S.filter_file), **resource_provenance(S.resources),
+    provenance = {**study_inputs(path, decl, truth, S.filter_files), **resource_provenance(S.resources),
                   "truth_model": truth.name, "truth_model_sha256": truth.sha256,
                   "runs": N, "chunks": len(sizes), "seed": opt["seed"], "imu_rate_hz": opt["imu_rate"],
                   "samples_per_step": opt["samples_per_step"], "backend": stats["backend"],
@@ -427,7 +427,7 @@ def _trajectory(decl, where, path):
     from covtool.studies.inputs import load_trajectory
 
     hdr = study_header(decl, where)
-    return load_trajectory(decl, where, path.parent if path else None, hdr["dt"])
+    return load_trajectory(decl, where, path.parent if path else None, hdr["dt"], hdr["duration"])
 
 
 _LABELS = {"horizontal": "horizontal position (radial)", "altitude": "altitude", "azimuth": "azimuth"}

@@ -88,7 +88,7 @@ from covtool.studies.resources import (check_memory, memory_estimate, noise_colu
                                        run_in_chunks, steps_of, store_checks)
 from covtool.studies.tables import summary_row
 from covtool.studies.zupt_setup import filter_cases, filter_dynamics, filters_file, setup, zupt_schedule
-from covtool.units import ARCMIN, DIMENSIONS, FT
+from covtool.units import ARCMIN, FT
 from covtool.version import __version__
 
 
@@ -103,12 +103,7 @@ GRADE_KEYS = ("name", "scale", "description", "override", "arw", "vrw")
 # declaration -> plan (validated in the parent, before any work is sent out)
 # --------------------------------------------------------------------------
 
-def _si_text(value: float, dimension: str):
-    """An SI value as a quantity string that parses back exactly."""
-    unit = DIMENSIONS[dimension][0]
-    if value == 0 or not unit:
-        return float(value)
-    return f"{float(value)!r} {unit}"
+from covtool.studies.config import si_text as _si_text   # one home: the typed configurations' dump
 
 
 def grade_truth(truth_decl: dict, grade: dict, model) -> dict:
@@ -149,6 +144,8 @@ def grade_truth(truth_decl: dict, grade: dict, model) -> dict:
         ov.setdefault(nm, {}).update(v)
     if ov:
         out["override"] = ov
+    # the designer is assumed to know the grade's IMU (module docstring): filters follow the grade
+    out["override_filters"] = True
     for key in ("arw", "vrw"):
         if key in grade:
             out[key] = grade[key]
@@ -204,10 +201,10 @@ def _grades(decl: dict, where: str) -> list[dict]:
 
 
 def _lv_default(key):
-    import inspect
+    """A land-vehicle route parameter's declared default [SI] (covtool.studies.config.LandVehicle)."""
+    from covtool.studies.config import LandVehicle
 
-    from covtool.nav.trajectory.profiles import land_vehicle
-    return inspect.signature(land_vehicle).parameters[key].default
+    return getattr(LandVehicle(), key)
 
 
 def system_decl(decl: dict, grade_truth_decl: dict, interval: str, interval_s: float, cruise_speed: float,
@@ -371,7 +368,7 @@ class TradePlan:
         """
         return {"kind": "trade_grid", "covtool_version": __version__, "study": decl,
                 "truth_model_sha256": self.truth_sha256,
-                "filter_file_sha256": file_sha256(self.filter_file),
+                "filter_file_sha256": [file_sha256(p) for p in self.filter_file],
                 "trajectory_csv_sha256": trajectory_csv_sha256(decl, self.path.parent if self.path else None),
                 "chunks": [c["key"] for c in self.chunks], "cases": self.n_cases}
 

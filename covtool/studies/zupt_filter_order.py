@@ -59,7 +59,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     imp_filters = impact_filters(decl, S)
     hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth
     Phi, Qd, P0, H, R, upd = S.Phi, S.Qd, S.P0, S.H, S.R, S.update_steps
-    cases, every, rtimes, ffile = S.cases, S.every, S.report_times, S.filter_file
+    cases, every, rtimes, ffile = S.cases, S.every, S.report_times, S.filter_files
     dt_s, zsig, mean_speed = S.zupt_interval, S.zupt_sigma, S.mean_speed
     fcfg = decl.get("filters", {})
     metrics, runs, fmodels, claimed = {}, {}, {}, {}

@@ -165,7 +165,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     for k in co["paper_seconds"]:
         if k not in S.specs:
             raise StudyFileError(f"{where}: [cost] paper_seconds {k}",
-                                 f"unknown filter {k!r} (declared in {S.filter_file}: {', '.join(S.specs)})")
+                                 f"unknown filter {k!r} (declared in {', '.join(map(str, S.filter_files))}: {', '.join(S.specs)})")
     t, nodes = S.t, S.nodes
     N = t.size - 1
     rec = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
@@ -230,7 +230,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
               "sensitivity_ratio": ratio_df, "cost": cost_df, "cost_scaling": scaling_df, **chart_sheets}
     tables["timing"] = pd.DataFrame({"phase": list(timing), "wall time [s]": list(timing.values())})
     provenance = {
-        **study_inputs(path, decl, S.truth, S.filter_file), "truth_model": S.truth.name,
+        **study_inputs(path, decl, S.truth, S.filter_files), "truth_model": S.truth.name,
         "truth_model_sha256": S.truth.sha256, **resource_provenance(S.resources),
         "zupt_updates": int(len(S.update_steps)), "zupt_interval_s": S.zupt_interval,
         "zupt_sigma_m_s": S.zupt_sigma, "truth_discretization": S.hdr["discretization"],

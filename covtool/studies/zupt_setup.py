@@ -16,17 +16,17 @@ from pathlib import Path
 import numpy as np
 
 from covtool.errors import StudyFileError
-from covtool.io.config import boolean, check_keys, names, quantity, resolve_input, table
+from covtool.io.config import boolean, check_keys, is_library_name, names, quantity, resolve_input, table
 from covtool.io.filters import default_filter_file, load_filters
-from covtool.lincov.dynamics import dyn_key, error_dynamics
+from covtool.lincov.dynamics import Context, dyn_key, error_dynamics, ErrorDynamics
+from covtool.lincov.model.spec import Model
+from covtool.lincov.reduced import FilterSpec
+from covtool.nav.trajectory.core import Trajectory
 from covtool.lincov.kalman import check_system
 from covtool.lincov.reduced import build_filter, zupt_matrices
 from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header
 from covtool.studies.resources import check_memory, memory_estimate, noise_columns, steps_of
-
-
-ZUPT_KEYS = {"interval", "duration", "rate", "sigma", "first"}
 
 
 def zupt_options(cfg: dict, where: str, dt: float, duration: float) -> dict:
@@ -40,20 +40,14 @@ def zupt_options(cfg: dict, where: str, dt: float, duration: float) -> dict:
         (at most one update per propagation step) or a first ZUPT after the
         end of the study.
     """
+    from covtool.studies.config import ZuptSection, parse_section
+
     w = f"{where}: [zupt]"
-    table(cfg, w, StudyFileError)
-    check_keys(cfg, ZUPT_KEYS, w, StudyFileError)
-    o = {
-        "interval": quantity(cfg.get("interval", "5 min"), "time", f"{w} interval", StudyFileError, positive=True),
-        "duration": quantity(cfg.get("duration", "30 s"), "time", f"{w} duration", StudyFileError,
-                             nonnegative=True),
-        "rate": quantity(cfg.get("rate", "1 Hz"), "frequency", f"{w} rate", StudyFileError, positive=True),
-        # σ = 0 makes S = H P_f Hᵀ + R of eq (7) singular once P_f's velocity block is (a previous
-        # exact ZUPT leaves it zero): the gain is undefined, so the noise must be positive
-        "sigma": quantity(cfg.get("sigma", "0.01 ft/s"), "velocity", f"{w} sigma", StudyFileError, positive=True),
-    }
-    o["first"] = quantity(cfg.get("first", cfg.get("interval", "5 min")), "time", f"{w} first", StudyFileError,
-                          positive=True)
+    # σ = 0 makes S = H P_f Hᵀ + R of eq (7) singular once P_f's velocity block is (a previous
+    # exact ZUPT leaves it zero): the gain is undefined, so the noise must be positive (declared so)
+    z = parse_section(ZuptSection, cfg, where, "zupt")
+    o = {"interval": z.interval, "duration": z.duration, "rate": z.rate, "sigma": z.sigma,
+         "first": z.interval if z.first is None else z.first}
     if o["duration"] >= o["interval"]:
         raise StudyFileError(f"{w} duration", f"the ZUPT window ({o['duration']:g} s) must be shorter than the "
                              "interval")
@@ -112,11 +106,44 @@ def zupt_schedule(cfg: dict, where: str, t: np.ndarray, traj) -> tuple[np.ndarra
     return idx, interval, sigma
 
 
-def filters_file(cfg, where, base_dir) -> Path:
+def filters_file(cfg, where, base_dir) -> tuple[Path, ...]:
+    """The study's filter files: ``[filters] file``, one or a list (default: the library's).
+
+    Each entry is a path relative to the study file (never the current
+    directory) or a bare name of the library's ``filters/`` folder
+    (``"zupt_filters"``).  A filter's ``base`` may name a filter of any of
+    them (:func:`covtool.io.filters.filters_from_files`).
+
+    Raises
+    ------
+    StudyFileError
+        Not a string or a non-empty list of strings, a file named twice, or
+        no such file.
+    """
     if "file" not in cfg:
-        return default_filter_file()
-    # relative to the study file that names it, never the current directory
-    return resolve_input(cfg["file"], base_dir, f"{where}: [filters] file", StudyFileError, what="filter file")
+        return (default_filter_file(),)
+    w = f"{where}: [filters] file"
+    value = cfg["file"]
+    many = isinstance(value, list)
+    if many and not value:
+        raise StudyFileError(w, "expected a filter file or a non-empty list of filter files, got []")
+    out = []
+    for i, v in enumerate(value if many else [value]):
+        wi = f"{w}[{i}]" if many else w
+        if isinstance(v, str) and is_library_name(v):
+            from covtool.io.library import default_model_dir
+
+            p = default_model_dir() / "filters" / f"{v}.toml"
+            if not p.is_file():
+                raise StudyFileError(wi, f"no filter file {v!r} in the library ({p.parent}); give a path "
+                                     "relative to the study file (\"my_filters.toml\")")
+        else:
+            # relative to the study file that names it, never the current directory
+            p = resolve_input(v, base_dir, wi, StudyFileError, what="filter file")
+        if p in out:
+            raise StudyFileError(wi, f"{str(p)!r} is named twice")
+        out.append(p)
+    return tuple(out)
 
 
 def filter_cases(fcfg: dict, specs: dict, ffile, where: str, *, nonempty: bool = False) -> list:
@@ -141,33 +168,57 @@ class ZuptSetup:
 
     Built by :func:`setup`; used by the filter-order, sensitivity, budget and
     trade-grid studies.  Filter models and their discretisation are built on
-    demand and cached (:meth:`filter_model`).
+    demand and cached (:meth:`filter_model`).  Shapes: N grid steps, n truth
+    states; times in s.
     """
 
+    #: ``[study]`` as validated (:func:`covtool.studies.inputs.study_header`)
     hdr: dict
+    #: the study file, for messages
     where: str
+    #: time grid, shape (N+1,) [s]
     t: np.ndarray
-    nodes: object
-    truth: object
-    ctx: object
-    dyn: object
+    #: the trajectory sampled on ``t``
+    nodes: Trajectory
+    truth: Model
+    #: the trajectory at the propagation mid-points
+    ctx: Context
+    #: the truth's F and Q_c along the grid
+    dyn: ErrorDynamics
+    #: the truth's transition and process noise, shape (N, n, n)
     Phi: np.ndarray
     Qd: np.ndarray
+    #: the truth's initial covariance, shape (n, n)
     P0: np.ndarray
+    #: ZUPT measurement matrix, shape (3, n), and its true noise, shape (3, 3)
     H: np.ndarray
     R: np.ndarray
+    #: grid indices of the ZUPT updates
     update_steps: np.ndarray
+    #: Δt_s of eq (11)-(13) [s] and the true ZUPT 1σ [m/s]
     zupt_interval: float
     zupt_sigma: float
-    specs: dict
-    cases: list
+    #: declared filters by name, and the cases run
+    specs: dict[str, FilterSpec]
+    cases: list[str]
+    #: mean moving speed [m/s] (None: the trajectory never moves)
     mean_speed: float | None
-    filter_file: Path
+    #: the filter files, as resolved
+    filter_files: tuple[Path, ...]
+    #: ``[output] history_every`` [s] and ``report_times`` [s]
     every: float
-    report_times: list
+    report_times: list[float]
     resources: dict = field(default_factory=dict)
+    #: the model the filters are built from: the truth, or the truth without the study's
+    #: overrides (``[truth] override_filters = false``, :func:`covtool.studies.inputs.load_truth`)
+    filter_truth: Model | None = None
     _dyn_cache: dict = field(default_factory=dict)
     _filters: dict = field(default_factory=dict)
+
+    @property
+    def filter_file(self) -> Path:
+        """The first of :attr:`filter_files` (the only one in most studies)."""
+        return self.filter_files[0]
 
     def filter_system(self, name: str, discretization: str | None = None):
         """``(FilterModel, Φ_f, Q_f, reused)`` of a declared filter, cached.
@@ -191,10 +242,11 @@ class ZuptSetup:
             if ckey[1] is not None:
                 spec = dataclasses.replace(spec, discretization=ckey[1])
             key = dyn_key(spec.options)
+            ftruth = self.filter_truth if self.filter_truth is not None else self.truth
             if key not in self._dyn_cache:
-                self._dyn_cache[key] = self.dyn if key == dyn_key(None) else error_dynamics(
-                    self.truth, self.ctx, spec.options)
-            fm = build_filter(spec, self.truth, self.ctx, zupt_interval=self.zupt_interval,
+                self._dyn_cache[key] = self.dyn if key == dyn_key(None) and ftruth is self.truth else \
+                    error_dynamics(ftruth, self.ctx, spec.options)
+            fm = build_filter(spec, ftruth, self.ctx, zupt_interval=self.zupt_interval,
                               q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
                               mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
                               update_steps=self.update_steps)
@@ -249,7 +301,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
         boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
     zupt_options(table(decl.get("zupt", {}), f"{where}: [zupt]", StudyFileError), where, hdr["dt"],
                  hdr["duration"])
-    truth = load_truth(decl, where, base_dir)
+    truth, ftruth = load_truth(decl, where, base_dir, for_filters=True)
     ffile = filters_file(fcfg, where, base_dir)
     specs = load_filters(ffile, truth)
     cases = filter_cases(fcfg, specs, ffile, where)
@@ -268,7 +320,7 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
     H = zupt_matrices(truth.names)
     R = np.eye(3) * zsig**2
     return ZuptSetup(hdr, where, t, nodes, truth, ctx, dyn, Phi, Qd, P0, H, R, upd, dt_s, zsig, specs, cases,
-                     mean_speed, ffile, every, rtimes, est)
+                     mean_speed, ffile, every, rtimes, est, None if ftruth is truth else ftruth)
 
 
 def order_memory(pure: bool, impact: bool = True):
