@@ -246,3 +246,26 @@ def test_gnss_outage_growth_matches_the_bias_tilt_closed_form():
     closed, growth = np.array(closed), np.array(growth)
     assert growth[-1] > 0.5 * C0[0, 0]                # the outage matters: σ grows by > 20 %
     np.testing.assert_allclose(growth, closed, rtol=0.005)        # measured 0.12 % at 60 s (Schuler, Coriolis)
+
+
+def test_guard_names_the_first_bad_covariance(S):
+    """A non-finite Φ at step 100 (not checked on entry: system_checked) is caught after that propagation."""
+    fm, Phi_f, Qd_f = S.filter_model("A")
+    Phi = S.Phi.copy()
+    Phi[100, 3, 3] = np.nan
+    z = Zupt(name="zupt", sigma=np.full(3, S.zupt_sigma))
+    epochs = build_epochs([(z, S.update_steps)], S.nodes, S.truth.names, fm.names)
+    with pytest.raises(NumericalError, match=r"truth after the propagation at .*non-finite.*'dvN'"):
+        propagate_aided(Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, fm.D, epochs, times=S.t, names=S.truth.names,
+                        filter_names=fm.names, system_checked=True, record=[0, 600])
+
+
+def test_recorded_steps_equal_the_full_history(S):
+    fm, Phi_f, Qd_f = S.filter_model("B1")
+    z = Zupt(name="zupt", sigma=np.full(3, S.zupt_sigma))
+    epochs = build_epochs([(z, S.update_steps)], S.nodes, S.truth.names, fm.names)
+    full = propagate_aided(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, fm.D, epochs)
+    part = propagate_aided(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, fm.D, epochs, record=[300, 0, 600])
+    np.testing.assert_array_equal(part.steps, [0, 300, 600])
+    np.testing.assert_array_equal(part.P_truth, full.P_truth[[0, 300, 600]])
+    assert sorted(part.prior_truth) == [300, 600]

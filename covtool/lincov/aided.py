@@ -34,11 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from covtool.errors import NumericalError
-from covtool.lincov.kalman import (check_covariance, check_system, covariance_status, filter_update,
+from covtool.lincov.kalman import (check_system, covariance_status, filter_update,
                                    kalman_gain, scale_groups, symmetrize, time_text, truth_update)
 from covtool.lincov.measurements import place, transition
 from covtool.lincov.measurements.base import nav_point
-from covtool.lincov.reference import FilterRun
 
 
 @dataclass
@@ -214,9 +213,39 @@ def _propagate(P, Phi, Qd, phi, qd):
     return symmetrize(out)
 
 
-def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f=None,
+@dataclass
+class AidedRun:
+    """Histories of an aided truth-under-filter run at the recorded steps.
+
+    Attributes
+    ----------
+    steps : ndarray of int, shape (r,)
+        Recorded grid indices.
+    P_truth : ndarray, shape (r, n, n)
+        Truth covariance over ``[x_INS; e]`` (posterior at update steps), eq (15)–(16).
+    P_filter : ndarray, shape (r, n_f, n_f)
+        The filter's own covariance, eq (6a)–(8).
+    prior_truth, prior_filter : dict of int to ndarray
+        Priors at the recorded update steps.
+    gains : dict of int to ndarray, shape (n_f, m)
+        Filter gains at the recorded update steps, eq (7).
+    """
+
+    steps: np.ndarray
+    P_truth: np.ndarray
+    P_filter: np.ndarray
+    prior_truth: dict
+    prior_filter: dict
+    gains: dict
+
+
+#: covariances checked at once by the guard of :func:`propagate_aided` (bounds its memory)
+GUARD_BLOCK = 256
+
+
+def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f=None, record=None,
                     sequential: bool = False, form: str = "joseph", check: bool = True, label: str = "filter",
-                    times=None, names=None, filter_names=None, system_checked: bool = False) -> FilterRun:
+                    times=None, names=None, filter_names=None, system_checked: bool = False) -> AidedRun:
     """Truth covariance under a filter's gains with scheduled general measurements.
 
     Parameters
@@ -235,6 +264,9 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
     err, err_f : tuple of ndarray (phi, qd), each shape (N, n_e) or (N, n_fe), optional
         Exact transitions of the truth's and the filter's measurement-error
         states (:func:`error_processes`); None when there are none.
+    record : array_like of int, optional
+        Grid indices to keep (default: every one).  Every covariance is
+        guarded whether it is kept or not.
     sequential : bool
         Process the measurements of an epoch one after the other instead
         of stacked (the same result when ``H_f = H D``; see the module notes).
@@ -242,7 +274,8 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
         Filter covariance update (eq (8) is ``"standard"``).
     check : bool
         Guard the inputs and every truth and filter covariance, prior and
-        posterior (:func:`covtool.lincov.kalman.check_covariance`).
+        posterior (:func:`covtool.lincov.kalman.covariance_status`), in
+        blocks of :data:`GUARD_BLOCK`.
     label, times, names, filter_names
         For error messages.
     system_checked : bool
@@ -250,14 +283,15 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
 
     Returns
     -------
-    FilterRun
-        Histories of the augmented truth and filter covariances (posterior
-        at update steps), the priors and the gains.
+    AidedRun
 
     Raises
     ------
+    ValueError
+        Inconsistent sizes.
     NumericalError
-        The first input or covariance that is not finite, symmetric and PSD.
+        The first input or covariance that is not finite, symmetric and PSD,
+        with the time, the stage and the state.
     """
     N, n0, _ = Phi.shape
     nf0 = Phi_f.shape[1]
@@ -275,10 +309,13 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
             comps = [f"{nm}[{i}]" for nm, sl in ep.rows for i in range(sl.stop - sl.start)]
             check_system(f"{label} (truth) at {_when(ep.step, times)}", R=ep.R, measurement_names=comps)
             check_system(f"{label} (filter) at {_when(ep.step, times)}", R=ep.Rf, measurement_names=comps)
+    rec = np.arange(N + 1) if record is None else np.unique(np.asarray(record, int))
+    slot = {int(k): i for i, k in enumerate(rec)}
     by_step = {ep.step: ep for ep in epochs}
-    PT = np.full((N + 1, n, n), np.nan)
-    PF = np.full((N + 1, nf, nf), np.nan)
+    PT = np.full((rec.size, n, n), np.nan)
+    PF = np.full((rec.size, nf, nf), np.nan)
     prior_t, prior_f, gains = {}, {}, {}
+    guard = _Guard(label, names, filter_names, times, check)
     P = symmetrize(np.asarray(P0, float))
     Pf = symmetrize(np.asarray(Pf0, float))
     k = 0
@@ -287,7 +324,9 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
             for k in range(N + 1):
                 ep = by_step.get(k)
                 if ep is not None:
-                    prior_t[k], prior_f[k] = P, Pf
+                    guard.add(k, P, Pf, prior=True)
+                    if k in slot:
+                        prior_t[k], prior_f[k] = P, Pf
                     parts = [sl for _, sl in ep.rows] if sequential else [slice(0, ep.H.shape[0])]
                     Ks = []
                     for sl in parts:
@@ -296,33 +335,50 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
                         Pf = filter_update(Pf, K, Hf, Rf, form)
                         P = truth_update(P, D, K, ep.H[sl], ep.R[sl, sl])
                         Ks.append(K)
-                    gains[k] = np.hstack(Ks)
-                PT[k], PF[k] = P, Pf
+                    if k in slot:
+                        gains[k] = np.hstack(Ks)
+                guard.add(k, P, Pf, after_update=ep is not None)
+                if k in slot:
+                    PT[slot[k]], PF[slot[k]] = P, Pf
                 if k < N:
                     P = _propagate(P, Phi[k], Qd[k], e_phi[k], e_qd[k])
                     Pf = _propagate(Pf, Phi_f[k], Qd_f[k], f_phi[k], f_qd[k])
     except NumericalError as exc:
+        guard.flush()
         raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
-    if check:
-        _check_run(label, PT, PF, prior_t, prior_f, names, filter_names, times)
-    return FilterRun(PT, PF, prior_t, prior_f, gains)
+    guard.flush()
+    return AidedRun(rec, PT, PF, prior_t, prior_f, gains)
 
 
 def _when(k, times):
     return time_text(float(times[k])) if times is not None else f"step {k}"
 
 
-def _check_run(label, PT, PF, prior_t, prior_f, names, filter_names, times):
-    """Guard every history and prior; raise for the earliest bad covariance."""
-    for hist, priors, what, nm in ((PT, prior_t, "truth", names), (PF, prior_f, "filter", filter_names)):
-        st = covariance_status(hist, groups=scale_groups(nm, hist.shape[-1]))
-        if not np.all(st.ok):
-            check_covariance(hist, f"{label}: {what}", names=nm, times=times)
-        if priors:
-            steps = sorted(priors)
-            stack = np.stack([priors[s] for s in steps])
-            st = covariance_status(stack, groups=scale_groups(nm, hist.shape[-1]))
+class _Guard:
+    """Checks every truth and filter covariance (prior and posterior) in blocks; raises for the first bad one."""
+
+    def __init__(self, label, names, filter_names, times, active):
+        self.label, self.names, self.fnames, self.times, self.active = label, names, filter_names, times, active
+        self.items = []
+
+    def add(self, k, P, Pf, prior=False, after_update=False):
+        if not self.active:
+            return
+        stage = ("before the update (prior)" if prior else
+                 "after the update" if after_update else "after the propagation")
+        self.items.append((k, stage, P, Pf))
+        if len(self.items) >= GUARD_BLOCK:
+            self.flush()
+
+    def flush(self):
+        if not self.items:
+            return
+        items, self.items = self.items, []
+        for j, (what, nm) in enumerate((("truth", self.names), ("filter", self.fnames))):
+            stack = np.stack([it[2 + j] for it in items])
+            st = covariance_status(stack, groups=scale_groups(nm, stack.shape[-1]))
             if not np.all(st.ok):
                 bad = int(np.flatnonzero(~st.ok)[0])
-                raise NumericalError(f"{label}: {what} before the update (prior) at "
-                                     f"{_when(steps[bad], times)}: {st.problem(bad, nm)}")
+                k, stage = items[bad][0], items[bad][1]
+                raise NumericalError(f"{self.label}: {what} {stage} at {_when(k, self.times)}: "
+                                     f"{st.problem(bad, nm)}")
