@@ -15,6 +15,7 @@ class Baro(Measurement):
     height damps the unstable vertical channel (``cosh √2 ω_s t`` unaided).
     """
 
+    DIMENSION = "length"
     kind = "baro"
     COMPONENTS = ("h",)
     ERRORS = {"bias": ("length", "barometric altitude bias"),
@@ -40,6 +41,7 @@ class Baro(Measurement):
 class Heading(Measurement):
     """Heading ``sensor = ψ + b`` (magnetometer-like with bias, or an azimuth mark without)."""
 
+    DIMENSION = "angle"
     kind = "heading"
     COMPONENTS = ("psi",)
     ERRORS = {"bias": ("angle", "heading sensor bias")}

@@ -184,6 +184,8 @@ class Measurement:
     COMPONENTS: ClassVar[tuple] = ()
     #: error states a kind supports: suffix -> (dimension, meaning)
     ERRORS: ClassVar[dict] = {}
+    #: physical dimension of the measurement components (covtool.units.DIMENSIONS)
+    DIMENSION: ClassVar[str] = ""
     #: whether the kind takes a lever arm
     LEVER: ClassVar[bool] = False
     ref: ClassVar[str] = ""

@@ -15,6 +15,7 @@ class Cupt(Measurement):
     NED metres (``M = diag(R_M + h, (R_N + h) cos L, −1)`` at the mark).
     """
 
+    DIMENSION = "length"
     kind = "cupt"
     COMPONENTS = ("N", "E", "D")
     LEVER = True

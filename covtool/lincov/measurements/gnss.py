@@ -18,6 +18,7 @@ class GnssPosition(Measurement):
     the residual is in NED metres, so ``H_err = −I`` on the declared axes.
     """
 
+    DIMENSION = "length"
     kind = "gnss_position"
     COMPONENTS = ("N", "E", "D")
     LEVER = True
@@ -48,6 +49,7 @@ class GnssPosition(Measurement):
 class GnssVelocity(Measurement):
     """GNSS antenna velocity ``V^n + C_b^n (ω_ib^b × l)`` (white error)."""
 
+    DIMENSION = "velocity"
     kind = "gnss_velocity"
     COMPONENTS = ("V_N", "V_E", "V_D")
     LEVER = True

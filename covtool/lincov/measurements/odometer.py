@@ -17,6 +17,7 @@ class Odometer(Measurement):
     ideal odometer along body x).
     """
 
+    DIMENSION = "velocity"
     kind = "odometer"
     COMPONENTS = ("along",)
     LEVER = True
@@ -53,6 +54,7 @@ class NonHolonomic(Measurement):
     white noise σ).
     """
 
+    DIMENSION = "velocity"
     kind = "nhc"
     COMPONENTS = ("lateral", "vertical")
     LEVER = True

@@ -14,6 +14,7 @@ class Zupt(Measurement):
     velocity-error rows of seed 002's ZUPT (:func:`covtool.lincov.reduced.zupt_matrices`).
     """
 
+    DIMENSION = "velocity"
     kind = "zupt"
     COMPONENTS = ("V_N", "V_E", "V_D")
     ref = "seed 002, §2.3 (ZUPT), eq (7), (16)"
