@@ -113,7 +113,7 @@ def parse_measurement(cfg, i: int, where: str):
         vals = v if isinstance(v, list) else [v] * m
         if len(vals) != m:
             raise StudyFileError(f"{w} {key}", f"{len(vals)} values for the {m} components "
-                                 f"({', '.join(cls.COMPONENTS)}) of a {kind}")
+                                 f"({', '.join(cls.COMPONENTS)}) of {_a(kind)}")
         return np.array([quantity(x, cls.DIMENSION, f"{w} {key}" + (f"[{j}]" if isinstance(v, list) else ""),
                                   StudyFileError, positive=True) for j, x in enumerate(vals)])
     if "sigma" not in cfg:
@@ -123,7 +123,7 @@ def parse_measurement(cfg, i: int, where: str):
     lever = np.zeros(3)
     if "lever_arm" in cfg:
         if not cls.LEVER:
-            raise StudyFileError(f"{w} lever_arm", f"a {kind} takes no lever arm")
+            raise StudyFileError(f"{w} lever_arm", f"{_a(kind)} takes no lever arm")
         v = cfg["lever_arm"]
         if not isinstance(v, list) or len(v) != 3:
             raise StudyFileError(f"{w} lever_arm", f"expected three lengths (body x, y, z), got {v!r}")
@@ -133,7 +133,7 @@ def parse_measurement(cfg, i: int, where: str):
     for sfx, ecfg in errs.items():
         we = f"{w} errors.{sfx}"
         if sfx not in cls.ERRORS:
-            raise StudyFileError(we, f"a {kind} has no error state {sfx!r} (known: "
+            raise StudyFileError(we, f"{_a(kind)} has no error state {sfx!r} (known: "
                                  f"{', '.join(cls.ERRORS) or 'none'})")
         ecfg = table(ecfg, we, StudyFileError)
         check_keys(ecfg, ERROR_KEYS, we, StudyFileError)
@@ -152,6 +152,10 @@ def parse_measurement(cfg, i: int, where: str):
         states.append(error_state(name, kind, sfx, s, proc, tau=tau, unit=unit))
     meas = cls(name=name, sigma=sigma, states=tuple(states), lever_arm=lever, filter_sigma=fsigma)
     return meas, parse_schedule(cfg.get("schedule", {}), f"{w} schedule")
+
+
+def _a(word: str) -> str:
+    return f"{'an' if word[0] in 'aeiou' else 'a'} {word}"
 
 
 def parse_schedule(cfg, w: str) -> Schedule:

@@ -1,0 +1,149 @@
+"""The 'aided' study kind (issue 15): bad measurement declarations, the optimal filter's bound, the CLI.
+
+Acceptance 5: an unknown kind, a missing σ, a schedule outside the trajectory
+and a lever arm with the wrong unit are one-line errors naming the file and
+the field, before any computation, and exit status 2 from the CLI.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tomli_w
+
+from covtool.cli import main
+from covtool.errors import StudyFileError
+from covtool.studies.aided import run
+
+ROOT = Path(__file__).resolve().parents[1]
+ODO = ROOT / "studies" / "aided_odometer_nhc.toml"
+
+
+def odo_decl(duration="6 min") -> dict:
+    d = tomllib.loads(ODO.read_text())
+    d["study"]["duration"] = duration
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["output"]["report_times"] = [duration]
+    return d
+
+
+def with_meas(change, i=0):
+    d = odo_decl()
+    change(d["measurement"][i])
+    return d
+
+
+BAD = [
+    ("unknown kind", lambda m: m.update(kind="lidar"),
+     r"\[\[measurement\]\] 'odo' kind: unknown measurement kind 'lidar' \(one of: baro, cupt, gnss_position"),
+    ("missing sigma", lambda m: m.pop("sigma"),
+     r"\[\[measurement\]\] 'odo' sigma: missing: the odometer's white-noise 1σ \(a velocity\)"),
+    ("sigma wrong unit", lambda m: m.update(sigma="0.02 m"),
+     r"\[\[measurement\]\] 'odo' sigma: .*velocity"),
+    ("sigma per component count", lambda m: m.update(sigma=["0.02 m/s", "0.02 m/s"]),
+     r"'odo' sigma: 2 values for the 1 components \(along\) of an odometer"),
+    ("lever arm wrong unit", lambda m: m.update(lever_arm=["-1.2 m", "0.75 deg", "0.9 m"]),
+     r"\[\[measurement\]\] 'odo' lever_arm\[1\]: .*length"),
+    ("lever arm not three", lambda m: m.update(lever_arm=["1 m", "2 m"]),
+     r"'odo' lever_arm: expected three lengths \(body x, y, z\)"),
+    ("schedule after the end", lambda m: m.update(schedule={"period": "1 s", "end": "10 min"}),
+     r"\[\[measurement\]\] 'odo' schedule: end 600 s is outside the study \[0, 360\] s"),
+    ("outage outside", lambda m: m.update(schedule={"period": "1 s", "outages": [["5 min", "7 min"]]}),
+     r"'odo' schedule: outage \[300, 420\] s is not a window inside the study \[0, 360\] s"),
+    ("explicit time outside", lambda m: m.update(schedule={"at": ["1 min", "8 min"]}),
+     r"'odo' schedule: update time 480 s is outside the study"),
+    ("stationary at a moving time", lambda m: m.update(schedule={"period": "1 min", "when": "stationary"}),
+     r"'odo' schedule: update at t = 0 s is not at a stop of the trajectory"),
+    ("off the grid", lambda m: m.update(schedule={"period": "1.5 s"}),
+     r"'odo' schedule: update time 1.5 s is not on the 1 s grid"),
+    ("unknown error state", lambda m: m["errors"].update(bias={"sigma": "0.1 m/s"}),
+     r"'odo' errors.bias: an odometer has no error state 'bias' \(known: scale_factor, scale_factor_markov, "),
+    ("missing error sigma", lambda m: m["errors"]["scale_factor"].pop("sigma"),
+     r"'odo' errors.scale_factor sigma: missing: the initial 1σ \(a dimensionless\)"),
+    ("markov without tau", lambda m: m["errors"]["scale_factor"].update(process="markov"),
+     r"'odo' errors.scale_factor: missing required key 'tau'"),
+    ("tau on a constant", lambda m: m["errors"]["scale_factor"].update(tau="1 h"),
+     r"'odo' errors.scale_factor tau: only a markov state has a correlation time"),
+    ("unknown key", lambda m: m.update(rate="1 Hz"),
+     r"\[\[measurement\]\] 'odo'.*rate"),
+    ("lever arm on a kind without one", lambda m: m.update(kind="baro", sigma="1 m", errors={}, lever_arm=["0 m"] * 3),
+     r"'odo' lever_arm: a baro takes no lever arm"),
+]
+
+
+@pytest.mark.parametrize("case, change, message", BAD, ids=[b[0] for b in BAD])
+def test_bad_measurement_declaration_is_one_line(case, change, message):
+    with pytest.raises(StudyFileError, match=message) as exc:
+        run(with_meas(change), path=None)
+    assert "\n" not in str(exc.value) and str(exc.value).startswith("<study>: [[measurement]]")
+
+
+def test_variant_dropping_an_unknown_state():
+    d = odo_decl()
+    d["filters"]["variant"][0]["drop"] = ["odo_bias"]
+    with pytest.raises(StudyFileError, match=r"\[\[filters.variant\]\] #1 drop: .*odo_bias"):
+        run(d)
+
+
+def test_duplicate_measurement_names():
+    d = odo_decl()
+    d["measurement"][1]["name"] = "odo"
+    with pytest.raises(StudyFileError, match=r"\[\[measurement\]\] 'odo': the name is used twice"):
+        run(d)
+
+
+def test_no_measurement():
+    d = odo_decl()
+    del d["measurement"]
+    with pytest.raises(StudyFileError, match=r"an aided study needs at least one measurement"):
+        run(d)
+
+
+def test_cli_prints_one_line_and_exits_2(tmp_path, capsys):
+    d = with_meas(lambda m: m.update(lever_arm=["-1.2 m", "0.75 s", "0.9 m"]))
+    p = tmp_path / "bad.toml"
+    p.write_text(tomli_w.dumps(d))
+    rc = main(["run", str(p), "--out", str(tmp_path / "out"), "--quiet", "--no-figures"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert rc == 2
+    assert len(err) == 1 and err[0].startswith(f"covtool: error: {p}: [[measurement]] 'odo' lever_arm[1]:")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def small_run():
+    return run(odo_decl("6 min"))
+
+
+def test_optimal_filter_bounds_every_filter(small_run):
+    """Filter A is the Kalman filter of the truth itself: no filter's truth CEP is below it, and its claim is exact."""
+    s = small_run.summary
+    a = s[s["case"] == "A"].iloc[0]
+    others = s[~s["case"].isin(["A", "pure_ins"])]
+    assert len(others) == 5
+    assert np.all(others["CEP [m]"] >= a["CEP [m]"] * (1 - 1e-9))
+    assert np.all(others["alt PE [m]"] >= a["alt PE [m]"] * (1 - 1e-9))
+    np.testing.assert_allclose(a["filter-claimed CEP [m]"], a["CEP [m]"], rtol=1e-9)
+    pure = s[s["case"] == "pure_ins"].iloc[0]
+    assert pure["CEP [m]"] > 10 * a["CEP [m]"]
+
+
+def test_dropping_the_odometer_scale_factor_is_costed(small_run):
+    """Acceptance 4: the impact table shows the cost of B1 without the odometer scale-factor state."""
+    imp = small_run.tables["measurement_state_impact"]
+    row = imp[imp["filter"] == "B1 no odo SF"].iloc[0]
+    s = small_run.summary
+    b1 = s[s["case"] == "B1"].iloc[0]
+    v = s[s["case"] == "B1 no odo SF"].iloc[0]
+    assert row["dropped states"] == "odo_scale_factor"
+    np.testing.assert_allclose(row["CEP base [m]"], b1["CEP [m]"], rtol=1e-12)
+    np.testing.assert_allclose(row["CEP [m]"], v["CEP [m]"], rtol=1e-12)
+    np.testing.assert_allclose(row["CEP cost [%]"], 100 * (v["CEP [m]"] / b1["CEP [m]"] - 1), rtol=1e-9)
+    assert row["CEP cost [%]"] > 20            # the scale factor matters (2000 ppm at 47 km/h)
+    bs = imp[imp["filter"] == "B1 no boresight"].iloc[0]
+    assert abs(bs["CEP cost [%]"]) < 1         # the boresight enters through v_b,y and v_b,z ≈ 0: second order
+    assert v["states"] == b1["states"] - 1
