@@ -16,7 +16,7 @@ import pytest
 import tomli_w
 
 from covtool.cli import main
-from covtool.errors import StudyFileError
+from covtool.errors import NumericalError, StudyFileError
 from covtool.studies.aided import run
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -147,3 +147,24 @@ def test_dropping_the_odometer_scale_factor_is_costed(small_run):
     bs = imp[imp["filter"] == "B1 no boresight"].iloc[0]
     assert abs(bs["CEP cost [%]"]) < 1         # the boresight enters through v_b,y and v_b,z ≈ 0: second order
     assert v["states"] == b1["states"] - 1
+
+
+@pytest.mark.parametrize("bad, problem", [(np.nan, r"non-finite entry \(nan\)"), (-1.0, r"negative variance")])
+def test_aided_study_refuses_an_invalid_process_noise(bad, problem, monkeypatch):
+    """A bad truth Q_d at one step (the discretiser's output) stops the study with the time and the state."""
+    import covtool.studies.grid as grid
+    original = grid.discretize_chunked
+    calls = []
+
+    def poisoned(F, Qc, dt, method, order=None, **kw):
+        Phi, Qd = original(F, Qc, dt, method, order, **kw)
+        if not calls:                                   # the truth is discretised first
+            Qd = Qd.copy()
+            Qd[7, 3, 3] = bad * (abs(Qd[7, 3, 3]) or 1.0) if bad < 0 else bad
+        calls.append(1)
+        return Phi, Qd
+
+    monkeypatch.setattr(grid, "discretize_chunked", poisoned)
+    with pytest.raises(NumericalError, match=r"Q_d of the step at t = 7\.0 s: covariance has a " + problem
+                                        + r".* state 'dvN'"):
+        run(odo_decl("2 min"))
