@@ -168,3 +168,31 @@ def test_aided_study_refuses_an_invalid_process_noise(bad, problem, monkeypatch)
     with pytest.raises(NumericalError, match=r"Q_d of the step at t = 7\.0 s: covariance has a " + problem
                                         + r".* state 'dvN'"):
         run(odo_decl("2 min"))
+
+
+def test_gnss_outage_table_and_grade_monotonicity():
+    """One outage row per grade, filter and window; under the optimal filter a worse grade never does better.
+
+    Riccati monotonicity: a larger P0 and Q give a larger optimal covariance, so
+    filter A's CEP is ordered by grade at every time, in and out of the outage.
+    """
+    d = tomllib.loads((ROOT / "studies" / "aided_gnss_outage.toml").read_text())
+    d["study"]["duration"] = "4 min"
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["filters"]["cases"] = ["A"]
+    for m in d["measurement"]:
+        m["schedule"]["outages"] = [["2 min", "3 min"]]
+    d["grade"] = [d["grade"][0], d["grade"][2]]
+    d["output"]["report_times"] = ["2 min", "3 min", "4 min"]
+    r = run(d)
+    out = r.tables["outages"]
+    assert len(out) == 2 and set(out["measurements"]) == {"gnss, gnss_vel"}
+    nav, tac = (out[out["grade"] == g].iloc[0] for g in ("navigation", "tactical"))
+    assert tac["CEP at end [m]"] > nav["CEP at end [m]"] > nav["CEP at start [m]"]
+    h = r.tables["history"]
+    a, b = (h[h["grade"] == g]["CEP [m]"].to_numpy() for g in ("navigation", "tactical"))
+    assert np.all(b >= a * (1 - 1e-9))
+    # the outage row is the history at the window's ends
+    hn = h[h["grade"] == "navigation"].set_index("t [s]")
+    np.testing.assert_allclose([nav["CEP at start [m]"], nav["CEP at end [m]"]], hn.loc[[120.0, 180.0], "CEP [m]"],
+                               rtol=1e-12)

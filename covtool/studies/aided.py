@@ -263,7 +263,11 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         raise StudyFileError(f"{where}: [[measurement]]", "no update falls inside the study (check the outages)")
     ewn_dt = (quantity(fcfg["ewn_interval"], "time", f"{where}: [filters] ewn_interval", StudyFileError,
                        positive=True) if "ewn_interval" in fcfg else float(t[-1]) / all_steps.size)
-    outage_marks = [(m.name, a, b) for m, sch in plan for a, b in sch.outages]
+    windows = {}                           # one row per outage window, naming the measurements it silences
+    for m, sch in plan:
+        for a, b in sch.outages:
+            windows.setdefault((a, b), []).append(m.name)
+    outage_marks = [(", ".join(v), a, b) for (a, b), v in sorted(windows.items())]
     rec = _record_steps(t, every, rtimes, outage_marks)
     moving = t[-1] - sum(max(0.0, min(b, t[-1]) - max(a, 0.0)) for a, b in traj.stationary)
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
@@ -398,7 +402,7 @@ def _outage_table(metrics, outages, tr):
             continue
         for name, a, b in outages:
             ia, ib = int(np.argmin(np.abs(tr - a))), int(np.argmin(np.abs(tr - b)))
-            rows.append({"grade": g, "case": case, "measurement": name, "outage start [s]": a,
+            rows.append({"grade": g, "case": case, "measurements": name, "outage start [s]": a,
                          "outage [s]": b - a, "CEP at start [m]": m["cep"][ia], "CEP at end [m]": m["cep"][ib],
                          "growth [m]": m["cep"][ib] - m["cep"][ia],
                          "sigma_D at end [m]": m["sigma_down"][ib]})
