@@ -196,3 +196,24 @@ def test_gnss_outage_table_and_grade_monotonicity():
     hn = h[h["grade"] == "navigation"].set_index("t [s]")
     np.testing.assert_allclose([nav["CEP at start [m]"], nav["CEP at end [m]"]], hn.loc[[120.0, 180.0], "CEP [m]"],
                                rtol=1e-12)
+
+
+def test_pads_sparse_updates_table():
+    """ZUPT + CUPT at the stops: the CUPT brings every filter's CEP down to the fix's (0.1 m per axis: 0.118 m)."""
+    d = tomllib.loads((ROOT / "studies" / "aided_pads_survey.toml").read_text())
+    d["study"]["duration"] = "10 min"
+    d["trajectory"].update(cycles=2, distance="5 km")
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["filters"]["cases"] = ["A", "D"]
+    d["measurement"][1]["schedule"].update(period="5 min", start="5 min")
+    d["output"]["report_times"] = ["4 min", "9 min"]
+    r = run(d)
+    up = r.tables["sparse_updates"]
+    assert set(up["measurement"]) == {"zupt", "cupt"}
+    cupt = up[up["measurement"] == "cupt"]
+    assert len(cupt) == 4 and list(cupt["t [min]"]) == [5.0, 10.0, 5.0, 10.0]
+    cep_fix = 0.1 * 1.1774100225154747                 # CEP of a circular 2-D normal: σ √(2 ln 2)
+    assert np.all(cupt["CEP before [m]"] > 10 * cep_fix)
+    a = cupt[cupt["case"] == "A"]
+    assert np.all(a["CEP after [m]"] <= cep_fix) and np.all(a["CEP after [m]"] > 0.97 * cep_fix)
+    assert np.all(cupt["CEP after [m]"] < 1.05 * cep_fix)

@@ -78,6 +78,8 @@ from covtool.units import ARCMIN
 MEAS_KEYS = {"name", "kind", "sigma", "filter_sigma", "lever_arm", "errors", "schedule"}
 SCHEDULE_KEYS = {"period", "rate", "start", "end", "when", "outages", "at"}
 ERROR_KEYS = {"sigma", "process", "tau"}
+#: a measurement with at most this many updates (survey points, stops) gets its before/after table
+SPARSE_UPDATES = 50
 _NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
 
 
@@ -268,12 +270,15 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         for a, b in sch.outages:
             windows.setdefault((a, b), []).append(m.name)
     outage_marks = [(", ".join(v), a, b) for (a, b), v in sorted(windows.items())]
-    rec = _record_steps(t, every, rtimes, outage_marks)
+    # sparse measurements (survey points, stops): the error just before and after each update is tabulated
+    sparse = [(m.name, st) for (m, _), st in zip(plan, steps) if 0 < st.size <= SPARSE_UPDATES]
+    rec = np.union1d(_record_steps(t, every, rtimes, outage_marks),
+                     np.concatenate([st for _, st in sparse]) if sparse else np.zeros(0, int))
     moving = t[-1] - sum(max(0.0, min(b, t[-1]) - max(a, 0.0)) for a, b in traj.stationary)
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
     meas_pairs = list(zip([m for m, _ in plan], steps))
     names_all = None
-    metrics, claimed, nstates = {}, {}, {}
+    metrics, claimed, nstates, at_updates = {}, {}, {}, []
     dt_steps = np.diff(t)
     err = error_processes(states, dt_steps)[:2]
     for g in grades:
@@ -323,6 +328,17 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             metrics[(gl, label)] = _metrics(r.P_truth, nodes, rec)
             claimed[(gl, label)] = _metrics(r.P_filter[:, :10, :10], nodes, rec)
             nstates[(gl, label)] = len(fnames)
+            pos = {int(k): i for i, k in enumerate(r.steps)}
+            for mname, st in sparse:
+                before = _metrics(np.stack([r.prior_truth[int(k)][:10, :10] for k in st]), nodes, st)
+                after = _metrics(r.P_truth[[pos[int(k)] for k in st]], nodes, st)
+                for j, k in enumerate(st):
+                    at_updates.append({"grade": gl, "case": label, "measurement": mname, "t [min]": t[k] / 60,
+                                       "CEP before [m]": before["cep"][j], "CEP after [m]": after["cep"][j],
+                                       "alt PE before [m]": before["alt_pe"][j],
+                                       "alt PE after [m]": after["alt_pe"][j],
+                                       "azimuth before [arcmin]": before["sigma_azimuth"][j] / ARCMIN,
+                                       "azimuth after [arcmin]": after["sigma_azimuth"][j] / ARCMIN})
         del Phi, Qd, built
     elapsed = time.perf_counter() - t_start
     tr = t[rec]
@@ -333,6 +349,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
               "truth_states": truth0.state_table()}
     if outage_marks:
         tables["outages"] = _outage_table(metrics, outage_marks, tr)
+    if at_updates:
+        tables["sparse_updates"] = pd.DataFrame(at_updates)
     if variants:
         tables["measurement_state_impact"] = _variant_table(metrics, claimed, variants, tr, rtimes, grades)
     figures = {f"aided_{_slug(g['name'])}": _figure(hdr["name"], g["name"], metrics, tr, outage_marks)
