@@ -23,7 +23,7 @@ from covtool.errors import NumericalError
 from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
 from covtool.lincov.discretize import discretize
 from covtool.lincov.dynamics import Context, error_dynamics
-from covtool.lincov.measurements import (Baro, Cupt, GnssPosition, GnssVelocity, Measurement, Schedule,
+from covtool.lincov.measurements import (Baro, Cupt, GnssPosition, GnssVelocity, Schedule,
                                          Zupt)
 from covtool.lincov.measurements.base import error_state, ned_metres
 from covtool.lincov.reference import propagate, propagate_with_filter

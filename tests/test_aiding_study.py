@@ -7,7 +7,6 @@ the field, before any computation, and exit status 2 from the CLI.
 
 from __future__ import annotations
 
-import copy
 import tomllib
 from pathlib import Path
 
@@ -217,3 +216,12 @@ def test_pads_sparse_updates_table():
     a = cupt[cupt["case"] == "A"]
     assert np.all(a["CEP after [m]"] <= cep_fix) and np.all(a["CEP after [m]"] > 0.97 * cep_fix)
     assert np.all(cupt["CEP after [m]"] < 1.05 * cep_fix)
+
+
+def test_memory_limit_is_checked_before_computing():
+    d = odo_decl("24 h")
+    d["study"]["max_memory"] = "2 GB"
+    d["trajectory"].update(cycles=288)
+    with pytest.raises(StudyFileError, match=r"<study>: \[study\]: needs about .* GB of memory "
+                                             r"\(86,400 steps.*more than the 2 GB \[study\] max_memory"):
+        run(d)

@@ -71,6 +71,8 @@ from covtool.lincov.reference import propagate
 from covtool.results import StudyResult
 from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
+from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
+                                       steps_of)
 from covtool.studies.tables import case_validity, history_frame, summary_row
 from covtool.studies.zupt_setup import filter_cases, filters_file
 from covtool.units import ARCMIN
@@ -251,6 +253,9 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     specs = load_filters(ffile, truth0)
     cases = filter_cases(fcfg, specs, ffile, where, nonempty=True)
     variants = parse_variants(fcfg, specs, states, where)
+    est = check_memory(_memory(hdr, truth0, specs, cases, variants, states, every, fcfg.get("pure_ins", True)),
+                       where, hdr["max_memory"], "a larger [study] dt or history_every, a shorter duration or fewer "
+                       "[filters] cases")
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"], where)
     nodes = traj.sample(t)
@@ -360,9 +365,21 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}},
         provenance={**study_inputs(path, decl, truth0), "truth_model": truth0.name,
                     "truth_model_sha256": truth0.sha256, "measurement_states": ", ".join(s.name for s in states),
-                    "equivalent_noise_interval_s": f"{ewn_dt:g}", "compute_seconds": f"{elapsed:.2f}"},
+                    "equivalent_noise_interval_s": f"{ewn_dt:g}", **resource_provenance(est),
+                    "compute_seconds": f"{elapsed:.2f}"},
         data={"t": tr, "steps": rec, "metrics": metrics, "claimed": claimed, "trajectory": nodes},
     )
+
+
+def _memory(hdr, truth, specs, cases, variants, states, every, pure) -> dict:
+    """Peak memory: the truth system, every base filter's system, the pure-INS history, the recorded histories."""
+    steps = steps_of(hdr["duration"], hdr["dt"])
+    bases = list(dict.fromkeys([*cases, *(b for b, _ in variants.values())]))
+    n, ne = truth.n, len(states)
+    rec = steps / max(1.0, every / hdr["dt"]) + 64
+    recorded = sum(rec * ((n + ne) ** 2 + (specs[b].n + ne) ** 2) * 8.0 for b in bases)
+    return memory_estimate(steps, n, filters=[specs[b].n for b in bases], histories=[n] if pure else [],
+                           noise=noise_columns(truth), extra=recorded + 2.0 * steps * ne * 8.0)
 
 
 def _record_steps(t, every, rtimes, outages) -> np.ndarray:

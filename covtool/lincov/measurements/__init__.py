@@ -17,7 +17,8 @@ from covtool.lincov.measurements.schedule import Schedule, WHEN
 from covtool.lincov.measurements.zupt import Zupt
 
 #: every measurement kind, by the name used in study files
-KINDS = {c.kind: c for c in (Zupt, Cupt, Odometer, NonHolonomic, GnssPosition, GnssVelocity, Baro, Heading)}
+KINDS = {c.kind: c for c in (Zupt, Cupt, Odometer, NonHolonomic, GnssPosition, GnssVelocity, Baro,
+                              Heading)}
 
 __all__ = ["KINDS", "Measurement", "MEAS_PROCESSES", "NAV_POINT", "nav_point", "place", "transition", "Schedule", "WHEN",
            "Zupt", "Cupt", "Odometer", "NonHolonomic", "GnssPosition", "GnssVelocity", "Baro", "Heading"]
