@@ -225,3 +225,13 @@ def test_memory_limit_is_checked_before_computing():
     with pytest.raises(StudyFileError, match=r"<study>: \[study\]: needs about .* GB of memory "
                                              r"\(86,400 steps.*more than the 2 GB \[study\] max_memory"):
         run(d)
+
+
+def test_error_state_named_like_a_truth_block():
+    """A measurement 'gyro' with a heading bias would make a state 'gyro_bias', the truth's gyro-bias block."""
+    d = odo_decl()
+    d["measurement"].append({"name": "gyro", "kind": "heading", "sigma": "1 deg", "schedule": {"period": "10 s"},
+                             "errors": {"bias": {"sigma": "2 deg"}}})
+    with pytest.raises(StudyFileError, match=r"\[\[measurement\]\] 'gyro' name: its error state 'gyro_bias' has "
+                                             r"the name of a truth-model state or block"):
+        run(d)

@@ -252,6 +252,11 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     ffile = filters_file(fcfg, where, base_dir)
     specs = load_filters(ffile, truth0)
     cases = filter_cases(fcfg, specs, ffile, where, nonempty=True)
+    clash = [s.name for s in states if s.name in truth0.index or s.name in {x.block for x in truth0.states}]
+    if clash:
+        meas = next(m.name for m, _ in plan if clash[0] in m.state_names)
+        raise StudyFileError(f"{where}: [[measurement]] {meas!r} name", f"its error state {clash[0]!r} has the name "
+                             f"of a truth-model state or block; rename the measurement")
     variants = parse_variants(fcfg, specs, states, where)
     est = check_memory(_memory(hdr, truth0, specs, cases, variants, states, every, fcfg.get("pure_ins", True)),
                        where, hdr["max_memory"], "a larger [study] dt or history_every, a shorter duration or fewer "
