@@ -17,7 +17,7 @@ from covtool.io.config import load_toml
 
 #: study kinds; each runs in the module of the same name, ``covtool.studies.<kind>`` (imported lazily)
 KINDS = ("pure_ins", "zupt_filter_order", "ad_reset", "zupt_sensitivity", "error_budget", "trade_grid", "monte_carlo",
-         "dual_imu", "magnitude_sweep")
+         "dual_imu", "magnitude_sweep", "aided")
 #: study kind -> runner module
 RUNNERS = {kind: f"covtool.studies.{kind}" for kind in KINDS}
 

@@ -1,0 +1,384 @@
+"""Truth under a filter's gains with general scheduled measurements (issue 15).
+
+Generalises the ZUPT run of :func:`covtool.lincov.reference.propagate_with_filter`
+(seed 002, eq (6)–(8), (15)–(16)) to updates whose H, R and dimension change
+from one update to the next, and to measurements with their own error states
+(:mod:`covtool.lincov.measurements`):
+
+* the truth state is ``[x_INS (n₀); e (n_e)]``: the INS truth model and the
+  measurements' error states, each a scalar process independent of the INS
+  (random constant, Gauss–Markov, random walk), propagated exactly
+  (:func:`covtool.lincov.measurements.transition`);
+* the filter state is ``[x_f (n_f0); e_f]``: a reduced filter keeps, by
+  name, any subset of the measurement-error states, like any other state;
+  ``D`` maps filter states onto truth states (eq (10));
+* at an update the truth H (:meth:`Measurement.jacobian`, including the
+  error-state columns) and the true R enter eq (16); the filter uses
+  ``H_f = H D`` and its own R_f, widened by the variance of every dropped
+  measurement-error state it sees (:func:`build_epochs`).
+
+Several measurements at one epoch are **stacked** (one update, block-
+diagonal R).  Processing them one after the other gives the same truth and
+filter covariances whenever ``H_f = H D`` and R_f is block-diagonal across
+kinds: after the first feedback correction ``x ← x − D K₁ z₁`` the second
+residual is ``z₂ − H₂ D x̂₁ = z₂ − H_f2 x̂₁``, the residual of the stacked
+filter.  ``sequential=True`` does it that way; the tests compare the two.
+
+Pure numeric core: arrays in, arrays out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from covtool.errors import NumericalError
+from covtool.lincov.kalman import (check_system, covariance_status, filter_update,
+                                   kalman_gain, scale_groups, symmetrize, time_text, truth_update)
+from covtool.lincov.measurements import place, transition
+from covtool.lincov.measurements.base import nav_point
+
+
+@dataclass
+class Epoch:
+    """The stacked update at one grid step.
+
+    Attributes
+    ----------
+    step : int
+        Grid index.
+    H : ndarray, shape (m, n)
+        Truth measurement matrix over the augmented truth states.
+    R : ndarray, shape (m, m)
+        True measurement noise (eq (16)).
+    Hf : ndarray, shape (m, n_f)
+        The filter's measurement matrix (``H D``).
+    Rf : ndarray, shape (m, m)
+        Noise the filter assumes (eq (7)), with its dropped error states.
+    rows : tuple of (str, slice)
+        The rows of each measurement (for sequential processing).
+    """
+
+    step: int
+    H: np.ndarray
+    R: np.ndarray
+    Hf: np.ndarray
+    Rf: np.ndarray
+    rows: tuple
+
+
+def error_processes(states, dt_steps) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(φ, q_d, P0)`` of the measurement-error states on a grid.
+
+    Parameters
+    ----------
+    states : sequence of covtool.lincov.model.spec.State
+    dt_steps : ndarray, shape (N,)
+        Step lengths. [s]
+
+    Returns
+    -------
+    phi, qd : ndarray, shape (N, n_e)
+        Exact scalar transition and noise of each state per step.
+    P0 : ndarray, shape (n_e, n_e)
+        ``diag σ²``.
+    """
+    dt_steps = np.asarray(dt_steps, float)
+    phi = np.ones((dt_steps.size, len(states)))
+    qd = np.zeros((dt_steps.size, len(states)))
+    for j, s in enumerate(states):
+        pairs = {float(d): transition(s, float(d)) for d in np.unique(dt_steps)}
+        phi[:, j] = [pairs[float(d)][0] for d in dt_steps]
+        qd[:, j] = [pairs[float(d)][1] for d in dt_steps]
+    return phi, qd, np.diag([s.sigma**2 for s in states])
+
+
+def augment(P0: np.ndarray, D0: np.ndarray, states, kept) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Truth P0, filter P_f(0)'s error block and D over ``[x; e]``.
+
+    Parameters
+    ----------
+    P0 : ndarray, shape (n₀, n₀)
+        INS truth initial covariance.
+    D0 : ndarray, shape (n₀, n_f0)
+        The filter's map onto the INS truth (eq (10)).
+    states : sequence of State
+        The measurement-error states appended to the truth (order kept).
+    kept : sequence of str
+        The error states the filter keeps (a subset of ``states`` by name).
+
+    Returns
+    -------
+    P0_aug : ndarray, shape (n₀ + n_e, n₀ + n_e)
+    Pf0_err : ndarray, shape (n_fe, n_fe)
+        ``diag σ²`` of the kept error states (the filter's initial belief).
+    D : ndarray, shape (n₀ + n_e, n_f0 + n_fe)
+
+    Raises
+    ------
+    ValueError
+        A kept name that is not a measurement-error state.
+    """
+    names = [s.name for s in states]
+    unknown = [k for k in kept if k not in names]
+    if unknown:
+        raise ValueError(f"{unknown[0]!r} is not a measurement-error state (known: {', '.join(names) or 'none'})")
+    n0, nf0 = D0.shape
+    ne, nfe = len(states), len(kept)
+    P = np.zeros((n0 + ne, n0 + ne))
+    P[:n0, :n0] = P0
+    P[n0:, n0:] = np.diag([s.sigma**2 for s in states])
+    D = np.zeros((n0 + ne, nf0 + nfe))
+    D[:n0, :nf0] = D0
+    for j, k in enumerate(kept):
+        D[n0 + names.index(k), nf0 + j] = 1.0
+    Pf_e = np.diag([states[names.index(k)].sigma**2 for k in kept]) if kept else np.zeros((0, 0))
+    return P, Pf_e, D
+
+
+def error_variance(state, t: float) -> float:
+    """Variance of an error state at time ``t`` [s] from its start (σ² + rw² t for a random walk)."""
+    return state.sigma**2 + (state.rw**2 * t if state.process == "random_walk" else 0.0)
+
+
+def build_epochs(plan, nodes, names, filter_names, *, absorb: bool = True) -> list[Epoch]:
+    """Stack the measurements due at each grid step.
+
+    Parameters
+    ----------
+    plan : sequence of (Measurement, ndarray of int)
+        Each measurement and its update steps (:meth:`Schedule.steps`).
+    nodes : Trajectory
+        The trajectory sampled on the grid (``nodes.t`` the grid times).
+    names, filter_names : sequence of str
+        Truth and filter state names (augmented with the error states).
+    absorb : bool
+        Widen R_f by ``H_e σ_e² H_eᵀ`` for every error state the filter
+        drops (the state's variance at the epoch, replaced by white
+        measurement noise: the measurement counterpart of seed 002,
+        eq (11)–(13), which replace a dropped state coupling through F by
+        white process noise).  False: the filter ignores them.
+
+    Returns
+    -------
+    list of Epoch, in time order
+    """
+    fset = set(filter_names)
+    due: dict[int, list] = {}
+    for meas, steps in plan:
+        for k in np.asarray(steps, int):
+            due.setdefault(int(k), []).append(meas)
+    out = []
+    for k in sorted(due):
+        x, w = nav_point(nodes, k)
+        Hs, Hfs, Rs, Rfs, rows, r0 = [], [], [], [], [], 0
+        for meas in due[k]:
+            H_nav, H_err = meas.jacobian(x, w)
+            Hs.append(place(H_nav, H_err, meas, names))
+            Hfs.append(place(H_nav, H_err, meas, filter_names))
+            Rs.append(meas.R())
+            Rf = meas.Rf()
+            if absorb:
+                for j, s in enumerate(meas.states):
+                    if s.name not in fset:
+                        Rf = Rf + error_variance(s, float(nodes.t[k])) * np.outer(H_err[:, j], H_err[:, j])
+            Rfs.append(Rf)
+            rows.append((meas.name, slice(r0, r0 + meas.m)))
+            r0 += meas.m
+        out.append(Epoch(k, np.vstack(Hs), _blockdiag(Rs), np.vstack(Hfs), _blockdiag(Rfs), tuple(rows)))
+    return out
+
+
+def _blockdiag(mats):
+    m = sum(a.shape[0] for a in mats)
+    out = np.zeros((m, m))
+    i = 0
+    for a in mats:
+        out[i:i + a.shape[0], i:i + a.shape[0]] = a
+        i += a.shape[0]
+    return out
+
+
+def _propagate(P, Phi, Qd, phi, qd):
+    """One step of ``[x_INS; e]``: ``blockdiag(Φ, diag φ)`` and ``blockdiag(Q_d, diag q_d)``."""
+    n0 = Phi.shape[0]
+    if P.shape[0] == n0:
+        return symmetrize(Phi @ P @ Phi.T + Qd)
+    out = np.empty_like(P)
+    out[:n0, :n0] = Phi @ P[:n0, :n0] @ Phi.T + Qd
+    out[:n0, n0:] = (Phi @ P[:n0, n0:]) * phi
+    out[n0:, :n0] = out[:n0, n0:].T
+    out[n0:, n0:] = P[n0:, n0:] * np.outer(phi, phi) + np.diag(qd)
+    return symmetrize(out)
+
+
+@dataclass
+class AidedRun:
+    """Histories of an aided truth-under-filter run at the recorded steps.
+
+    Attributes
+    ----------
+    steps : ndarray of int, shape (r,)
+        Recorded grid indices.
+    P_truth : ndarray, shape (r, n, n)
+        Truth covariance over ``[x_INS; e]`` (posterior at update steps), eq (15)–(16).
+    P_filter : ndarray, shape (r, n_f, n_f)
+        The filter's own covariance, eq (6a)–(8).
+    prior_truth, prior_filter : dict of int to ndarray
+        Priors at the recorded update steps.
+    gains : dict of int to ndarray, shape (n_f, m)
+        Filter gains at the recorded update steps, eq (7).
+    """
+
+    steps: np.ndarray
+    P_truth: np.ndarray
+    P_filter: np.ndarray
+    prior_truth: dict
+    prior_filter: dict
+    gains: dict
+
+
+#: covariances checked at once by the guard of :func:`propagate_aided` (bounds its memory)
+GUARD_BLOCK = 256
+
+
+def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f=None, record=None,
+                    sequential: bool = False, form: str = "joseph", check: bool = True, label: str = "filter",
+                    times=None, names=None, filter_names=None, system_checked: bool = False) -> AidedRun:
+    """Truth covariance under a filter's gains with scheduled general measurements.
+
+    Parameters
+    ----------
+    Phi, Qd : ndarray, shape (N, n₀, n₀)
+        INS truth transition and noise (eq (15)).
+    P0 : ndarray, shape (n, n)
+        Initial truth covariance over ``[x_INS; e]`` (``n = n₀ + n_e``).
+    Phi_f, Qd_f : ndarray, shape (N, n_f0, n_f0)
+        The filter's INS model (eq (6a)–(6d)).
+    Pf0 : ndarray, shape (n_f, n_f)
+    D : ndarray, shape (n, n_f)
+        Filter states onto truth states, by name (eq (10)).
+    epochs : list of Epoch
+        The updates (:func:`build_epochs`).
+    err, err_f : tuple of ndarray (phi, qd), each shape (N, n_e) or (N, n_fe), optional
+        Exact transitions of the truth's and the filter's measurement-error
+        states (:func:`error_processes`); None when there are none.
+    record : array_like of int, optional
+        Grid indices to keep (default: every one).  Every covariance is
+        guarded whether it is kept or not.
+    sequential : bool
+        Process the measurements of an epoch one after the other instead
+        of stacked (the same result when ``H_f = H D``; see the module notes).
+    form : {"joseph", "standard"}
+        Filter covariance update (eq (8) is ``"standard"``).
+    check : bool
+        Guard the inputs and every truth and filter covariance, prior and
+        posterior (:func:`covtool.lincov.kalman.covariance_status`), in
+        blocks of :data:`GUARD_BLOCK`.
+    label, times, names, filter_names
+        For error messages.
+    system_checked : bool
+        Φ, Q_d, Φ_f, Q_f were guarded by the caller.
+
+    Returns
+    -------
+    AidedRun
+
+    Raises
+    ------
+    ValueError
+        Inconsistent sizes.
+    NumericalError
+        The first input or covariance that is not finite, symmetric and PSD,
+        with the time, the stage and the state.
+    """
+    N, n0, _ = Phi.shape
+    nf0 = Phi_f.shape[1]
+    n, nf = P0.shape[0], Pf0.shape[0]
+    e_phi, e_qd = err if err is not None else (np.ones((N, 0)), np.zeros((N, 0)))
+    f_phi, f_qd = err_f if err_f is not None else (np.ones((N, 0)), np.zeros((N, 0)))
+    if n != n0 + e_phi.shape[1] or nf != nf0 + f_phi.shape[1] or D.shape != (n, nf):
+        raise ValueError(f"{label}: inconsistent sizes: truth {n0}+{e_phi.shape[1]} vs P0 {n}, filter "
+                         f"{nf0}+{f_phi.shape[1]} vs P_f(0) {nf}, D {D.shape}")
+    if check:
+        sys_ = {} if system_checked else {"truth": (Phi, Qd), "filter": (Phi_f, Qd_f)}
+        check_system(f"{label} (truth)", *sys_.get("truth", ()), P0=P0, names=names, times=times)
+        check_system(f"{label} (filter)", *sys_.get("filter", ()), P0=Pf0, names=filter_names, times=times)
+        for ep in epochs:
+            comps = [f"{nm}[{i}]" for nm, sl in ep.rows for i in range(sl.stop - sl.start)]
+            check_system(f"{label} (truth) at {_when(ep.step, times)}", R=ep.R, measurement_names=comps)
+            check_system(f"{label} (filter) at {_when(ep.step, times)}", R=ep.Rf, measurement_names=comps)
+    rec = np.arange(N + 1) if record is None else np.unique(np.asarray(record, int))
+    slot = {int(k): i for i, k in enumerate(rec)}
+    by_step = {ep.step: ep for ep in epochs}
+    PT = np.full((rec.size, n, n), np.nan)
+    PF = np.full((rec.size, nf, nf), np.nan)
+    prior_t, prior_f, gains = {}, {}, {}
+    guard = _Guard(label, names, filter_names, times, check)
+    P = symmetrize(np.asarray(P0, float))
+    Pf = symmetrize(np.asarray(Pf0, float))
+    k = 0
+    try:
+        with np.errstate(over="ignore", invalid="ignore"):      # a blow-up is reported by the guard
+            for k in range(N + 1):
+                ep = by_step.get(k)
+                if ep is not None:
+                    guard.add(k, P, Pf, prior=True)
+                    if k in slot:
+                        prior_t[k], prior_f[k] = P, Pf
+                    parts = [sl for _, sl in ep.rows] if sequential else [slice(0, ep.H.shape[0])]
+                    Ks = []
+                    for sl in parts:
+                        Hf, Rf = ep.Hf[sl], ep.Rf[sl, sl]
+                        K = kalman_gain(Pf, Hf, Rf)
+                        Pf = filter_update(Pf, K, Hf, Rf, form)
+                        P = truth_update(P, D, K, ep.H[sl], ep.R[sl, sl])
+                        Ks.append(K)
+                    if k in slot:
+                        gains[k] = np.hstack(Ks)
+                guard.add(k, P, Pf, after_update=ep is not None)
+                if k in slot:
+                    PT[slot[k]], PF[slot[k]] = P, Pf
+                if k < N:
+                    P = _propagate(P, Phi[k], Qd[k], e_phi[k], e_qd[k])
+                    Pf = _propagate(Pf, Phi_f[k], Qd_f[k], f_phi[k], f_qd[k])
+    except NumericalError as exc:
+        guard.flush()
+        raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
+    guard.flush()
+    return AidedRun(rec, PT, PF, prior_t, prior_f, gains)
+
+
+def _when(k, times):
+    return time_text(float(times[k])) if times is not None else f"step {k}"
+
+
+class _Guard:
+    """Checks every truth and filter covariance (prior and posterior) in blocks; raises for the first bad one."""
+
+    def __init__(self, label, names, filter_names, times, active):
+        self.label, self.names, self.fnames, self.times, self.active = label, names, filter_names, times, active
+        self.items = []
+
+    def add(self, k, P, Pf, prior=False, after_update=False):
+        if not self.active:
+            return
+        stage = ("before the update (prior)" if prior else
+                 "after the update" if after_update else "after the propagation")
+        self.items.append((k, stage, P, Pf))
+        if len(self.items) >= GUARD_BLOCK:
+            self.flush()
+
+    def flush(self):
+        if not self.items:
+            return
+        items, self.items = self.items, []
+        for j, (what, nm) in enumerate((("truth", self.names), ("filter", self.fnames))):
+            stack = np.stack([it[2 + j] for it in items])
+            st = covariance_status(stack, groups=scale_groups(nm, stack.shape[-1]))
+            if not np.all(st.ok):
+                bad = int(np.flatnonzero(~st.ok)[0])
+                k, stage = items[bad][0], items[bad][1]
+                raise NumericalError(f"{self.label}: {what} {stage} at {_when(k, self.times)}: "
+                                     f"{st.problem(bad, nm)}")

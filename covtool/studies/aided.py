@@ -1,0 +1,496 @@
+"""Aided-navigation study: reduced filters against the truth with declared measurements (issue 15).
+
+The truth model (plus every measurement's own error states) runs under the
+gains of each filter (seed 002, eq (15)–(16)) with the declared measurements
+(:mod:`covtool.lincov.measurements`) on their schedules
+(:class:`covtool.lincov.measurements.Schedule`); filter variants drop
+measurement-error states by name, and the cost is tabulated.
+
+Study file::
+
+    [study]
+    kind = "aided"
+    duration = "2 h"
+    dt = "1 s"
+
+    [trajectory]
+    builtin = "land_vehicle"
+
+    [truth]
+    model = "sdins58"
+
+    [filters]
+    file = "../models/filters/zupt_filters.toml"   # default: the library's
+    cases = ["A", "B1", "C"]
+    pure_ins = true
+    ewn_interval = "5 min"    # Δt_s of eq (11)-(13) for dropped INS states (default: duration / epochs)
+
+    [[filters.variant]]       # a filter that drops measurement-error states
+    name = "B1 no odo SF"
+    base = "B1"
+    drop = ["odo_scale_factor"]
+
+    [[measurement]]
+    name = "odo"
+    kind = "odometer"         # zupt, cupt, odometer, nhc, gnss_position, gnss_velocity, baro, heading
+    sigma = "0.02 m/s"        # one value, or one per component
+    lever_arm = ["0 m", "0.8 m", "1.2 m"]
+    schedule = {period = "1 s", when = "moving"}   # start, end, when, outages = [["10 min", "11 min"]], at
+    [measurement.errors.scale_factor]
+    sigma = "1000 ppm"
+    process = "constant"      # or "markov" with tau
+
+    [[grade]]                 # optional: IMU grades, as in the trade grid (every sensor error × scale)
+    name = "tactical"
+    scale = 30.0
+
+    [output]
+    history_every = "10 s"
+    report_times = ["30 min", "2 h"]
+"""
+
+from __future__ import annotations
+
+import re
+import time
+
+import numpy as np
+import pandas as pd
+
+from covtool.analysis.metrics import nav_metrics
+from covtool.errors import StudyFileError
+from covtool.io.config import (check_keys, choice, names, number, quantity, quantity_list, require, string,
+                               table)
+from covtool.io.filters import load_filters
+from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
+from covtool.lincov.kalman import check_system
+from covtool.lincov.measurements import KINDS, Schedule, WHEN
+from covtool.lincov.measurements.base import error_state
+from covtool.lincov.reduced import build_filter
+from covtool.lincov.reference import propagate
+from covtool.results import StudyResult
+from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
+from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
+from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
+                                       steps_of)
+from covtool.studies.tables import case_validity, history_frame, summary_row
+from covtool.studies.zupt_setup import filter_cases, filters_file
+from covtool.units import ARCMIN
+
+MEAS_KEYS = {"name", "kind", "sigma", "filter_sigma", "lever_arm", "errors", "schedule"}
+SCHEDULE_KEYS = {"period", "rate", "start", "end", "when", "outages", "at"}
+ERROR_KEYS = {"sigma", "process", "tau"}
+#: a measurement with at most this many updates (survey points, stops) gets its before/after table
+SPARSE_UPDATES = 50
+_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+# --------------------------------------------------------------------------
+# declaration
+# --------------------------------------------------------------------------
+
+def parse_measurement(cfg, i: int, where: str):
+    """One ``[[measurement]]`` table -> ``(Measurement, Schedule)``; one-line errors.
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key or kind, missing or bad σ (unit of the kind), a lever
+        arm that is not three lengths (or on a kind without one), an
+        unknown error state, a missing error σ, a bad process, a bad schedule.
+    """
+    w = f"{where}: [[measurement]] #{i + 1}"
+    cfg = table(cfg, w, StudyFileError)
+    name = string(require(cfg, "name", w, StudyFileError), f"{w} name", StudyFileError, nonempty=True)
+    if not _NAME.match(name):
+        raise StudyFileError(f"{w} name", f"{name!r} must start with a letter and hold only letters, digits and _")
+    w = f"{where}: [[measurement]] {name!r}"
+    check_keys(cfg, MEAS_KEYS, w, StudyFileError)
+    kind = require(cfg, "kind", w, StudyFileError)
+    if kind not in KINDS:
+        raise StudyFileError(f"{w} kind", f"unknown measurement kind {kind!r} (one of: {', '.join(sorted(KINDS))})")
+    cls = KINDS[kind]
+    m = len(cls.COMPONENTS)
+
+    def sig(key):
+        v = cfg[key]
+        vals = v if isinstance(v, list) else [v] * m
+        if len(vals) != m:
+            raise StudyFileError(f"{w} {key}", f"{len(vals)} values for the {m} components "
+                                 f"({', '.join(cls.COMPONENTS)}) of {_a(kind)}")
+        return np.array([quantity(x, cls.DIMENSION, f"{w} {key}" + (f"[{j}]" if isinstance(v, list) else ""),
+                                  StudyFileError, positive=True) for j, x in enumerate(vals)])
+    if "sigma" not in cfg:
+        raise StudyFileError(f"{w} sigma", f"missing: the {kind}'s white-noise 1σ (a {cls.DIMENSION})")
+    sigma = sig("sigma")
+    fsigma = sig("filter_sigma") if "filter_sigma" in cfg else None
+    lever = np.zeros(3)
+    if "lever_arm" in cfg:
+        if not cls.LEVER:
+            raise StudyFileError(f"{w} lever_arm", f"{_a(kind)} takes no lever arm")
+        v = cfg["lever_arm"]
+        if not isinstance(v, list) or len(v) != 3:
+            raise StudyFileError(f"{w} lever_arm", f"expected three lengths (body x, y, z), got {v!r}")
+        lever = np.array([quantity(x, "length", f"{w} lever_arm[{j}]", StudyFileError) for j, x in enumerate(v)])
+    states = []
+    errs = table(cfg.get("errors", {}), f"{w} errors", StudyFileError)
+    for sfx, ecfg in errs.items():
+        we = f"{w} errors.{sfx}"
+        if sfx not in cls.ERRORS:
+            raise StudyFileError(we, f"{_a(kind)} has no error state {sfx!r} (known: "
+                                 f"{', '.join(cls.ERRORS) or 'none'})")
+        ecfg = table(ecfg, we, StudyFileError)
+        check_keys(ecfg, ERROR_KEYS, we, StudyFileError)
+        dim = cls.ERRORS[sfx][0]
+        if "sigma" not in ecfg:
+            raise StudyFileError(f"{we} sigma", f"missing: the initial 1σ (a {dim})")
+        s = quantity(ecfg["sigma"], dim, f"{we} sigma", StudyFileError, nonnegative=True)
+        proc = choice(ecfg.get("process", "constant"), ("constant", "markov"), f"{we} process", StudyFileError)
+        tau = None
+        if proc == "markov":
+            tau = quantity(require(ecfg, "tau", we, StudyFileError), "time", f"{we} tau", StudyFileError,
+                           positive=True)
+        elif "tau" in ecfg:
+            raise StudyFileError(f"{we} tau", "only a markov state has a correlation time")
+        unit = ecfg["sigma"].split(None, 1)[1] if isinstance(ecfg["sigma"], str) and " " in ecfg["sigma"] else ""
+        states.append(error_state(name, kind, sfx, s, proc, tau=tau, unit=unit))
+    meas = cls(name=name, sigma=sigma, states=tuple(states), lever_arm=lever, filter_sigma=fsigma)
+    return meas, parse_schedule(cfg.get("schedule", {}), f"{w} schedule")
+
+
+def _a(word: str) -> str:
+    return f"{'an' if word[0] in 'aeiou' else 'a'} {word}"
+
+
+def parse_schedule(cfg, w: str) -> Schedule:
+    """``schedule = {period | rate, start, end, when, outages, at}`` -> :class:`Schedule`."""
+    cfg = table(cfg, w, StudyFileError)
+    check_keys(cfg, SCHEDULE_KEYS, w, StudyFileError)
+    if "period" in cfg and "rate" in cfg:
+        raise StudyFileError(w, "give period or rate, not both")
+    period = (1.0 / quantity(cfg["rate"], "frequency", f"{w} rate", StudyFileError, positive=True) if "rate" in cfg
+              else quantity(cfg.get("period", "1 s"), "time", f"{w} period", StudyFileError, positive=True))
+    start = quantity(cfg.get("start", "0 s"), "time", f"{w} start", StudyFileError)
+    end = quantity(cfg["end"], "time", f"{w} end", StudyFileError) if "end" in cfg else None
+    when = choice(cfg.get("when", "always"), WHEN, f"{w} when", StudyFileError)
+    outages = []
+    for j, o in enumerate(cfg.get("outages", [])):
+        if not isinstance(o, list) or len(o) != 2:
+            raise StudyFileError(f"{w} outages[{j}]", f"expected [start, end], got {o!r}")
+        outages.append(tuple(quantity(x, "time", f"{w} outages[{j}]", StudyFileError) for x in o))
+    at = tuple(quantity_list(cfg["at"], "time", f"{w} at", StudyFileError)) if "at" in cfg else ()
+    return Schedule(period=period, start=start, end=end, when=when, outages=tuple(outages), at=at)
+
+
+def parse_variants(fcfg: dict, specs: dict, states: list, where: str) -> dict:
+    """``[[filters.variant]]``: name -> (base filter, dropped measurement-error states)."""
+    out = {}
+    known = [s.name for s in states]
+    for j, v in enumerate(fcfg.get("variant", [])):
+        w = f"{where}: [[filters.variant]] #{j + 1}"
+        v = table(v, w, StudyFileError)
+        check_keys(v, {"name", "base", "drop"}, w, StudyFileError)
+        nm = string(require(v, "name", w, StudyFileError), f"{w} name", StudyFileError, nonempty=True)
+        if nm in specs or nm in out:
+            raise StudyFileError(f"{w} name", f"{nm!r} is already a filter")
+        base = choice(require(v, "base", w, StudyFileError), list(specs), f"{w} base", StudyFileError)
+        drop = names(require(v, "drop", w, StudyFileError), f"{w} drop", StudyFileError, known=known,
+                     what="measurement-error state")
+        out[nm] = (base, drop)
+    return out
+
+
+def parse_grades(decl: dict, where: str) -> list:
+    """``[[grade]]`` (name, scale, description); default one grade, the truth as declared."""
+    grades = decl.get("grade")
+    if grades is None:
+        return [{"name": "as declared", "scale": 1.0}]
+    if not isinstance(grades, list) or not grades:
+        raise StudyFileError(f"{where}: [[grade]]", "expected a non-empty list of tables")
+    out = []
+    for j, g in enumerate(grades):
+        w = f"{where}: [[grade]] #{j + 1}"
+        g = table(g, w, StudyFileError)
+        check_keys(g, {"name", "scale", "description"}, w, StudyFileError)
+        out.append({"name": string(require(g, "name", w, StudyFileError), f"{w} name", StudyFileError, nonempty=True),
+                    "scale": number(require(g, "scale", w, StudyFileError), f"{w} scale", StudyFileError, lo=1e-3,
+                                    hi=1e3, why="a grade scales every sensor error"),
+                    "description": g.get("description", "")})
+    if len({g["name"] for g in out}) != len(out):
+        raise StudyFileError(f"{where}: [[grade]]", "grade names must be unique")
+    return out
+
+
+# --------------------------------------------------------------------------
+# run
+# --------------------------------------------------------------------------
+
+def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+    """Run an aided-navigation study; see the module docstring."""
+    from covtool.studies.trade_grid import grade_truth
+
+    t_start = time.perf_counter()
+    where = str(path) if path else "<study>"
+    base_dir = path.parent if path else None
+    check_keys(decl, {"study", "trajectory", "truth", "filters", "measurement", "grade", "output"}, where,
+               StudyFileError)
+    hdr = study_header(decl, where)
+    every, rtimes = output_options(decl, where, hdr["duration"])
+    mdecl = decl.get("measurement")
+    if not isinstance(mdecl, list) or not mdecl:
+        raise StudyFileError(f"{where}: [[measurement]]", "an aided study needs at least one measurement")
+    plan = [parse_measurement(c, i, where) for i, c in enumerate(mdecl)]
+    mnames = [m.name for m, _ in plan]
+    if len(set(mnames)) != len(mnames):
+        dup = next(n for n in mnames if mnames.count(n) > 1)
+        raise StudyFileError(f"{where}: [[measurement]] {dup!r}", "the name is used twice")
+    states = [s for m, _ in plan for s in m.states]
+    fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
+    check_keys(fcfg, {"file", "cases", "pure_ins", "ewn_interval", "variant"}, f"{where}: [filters]", StudyFileError)
+    grades = parse_grades(decl, where)
+    truth0 = load_truth(decl, where, base_dir)
+    ffile = filters_file(fcfg, where, base_dir)
+    specs = load_filters(ffile, truth0)
+    cases = filter_cases(fcfg, specs, ffile, where, nonempty=True)
+    clash = [s.name for s in states if s.name in truth0.index or s.name in {x.block for x in truth0.states}]
+    if clash:
+        meas = next(m.name for m, _ in plan if clash[0] in m.state_names)
+        raise StudyFileError(f"{where}: [[measurement]] {meas!r} name", f"its error state {clash[0]!r} has the name "
+                             f"of a truth-model state or block; rename the measurement")
+    variants = parse_variants(fcfg, specs, states, where)
+    est = check_memory(_memory(hdr, truth0, specs, cases, variants, states, every, fcfg.get("pure_ins", True)),
+                       where, hdr["max_memory"], "a larger [study] dt or history_every, a shorter duration or fewer "
+                       "[filters] cases")
+    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
+    t = time_grid(hdr["duration"], hdr["dt"], where)
+    nodes = traj.sample(t)
+    steps = []
+    for meas, sch in plan:                 # every schedule against the trajectory, before any computation
+        p = sch.problem(t, nodes)
+        if p is not None:
+            raise StudyFileError(f"{where}: [[measurement]] {meas.name!r} schedule", p)
+        steps.append(sch.steps(t, nodes))
+    all_steps = np.unique(np.concatenate(steps))
+    if all_steps.size == 0:
+        raise StudyFileError(f"{where}: [[measurement]]", "no update falls inside the study (check the outages)")
+    ewn_dt = (quantity(fcfg["ewn_interval"], "time", f"{where}: [filters] ewn_interval", StudyFileError,
+                       positive=True) if "ewn_interval" in fcfg else float(t[-1]) / all_steps.size)
+    windows = {}                           # one row per outage window, naming the measurements it silences
+    for m, sch in plan:
+        for a, b in sch.outages:
+            windows.setdefault((a, b), []).append(m.name)
+    outage_marks = [(", ".join(v), a, b) for (a, b), v in sorted(windows.items())]
+    # sparse measurements (survey points, stops): the error just before and after each update is tabulated
+    sparse = [(m.name, st) for (m, _), st in zip(plan, steps) if 0 < st.size <= SPARSE_UPDATES]
+    rec = np.union1d(_record_steps(t, every, rtimes, outage_marks),
+                     np.concatenate([st for _, st in sparse]) if sparse else np.zeros(0, int))
+    moving = t[-1] - sum(max(0.0, min(b, t[-1]) - max(a, 0.0)) for a, b in traj.stationary)
+    mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
+    meas_pairs = list(zip([m for m, _ in plan], steps))
+    names_all = None
+    metrics, claimed, nstates, at_updates = {}, {}, {}, []
+    dt_steps = np.diff(t)
+    err = error_processes(states, dt_steps)[:2]
+    for g in grades:
+        gdecl = {**decl, "truth": grade_truth(decl.get("truth", {}), g, truth0)} if g["scale"] != 1.0 else decl
+        truth = load_truth(gdecl, where, base_dir) if g["scale"] != 1.0 else truth0
+        ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
+        P0 = initial_covariance(truth, nodes, where)
+        names_all = list(truth.names) + [s.name for s in states]
+        gl = g["name"]
+        if fcfg.get("pure_ins", True):
+            P = propagate(Phi, Qd, P0, label=f"{where}: {gl}: pure INS", names=truth.names, times=t,
+                          system_checked=True)
+            metrics[(gl, "pure_ins")] = _metrics(P[rec], nodes, rec)
+            nstates[(gl, "pure_ins")] = truth.n
+            del P
+        built = {}
+        specs_g = load_filters(ffile, truth)
+        runs = [(c, c, []) for c in cases] + [(v, b, d) for v, (b, d) in variants.items()]
+        for label, base, drop in runs:
+            if base not in built:
+                spec = specs_g[base]
+                fm = build_filter(spec, truth, ctx, zupt_interval=ewn_dt, q0=nodes.q_nb[0], truth_dynamics=dyn,
+                                  mean_speed=mean_speed, dt_steps=dt_steps, update_steps=all_steps)
+                same = (spec.discretization == hdr["discretization"] and fm.F.shape == dyn.F.shape
+                        and (spec.discretization == "van_loan" or spec.taylor_order is None)
+                        and np.array_equal(fm.F, dyn.F) and np.array_equal(fm.Qc, dyn.Qc))
+                if same:                   # the truth itself (filter A): its Φ, Q_d, not computed again
+                    Phi_f, Qd_f = Phi, Qd
+                else:
+                    Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, dt_steps, spec.discretization,
+                                                     spec.taylor_order, what=f"{spec.path}: filter {base!r}",
+                                                     times=t[:-1])
+                    check_system(f"{where}: filter {base}", Phi_f, Qd_f, names=fm.names, times=t)
+                built[base] = (fm, Phi_f, Qd_f)
+            fm, Phi_f, Qd_f = built[base]
+            kept = [s.name for s in states if s.name not in drop]
+            P0a, Pf_e, D = augment(P0, fm.D, states, kept)
+            nf0 = fm.P0.shape[0]
+            Pf0 = np.zeros((nf0 + len(kept),) * 2)
+            Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0, Pf_e
+            fnames = list(fm.names) + kept
+            epochs = build_epochs(meas_pairs, nodes, names_all, fnames)
+            err_f = error_processes([s for s in states if s.name in kept], dt_steps)[:2]
+            r = propagate_aided(Phi, Qd, P0a, Phi_f, Qd_f, Pf0, D, epochs, err=err, err_f=err_f, record=rec,
+                                form=specs_g[base].update, label=f"{where}: {gl}: filter {label}", times=t,
+                                names=names_all, filter_names=fnames, system_checked=True)
+            metrics[(gl, label)] = _metrics(r.P_truth, nodes, rec)
+            claimed[(gl, label)] = _metrics(r.P_filter[:, :10, :10], nodes, rec)
+            nstates[(gl, label)] = len(fnames)
+            pos = {int(k): i for i, k in enumerate(r.steps)}
+            for mname, st in sparse:
+                before = _metrics(np.stack([r.prior_truth[int(k)][:10, :10] for k in st]), nodes, st)
+                after = _metrics(r.P_truth[[pos[int(k)] for k in st]], nodes, st)
+                for j, k in enumerate(st):
+                    at_updates.append({"grade": gl, "case": label, "measurement": mname, "t [min]": t[k] / 60,
+                                       "CEP before [m]": before["cep"][j], "CEP after [m]": after["cep"][j],
+                                       "alt PE before [m]": before["alt_pe"][j],
+                                       "alt PE after [m]": after["alt_pe"][j],
+                                       "azimuth before [arcmin]": before["sigma_azimuth"][j] / ARCMIN,
+                                       "azimuth after [arcmin]": after["sigma_azimuth"][j] / ARCMIN})
+        del Phi, Qd, built
+    elapsed = time.perf_counter() - t_start
+    tr = t[rec]
+    summary = _summary(metrics, claimed, nstates, tr, nodes, rec, rtimes)
+    tables = {"summary": summary,
+              "history": pd.concat([_history(k, tr, m, every) for k, m in metrics.items()], ignore_index=True),
+              "measurements": _measurement_table(plan, steps, t),
+              "truth_states": truth0.state_table()}
+    if outage_marks:
+        tables["outages"] = _outage_table(metrics, outage_marks, tr)
+    if at_updates:
+        tables["sparse_updates"] = pd.DataFrame(at_updates)
+    if variants:
+        tables["measurement_state_impact"] = _variant_table(metrics, claimed, variants, tr, rtimes, grades)
+    figures = {f"aided_{_slug(g['name'])}": _figure(hdr["name"], g["name"], metrics, tr, outage_marks)
+               for g in grades}
+    return StudyResult(
+        name=hdr["name"], kind="aided", tables=tables, figures=figures,
+        resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}},
+        provenance={**study_inputs(path, decl, truth0), "truth_model": truth0.name,
+                    "truth_model_sha256": truth0.sha256, "measurement_states": ", ".join(s.name for s in states),
+                    "equivalent_noise_interval_s": f"{ewn_dt:g}", **resource_provenance(est),
+                    "compute_seconds": f"{elapsed:.2f}"},
+        data={"t": tr, "steps": rec, "metrics": metrics, "claimed": claimed, "trajectory": nodes},
+    )
+
+
+def _memory(hdr, truth, specs, cases, variants, states, every, pure) -> dict:
+    """Peak memory: the truth system, every base filter's system, the pure-INS history, the recorded histories."""
+    steps = steps_of(hdr["duration"], hdr["dt"])
+    bases = list(dict.fromkeys([*cases, *(b for b, _ in variants.values())]))
+    n, ne = truth.n, len(states)
+    rec = steps / max(1.0, every / hdr["dt"]) + 64
+    recorded = sum(rec * ((n + ne) ** 2 + (specs[b].n + ne) ** 2) * 8.0 for b in bases)
+    return memory_estimate(steps, n, filters=[specs[b].n for b in bases], histories=[n] if pure else [],
+                           noise=noise_columns(truth), extra=recorded + 2.0 * steps * ne * 8.0)
+
+
+def _record_steps(t, every, rtimes, outages) -> np.ndarray:
+    dt = t[1] - t[0]
+    k = max(1, int(round(every / dt)))
+    extra = [np.argmin(np.abs(t - x)) for x in rtimes]
+    for _, a, b in outages:
+        extra += [int(np.argmin(np.abs(t - a))), int(np.argmin(np.abs(t - b)))]
+    return np.unique(np.concatenate([np.arange(0, t.size, k), [t.size - 1], np.asarray(extra, int)]))
+
+
+def _metrics(P, nodes, rec):
+    return nav_metrics(P, nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec], nodes.distance[rec])
+
+
+def _summary(metrics, claimed, nstates, tr, nodes, rec, rtimes):
+    rows = []
+    for (g, case), m in metrics.items():
+        first = case_validity(f"{g}: {case}", m, tr)
+        for x in rtimes:
+            i = int(np.argmin(np.abs(tr - x)))
+            row = {"grade": g, **summary_row(case, m, i, tr[i], float(nodes.distance[rec[i]]), first=first),
+                   "states": nstates[(g, case)]}
+            if (g, case) in claimed:
+                c = claimed[(g, case)]
+                row["filter-claimed CEP [m]"] = c["cep"][i]
+                row["filter-claimed azimuth [arcmin]"] = c["sigma_azimuth"][i] / ARCMIN
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def _history(key, tr, m, every):
+    df = history_frame(key[1], tr, m)
+    df.insert(0, "grade", key[0])
+    return df
+
+
+def _measurement_table(plan, steps, t):
+    rows = []
+    for (m, sch), st in zip(plan, steps):
+        rows.append({"measurement": m.name, "kind": m.kind, "components": ", ".join(m.COMPONENTS),
+                     "sigma [SI]": ", ".join(f"{x:g}" for x in m.sigma), "lever arm [m]":
+                     ", ".join(f"{x:g}" for x in m.lever_arm), "error states": ", ".join(m.state_names) or "-",
+                     "updates": int(st.size), "first [s]": float(t[st[0]]) if st.size else np.nan,
+                     "last [s]": float(t[st[-1]]) if st.size else np.nan,
+                     "outages [s]": "; ".join(f"{a:g}-{b:g}" for a, b in sch.outages) or "-",
+                     "equation": m.ref})
+    return pd.DataFrame(rows)
+
+
+def _outage_table(metrics, outages, tr):
+    rows = []
+    for (g, case), m in metrics.items():
+        if case == "pure_ins":
+            continue
+        for name, a, b in outages:
+            ia, ib = int(np.argmin(np.abs(tr - a))), int(np.argmin(np.abs(tr - b)))
+            rows.append({"grade": g, "case": case, "measurements": name, "outage start [s]": a,
+                         "outage [s]": b - a, "CEP at start [m]": m["cep"][ia], "CEP at end [m]": m["cep"][ib],
+                         "growth [m]": m["cep"][ib] - m["cep"][ia],
+                         "sigma_D at end [m]": m["sigma_down"][ib]})
+    return pd.DataFrame(rows)
+
+
+def _variant_table(metrics, claimed, variants, tr, rtimes, grades):
+    rows = []
+    for g in grades:
+        gl = g["name"]
+        for v, (base, drop) in variants.items():
+            for x in rtimes:
+                i = int(np.argmin(np.abs(tr - x)))
+                mb, mv = metrics[(gl, base)], metrics[(gl, v)]
+                rows.append({"grade": gl, "filter": v, "base": base, "dropped states": ", ".join(drop),
+                             "t [min]": tr[i] / 60, "CEP base [m]": mb["cep"][i], "CEP [m]": mv["cep"][i],
+                             "CEP cost [%]": 100 * (mv["cep"][i] / mb["cep"][i] - 1),
+                             "alt PE base [m]": mb["alt_pe"][i], "alt PE [m]": mv["alt_pe"][i],
+                             "azimuth base [arcmin]": mb["sigma_azimuth"][i] / ARCMIN,
+                             "azimuth [arcmin]": mv["sigma_azimuth"][i] / ARCMIN,
+                             "filter-claimed CEP [m]": claimed[(gl, v)]["cep"][i]})
+    return pd.DataFrame(rows)
+
+
+def _slug(s):
+    return re.sub(r"[^A-Za-z0-9]+", "_", s).strip("_").lower() or "grade"
+
+
+def _figure(study, grade, metrics, tr, outages):
+    def make():
+        import matplotlib.pyplot as plt
+        fig, axs = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
+        for (g, case), m in metrics.items():
+            if g != grade:
+                continue
+            axs[0].plot(tr / 60, m["cep"], label=case, lw=1.2)
+            axs[1].plot(tr / 60, m["sigma_down"], label=case, lw=1.2)
+        for _, a, b in outages:
+            for ax in axs:
+                ax.axvspan(a / 60, b / 60, color="0.85", lw=0)
+        axs[0].set_yscale("log")
+        axs[0].set_ylabel("CEP [m]")
+        axs[1].set_yscale("log")
+        axs[1].set_ylabel("altitude error 1σ [m]")
+        axs[1].set_xlabel("time [min]")
+        axs[0].legend(fontsize=8)
+        for ax in axs:
+            ax.grid(True, alpha=0.3, which="both")
+        fig.suptitle(f"{study}: truth under each filter, grade {grade}" + (" (outages shaded)" if outages else ""))
+        return fig
+    return make
