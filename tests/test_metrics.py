@@ -80,3 +80,19 @@ def test_cep_against_independent_quadrature_for_elongated_ellipses(ratio):
     got = cep(np.diag([s1**2, s2**2]))
     assert got == pytest.approx(ref, rel=1e-9)
     assert got >= PE_FACTOR * s1 * (1 - 1e-12)
+
+
+def test_cep_batch_point_stays_on_its_root():
+    """A converged point is frozen while the others iterate (issue 13).
+
+    One circular point (closed form σ √(2 ln 2)) batched with elongated
+    ellipses that need many safeguarded steps: the circular CEP must stay at
+    the closed form to 1e-13, and each point must equal its CEP computed alone
+    (the solver now iterates only the points not yet converged).
+    """
+    ratios = np.array([1.0, 1e-5, 0.0033, 0.001, 0.3, 1e-4])
+    P = np.stack([np.diag([9.0, 9.0 * q * q]) for q in ratios])
+    got = cep(P)
+    assert got[0] == pytest.approx(3.0 * np.sqrt(2 * np.log(2)), rel=1e-13)
+    alone = np.array([cep(p) for p in P])
+    np.testing.assert_allclose(got, alone, rtol=1e-13)
