@@ -401,3 +401,36 @@ def test_every_guard_names_the_step(monkeypatch):
     # representable: Q_d = (e^{2Δt} − 1)/2 for ẋ = x + w
     Qs = per_source(np.full((1, 1, 1), 1.0), np.ones((1, 1, 1)), np.ones((1, 1)), 300.0)
     assert Qs[0, 0, 0, 0] == pytest.approx(math.expm1(600.0) / 2, rel=1e-12)
+
+
+def test_repeated_steps_are_computed_once_and_exactly(dyn):
+    """A stack with runs of equal steps (a stop) equals each step computed alone.
+
+    The discretisers compute each run of equal (F, Q_c, Δt) once
+    (:func:`covtool.lincov.discretize.repeated_steps`); every step of the
+    expanded result must be the lone computation of that step, and a bad
+    step inside a repeated run is still named by its own index.
+    """
+    from covtool.lincov.discretize import repeated_steps
+
+    F, Qc = dyn
+    idx = np.r_[0, 0, 0, 1, 2, 2, 2, 2, 3, 0]             # stops: equal consecutive steps
+    Fs, Qs = F[idx], Qc[idx]
+    first, inv = repeated_steps(Fs, Qs, np.ones(idx.size))
+    np.testing.assert_array_equal(first, [0, 3, 4, 8, 9])
+    np.testing.assert_array_equal(first[inv], [0, 0, 0, 3, 4, 4, 4, 4, 8, 9])
+    for fn in (lambda F_, Q_: van_loan(F_, Q_, 1.0), lambda F_, Q_: taylor(F_, Q_, 1.0, 6)):
+        Phi, Qd = fn(Fs, Qs)
+        for k in range(idx.size):
+            P1, Q1 = fn(Fs[k:k + 1], Qs[k:k + 1])
+            assert _phi_error(Phi[k], P1[0]) <= 1e-14
+            assert _q_error(Qd[k], Q1[0]) <= 1e-14
+    G = np.repeat(np.eye(58)[None, :, 10:14], idx.size, axis=0)
+    psd = np.ones((idx.size, 4))
+    Qp = per_source(Fs, G, psd, 1.0)
+    for k in (2, 6, 9):
+        np.testing.assert_allclose(Qp[k], per_source(Fs[k:k + 1], G[:1], psd[:1], 1.0)[0], rtol=1e-14, atol=0)
+    bad = Fs.copy()
+    bad[6:8] = np.inf                                     # a repeated run of bad steps: step 6 is named
+    with pytest.raises(NumericalError, match=r"step 6 \(Δt = 1 s\): F has non-finite entries"):
+        van_loan(bad, Qs, 1.0)
