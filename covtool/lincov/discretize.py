@@ -653,7 +653,7 @@ def _hilbert(m: int) -> np.ndarray:
 
 
 def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str = "",
-               times=None) -> np.ndarray:
+               times=None, groups=None) -> np.ndarray:
     """Exact ``Q_d`` of each column of a low-rank ``Q_c``, any step.
 
     Parameters
@@ -667,12 +667,18 @@ def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str =
         Names the system in error messages.
     times : ndarray, shape (N,), optional
         Start time of each step, for error messages. [s]
+    groups : array_like of int, shape (J,), optional
+        Increasing first columns of ``J`` groups of columns (as
+        ``np.add.reduceat``): return the ``Q_d`` of each group, summed
+        without forming the per-column matrices (the same convergence
+        rule, column by column).
 
     Returns
     -------
-    ndarray, shape (N, k, n, n)
-        ``Q_d`` of each column ``G[:, :, p]`` with PSD ``psd[:, p]``; they sum
-        to the ``Q_d`` of ``Q_c = G diag(psd) Gᵀ``.
+    ndarray, shape (N, k, n, n), or (N, J, n, n) with ``groups``
+        ``Q_d`` of each column ``G[:, :, p]`` with PSD ``psd[:, p]`` (or of
+        each group of columns); they sum to the ``Q_d`` of
+        ``Q_c = G diag(psd) Gᵀ``.
 
     Raises
     ------
@@ -700,11 +706,11 @@ def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str =
     error by ``2⁻⁵³ √(Q_ii Q_jj)``; then doubled ``s`` times with
     ``Q_j(2h) = Φ(h) Q_j(h) Φ(h)ᵀ + Q_j(h)``.
     """
-    return _dedup(lambda F_, G_, p_, dt_, t_: _per_source(F_, G_, p_, dt_, what, t_), F, [(G, 2), (psd, 1)], dt, times,
-                  lambda Q, inv: Q[inv])
+    return _dedup(lambda F_, G_, p_, dt_, t_: _per_source(F_, G_, p_, dt_, what, t_, groups), F,
+                  [(G, 2), (psd, 1)], dt, times, lambda Q, inv: Q[inv])
 
 
-def _per_source(F, G, psd, dt, what, times):
+def _per_source(F, G, psd, dt, what, times, groups=None):
     F, Qc0, dt, times = _prepare(F, np.zeros(np.shape(F)), dt, what, times)
     N, n, _ = F.shape
     G = np.asarray(G, float)
@@ -737,19 +743,31 @@ def _per_source(F, G, psd, dt, what, times):
             terms.append((B @ terms[-1]) * (hw / (i + 1)))
         return done
 
-    def assemble():
+    def weighted():
         m = len(terms)
-        Z = np.stack(terms, axis=-1).transpose(0, 2, 1, 3)  # (N, k, n, m)
-        Q = (Z @ _hilbert(m)) @ np.swapaxes(Z, -1, -2)      # (N, k, n, n)
-        Q *= (psd * h[:, None])[:, :, None, None]
-        return 0.5 * (Q + np.swapaxes(Q, -1, -2))
+        Z = np.array(terms)                                 # (m, N, n, k): one GEMM with the Hilbert matrix
+        ZH = (_hilbert(m) @ Z.reshape(m, -1)).reshape(Z.shape)
+        ZH *= (psd * h[:, None])[None, :, None, :]
+        return Z, ZH
+
+    def assemble(Z, ZH):
+        # Q_j = Σ_{p ∈ j} w_p Z_p H Z_pᵀ: one (n, m·|j|) × (m·|j|, n) product per group (column) and step
+        k = G.shape[2]
+        bounds = np.r_[np.arange(k) if groups is None else np.asarray(groups, int), k]
+        Q = np.empty((N, len(bounds) - 1, n, n))
+        for j, (a0, b0) in enumerate(zip(bounds[:-1], bounds[1:])):
+            A = ZH[..., a0:b0].transpose(1, 2, 0, 3).reshape(N, n, -1)
+            Bz = Z[..., a0:b0].transpose(1, 2, 0, 3).reshape(N, n, -1)
+            Qj = A @ np.swapaxes(Bz, 1, 2)
+            Q[:, j] = 0.5 * (Qj + np.swapaxes(Qj, 1, 2))
+        return Q
 
     for _ in range(3):
         done = extend(eps)
         _not_converged(done, what, dt, times, nu, h)
-        Q = assemble()
+        Z, ZH = weighted()
+        dg = np.einsum("akip,akip->kpi", ZH, Z)             # diagonal of each column's Q_d
         # correlation scaling: ‖δ(s)‖ ≤ tail on [0, h] gives |ΔQ_ij| ≤ tail √(wh) (√Q_ii + √Q_jj) + …
-        dg = np.einsum("kpii->kpi", Q)
         qmin = np.where(np.swapaxes(rch, 1, 2), dg, np.inf).min(axis=2)
         wh = np.where(psd > 0, psd, 1.0) * h[:, None]
         with np.errstate(invalid="ignore"):
@@ -759,6 +777,7 @@ def _per_source(F, G, psd, dt, what, times):
         if np.all(need >= eps):
             break
         eps = np.minimum(eps, need)
+    Q = assemble(Z, ZH)
     if s.any():
         sq = s > 0
         Phi, _, _, ok = _series(B[sq], np.zeros_like(B[sq]), h[sq], nu[sq])
