@@ -434,3 +434,26 @@ def test_repeated_steps_are_computed_once_and_exactly(dyn):
     bad[6:8] = np.inf                                     # a repeated run of bad steps: step 6 is named
     with pytest.raises(NumericalError, match=r"step 6 \(Δt = 1 s\): F has non-finite entries"):
         van_loan(bad, Qs, 1.0)
+
+
+def test_sensor_states_by_blocks_equal_the_dense_series(dyn, monkeypatch):
+    """The exact discretisation by blocks equals the dense series (58-state model, 1 s and 30 s).
+
+    The 58-state model has 45 sensor states (36 random constants and the
+    Markov/random-walk states, each driven by nothing but itself and its own
+    noise): moved after the 13 navigation and reset states, F is block
+    triangular and the series is summed by blocks.  Forcing the dense path
+    (``BLOCK_FRACTION`` above 1) must give the same Φ and Q_d to round-off.
+    """
+    from covtool.lincov import discretize as dz
+
+    F, Qc = dyn
+    sens = dz.sensor_states(F, Qc)
+    assert sens.sum() == 45 and not sens[:10].any()
+    for dt in (1.0, 30.0):
+        Pb, Qb = van_loan(F, Qc, dt)
+        with monkeypatch.context() as mp:
+            mp.setattr(dz, "BLOCK_FRACTION", 2.0)
+            Pd, Qd = van_loan(F, Qc, dt)
+        assert _phi_column_error(Pb, Pd) <= 1e-14
+        assert _q_error(Qb, Qd) <= 1e-14
