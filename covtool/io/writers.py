@@ -22,7 +22,6 @@ from covtool.errors import InputError
 from covtool.io.atomic import staging_dir
 from covtool.io.cells import write_csv
 from covtool.io.names import check_file_stem
-from covtool.io.workbook import build_workbook
 
 
 def _toml_safe(obj):
@@ -79,6 +78,8 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
     with staging_dir(out_dir) as stage:
         for name, df in result.tables.items():
             write_csv(df, _inside(stage, f"{name}.csv"))
+        from covtool.io.workbook import build_workbook     # openpyxl: imported when a workbook is written
+
         build_workbook(result.tables, provenance_rows(result), result.charts,
                        path=_inside(stage, f"{result.name}.xlsx"))
         (stage / "resolved_study.toml").write_text(
@@ -89,7 +90,10 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
             import matplotlib.pyplot as plt
             for name, make in result.figures.items():
                 fig = make()
-                fig.savefig(_inside(stage, f"{name}.png"), dpi=120, bbox_inches="tight")
+                # a layout computed with the figure (no bbox_inches="tight": it draws every figure twice)
+                if fig.get_layout_engine() is None:
+                    fig.set_layout_engine("constrained")
+                fig.savefig(_inside(stage, f"{name}.png"), dpi=120)
                 plt.close(fig)
         written = [out_dir / p.relative_to(stage) for p in sorted(stage.rglob("*")) if p.is_file()]
     return written
