@@ -789,16 +789,23 @@ def _per_source(F, G, psd, dt, what, times, groups=None):
         k = G.shape[2]
         bounds = np.r_[np.arange(k) if groups is None else np.asarray(groups, int), k]
         Q = np.empty((N, len(bounds) - 1, n, n))
+        m = Z.shape[0]
+        Zt = np.ascontiguousarray(Z.transpose(1, 2, 3, 0))     # (N, n, k, m): a group's columns are one view
+        ZHt = np.ascontiguousarray(ZH.transpose(1, 2, 3, 0))
         for j, (a0, b0) in enumerate(zip(bounds[:-1], bounds[1:])):
-            A = ZH[..., a0:b0].transpose(1, 2, 0, 3).reshape(N, n, -1)
-            Bz = Z[..., a0:b0].transpose(1, 2, 0, 3).reshape(N, n, -1)
+            A = ZHt[:, :, a0:b0].reshape(N, n, (b0 - a0) * m)
+            Bz = Zt[:, :, a0:b0].reshape(N, n, (b0 - a0) * m)
             Qj = A @ np.swapaxes(Bz, 1, 2)
             Q[:, j] = 0.5 * (Qj + np.swapaxes(Qj, 1, 2))
         return Q
 
+    m_done = 0
     for _ in range(3):
         done = extend(eps)
         _not_converged(done, what, dt, times, nu, h)
+        if len(terms) == m_done:                            # no new term: the same Q_d, converged
+            break
+        m_done = len(terms)
         Z, ZH = weighted()
         dg = np.einsum("akip,akip->kpi", ZH, Z)             # diagonal of each column's Q_d
         # correlation scaling: ‖δ(s)‖ ≤ tail on [0, h] gives |ΔQ_ij| ≤ tail √(wh) (√Q_ii + √Q_jj) + …

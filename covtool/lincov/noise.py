@@ -24,7 +24,7 @@ from covtool.lincov.kalman import symmetrize
 # discretisation and composition of the per-source noise
 
 
-def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100) -> np.ndarray:
+def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 1000) -> np.ndarray:
     """Per-source noise composed over the event intervals.
 
     Parameters
@@ -68,9 +68,9 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk):
     psd = np.concatenate([f.psd for f in factors], axis=1)
     acc = np.zeros((J, n, n))
     i = 0
-    # per step the series holds (k, n, terms) stacks (terms ≤ 40, a few copies) and (J, n, n) sums:
-    # bound them by COMPOSE_WORKSPACE
-    per_step = 8 * (4 * 40 * n * G.shape[2] + _STACKS * J * n * n)
+    # per step the series holds four (k, n, terms) stacks (terms ≈ 15-25 at νh ≤ θ) and (J, n, n)
+    # sums: bound them by COMPOSE_WORKSPACE
+    per_step = 8 * (4 * 25 * n * G.shape[2] + _STACKS * J * n * n)
     chunk = max(1, min(chunk, int(COMPOSE_WORKSPACE // per_step)))
     for a in range(0, N, chunk):
         b = min(N, a + chunk)
