@@ -481,7 +481,8 @@ def main(argv=None) -> int:
     print_cli(cli, trees, args.studies)
     fr = fair_report()
     print("\n[5] flagship computation (truth + 6 filters discretised, pure INS + 6 cases propagated), 1 BLAS thread")
-    print(f"    covtool engine                        : {fr['engine']:7.2f} s (truth discretisation {fr['engine_truth']:.2f} s)")
+    print(f"    covtool engine                        : {fr['engine']:7.2f} s "
+          f"(truth discretisation {fr['engine_truth']:.2f} s)")
     print(f"    fair dense baseline (expm once/system): {fr['fair']:7.2f} s (truth per-step expm, pyins-style, "
           f"{fr['fair_truth']:.2f} s)")
     print(f"    speed-up against the fair baseline    : {fr['fair'] / fr['engine']:7.1f} x   (target >= 10 x)")

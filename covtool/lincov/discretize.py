@@ -105,7 +105,6 @@ class StepInfo:
 # helpers
 
 
-
 def repeated_steps(*stacks):
     """Steps equal to their predecessor in every stack: ``(first, inverse)``.
 
@@ -1023,5 +1022,6 @@ def discretize(F, Qc, dt, method: str = "van_loan", order: int | None = None, *,
     raise ValueError(f"unknown discretisation {method!r} (one of: van_loan, taylor)")
 
 
-__all__ = ["StepInfo", "THETA", "BLOCK_FRACTION", "balancing", "block_triangular", "check_qd", "discretize", "is_block_triangular",
+__all__ = ["StepInfo", "THETA", "BLOCK_FRACTION", "balancing", "block_triangular", "check_qd", "discretize",
+           "is_block_triangular",
            "per_source", "reach", "repeated_steps", "scaling", "sensor_states", "taylor", "taylor_terms", "van_loan"]
