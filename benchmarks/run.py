@@ -286,12 +286,13 @@ except SystemExit as e:
     code = e.code
 else:
     code = 0
-print("@@", time.perf_counter() - t0, resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, code, file=sys.stderr)
+ru = resource.getrusage(resource.RUSAGE_SELF)
+print("@@", time.perf_counter() - t0, ru.ru_maxrss, ru.ru_utime + ru.ru_stime, code, file=sys.stderr)
 """
 
 
-def cli_run(tree: Path, study: Path, out: Path) -> tuple[float, float]:
-    """One ``covtool run`` in a fresh interpreter: (wall [s] incl. interpreter start, peak RSS [MB])."""
+def cli_run(tree: Path, study: Path, out: Path) -> tuple[float, float, float]:
+    """One ``covtool run`` in a fresh interpreter: (wall [s] incl. interpreter start, peak RSS [MB], CPU [s])."""
     import resource
     import shutil
     import subprocess
@@ -306,32 +307,35 @@ def cli_run(tree: Path, study: Path, out: Path) -> tuple[float, float]:
     shutil.rmtree(out, ignore_errors=True)
     if r.returncode != 0:
         raise RuntimeError(f"{tree}: covtool run {study.name} failed:\n{r.stderr[-2000:]}")
-    rss = max(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before)
+    rss, cpu = max(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before), float("nan")
     for line in r.stderr.splitlines():
         if line.startswith("@@"):
-            rss = float(line.split()[2])
-    return wall, rss / 1024.0
+            rss, cpu = float(line.split()[2]), float(line.split()[3])
+    return wall, rss / 1024.0, cpu
 
 
 def cli_table(trees: dict, studies, repeats: int, out: Path) -> dict:
-    """Median CLI wall and peak RSS per (tree, study), the trees alternating within each repeat."""
+    """Median CLI wall, peak RSS and median CPU per (tree, study), the trees alternating within each repeat."""
     res = {}
     for st in studies:
         for _ in range(repeats):
             for label, tree in trees.items():
-                w, m = cli_run(tree, tree / "studies" / f"{st}.toml", out)
-                res.setdefault((label, st), []).append((w, m))
-    return {k: (float(np.median([w for w, _ in v])), float(max(m for _, m in v))) for k, v in res.items()}
+                res.setdefault((label, st), []).append(cli_run(tree, tree / "studies" / f"{st}.toml", out))
+    return {k: (float(np.median([w for w, _, _ in v])), float(max(m for _, m, _ in v)),
+                float(np.median([c for _, _, c in v]))) for k, v in res.items()}
 
 
 def print_cli(table: dict, trees: dict, studies) -> None:
+    """One row per study: wall, CPU (user + system, the robust figure on a shared machine), peak RSS."""
     labels = list(trees)
-    print("    " + f"{'study':24s}" + "".join(f"{lab + ' wall [s]':>20s}{lab + ' RSS [MB]':>18s}" for lab in labels)
-          + ("   speed-up" if len(labels) > 1 else ""))
+    print("    " + f"{'study':22s}" + "".join(f" | {lab:>9.9s}: wall [s]  CPU [s]  RSS [MB]" for lab in labels)
+          + (" | speed-up wall, CPU" if len(labels) > 1 else ""))
     for st in studies:
-        row = f"    {st:24s}" + "".join(f"{table[(lab, st)][0]:20.2f}{table[(lab, st)][1]:18.0f}" for lab in labels)
+        row = f"    {st:22s}" + "".join(f" | {table[(lab, st)][0]:19.2f} {table[(lab, st)][2]:8.2f} "
+                                        f"{table[(lab, st)][1]:9.0f}" for lab in labels)
         if len(labels) > 1:
-            row += f"   {table[(labels[1], st)][0] / table[(labels[0], st)][0]:6.2f} x"
+            a, b = table[(labels[0], st)], table[(labels[1], st)]
+            row += f" | {b[0] / a[0]:6.2f} x, {b[2] / a[2]:5.2f} x"
         print(row)
 
 
@@ -556,8 +560,8 @@ def main(argv=None) -> int:
             q_end = S.nodes.q_nb[-1]
             diffs.append(rel_diff(physical(eng[f][b], q_end), physical(P[:10, :10], q_end)))
     naive_total = sum(B * t for t in naive_t.values())
-    print(f"\n[4] speed-up over a naive reference (per-step scipy expm Van Loan, one case at a time)")
-    print(f"    naive, measured per case             : " + ", ".join(f"{f} {t:.2f} s" for f, t in naive_t.items()))
+    print("\n[4] speed-up over a naive reference (per-step scipy expm Van Loan, one case at a time)")
+    print("    naive, measured per case             : " + ", ".join(f"{f} {t:.2f} s" for f, t in naive_t.items()))
     print(f"    naive, {len(FILTERS)} filters x {B} cases          : {naive_total:7.1f} s "
           f"(measured per-case time x {B}; {n_naive} cases run)")
     print(f"    engine, all {len(FILTERS) * B} cases end to end      : {t_eng:7.2f} s "
