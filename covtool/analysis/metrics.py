@@ -184,7 +184,7 @@ def ned_position_covariance(P_pos: np.ndarray, lat, h) -> np.ndarray:
     return T @ P_pos @ np.swapaxes(T, -1, -2)
 
 
-def nav_metrics(P: np.ndarray, lat, h, q, distance=None) -> dict:
+def nav_metrics(P: np.ndarray, lat, h, q, distance=None, *, scale=None) -> dict:
     """Standard navigation metrics from a covariance history.
 
     Parameters
@@ -196,6 +196,11 @@ def nav_metrics(P: np.ndarray, lat, h, q, distance=None) -> dict:
         Attitude quaternion (for δq → tilt/azimuth).
     distance : ndarray, shape (N,), optional
         Distance travelled. [m]
+    scale : ndarray, shape (N, 10), optional
+        σ the validity check scales the navigation states by; default
+        :func:`covtool.lincov.kalman.running_scale` of ``P``.  Give the
+        running scale of the whole history when ``P`` is a few points taken
+        from it, so that they are judged as in the history.
 
     Returns
     -------
@@ -212,7 +217,7 @@ def nav_metrics(P: np.ndarray, lat, h, q, distance=None) -> dict:
     P = np.asarray(P, float)[:, :10, :10]
     # δq0…δq3 scaled together, each state by the largest σ it has had (covtool.lincov.kalman.running_scale):
     # the upstream guard has judged every covariance by its own σ; this catches what it did not see
-    P, valid = _valid(P, [np.arange(6, 10)], running_scale(P))
+    P, valid = _valid(P, [np.arange(6, 10)], running_scale(P) if scale is None else scale)
     Pn = ned_position_covariance(P[:, :3, :3], lat, h)
     Pphi = attitude_errors(P[:, 6:10, 6:10], q)
     sd = lambda M, i: np.sqrt(np.clip(M[:, i, i], 0.0, None))  # noqa: E731

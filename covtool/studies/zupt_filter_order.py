@@ -38,6 +38,7 @@ import pandas as pd
 from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys
+from covtool.lincov.kalman import running_scale
 from covtool.lincov.reduced import ewn_navigation_effect, zupt_matrices
 from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.plotting.zupt_filter_order import impact_figure
@@ -81,7 +82,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             runs[c], fmodels[c] = run_, fm
             metrics[c] = nav_metrics(run_.P_truth, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
             claimed[c] = nav_metrics(run_.P_filter[rsteps, :10, :10], nodes.lat[rsteps], nodes.h[rsteps],
-                                     nodes.q_nb[rsteps], nodes.distance[rsteps])
+                                     nodes.q_nb[rsteps], nodes.distance[rsteps],
+                                     scale=running_scale(run_.P_filter[:, :10, :10])[rsteps])
             bar.update(1)
     elapsed = time.perf_counter() - t_start
 
