@@ -49,7 +49,7 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
 
 
 #: bytes the per-source series of :func:`compose_noise` may hold at once
-COMPOSE_WORKSPACE = 64e6
+COMPOSE_WORKSPACE = 32e6
 #: (chunk, J, n, n)-sized stacks alive at once inside :func:`covtool.lincov.discretize.per_source`
 _STACKS = 6
 
