@@ -24,6 +24,13 @@ from covtool.io.cells import write_csv
 from covtool.io.names import check_file_stem
 
 
+def build_workbook(*args, **kwargs):
+    """:func:`covtool.io.workbook.build_workbook`, imported on first use (openpyxl is slow to import)."""
+    from covtool.io.workbook import build_workbook as build
+
+    return build(*args, **kwargs)
+
+
 def _toml_safe(obj):
     if isinstance(obj, dict):
         return {str(k): _toml_safe(v) for k, v in obj.items() if v is not None}
@@ -78,8 +85,6 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
     with staging_dir(out_dir) as stage:
         for name, df in result.tables.items():
             write_csv(df, _inside(stage, f"{name}.csv"))
-        from covtool.io.workbook import build_workbook     # openpyxl: imported when a workbook is written
-
         build_workbook(result.tables, provenance_rows(result), result.charts,
                        path=_inside(stage, f"{result.name}.xlsx"))
         (stage / "resolved_study.toml").write_text(
