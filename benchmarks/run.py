@@ -4,9 +4,17 @@ Run from the repository root (not part of the test suite)::
 
     python benchmarks/run.py              # everything, ~2-4 min on a 2-core machine
     python benchmarks/run.py --quick      # skip the as-is flagship timing
+    python benchmarks/run.py --cli --baseline /tmp/base   # [0] and [5] only, against another checkout
+
+``--baseline DIR`` is a checkout of another commit (``git archive <commit> |
+tar -x -C DIR``): the CLI runs of [0] alternate between it and this tree.
 
 Everything is measured in this one run and printed as a report:
 
+0. CLI wall time and peak RSS of each study (``python -m covtool run``
+   in a subprocess, interpreter start and every output included; peak RSS
+   of the child from ``resource.getrusage``), median of ``--repeats`` runs,
+   this tree and the ``--baseline`` checkout alternating.
 1. Large-GEMM rate of numpy: 2000×2000 float64 matmul, best of 5, with one
    BLAS thread and with the default pool; measured again in every round of
    [3] (interleaved with the core), and the highest rate is the reference
@@ -29,6 +37,12 @@ Everything is measured in this one run and printed as a report:
    propagation).  The accuracy line is the largest difference between the
    two 30-min navigation covariances (position, velocity, tilts, azimuth),
    relative to √(P_ii P_jj).
+5. The flagship's covariance computation (truth and six filters
+   discretised, pure INS and six cases propagated) against a *fair* dense
+   baseline: each system discretised once by per-step ``scipy.linalg.expm``
+   of the Van Loan matrix (as pyins's ``compute_process_matrices``), then
+   the cases one at a time with dense 58×58 steps; and covtool's truth
+   discretisation against that pyins-style per-step Van Loan alone.
 """
 
 from __future__ import annotations
@@ -256,6 +270,172 @@ def engine_sweep(S):
         return time.perf_counter() - t0, out
 
 
+# --------------------------------------------------------------------------
+# [0] the CLI in a subprocess: wall time and peak RSS
+# --------------------------------------------------------------------------
+
+CLI_STUDIES = ["zupt_filter_order", "zupt_sensitivity", "error_budget"]
+
+_CHILD = """
+import resource, runpy, sys, time
+t0 = time.perf_counter()
+sys.argv = ["covtool"] + sys.argv[1:]
+try:
+    runpy.run_module("covtool", run_name="__main__")
+except SystemExit as e:
+    code = e.code
+else:
+    code = 0
+ru = resource.getrusage(resource.RUSAGE_SELF)
+print("@@", time.perf_counter() - t0, ru.ru_maxrss, ru.ru_utime + ru.ru_stime, code, file=sys.stderr)
+"""
+
+
+def cli_run(tree: Path, study: Path, out: Path) -> tuple[float, float, float]:
+    """One ``covtool run`` in a fresh interpreter: (wall [s] incl. interpreter start, peak RSS [MB], CPU [s])."""
+    import resource
+    import shutil
+    import subprocess
+
+    shutil.rmtree(out, ignore_errors=True)
+    env = {**os.environ, "PYTHONPATH": str(tree)}
+    before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
+    t0 = time.perf_counter()
+    r = subprocess.run([sys.executable, "-c", _CHILD, "run", str(study), "--out", str(out)], cwd=tree, env=env,
+                       capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    shutil.rmtree(out, ignore_errors=True)
+    if r.returncode != 0:
+        raise RuntimeError(f"{tree}: covtool run {study.name} failed:\n{r.stderr[-2000:]}")
+    rss, cpu = max(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss, before), float("nan")
+    for line in r.stderr.splitlines():
+        if line.startswith("@@"):
+            rss, cpu = float(line.split()[2]), float(line.split()[3])
+    return wall, rss / 1024.0, cpu
+
+
+def cli_table(trees: dict, studies, repeats: int, out: Path) -> dict:
+    """Median CLI wall, peak RSS and median CPU per (tree, study), the trees alternating within each repeat."""
+    res = {}
+    for st in studies:
+        for _ in range(repeats):
+            for label, tree in trees.items():
+                res.setdefault((label, st), []).append(cli_run(tree, tree / "studies" / f"{st}.toml", out))
+    return {k: (float(np.median([w for w, _, _ in v])), float(max(m for _, m, _ in v)),
+                float(np.median([c for _, _, c in v]))) for k, v in res.items()}
+
+
+def print_cli(table: dict, trees: dict, studies) -> None:
+    """One row per study: wall, CPU (user + system, the robust figure on a shared machine), peak RSS."""
+    labels = list(trees)
+    print("    " + f"{'study':22s}" + "".join(f" | {lab:>9.9s}: wall [s]  CPU [s]  RSS [MB]" for lab in labels)
+          + (" | speed-up wall, CPU" if len(labels) > 1 else ""))
+    for st in studies:
+        row = f"    {st:22s}" + "".join(f" | {table[(lab, st)][0]:19.2f} {table[(lab, st)][2]:8.2f} "
+                                        f"{table[(lab, st)][1]:9.0f}" for lab in labels)
+        if len(labels) > 1:
+            a, b = table[(labels[0], st)], table[(labels[1], st)]
+            row += f" | {b[0] / a[0]:6.2f} x, {b[2] / a[2]:5.2f} x"
+        print(row)
+
+
+# --------------------------------------------------------------------------
+# [5] the flagship computation against a fair dense baseline
+# --------------------------------------------------------------------------
+
+def vl_expm(F, Qc, dt):
+    """pyins-style Van Loan of one step: expm of [[−F, Q_c], [0, Fᵀ]] Δt."""
+    from scipy.linalg import expm
+
+    n = F.shape[0]
+    M = np.zeros((2 * n, 2 * n))
+    M[:n, :n] = -F
+    M[:n, n:] = Qc
+    M[n:, n:] = F.T
+    E = expm(M * dt)
+    Phi = E[n:, n:].T
+    return Phi, Phi @ E[:n, n:]
+
+
+def flagship_engine(path: Path):
+    """covtool's own flagship computation, timed: truth and filter systems, pure INS and 6 cases."""
+    import tomllib
+
+    from covtool.lincov.reduced import zupt_matrices
+    from covtool.lincov.reference import propagate, propagate_with_filter
+    from covtool.studies.grid import truth_system
+    from covtool.studies.zupt_setup import setup
+
+    decl = tomllib.loads(path.read_text())
+    S = setup(decl, path=path)
+    t0 = time.perf_counter()
+    ctx, dyn, Phi, Qd = truth_system(S.truth, _traj(S, decl, path), S.t, S.hdr["discretization"])
+    t_truth = time.perf_counter() - t0
+    out = {"pure_ins": propagate(Phi, Qd, S.P0, system_checked=True)[-1]}
+    for c in S.cases:
+        fm, Phi_f, Qd_f = S.filter_model(c)
+        r = propagate_with_filter(Phi, Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                  S.update_steps, Rf=S.filter_R(c), form=fm.spec.update, system_checked=True)
+        out[c] = r.P_truth[-1]
+    return time.perf_counter() - t0, t_truth, out, S
+
+
+def _traj(S, decl, path):
+    from covtool.studies.inputs import load_trajectory
+
+    return load_trajectory(decl, str(path), path.parent, S.hdr["dt"], S.hdr["duration"])
+
+
+def flagship_fair(S):
+    """Fair dense baseline: each system discretised once (per-step expm), the cases one at a time."""
+    from covtool.lincov.kalman import filter_update, kalman_gain, truth_update
+    from covtool.lincov.reduced import zupt_matrices
+
+    dts = np.diff(S.t)
+    N = dts.size
+    t0 = time.perf_counter()
+    sysT = [vl_expm(S.dyn.F[k], S.dyn.Qc[k], dts[k]) for k in range(N)]
+    t_truth = time.perf_counter() - t0
+    upd = set(int(k) for k in S.update_steps)
+    P = S.P0.copy()
+    for k in range(N):
+        P = sysT[k][0] @ P @ sysT[k][0].T + sysT[k][1]
+        P = 0.5 * (P + P.T)
+    out = {"pure_ins": P}
+    for c in S.cases:
+        fm = S.filter_model(c)[0]
+        sysF = [vl_expm(fm.F[k], fm.Qc[k], dts[k]) for k in range(N)]
+        Hf, Rf = zupt_matrices(fm.names), S.filter_R(c)
+        P, Pf = S.P0.copy(), fm.P0.copy()
+        for k in range(N + 1):
+            if k in upd:
+                K = kalman_gain(Pf, Hf, Rf)
+                Pf = filter_update(Pf, K, Hf, Rf, fm.spec.update)
+                P = truth_update(P, fm.D, K, S.H, S.R)
+            if k < N:
+                P = sysT[k][0] @ P @ sysT[k][0].T + sysT[k][1]
+                P = 0.5 * (P + P.T)
+                Pf = sysF[k][0] @ Pf @ sysF[k][0].T + sysF[k][1]
+                Pf = 0.5 * (Pf + Pf.T)
+        out[c] = P
+    return time.perf_counter() - t0, t_truth, out
+
+
+def fair_report(path: Path = FLAGSHIP) -> dict:
+    """[5]: engine vs fair dense baseline on the flagship computation (1 BLAS thread both)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        t_eng, t_eng_truth, eng, S = flagship_engine(path)
+        t_eng2, t_eng_truth2, _, _ = flagship_engine(path)
+        t_fair, t_fair_truth, fair = flagship_fair(S)
+    t_eng, t_eng_truth = min(t_eng, t_eng2), min(t_eng_truth, t_eng_truth2)
+    q_end = S.nodes.q_nb[-1]
+    diff = max(rel_diff(physical(eng[c][:10, :10], q_end), physical(fair[c][:10, :10], q_end)) for c in eng)
+    return {"engine": t_eng, "engine_truth": t_eng_truth, "fair": t_fair, "fair_truth": t_fair_truth,
+            "diff": diff, "cases": len(eng)}
+
+
 def physical(P, q):
     """Nav block in physical coordinates: δL, δl, δh, δv, tilts, azimuth (δq's norm direction dropped)."""
     from covtool.nav.attitude import attitude_error_matrix
@@ -275,6 +455,10 @@ def rel_diff(a, b) -> float:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="skip the as-is flagship timing (BLAS pool unlimited)")
+    ap.add_argument("--cli", action="store_true", help="only [0] (CLI wall and RSS) and [5] (fair baseline)")
+    ap.add_argument("--baseline", type=Path, help="checkout of another commit to run [0] against, side by side")
+    ap.add_argument("--repeats", type=int, default=3, help="CLI runs per study and tree (median) [3]")
+    ap.add_argument("--studies", nargs="*", default=CLI_STUDIES, help="studies of [0] (names in studies/)")
     args = ap.parse_args(argv)
     from threadpoolctl import threadpool_info, threadpool_limits
 
@@ -288,6 +472,30 @@ def main(argv=None) -> int:
     print(f"machine   : {platform.machine()}, {os.cpu_count()} CPUs, Python {platform.python_version()}, "
           f"numpy {np.__version__}, BLAS {', '.join(blas) or 'n/a'}")
     print(f"load avg  : {loadavg()} (start; other processes share this machine)")
+
+    import tempfile
+
+    trees = {"this tree": ROOT}
+    if args.baseline is not None:
+        trees["baseline"] = args.baseline.resolve()
+    print(f"\n[0] CLI 'covtool run <study> --out DIR' in a subprocess, median of {args.repeats}, "
+          f"trees alternating ({', '.join(f'{k}: {v}' for k, v in trees.items())})")
+    with tempfile.TemporaryDirectory() as tmp:
+        cli = cli_table(trees, args.studies, args.repeats, Path(tmp) / "out")
+    print_cli(cli, trees, args.studies)
+    fr = fair_report()
+    print("\n[5] flagship computation (truth + 6 filters discretised, pure INS + 6 cases propagated), 1 BLAS thread")
+    print(f"    covtool engine                        : {fr['engine']:7.2f} s "
+          f"(truth discretisation {fr['engine_truth']:.2f} s)")
+    print(f"    fair dense baseline (expm once/system): {fr['fair']:7.2f} s (truth per-step expm, pyins-style, "
+          f"{fr['fair_truth']:.2f} s)")
+    print(f"    speed-up against the fair baseline    : {fr['fair'] / fr['engine']:7.1f} x   (target >= 10 x)")
+    print(f"    truth discretisation vs pyins-style   : {fr['fair_truth'] / fr['engine_truth']:7.1f} x")
+    print(f"    accuracy: max |P_engine - P_fair| / sqrt(P_ii P_jj) at the end, nav block, {fr['cases']} cases: "
+          f"{fr['diff']:.1e}")
+    if args.cli:
+        print(f"\n    load avg at end: {loadavg()};  harness wall time {time.perf_counter() - t_all:.0f} s")
+        return 0
 
     g1 = gemm_rate(1)
     gN = gemm_rate(None)
@@ -352,8 +560,8 @@ def main(argv=None) -> int:
             q_end = S.nodes.q_nb[-1]
             diffs.append(rel_diff(physical(eng[f][b], q_end), physical(P[:10, :10], q_end)))
     naive_total = sum(B * t for t in naive_t.values())
-    print(f"\n[4] speed-up over a naive reference (per-step scipy expm Van Loan, one case at a time)")
-    print(f"    naive, measured per case             : " + ", ".join(f"{f} {t:.2f} s" for f, t in naive_t.items()))
+    print("\n[4] speed-up over a naive reference (per-step scipy expm Van Loan, one case at a time)")
+    print("    naive, measured per case             : " + ", ".join(f"{f} {t:.2f} s" for f, t in naive_t.items()))
     print(f"    naive, {len(FILTERS)} filters x {B} cases          : {naive_total:7.1f} s "
           f"(measured per-case time x {B}; {n_naive} cases run)")
     print(f"    engine, all {len(FILTERS) * B} cases end to end      : {t_eng:7.2f} s "

@@ -401,3 +401,88 @@ def test_every_guard_names_the_step(monkeypatch):
     # representable: Q_d = (e^{2Δt} − 1)/2 for ẋ = x + w
     Qs = per_source(np.full((1, 1, 1), 1.0), np.ones((1, 1, 1)), np.ones((1, 1)), 300.0)
     assert Qs[0, 0, 0, 0] == pytest.approx(math.expm1(600.0) / 2, rel=1e-12)
+
+
+def test_repeated_steps_are_computed_once_and_exactly(dyn):
+    """A stack with runs of equal steps (a stop) equals each step computed alone.
+
+    The discretisers compute each run of equal (F, Q_c, Δt) once
+    (:func:`covtool.lincov.discretize.repeated_steps`); every step of the
+    expanded result must be the lone computation of that step, and a bad
+    step inside a repeated run is still named by its own index.
+    """
+    from covtool.lincov.discretize import repeated_steps
+
+    F, Qc = dyn
+    idx = np.r_[0, 0, 0, 1, 2, 2, 2, 2, 3, 0]             # stops: equal consecutive steps
+    Fs, Qs = F[idx], Qc[idx]
+    first, inv = repeated_steps(Fs, Qs, np.ones(idx.size))
+    np.testing.assert_array_equal(first, [0, 3, 4, 8, 9])
+    np.testing.assert_array_equal(first[inv], [0, 0, 0, 3, 4, 4, 4, 4, 8, 9])
+    for fn in (lambda F_, Q_: van_loan(F_, Q_, 1.0), lambda F_, Q_: taylor(F_, Q_, 1.0, 6)):
+        Phi, Qd = fn(Fs, Qs)
+        for k in range(idx.size):
+            P1, Q1 = fn(Fs[k:k + 1], Qs[k:k + 1])
+            assert _phi_error(Phi[k], P1[0]) <= 1e-14
+            assert _q_error(Qd[k], Q1[0]) <= 1e-14
+    G = np.repeat(np.eye(58)[None, :, 10:14], idx.size, axis=0)
+    psd = np.ones((idx.size, 4))
+    Qp = per_source(Fs, G, psd, 1.0)
+    for k in (2, 6, 9):
+        np.testing.assert_allclose(Qp[k], per_source(Fs[k:k + 1], G[:1], psd[:1], 1.0)[0], rtol=1e-14, atol=0)
+    bad = Fs.copy()
+    bad[6:8] = np.inf                                     # a repeated run of bad steps: step 6 is named
+    with pytest.raises(NumericalError, match=r"step 6 \(Δt = 1 s\): F has non-finite entries"):
+        van_loan(bad, Qs, 1.0)
+
+
+def test_sensor_states_by_blocks_equal_the_dense_series(dyn, monkeypatch):
+    """The exact discretisation by blocks equals the dense series (58-state model, 1 s and 30 s).
+
+    The 58-state model has 45 sensor states (36 random constants and the
+    Markov/random-walk states, each driven by nothing but itself and its own
+    noise): moved after the 13 navigation and reset states, F is block
+    triangular and the series is summed by blocks.  Forcing the dense path
+    (``BLOCK_FRACTION`` above 1) must give the same Φ and Q_d to round-off.
+    """
+    from covtool.lincov import discretize as dz
+
+    F, Qc = dyn
+    sens = dz.sensor_states(F, Qc)
+    assert sens.sum() == 45 and not sens[:10].any()
+    for dt in (1.0, 30.0):
+        Pb, Qb = van_loan(F, Qc, dt)
+        with monkeypatch.context() as mp:
+            mp.setattr(dz, "BLOCK_FRACTION", 2.0)
+            Pd, Qd = van_loan(F, Qc, dt)
+        assert _phi_column_error(Pb, Pd) <= 1e-14
+        assert _q_error(Qb, Qd) <= 1e-14
+
+
+def test_per_source_groups_equal_the_summed_columns(dyn):
+    """``per_source(groups=…)`` equals the per-column Q_d summed by group, and sums to Van Loan's Q_d.
+
+    Checked on the 58-state model at 1 s and 30 s (squared steps): each
+    group is the sum of its columns' ``Q_d`` (correlation scaling of the
+    total, ≤ 1e-13) and all groups together equal the Van Loan ``Q_d`` of
+    ``Q_c = G diag(psd) Gᵀ`` (≤ 1e-12).
+    """
+    F, Qc = dyn
+    F = F[:8]
+    # a low-rank Q_c: the noise columns of the model's diagonal Q_c
+    dg = np.einsum("kii->ki", Qc[:8])
+    cols = np.flatnonzero(dg.max(axis=0) > 0)
+    G = np.repeat(np.eye(58)[None][:, :, cols], 8, axis=0)
+    psd = dg[:, cols]
+    starts = np.array([0, 3, 5])
+    for dt in (1.0, 30.0):
+        Qp = per_source(F, G, psd, dt)
+        Qg = per_source(F, G, psd, dt, groups=starts)
+        assert Qg.shape == (8, 3, 58, 58)
+        tot = Qp.sum(axis=1)
+        for j, (a, b) in enumerate(zip(starts, np.r_[starts[1:], cols.size])):
+            d = np.sqrt(np.einsum("kii->ki", tot))
+            d = np.where(d > 0, d, 1.0)
+            assert np.max(np.abs(Qg[:, j] - Qp[:, a:b].sum(axis=1)) / d[:, :, None] / d[:, None, :]) <= 1e-13
+        _, Qv = van_loan(F, G * psd[:, None, :] @ np.swapaxes(G, 1, 2), dt)
+        assert _q_error(Qg.sum(axis=1), Qv) <= 1e-12

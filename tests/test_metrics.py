@@ -80,3 +80,46 @@ def test_cep_against_independent_quadrature_for_elongated_ellipses(ratio):
     got = cep(np.diag([s1**2, s2**2]))
     assert got == pytest.approx(ref, rel=1e-9)
     assert got >= PE_FACTOR * s1 * (1 - 1e-12)
+
+
+def test_cep_batch_point_stays_on_its_root():
+    """A converged point is frozen while the others iterate (issue 13).
+
+    One circular point (closed form σ √(2 ln 2)) batched with elongated
+    ellipses that need many safeguarded steps: the circular CEP must stay at
+    the closed form to 1e-13, and each point must equal its CEP computed alone
+    (the solver now iterates only the points not yet converged).
+    """
+    ratios = np.array([1.0, 1e-5, 0.0033, 0.001, 0.3, 1e-4])
+    P = np.stack([np.diag([9.0, 9.0 * q * q]) for q in ratios])
+    got = cep(P)
+    assert got[0] == pytest.approx(3.0 * np.sqrt(2 * np.log(2)), rel=1e-13)
+    alone = np.array([cep(p) for p in P])
+    np.testing.assert_allclose(got, alone, rtol=1e-13)
+
+
+def test_nav_metrics_at_points_of_a_history_with_its_running_scale():
+    """Points taken from a history are judged as in the history when given its running scale.
+
+    State δv_N has σ = 1 m/s at t₀ and 1e-10 m/s at t₁, with a covariance to
+    δv_E of 2e-10: by its own σ the correlation is 2 (not PSD), by the
+    largest σ it has had it is round-off (the history's rule,
+    :func:`covtool.lincov.kalman.running_scale`).  The metrics of point t₁
+    alone are NaN; with the history's scale they are the history's values.
+    """
+    from covtool.analysis.metrics import nav_metrics
+    from covtool.lincov.kalman import running_scale
+
+    P = np.stack([np.eye(10) * 1e-12, np.eye(10) * 1e-12])
+    P[:, 3, 3] = [1.0, 1e-20]
+    P[1, 3, 4] = P[1, 4, 3] = 2e-10
+    P[1, 4, 4] = 1.0
+    lat, h = np.full(2, 0.6), np.zeros(2)
+    q = np.tile([1.0, 0.0, 0.0, 0.0], (2, 1))
+    full = nav_metrics(P, lat, h, q)
+    assert full["sigma_vn"][1] == pytest.approx(1e-10, rel=1e-12)
+    alone = nav_metrics(P[1:], lat[1:], h[1:], q[1:])
+    assert np.isnan(alone["sigma_vn"][0])
+    scaled = nav_metrics(P[1:], lat[1:], h[1:], q[1:], scale=running_scale(P)[1:])
+    for key, v in full.items():
+        np.testing.assert_array_equal(scaled[key], v[1:])

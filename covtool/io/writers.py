@@ -22,7 +22,13 @@ from covtool.errors import InputError
 from covtool.io.atomic import staging_dir
 from covtool.io.cells import write_csv
 from covtool.io.names import check_file_stem
-from covtool.io.workbook import build_workbook
+
+
+def build_workbook(*args, **kwargs):
+    """:func:`covtool.io.workbook.build_workbook`, imported on first use (openpyxl is slow to import)."""
+    from covtool.io.workbook import build_workbook as build
+
+    return build(*args, **kwargs)
 
 
 def _toml_safe(obj):
@@ -90,7 +96,10 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
             import matplotlib.pyplot as plt
             for name, make in result.figures.items():
                 fig = make()
-                fig.savefig(_inside(stage, f"{name}.png"), dpi=120, bbox_inches="tight")
+                # a layout computed with the figure (no bbox_inches="tight": it draws every figure twice)
+                if fig.get_layout_engine() is None:
+                    fig.set_layout_engine("constrained")
+                fig.savefig(_inside(stage, f"{name}.png"), dpi=120)
                 plt.close(fig)
         written = [out_dir / p.relative_to(stage) for p in sorted(stage.rglob("*")) if p.is_file()]
     return written

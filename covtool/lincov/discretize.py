@@ -105,6 +105,70 @@ class StepInfo:
 # helpers
 
 
+def repeated_steps(*stacks):
+    """Steps equal to their predecessor in every stack: ``(first, inverse)``.
+
+    Parameters
+    ----------
+    *stacks : ndarray, shape (N, ...)
+        Per-step inputs (``F``, ``Q_c``, ``Δt``, ...), broadcast views allowed.
+
+    Returns
+    -------
+    first : ndarray of int, shape (M,)
+        Steps that differ from the one before (step 0 always).
+    inverse : ndarray of int, shape (N,)
+        ``first[inverse[k]]`` has exactly the inputs of step ``k``.
+
+    Notes
+    -----
+    At a stop the vehicle's state, hence ``F`` and ``Q_c``, repeats step
+    after step (726 of the flagship's 1800 steps): a discretisation is a
+    function of its step's inputs alone, so computing each run of equal
+    steps once is exact.  Non-finite entries never compare equal, so a bad
+    step is always computed (and reported) itself.
+    """
+    N = np.shape(stacks[0])[0]
+    same = np.ones(max(N - 1, 0), bool)
+    for X in stacks:
+        X = np.asarray(X)
+        X = X.reshape(N, -1) if X.ndim != 1 else X[:, None]
+        same &= (X[1:] == X[:-1]).all(axis=1)
+    head = np.r_[True, ~same] if N else np.zeros(0, bool)
+    return np.flatnonzero(head), np.cumsum(head) - 1
+
+
+def _dedup(fn, F, others, dt, times, expand):
+    """``fn(F, *others, dt, times)`` computed on the distinct steps only, then expanded (exact).
+
+    ``others`` are ``(array, per-step ndim)`` pairs: a stack of the same
+    length as ``F``, or one per-step value shared by every step.  A
+    step that fails is recomputed on the full stack, so that the error
+    names the step of the caller's grid.
+    """
+    F = np.asarray(F, float)
+    if F.ndim != 3 or F.shape[0] < 2:
+        return fn(F, *(o for o, _ in others), dt, times)
+    N = F.shape[0]
+    try:
+        dtb = np.broadcast_to(np.asarray(dt, float), (N,))
+        oth = [np.broadcast_to(np.asarray(o, float), (N,) + np.shape(o)) if np.ndim(o) == nd
+               else np.asarray(o, float) for o, nd in others]
+        if any(o.shape[0] != N for o in oth):
+            return fn(F, *(o for o, _ in others), dt, times)
+    except ValueError:
+        return fn(F, *(o for o, _ in others), dt, times)
+    first, inv = repeated_steps(F, *oth, dtb)
+    if first.size > 0.9 * N:
+        return fn(F, *(o for o, _ in others), dt, times)
+    tm = None if times is None else np.broadcast_to(np.asarray(times, float), (N,))[first]
+    try:
+        out = fn(F[first], *(o[first] for o in oth), dtb[first], tm)
+    except (NumericalError, ValueError):
+        return fn(F, *(o for o, _ in others), dt, times)
+    return expand(out, inv)
+
+
 def _step_where(what, k, dt, times):
     t = f"t = {times[k]:.6g} s, " if times is not None else ""
     return f"{what + ': ' if what else ''}step {k} ({t}Δt = {dt[k]:.6g} s)"
@@ -251,22 +315,27 @@ def _series(B, Qb, h, nu, order=None, minus_identity=False):
     a = nu * h
     phi_floor = UNIT_ROUNDOFF * (2.0 - np.exp(np.minimum(a, 1.0)))
     rch = reach(B, np.einsum("kii->ki", Qb) > 0) if adaptive else None
+    # no noise (a transition alone): every C_i is zero, skip eq (6c)-(6d)
+    noise = bool(np.any(Qb))
     for i in range(1, last):
         T = (Bw @ T) * (hw / i)                         # (6b): F^i h^i / i!
-        Qt = C * coef                                   # (6c): C_{i−1} h^i / i!
         Pw += T
-        Qw += Qt
+        if noise:
+            Qt = C * coef                               # (6c): C_{i−1} h^i / i!
+            Qw += Qt
         if i == last - 1:
             break
-        FC = Bw @ C                                     # (6d)
-        C = FC + np.swapaxes(FC, 1, 2)
+        if noise:
+            FC = Bw @ C                                 # (6d)
+            C = FC + np.swapaxes(FC, 1, 2)
         coef = coef * hw / (i + 1)
         if adaptive:
             ai = a[idx]
             rp, rq = ai / (i + 1), 2.0 * ai / (i + 1)
             with np.errstate(divide="ignore", invalid="ignore"):
-                ok = ((rq < 1.0) & (_colmax(T) * rp / (1.0 - rp) <= phi_floor[idx])
-                      & _q_tail_ok(Qt, Qw, rch[idx], rq))
+                ok = ((rq < 1.0) & (_colmax(T) * rp / (1.0 - rp) <= phi_floor[idx]))
+                if noise:
+                    ok &= _q_tail_ok(Qt, Qw, rch[idx], rq)
             if ok.any():
                 fin = idx[ok]
                 Phi[fin], Q[fin], terms[fin], done[fin] = Pw[ok], Qw[ok], i + 1, True
@@ -304,6 +373,7 @@ def _square(E, Qd, s):
     X[:, idx, idx] = 0.0
     near = np.abs(d) < 0.5
     d[~near] += 1.0
+    noise = bool(np.any(Qd))
     for j in range(int(s.max(initial=0))):
         m = s > j
         Xm, dm, nm = X[m], d[m], near[m]
@@ -311,8 +381,9 @@ def _square(E, Qd, s):
         P = Xm.copy()
         P[:, idx, idx] = phi
         with np.errstate(over="ignore", invalid="ignore"):
-            Q = P @ Qd[m] @ np.swapaxes(P, 1, 2) + Qd[m]
-            Qd[m] = 0.5 * (Q + np.swapaxes(Q, 1, 2))
+            if noise:
+                Q = P @ Qd[m] @ np.swapaxes(P, 1, 2) + Qd[m]
+                Qd[m] = 0.5 * (Q + np.swapaxes(Q, 1, 2))
             X2 = Xm @ Xm
             dx = np.einsum("kii->ki", X2)
             Xn = phi[:, :, None] * Xm + Xm * phi[:, None, :] + X2
@@ -420,8 +491,42 @@ def _finish(E, Qd, s, d, terms, nu, dt, what, times):
     return Phi, Qd, info
 
 
+def sensor_states(F, Qc) -> np.ndarray:
+    """States whose ``F`` and ``Q_c`` rows hold only a diagonal entry at every step.
+
+    Random constants (zero row, no noise), random walks and first-order
+    Gauss–Markov sensor states: no other state drives them and their noise
+    is uncorrelated with the others'.  Moved after the others they make
+    ``F = [[A, M], [0, diag(d)]]`` and ``Q_c = blockdiag(Q_A, diag(q))``,
+    the form :func:`block_triangular` discretises by blocks.
+
+    Parameters
+    ----------
+    F, Qc : ndarray, shape (N, n, n)
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    n = F.shape[-1]
+    off = ~np.eye(n, dtype=bool)
+    return ~(((F != 0) & off).any(axis=(0, 2)) | ((Qc != 0) & off).any(axis=(0, 2)))
+
+
+#: use the block path of :func:`_exact` when at least this fraction of the states are sensor states
+BLOCK_FRACTION = 0.25
+
+
 def _exact(F, Qc, dt, what, times):
     F, Qc, dt, times = _prepare(F, Qc, dt, what, times)
+    sens = sensor_states(F, Qc)
+    k = int(np.count_nonzero(~sens))
+    if 1 <= k and sens.sum() >= BLOCK_FRACTION * F.shape[1]:
+        # the same converged series by blocks (O(k² m) per term instead of O(n³)); exact
+        p = np.r_[np.flatnonzero(~sens), np.flatnonzero(sens)]
+        ip = np.argsort(p)
+        Phi, Qd, inf = _block_triangular(F[:, p][:, :, p], Qc[:, p][:, :, p], dt, k, what, times)
+        return Phi[:, ip][:, :, ip], Qd[:, ip][:, :, ip], inf
     d = balancing(F)
     B, Qb, nu = _balanced(F, Qc, d)
     s, h = scaling(nu, dt)
@@ -556,6 +661,12 @@ def block_triangular(F, Qc, dt, k: int, *, what: str = "", times=None, info: boo
     NumericalError
         As :func:`taylor`.
     """
+    Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _block_triangular(F_, Q_, dt_, k, what, t_), F, [(Qc, 2)], dt,
+                          times, _expand_phi_qd)
+    return (Phi, Qd, inf) if info else (Phi, Qd)
+
+
+def _block_triangular(F, Qc, dt, k, what, times):
     F, Qc, dt, times = _prepare(F, Qc, dt, what, times)
     if not is_block_triangular(F, Qc, k):
         raise ValueError(f"F, Q_c are not block triangular with a diagonal sensor block after {k} states")
@@ -566,8 +677,7 @@ def block_triangular(F, Qc, dt, k: int, *, what: str = "", times=None, info: boo
     E, Qd, terms, done = _block_series(B[:, :k, :k], B[:, :k, k:], np.einsum("kii->ki", B[:, k:, k:]),
                                        Qb[:, :k, :k], np.einsum("kii->ki", Qb[:, k:, k:]), h, nu, rch)
     _not_converged(done, what, dt, times, nu, h)
-    Phi, Qd, inf = _finish(E, Qd, s, d, terms, nu, dt, what, times)
-    return (Phi, Qd, inf) if info else (Phi, Qd)
+    return _finish(E, Qd, s, d, terms, nu, dt, what, times)
 
 
 def _hilbert(m: int) -> np.ndarray:
@@ -576,7 +686,7 @@ def _hilbert(m: int) -> np.ndarray:
 
 
 def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str = "",
-               times=None) -> np.ndarray:
+               times=None, groups=None) -> np.ndarray:
     """Exact ``Q_d`` of each column of a low-rank ``Q_c``, any step.
 
     Parameters
@@ -590,12 +700,18 @@ def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str =
         Names the system in error messages.
     times : ndarray, shape (N,), optional
         Start time of each step, for error messages. [s]
+    groups : array_like of int, shape (J,), optional
+        Increasing first columns of ``J`` groups of columns (as
+        ``np.add.reduceat``): return the ``Q_d`` of each group, summed
+        without forming the per-column matrices (the same convergence
+        rule, column by column).
 
     Returns
     -------
-    ndarray, shape (N, k, n, n)
-        ``Q_d`` of each column ``G[:, :, p]`` with PSD ``psd[:, p]``; they sum
-        to the ``Q_d`` of ``Q_c = G diag(psd) Gᵀ``.
+    ndarray, shape (N, k, n, n), or (N, J, n, n) with ``groups``
+        ``Q_d`` of each column ``G[:, :, p]`` with PSD ``psd[:, p]`` (or of
+        each group of columns); they sum to the ``Q_d`` of
+        ``Q_c = G diag(psd) Gᵀ``.
 
     Raises
     ------
@@ -623,6 +739,11 @@ def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str =
     error by ``2⁻⁵³ √(Q_ii Q_jj)``; then doubled ``s`` times with
     ``Q_j(2h) = Φ(h) Q_j(h) Φ(h)ᵀ + Q_j(h)``.
     """
+    return _dedup(lambda F_, G_, p_, dt_, t_: _per_source(F_, G_, p_, dt_, what, t_, groups), F,
+                  [(G, 2), (psd, 1)], dt, times, lambda Q, inv: Q[inv])
+
+
+def _per_source(F, G, psd, dt, what, times, groups=None):
     F, Qc0, dt, times = _prepare(F, np.zeros(np.shape(F)), dt, what, times)
     N, n, _ = F.shape
     G = np.asarray(G, float)
@@ -655,19 +776,38 @@ def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str =
             terms.append((B @ terms[-1]) * (hw / (i + 1)))
         return done
 
-    def assemble():
+    def weighted():
         m = len(terms)
-        Z = np.stack(terms, axis=-1).transpose(0, 2, 1, 3)  # (N, k, n, m)
-        Q = (Z @ _hilbert(m)) @ np.swapaxes(Z, -1, -2)      # (N, k, n, n)
-        Q *= (psd * h[:, None])[:, :, None, None]
-        return 0.5 * (Q + np.swapaxes(Q, -1, -2))
+        Z = np.array(terms)                                 # (m, N, n, k): one GEMM with the Hilbert matrix
+        ZH = (_hilbert(m) @ Z.reshape(m, -1)).reshape(Z.shape)
+        ZH *= (psd * h[:, None])[None, :, None, :]
+        return Z, ZH
 
+    def assemble(Z, ZH):
+        # Q_j = Σ_{p ∈ j} w_p Z_p H Z_pᵀ: one (n, m·|j|) × (m·|j|, n) product per group (column) and step
+        k = G.shape[2]
+        bounds = np.r_[np.arange(k) if groups is None else np.asarray(groups, int), k]
+        Q = np.empty((N, len(bounds) - 1, n, n))
+        m = Z.shape[0]
+        Zt = np.ascontiguousarray(Z.transpose(1, 2, 3, 0))     # (N, n, k, m): a group's columns are one view
+        ZHt = np.ascontiguousarray(ZH.transpose(1, 2, 3, 0))
+        for j, (a0, b0) in enumerate(zip(bounds[:-1], bounds[1:])):
+            A = ZHt[:, :, a0:b0].reshape(N, n, (b0 - a0) * m)
+            Bz = Zt[:, :, a0:b0].reshape(N, n, (b0 - a0) * m)
+            Qj = A @ np.swapaxes(Bz, 1, 2)
+            Q[:, j] = 0.5 * (Qj + np.swapaxes(Qj, 1, 2))
+        return Q
+
+    m_done = 0
     for _ in range(3):
         done = extend(eps)
         _not_converged(done, what, dt, times, nu, h)
-        Q = assemble()
+        if len(terms) == m_done:                            # no new term: the same Q_d, converged
+            break
+        m_done = len(terms)
+        Z, ZH = weighted()
+        dg = np.einsum("akip,akip->kpi", ZH, Z)             # diagonal of each column's Q_d
         # correlation scaling: ‖δ(s)‖ ≤ tail on [0, h] gives |ΔQ_ij| ≤ tail √(wh) (√Q_ii + √Q_jj) + …
-        dg = np.einsum("kpii->kpi", Q)
         qmin = np.where(np.swapaxes(rch, 1, 2), dg, np.inf).min(axis=2)
         wh = np.where(psd > 0, psd, 1.0) * h[:, None]
         with np.errstate(invalid="ignore"):
@@ -677,6 +817,7 @@ def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str =
         if np.all(need >= eps):
             break
         eps = np.minimum(eps, need)
+    Q = assemble(Z, ZH)
     if s.any():
         sq = s > 0
         Phi, _, _, ok = _series(B[sq], np.zeros_like(B[sq]), h[sq], nu[sq])
@@ -740,8 +881,14 @@ def van_loan(F: np.ndarray, Qc: np.ndarray, dt, *, what: str = "", times=None, i
     computed by balancing, scaling, the converged series and squaring
     (module notes); the same numbers as ``taylor(order=None)``.
     """
-    Phi, Qd, inf = _exact(F, Qc, dt, what, times)
+    Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _exact(F_, Q_, dt_, what, t_), F, [(Qc, 2)], dt, times,
+                          _expand_phi_qd)
     return (Phi, Qd, inf) if info else (Phi, Qd)
+
+
+def _expand_phi_qd(out, inv):
+    Phi, Qd, inf = out
+    return Phi[inv], Qd[inv], StepInfo(inf.terms[inv], inf.squarings[inv], inf.norm_dt[inv])
 
 
 def taylor(F: np.ndarray, Qc: np.ndarray, dt, order: int | None = None, *, what: str = "", times=None,
@@ -793,11 +940,18 @@ def taylor(F: np.ndarray, Qc: np.ndarray, dt, order: int | None = None, *, what:
     below ``2⁻⁵³`` and doubles ``s`` times.
     """
     if order is None:
-        Phi, Qd, inf = _exact(F, Qc, dt, what, times)
+        Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _exact(F_, Q_, dt_, what, t_), F, [(Qc, 2)], dt, times,
+                              _expand_phi_qd)
         return (Phi, Qd, inf) if info else (Phi, Qd)
     if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or not 1 <= order <= MAX_ORDER:
         raise InputError(f"{what + ': ' if what else ''}taylor_order",
                          f"{order!r} is not an integer from 1 to {MAX_ORDER}")
+    Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _taylor_fixed(F_, Q_, dt_, order, what, t_), F, [(Qc, 2)], dt,
+                          times, _expand_phi_qd)
+    return (Phi, Qd, inf) if info else (Phi, Qd)
+
+
+def _taylor_fixed(F, Qc, dt, order, what, times):
     F, Qc, dt, times = _prepare(F, Qc, dt, what, times)
     d = balancing(F)
     B, Qb, nu = _balanced(F, Qc, d)
@@ -817,7 +971,7 @@ def taylor(F: np.ndarray, Qc: np.ndarray, dt, order: int | None = None, *, what:
     Phi, Qd = _unbalance(Phi, Qd, d)
     inf = StepInfo(terms, np.zeros(F.shape[0], int), a)
     _check_result(Phi, Qd, dt, inf, what, times, psd=False)
-    return (Phi, Qd, inf) if info else (Phi, Qd)
+    return Phi, Qd, inf
 
 
 def taylor_terms(F: np.ndarray, Qc: np.ndarray, dt) -> StepInfo:
@@ -868,5 +1022,6 @@ def discretize(F, Qc, dt, method: str = "van_loan", order: int | None = None, *,
     raise ValueError(f"unknown discretisation {method!r} (one of: van_loan, taylor)")
 
 
-__all__ = ["StepInfo", "THETA", "balancing", "block_triangular", "check_qd", "discretize", "is_block_triangular",
-           "per_source", "reach", "scaling", "taylor", "taylor_terms", "van_loan"]
+__all__ = ["StepInfo", "THETA", "BLOCK_FRACTION", "balancing", "block_triangular", "check_qd", "discretize",
+           "is_block_triangular",
+           "per_source", "reach", "repeated_steps", "scaling", "sensor_states", "taylor", "taylor_terms", "van_loan"]

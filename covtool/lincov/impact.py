@@ -118,7 +118,11 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     if dyn_key(spec.options) == dyn_key(None) and S.hdr["discretization"] == "van_loan":
         Phi_pad = S.Phi                                   # the truth's own e^{FΔt}
     else:
-        Phi_pad = _transition(dyn.F, dt)
+        # filters that share navigation options share this transition: computed once per study
+        tkey = ("impact transition", dyn_key(spec.options))
+        if tkey not in S._dyn_cache:
+            S._dyn_cache[tkey] = _transition(dyn.F, dt)
+        Phi_pad = S._dyn_cache[tkey]
     kidx = truth.idx(fm.names)
     kset = set(kidx.tolist())
     blocks = dropped_blocks(truth, fm.names)

@@ -24,7 +24,7 @@ from covtool.lincov.kalman import symmetrize
 # discretisation and composition of the per-source noise
 
 
-def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 100) -> np.ndarray:
+def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 1000) -> np.ndarray:
     """Per-source noise composed over the event intervals.
 
     Parameters
@@ -50,7 +50,7 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
 
 #: bytes the per-source series of :func:`compose_noise` may hold at once
 COMPOSE_WORKSPACE = 32e6
-#: (chunk, k, n, n)-sized stacks alive at once inside :func:`covtool.lincov.discretize.per_source` and the reduction
+#: (chunk, J, n, n)-sized stacks alive at once inside :func:`covtool.lincov.discretize.per_source`
 _STACKS = 6
 
 
@@ -68,12 +68,14 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk):
     psd = np.concatenate([f.psd for f in factors], axis=1)
     acc = np.zeros((J, n, n))
     i = 0
-    # the series' stacks are (chunk, k, n, n) and (chunk, k, n, terms): bound them by COMPOSE_WORKSPACE
-    chunk = max(1, min(chunk, int(COMPOSE_WORKSPACE // (_STACKS * 8 * G.shape[2] * n * n))))
+    # per step the series holds four (k, n, terms) stacks (terms ≈ 15-25 at νh ≤ θ) and (J, n, n)
+    # sums: bound them by COMPOSE_WORKSPACE
+    per_step = 8 * (4 * 25 * n * G.shape[2] + _STACKS * J * n * n)
+    chunk = max(1, min(chunk, int(COMPOSE_WORKSPACE // per_step)))
     for a in range(0, N, chunk):
         b = min(N, a + chunk)
-        Qk = per_source(F[a:b], G[a:b], psd[a:b], dt[a:b], what="error budget: per-source Q_d")   # (c, k, n, n)
-        Qj = np.add.reduceat(Qk, starts, axis=1)                              # (c, J, n, n)
+        Qj = per_source(F[a:b], G[a:b], psd[a:b], dt[a:b], what="error budget: per-source Q_d",
+                        groups=starts)                                        # (c, J, n, n)
         for s in range(a, b):
             acc = sandwich(Phi[s], acc) + Qj[s - a]
             if s + 1 == ev[i + 1]:

@@ -232,9 +232,10 @@ class ZuptSetup:
 
         Notes
         -----
-        A filter with exactly the truth's F and Q_c, discretised by the
-        truth's method (filter A with the same method), has the truth's Φ and
-        Q_d: they are returned as they are (``reused = True``), not computed again.
+        A filter with exactly the truth's F and Q_c, discretised exactly
+        (``van_loan``, or ``taylor`` without a fixed order: the same converged
+        series as the truth's), has the truth's Φ and Q_d: they are returned
+        as they are (``reused = True``), not computed again.
         """
         ckey = (name, None if discretization == "declared" else discretization)
         if ckey not in self._filters:
@@ -250,8 +251,9 @@ class ZuptSetup:
                               q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
                               mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
                               update_steps=self.update_steps)
-            same_method = spec.discretization == self.hdr["discretization"] and (
-                spec.discretization == "van_loan" or spec.taylor_order is None)
+            # the truth is discretised exactly (van_loan, or taylor without an order: the same
+            # converged series, covtool.lincov.discretize); so is a filter with either
+            same_method = spec.discretization == "van_loan" or spec.taylor_order is None
             if same_method and fm.F.shape == self.dyn.F.shape and np.array_equal(fm.F, self.dyn.F) \
                     and np.array_equal(fm.Qc, self.dyn.Qc):
                 self._filters[ckey] = (fm, self.Phi, self.Qd, True)
