@@ -17,8 +17,8 @@ def sweep_figure(sweep: pd.DataFrame, opts: dict, truth):
             for f in dict.fromkeys(s["filter"]):
                 if f == "A":
                     continue
-                gg = s[s["filter"] == f].sort_values("magnitude [SI]")
-                x = [float(from_si(v, unit)) if unit else v for v in gg["magnitude [SI]"]]
+                gg = s[s["filter"] == f].sort_values("magnitude, SI value")
+                x = [float(from_si(v, unit)) if unit else v for v in gg["magnitude, SI value"]]
                 ax.plot(x, gg["CEP / A [-]"], marker="o", ms=3, label=f)
             ax.axhline(opts["threshold"], color="k", ls="--", lw=1, label=f"{opts['threshold']:g} x A")
             dsig = truth.states[truth.index[g["states"][0]]].sigma

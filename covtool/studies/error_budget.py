@@ -188,6 +188,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                for c in cases}
     return StudyResult(
         name=S.hdr["name"], kind="error_budget", tables=tables, figures=figures,
+        charts=budget_charts(cases, runs, var, opts["top"]),
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]},
                   "budget": {**decl.get("budget", {}), **opts}},
         provenance=provenance,
@@ -195,6 +196,26 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
               "variances": var, "nominal": nominal, "residuals": residuals, "sources": sources, "factors": factors, "trajectory": nodes,
               "truth": truth_model, "setup": S},
     )
+
+
+def budget_charts(cases, runs, var, top: int) -> list[dict]:
+    """Workbook chart specs: per error and case, the total and the top sources on a log axis.
+
+    One series per source (variance contribution, not stacked), drawn
+    from the ``history_<error>`` sheets; the first record (t = 0, where
+    the noise sources are zero) is left out of the log axis.
+    """
+    charts = []
+    for k, e in enumerate(ERRORS):
+        si, unit = PAPER_UNITS[e]
+        for j, c in enumerate(cases):
+            idx = top_sources(var[c][e] / si**2, top)
+            ys = [f"total [{unit}^2]"] + [f"{runs[c].sources[i].name} [{unit}^2]" for i in idx]
+            charts.append({"sheet": f"history_{e}", "where": {"case": c}, "x": "t [min]", "y": ys, "skip": 1,
+                           "log_y": True, "title": f"{c}: {_ERROR_TITLES[e]}, variance by source (top {top})",
+                           "x_title": "time [min]", "y_title": f"variance [{unit}^2]",
+                           "target": "charts", "anchor": (1 + 19 * k, 1 + 12 * j)})
+    return charts
 
 
 def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec, *, P0=None):

@@ -417,7 +417,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         name=S.hdr["name"], kind="monte_carlo", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
         charts=[{"sheet": "history", "x": "t [min]", "y": ["horizontal RMS MC [m]", "horizontal sigma linear [m]"],
-                 "title": "Horizontal RMS (Monte Carlo) and linear sigma, all cases stacked", "y_title": "m",
+                 "group": "case", "log_y": True, "x_title": "time [min]",
+                 "title": "Horizontal RMS (Monte Carlo) and linear sigma, per case", "y_title": "horizontal [m]",
                  "anchor": "B2", "target": "summary"}],
         data={"t": t, "sums": sums, "linear": lin, "claimed": claimed, "cases": cases, "bands": band,
               "nees": nees_stats, "options": opt, "stats": stats, "filter_check": pf_check})

@@ -99,7 +99,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         provenance={**study_inputs(path, decl, truth), "truth_model": truth.name,
                     "truth_model_sha256": truth.sha256, "states": truth.n, **resource_provenance(est),
                     "compute_seconds": f"{elapsed:.2f}"},
-        charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [m]", "sigma_D [m]"],
-                 "title": "Pure INS position error", "y_title": "[m]", "anchor": "R2"}],
+        charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [m]", "sigma_D [m]"], "log_y": True,
+                 "x_title": "time [min]", "title": "Pure INS position error", "y_title": "position error [m]",
+                 "anchor": "R2"}],
         data={"t": t, "P": P, "metrics": m, "trajectory": nodes, "model": truth},
     )

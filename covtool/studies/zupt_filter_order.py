@@ -46,7 +46,7 @@ from covtool.studies.inputs import study_inputs
 from covtool.studies.resources import progress_bar, resource_provenance
 from covtool.studies.tables import case_validity, history_frame, summary_row
 from covtool.studies.zupt_setup import order_memory, setup, ZuptSetup
-from covtool.units import ARCMIN, FT
+from covtool.units import ARCMIN, FT, si_unit
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
@@ -109,7 +109,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         for nm, s0 in zip(fm.names, sig0):
             st = truth.states[truth.index[nm]]
             fstates.append({"filter": c, "state": nm, "symbol": st.symbol, "unit": st.unit,
-                            "P0 1sigma [SI]": s0, "process": st.process,
+                            "P0 1sigma, SI value": s0, "SI unit": si_unit(st.unit), "process": st.process,
                             "options": f"coriolis={fm.spec.options.coriolis}, "
                                        f"vertical_coupled={fm.spec.options.couple_vertical}"})
     tables = {"summary": summary, "history": hist, "truth_states": truth.state_table(),
@@ -154,8 +154,12 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         name=hdr["name"], kind="zupt_filter_order", tables=tables,
         figures={"fig6_horizontal_cep": fig("horizontal"), "fig7_altitude_pe": fig("altitude"), **figures},
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}}, provenance=provenance,
-        charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [ft]"], "title": "CEP (all cases, stacked rows)",
-                 "y_title": "ft", "anchor": "S2"}],
+        charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [ft]"], "group": "case", "log_y": True,
+                 "title": "Fig 6: horizontal CEP by filter model", "x_title": "time [min]",
+                 "y_title": "horizontal CEP [ft]", "anchor": "S2"},
+                {"sheet": "history", "x": "t [min]", "y": ["alt PE [ft]"], "group": "case", "log_y": True,
+                 "title": "Fig 7: altitude PE by filter model", "x_title": "time [min]",
+                 "y_title": "altitude PE [ft]", "anchor": "S22"}],
         data={"t": t, "runs": runs, "filters": fmodels, "metrics": metrics, "claimed": claimed,
               "update_steps": upd, "trajectory": nodes, "truth": truth, "P0": P0, "Phi": Phi, "Qd": Qd,
               "H": H, "R": R},

@@ -474,28 +474,36 @@ def _summary(S, cases, results, fmodels, sens, cost_df, rt, statuses):
 
 
 def _chart_sheets(cases, results, fits, fine):
-    """Wide sheets and specs for the native Fig 8 charts.
+    """Wide sheets and specs for the native Fig 8 charts (log-log, as the PNGs).
 
-    Swept points sit on the rows of their scale (blank between them, so
-    Excel draws them unconnected); the fitted curves fill a grid twice as
-    fine.
+    The fitted curves fill a grid twice as fine (``scale [-]``); the swept
+    points are listed at their own scales (``swept scale [-]``) in the first
+    rows, so that every charted cell holds a number and a log axis never
+    meets a text cell.  One series per filter and kind (points, fit).
     """
     sheets, charts = {}, []
-    on_grid = np.isin(np.round(np.log10(fine), 9), np.round(np.log10(cases.scales), 9))
+    n = len(cases.scales)
+
+    def pad(v):
+        out = np.full(fine.size, np.nan)
+        out[:n] = v
+        return out
+
     for num, metric in ((1, "horizontal"), (2, "altitude")):
         label = METRICS[metric][0]
         name = f"fig8_{num}_{metric}"
-        df = pd.DataFrame({"scale [-]": fine})
+        df = pd.DataFrame({"scale [-]": fine, "swept scale [-]": pad(cases.scales)})
         for p in cases.parameters:
             for c in results:
-                data = np.full(fine.size, np.nan)
-                data[on_grid] = _curve(cases, results, c, p, metric) / FT
-                df[f"{p} {c} swept [ft]"] = data
+                df[f"{p} {c} swept [ft]"] = pad(_curve(cases, results, c, p, metric) / FT)
                 df[f"{p} {c} fit [ft]"] = fits[(c, p, metric)](fine)
         sheets[name] = df
         for k, p in enumerate(cases.parameters):
             ys = [f"{p} {c} {kind} [ft]" for c in results for kind in ("swept", "fit")]
-            charts.append({"sheet": name, "x": "scale [-]", "y": ys, "log_x": True, "marker": "circle",
+            series = {f"{p} {c} swept [ft]": {"x": "swept scale [-]", "rows": n, "marker": "circle", "line": False}
+                      for c in results}
+            charts.append({"sheet": name, "x": "scale [-]", "y": ys, "log_x": True, "log_y": True,
+                           "series": series,
                            "title": f"Fig 8.{num} ({PARAM_LABEL[p]}): {label} vs scale (points: swept, "
                                     f"lines: fit)",
                            "x_title": f"{PARAM_LABEL[p]} scale [-]", "y_title": f"{label} [ft]",
