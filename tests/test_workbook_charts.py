@@ -60,11 +60,13 @@ def test_flagship_charts_one_series_per_case_on_log_axes(flagship):
     for ch in charts:
         assert _series_titles(ch) == cases
         assert ch.y_axis.scaling.logBase == 10
-        # each series spans exactly its case's rows of the history sheet (header is row 1)
+        # each series spans exactly its case's rows of the history sheet (header is row 1), but t = 0
+        # (σ = 0 has no place on a log axis)
         for s, c in zip(ch.series, cases):
             rows = np.flatnonzero(hist["case"].to_numpy() == c) + 2
-            ref = s.yVal.numRef.f
-            assert ref.endswith(f"${rows[0]}:$" + ref.split(":$")[-1].split("$")[0] + f"${rows[-1]}")
+            assert hist["t [s]"].iloc[rows[0] - 2] == 0.0
+            for ref in (s.yVal.numRef.f, s.xVal.numRef.f):
+                assert ref.endswith(f"${rows[1]}:$" + ref.split(":$")[-1].split("$")[0] + f"${rows[-1]}")
 
 
 def test_no_header_is_a_placeholder_unit(flagship):
