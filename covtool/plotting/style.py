@@ -40,13 +40,15 @@ def source_colors(names) -> dict:
     Returns
     -------
     dict of str to colour
-        Up to 20 sources from matplotlib's ``tab20`` reordered so that the
-        first ten are the strong hues; more from ``tab20b``/``tab20c``.
+        Up to 18 sources from matplotlib's ``tab20`` without its greys
+        (kept for "other"), the strong hues first; more from
+        ``tab20b``/``tab20c``.
     """
     import matplotlib.pyplot as plt
 
-    strong = [plt.get_cmap("tab20")(i) for i in range(0, 20, 2)]
-    light = [plt.get_cmap("tab20")(i) for i in range(1, 20, 2)]
+    # grey (tab20's 14, 15) is kept for "other"
+    strong = [plt.get_cmap("tab20")(i) for i in range(0, 20, 2) if i != 14]
+    light = [plt.get_cmap("tab20")(i) for i in range(1, 20, 2) if i != 15]
     more = [plt.get_cmap(nm)(i) for nm in ("tab20b", "tab20c") for i in range(20)]
     pal = strong + light + more
     return {n: pal[i % len(pal)] for i, n in enumerate(names)}

@@ -25,7 +25,7 @@ import numpy as np
 import pandas as pd
 
 from covtool.board import adreset, alignment as align, output_filter as of
-from covtool.results import StudyResult
+from covtool.results import AdResetResult
 from covtool.studies.ad_reset_config import parse
 from covtool.units import from_si
 from covtool.version import __version__
@@ -421,7 +421,7 @@ def _derived_table(p, d) -> pd.DataFrame:
 # --------------------------------------------------------------------------- entry point
 
 
-def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> AdResetResult:
     """Run an ``ad_reset`` study.
 
     Parameters
@@ -435,7 +435,7 @@ def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> Stud
 
     Returns
     -------
-    StudyResult
+    AdResetResult
         Tables ``summary``, ``derived_parameters``, ``fig2``,
         ``fig2_amplitude``, ``fig3``, ``table1``, ``fig4``, ``table2``,
         ``table3``, ``fig5``, ``alignment_fine`` and Bode data; figures
@@ -457,7 +457,7 @@ def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> Stud
     sm["diff [%]"] = _pct(sm["covtool"], sm["paper"])
     out = {"summary": sm, "derived_parameters": _derived_table(p, d)}
     out.update(tables)
-    return StudyResult(
+    return AdResetResult(
         name=p["name"], kind=KIND, tables=out, figures=figs, resolved=decl, charts=charts,
         provenance={"covtool_version": __version__, "runtime_s": round(time.perf_counter() - t0, 3),
                     "study_file": str(path) if path else "<dict>"},

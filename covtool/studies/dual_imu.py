@@ -79,7 +79,7 @@ from covtool.dualnav.run import as_runs, DualRun, DualSetup, ppm_text, run_dual
 from covtool.errors import InputError, StudyFileError
 from covtool.io.imu_log import check_imu_log
 from covtool.nav import attitude as quat, earth
-from covtool.results import StudyResult
+from covtool.results import DualImuResult
 from covtool.studies.dual_imu_config import DualConfig, parse_study, PPM_G
 from covtool.studies.inputs import input_file
 from covtool.validation.sensor_errors import GSensitiveErrors
@@ -187,7 +187,7 @@ def _actual_gap_errors(bridged, removed):
     return rows
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path=None, progress: bool = False) -> DualImuResult:
     """Run a dual-IMU verification study; see the module docstring."""
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
@@ -279,7 +279,7 @@ def _run_rows(runs, label, cfg, truth=None):
     return pd.DataFrame(rows)
 
 
-def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
+def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> DualImuResult:
     free, fault = outcome["fault_free"], outcome["fault"]
     t_free = _run_rows(free, "fault-free", cfg)
     t_fault = _run_rows(fault, "g-sensitivity injected", cfg, cfg.fault)
@@ -350,7 +350,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     tables["main_states"] = setup.main_model.state_table()
     tables["kimu_states"] = setup.kimu_model.state_table()
     figures = _figures(cfg, free, fault)
-    return StudyResult(
+    return DualImuResult(
         name=cfg.name, kind="dual_imu", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl.get("study", {}), "name": cfg.name}},
         provenance={**input_file("main_grade", cfg.grades["main"].path),
@@ -366,7 +366,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
 # --------------------------------------------------------------------------
 
 
-def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
+def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> DualImuResult:
     """The dual-IMU comparison of two recorded logs.
 
     Parameters
@@ -382,7 +382,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
 
     Returns
     -------
-    StudyResult
+    DualImuResult
         Tables ``summary``, ``history``, ``gaps`` (every bridged interval),
         ``intervals`` (flagged spans), ``candidates``; figures.
 
@@ -448,7 +448,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None) -> StudyResult:
                          "GLR": gs.glr[0]})
     tables = {"summary": summary, "history": _history(r, 0, "logs"), "gaps": gaps, "intervals": intervals,
               "candidates": cand}
-    return StudyResult(
+    return DualImuResult(
         name=f"dualnav_{Path(main_log.path).stem}", kind="dualnav", tables=tables,
         figures=_figures(cfg, [r], [], estimates=False, labels=("logs", "")),
         resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},

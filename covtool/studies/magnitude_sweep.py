@@ -46,6 +46,7 @@ and every sweep point is a member of one batched engine call per filter
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -58,7 +59,7 @@ from covtool.lincov.impact import check_members
 from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transition, restricted_noise
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.magnitude_sweep import sweep_figure
-from covtool.results import StudyResult
+from covtool.results import MagnitudeSweepResult
 from covtool.studies.resources import progress_bar
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN, FT, si_unit
@@ -118,7 +119,7 @@ def sweep_options(decl: dict, where: str, truth) -> dict:
     return {"groups": out, "threshold": float(thr)}
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path=None, progress: bool = False) -> MagnitudeSweepResult:
     """Run a magnitude sweep; see the module docstring."""
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
@@ -228,11 +229,14 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                   "filter_file": str(S.filter_file), "zupt_updates": int(len(S.update_steps)),
                   "threshold CEP / A": opts["threshold"], "members per filter": B,
                   "compute_seconds": f"{elapsed:.2f}"}
-    return StudyResult(
+    result = MagnitudeSweepResult(
         name=S.hdr["name"], kind="magnitude_sweep", tables={"summary": thresholds, "sweep": sweep},
-        figures={"magnitude_sweep": sweep_figure(sweep, opts, truth)},
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance, charts=charts,
-        data={"setup": S, "results": results, "members": members, "metrics": mets, "report_steps": rep})
+        data={"setup": S, "results": results, "members": members, "metrics": mets, "report_steps": rep},
+        sweep=sweep, groups=list(opts["groups"]), threshold=opts["threshold"],
+        declared={g["name"]: truth.states[truth.index[g["states"][0]]].sigma for g in opts["groups"]})
+    result.figures = {"magnitude_sweep": partial(sweep_figure, result)}
+    return result
 
 
 def _key(options):

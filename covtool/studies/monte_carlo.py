@@ -65,7 +65,7 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.nav.coning import MAX_SAMPLES
 from covtool.nav.strapdown import NAV_STATES
-from covtool.results import StudyResult
+from covtool.results import MonteCarloResult
 from covtool.studies.inputs import study_header, study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, resource_provenance, run_in_chunks
 from covtool.studies.tables import case_validity
@@ -178,7 +178,7 @@ def _mean(s: EnsembleSums, quantity: str) -> np.ndarray:
 
 
 def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=None,
-        resume: bool = False) -> StudyResult:
+        resume: bool = False) -> MonteCarloResult:
     """Run a Monte Carlo validation study; see the module docstring.
 
     Parameters
@@ -413,7 +413,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                   "compute_seconds": f"{elapsed:.2f}", "monte_carlo_seconds": f"{stats['seconds']:.2f}",
                   "result_store": str(store) if store is not None else "",
                   "result_store_checks": store_checks(rs, stats)}
-    return StudyResult(
+    return MonteCarloResult(
         name=S.hdr["name"], kind="monte_carlo", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
         charts=[{"sheet": "history", "x": "t [min]", "y": ["horizontal RMS MC [m]", "horizontal sigma linear [m]"],

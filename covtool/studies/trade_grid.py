@@ -80,7 +80,7 @@ from covtool.io.filters import load_filters
 from covtool.io.names import check_name
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.reduced import zupt_matrices
-from covtool.results import StudyResult
+from covtool.results import TradeGridResult
 from covtool.studies.grid import check_step_motion, time_grid
 from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_header, study_inputs,
                                     trajectory_csv_sha256)
@@ -466,7 +466,7 @@ def compute_chunk(task: dict) -> dict:
 # --------------------------------------------------------------------------
 
 def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=None,
-        resume: bool = False) -> StudyResult:
+        resume: bool = False) -> TradeGridResult:
     """Run a trade grid; see the module docstring.
 
     Parameters
@@ -511,7 +511,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                                                                    for f in r.get("reused_truth_phi", [])})) or "none",
                   "result_store": str(store) if store is not None else "",
                   "result_store_checks": store_checks(rs, stats)}
-    return StudyResult(
+    return TradeGridResult(
         name=plan.hdr["name"], kind="trade_grid", tables=tables,
         figures={"trade_grid": lambda: trade_figure(summary, plan)},
         resolved={**decl, "study": {**decl["study"], "name": plan.hdr["name"]}}, provenance=provenance,
