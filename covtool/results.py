@@ -251,18 +251,76 @@ class AdResetResult(StudyResult):
 
 
 @dataclass
-class MonteCarloResult(StudyResult):
-    """``monte_carlo``: the linear covariance against nonlinear Monte Carlo runs."""
+class MonteCarloResult(_Navigation, StudyResult):
+    """``monte_carlo``: the linear covariance against nonlinear Monte Carlo runs.
+
+    Attributes
+    ----------
+    cases : list of str
+    bands : dict of str to dict of str to tuple of ndarray
+        Per case and quantity (``horizontal``, ``altitude``, ``azimuth``):
+        Monte Carlo RMS, linear σ, lower and upper χ² bound of the RMS,
+        each shape (N+1,), SI.
+    nees : dict of (str, str) to tuple
+        Per case and NEES kind: ``(spec, mean, lower, upper, inside, prediction)``.
+    runs : int
+        Monte Carlo runs N.
+    confidence : float
+        Probability of the χ² bounds.
+    """
+
+    cases: list = field(default_factory=list)
+    bands: dict = field(default_factory=dict)
+    nees: dict = field(default_factory=dict)
+    runs: int = 0
+    confidence: float = 0.95
+    main_figure: ClassVar[str] = "mc_ratio"
 
 
 @dataclass
 class DualImuResult(StudyResult):
-    """``dual_imu``: the dual-IMU comparison (seed 001)."""
+    """``dual_imu``: the dual-IMU comparison (seed 001), also ``covtool dualnav`` on logs.
+
+    Attributes
+    ----------
+    config : object
+        The typed study configuration.
+    fault_free, fault : list
+        Per flight, the comparison run (innovations, window statistics,
+        g-sensitivity estimates) without and with the injected fault.
+    labels : tuple of str
+        Legend names of the two groups of flights.
+    estimates : bool
+        Whether the g-sensitivity estimate figure applies.
+    """
+
+    config: Any = None
+    fault_free: list = field(default_factory=list)
+    fault: list = field(default_factory=list)
+    labels: tuple = ("fault-free", "g-sensitivity injected")
+    estimates: bool = True
+    main_figure: ClassVar[str] = "difference_envelope"
 
 
 @dataclass
 class TradeGridResult(StudyResult):
-    """``trade_grid``: the filter trade over a grid of settings."""
+    """``trade_grid``: the filter trade over a grid of settings.
+
+    Attributes
+    ----------
+    nominal : DataFrame
+        Summary rows at nominal tuning (P0, Q, R scales 1).
+    grades : list of dict
+        IMU grades (``name``, ``scale``).
+    filters : list of str
+    duration : float
+        [s]
+    """
+
+    nominal: pd.DataFrame | None = None
+    grades: list = field(default_factory=list)
+    filters: list = field(default_factory=list)
+    duration: float = 0.0
 
 
 #: study kind -> its result class

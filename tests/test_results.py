@@ -256,3 +256,20 @@ def test_pure_ins_result(tmp_path):
     fig = r.plot()
     assert [ax.get_yscale() for ax in fig.axes] == ["log"] * 3 and fig.axes[0].get_ylabel().endswith("[ft]")
     plt.close(fig)
+
+
+def test_trade_grid_figure_from_its_result():
+    import importlib.util
+    spec = importlib.util.spec_from_file_location("tt", ROOT / "tests" / "test_trade.py")
+    tt = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tt)
+    from covtool.results import TradeGridResult
+    r = covtool.run_study(tt.small_decl())
+    assert isinstance(r, TradeGridResult) and set(r.nominal["filter"]) <= set(r.filters)
+    fig = r.plot()
+    axes = fig.axes
+    assert all(ax.get_yscale() == "log" for ax in axes)
+    for ax, col in ((axes[0], "CEP [ft]"), (axes[len(axes) // 2], "alt PE [ft]")):
+        lo, hi = ax.get_ylim()
+        assert lo < r.nominal[col].min() and r.nominal[col].max() < hi
+    plt.close(fig)
