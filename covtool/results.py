@@ -247,7 +247,16 @@ class MagnitudeSweepResult(StudyResult):
 
 @dataclass
 class AdResetResult(StudyResult):
-    """``ad_reset``: the accelerometer-board study (seed 000)."""
+    """``ad_reset``: the accelerometer-board study (seed 000).
+
+    Attributes
+    ----------
+    figure_specs : dict of str to dict
+        Per figure (named as its table), what :func:`covtool.plotting.ad_reset.ad_reset_figure` draws.
+    """
+
+    figure_specs: dict = field(default_factory=dict)
+    main_figure: ClassVar[str] = "fig2"
 
 
 @dataclass
