@@ -273,3 +273,11 @@ def test_trade_grid_figure_from_its_result():
         lo, hi = ax.get_ylim()
         assert lo < r.nominal[col].min() and r.nominal[col].max() < hi
     plt.close(fig)
+
+
+def test_figures_are_functions_of_the_result(flagship):
+    """No closure over runner locals: every figure is a plotting function applied to the result itself."""
+    from functools import partial
+    assert set(flagship.figures) == {"fig6_horizontal_cep", "fig7_altitude_pe"}
+    for f in flagship.figures.values():
+        assert isinstance(f, partial) and f.args[0] is flagship and f.func.__module__.startswith("covtool.plotting.")

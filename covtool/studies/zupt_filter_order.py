@@ -65,7 +65,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
     cases, every, rtimes, ffile = S.cases, S.every, S.report_times, S.filter_file
     dt_s, zsig, mean_speed = S.zupt_interval, S.zupt_sigma, S.mean_speed
     fcfg = decl.get("filters", {})
-    metrics, runs, fmodels, claimed = {}, {}, {}, {}
+    metrics, runs, fmodels, claimed, claimed_hist = {}, {}, {}, {}, {}
     where = S.where
     P_pure = None
     if fcfg.get("pure_ins", True):
@@ -81,7 +81,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
                                          names=truth.names, filter_names=fm.names, system_checked=True)
             runs[c], fmodels[c] = run_, fm
             metrics[c] = nav_metrics(run_.P_truth, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
-            claimed[c] = nav_metrics(run_.P_filter[:, :10, :10], nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+            claimed_hist[c] = run_.filter_history().nav()         # the filter's eq (14) block, by name
+            claimed[c] = nav_metrics(claimed_hist[c].P, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
             bar.update(1)
     elapsed = time.perf_counter() - t_start
 
@@ -119,12 +120,10 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
               "filter_states": pd.DataFrame(fstates)}
     if len(ewn):
         tables["equivalent_noise"] = ewn
-    figures = {}
     t_imp = time.perf_counter()
     if imp_filters:
         with progress_bar(len(imp_filters), "dropped-state impact", progress) as bar:
             tables["impact"] = impact_table(S, imp_filters, metrics, bar)
-        figures["impact_dropped_states"] = impact_figure(tables["impact"], S.report_times[-1])
     t_imp = time.perf_counter() - t_imp
     provenance = {**study_inputs(path, decl, truth, ffile), "truth_model": truth.name,
                   "truth_model_sha256": truth.sha256, "zupt_updates": int(len(upd)), "zupt_interval_s": dt_s,
@@ -149,10 +148,12 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
               "update_steps": upd, "trajectory": nodes, "truth": truth, "P0": P0, "Phi": Phi, "Qd": Qd,
               "H": H, "R": R},
         times=t, metrics=metrics, length_unit=unit, update_times=t[upd], stops=S.stops,
-        histories=histories, claimed={c: r_.filter_history().nav() for c, r_ in runs.items()},
+        histories=histories, claimed=claimed_hist,
         claimed_metrics=claimed, report_times=list(rtimes))
     result.figures = {"fig6_horizontal_cep": partial(error_history_figure, result, "horizontal"),
-                      "fig7_altitude_pe": partial(error_history_figure, result, "altitude"), **figures}
+                      "fig7_altitude_pe": partial(error_history_figure, result, "altitude")}
+    if "impact" in tables:
+        result.figures["impact_dropped_states"] = partial(impact_figure, result)
     return result
 
 
