@@ -1,17 +1,30 @@
 """Result objects returned by every study runner.
 
-Runners compute; they never open files.  A :class:`StudyResult` carries the
-tables (pandas DataFrames, SI or explicitly-unit-labelled columns), figure
-builders and the resolved configuration; :mod:`covtool.io.writers` turns it
-into files.
+Runners compute; they never open files.  Each study kind returns its own
+typed result (a :class:`StudyResult` subclass) whose histories know their
+times and state names (:class:`covtool.lincov.history.CovarianceHistory`);
+figures are drawn from the result by :mod:`covtool.plotting`, and
+:mod:`covtool.io.writers` turns it into files.
+
+Common to every result: ``tables`` (pandas DataFrames whose headers carry
+their units), ``figures`` (name -> figure maker), ``provenance``,
+``to_pandas()`` (the summary table) and ``plot()`` (the main figure).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import TYPE_CHECKING, Any, Callable, ClassVar
 
+import numpy as np
 import pandas as pd
+
+if TYPE_CHECKING:
+    from covtool.lincov.history import CovarianceHistory
+
+__all__ = ["StudyResult", "PureInsResult", "ZuptFilterOrderResult", "ErrorBudgetResult", "ZuptSensitivityResult",
+           "MagnitudeSweepResult", "AdResetResult", "MonteCarloResult", "DualImuResult", "TradeGridResult",
+           "RESULT_CLASSES"]
 
 
 @dataclass
@@ -29,18 +42,20 @@ class StudyResult:
         ``summary.csv``; every table becomes a workbook sheet and a CSV file.
         Column headers carry their unit in brackets, e.g. ``"cep [ft]"``.
     figures : dict of str to callable
-        ``name -> f()`` returning a :class:`matplotlib.figure.Figure`; each is
-        saved as ``<name>.png``.  Built lazily so the numeric API never imports
+        ``name -> f()`` returning a :class:`matplotlib.figure.Figure`, drawn
+        from this result by :mod:`covtool.plotting`; each is saved as
+        ``<name>.png``.  Built lazily so the numeric API never imports
         matplotlib.
     resolved : dict
         The fully resolved study declaration (defaults filled in), for provenance.
     provenance : dict
         Extra provenance rows (model hashes, tool version, timings).
     charts : list of dict
-        Optional native Excel chart specifications for the workbook writer
+        Native Excel chart specifications for the workbook writer
         (see :func:`covtool.io.workbook.add_line_chart`).
     data : dict
-        Raw numeric results (arrays) for the Python API; not written.
+        Internals of the run (setup, raw runs) for tests and advanced use;
+        the labelled fields of each subclass are the public interface.
     """
 
     name: str
@@ -52,7 +67,274 @@ class StudyResult:
     charts: list = field(default_factory=list)
     data: dict = field(default_factory=dict)
 
+    #: the figure :meth:`plot` draws (default: the first of ``figures``)
+    main_figure: ClassVar[str | None] = None
+
     @property
     def summary(self) -> pd.DataFrame:
         """The summary table."""
         return self.tables["summary"]
+
+    def to_pandas(self) -> pd.DataFrame:
+        """The summary table (a copy)."""
+        return self.summary.copy()
+
+    def plot(self, name: str | None = None):
+        """Draw one of the result's figures (default: its main figure).
+
+        Parameters
+        ----------
+        name : str, optional
+            A key of ``figures``.
+
+        Returns
+        -------
+        matplotlib.figure.Figure
+
+        Raises
+        ------
+        KeyError
+            No figure of that name (the message lists them), or the study
+            draws none.
+        """
+        if not self.figures:
+            raise KeyError(f"study {self.name!r} ({self.kind}) draws no figure")
+        name = name or (self.main_figure if self.main_figure in self.figures else next(iter(self.figures)))
+        if name not in self.figures:
+            raise KeyError(f"no figure {name!r} (figures: {', '.join(self.figures)})")
+        return self.figures[name]()
+
+
+@dataclass
+class _Navigation:
+    """Fields shared by the navigation studies (lengths drawn in ``length_unit``)."""
+
+    times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    metrics: dict = field(default_factory=dict)
+    length_unit: str = "ft"
+    update_times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    stops: tuple = ()
+
+
+@dataclass
+class PureInsResult(_Navigation, StudyResult):
+    """``pure_ins``: the truth model propagated without aiding.
+
+    Attributes
+    ----------
+    history : CovarianceHistory
+        Navigation block (seed 002, eq (14)) over the whole run.
+    times : ndarray, shape (N+1,)
+        Time grid. [s]
+    metrics : dict of str to ndarray, shape (N+1,)
+        :func:`covtool.analysis.metrics.nav_metrics` (SI).
+    length_unit : {"ft", "m"}
+        Unit of lengths in the figures (``[output] units``).
+    """
+
+    history: "CovarianceHistory | None" = None
+    main_figure: ClassVar[str] = "pure_ins_errors"
+
+
+@dataclass
+class ZuptFilterOrderResult(_Navigation, StudyResult):
+    """``zupt_filter_order``: reduced filters run against the truth (seed 002, §3.1).
+
+    Attributes
+    ----------
+    histories : dict of str to CovarianceHistory
+        Per case (``"pure_ins"``, filter names), the truth navigation
+        block (eq (14)) under that filter's gains, eq (15)-(16).
+    claimed : dict of str to CovarianceHistory
+        Per filter, the navigation block of the filter's own covariance.
+    metrics, claimed_metrics : dict of str to dict of ndarray
+        Per case, :func:`covtool.analysis.metrics.nav_metrics` of the truth
+        (over ``times``) and of the filter's claim (at ``report_times``
+        only: the exact CEP is costly), SI.
+    times : ndarray, shape (N+1,)
+        Time grid. [s]
+    update_times : ndarray
+        ZUPT update times. [s]
+    stops : tuple of (float, float)
+        Stationary intervals holding a ZUPT. [s]
+    report_times : list of float
+        Times of the summary rows. [s]
+    length_unit : {"ft", "m"}
+    """
+
+    histories: dict = field(default_factory=dict)
+    claimed: dict = field(default_factory=dict)
+    claimed_metrics: dict = field(default_factory=dict)
+    report_times: list = field(default_factory=list)
+    main_figure: ClassVar[str] = "fig6_horizontal_cep"
+
+
+@dataclass
+class ErrorBudgetResult(_Navigation, StudyResult):
+    """``error_budget``: the truth covariance split into its sources (seed 002, Fig 4).
+
+    Attributes
+    ----------
+    times : ndarray, shape (K,)
+        Record times. [s]
+    variances : dict of str to dict of str to ndarray, shape (B, K)
+        Per case and error (``horizontal``, ``altitude``, ``azimuth``),
+        each source's variance contribution (SI²).
+    sources : dict of str to list of str
+        Per case, the source names (rows of ``variances``).
+    source_order : list of str
+        Every source of the study, in one order (one colour each in every
+        figure).
+    top : int
+        Sources drawn per panel.
+    """
+
+    variances: dict = field(default_factory=dict)
+    sources: dict = field(default_factory=dict)
+    source_order: list = field(default_factory=list)
+    top: int = 8
+
+
+@dataclass
+class ZuptSensitivityResult(StudyResult):
+    """``zupt_sensitivity``: errors against scaled P_f(0), Q_f, R_f (seed 002, Fig 8).
+
+    Attributes
+    ----------
+    scales : ndarray
+        Swept scale factors. [-]
+    parameters : list of str
+        Swept parameters (``P0``, ``Q``, ``R``).
+    curves : dict of (str, str, str) to ndarray
+        ``(filter, parameter, metric) -> error [m]`` at the swept scales,
+        metric ``"horizontal"`` (CEP) or ``"altitude"`` (PE), last report time.
+    fits : dict of (str, str, str) to callable
+        The least-squares fits, ``scale -> error [ft]``.
+    report_time : float
+        [s]
+    """
+
+    scales: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    parameters: list = field(default_factory=list)
+    filters: list = field(default_factory=list)
+    curves: dict = field(default_factory=dict)
+    fits: dict = field(default_factory=dict)
+    report_time: float = 0.0
+    labels: dict = field(default_factory=dict)
+    main_figure: ClassVar[str] = "fig8_1_horizontal"
+
+
+@dataclass
+class MagnitudeSweepResult(StudyResult):
+    """``magnitude_sweep``: where the reduced filters stop being near the optimum.
+
+    Attributes
+    ----------
+    sweep : DataFrame
+        The ``sweep`` table (one row per group, filter and magnitude).
+    groups : list of dict
+        The swept groups (name, states, unit text).
+    threshold : float
+        CEP / CEP_A threshold. [-]
+    declared : dict of str to float
+        Per group, the model's declared 1σ of its first state (SI).
+    """
+
+    sweep: pd.DataFrame | None = None
+    groups: list = field(default_factory=list)
+    threshold: float = 0.0
+    declared: dict = field(default_factory=dict)
+
+
+@dataclass
+class AdResetResult(StudyResult):
+    """``ad_reset``: the accelerometer-board study (seed 000).
+
+    Attributes
+    ----------
+    figure_specs : dict of str to dict
+        Per figure (named as its table), what :func:`covtool.plotting.ad_reset.ad_reset_figure` draws.
+    """
+
+    figure_specs: dict = field(default_factory=dict)
+    main_figure: ClassVar[str] = "fig2"
+
+
+@dataclass
+class MonteCarloResult(_Navigation, StudyResult):
+    """``monte_carlo``: the linear covariance against nonlinear Monte Carlo runs.
+
+    Attributes
+    ----------
+    cases : list of str
+    bands : dict of str to dict of str to tuple of ndarray
+        Per case and quantity (``horizontal``, ``altitude``, ``azimuth``):
+        Monte Carlo RMS, linear σ, lower and upper χ² bound of the RMS,
+        each shape (N+1,), SI.
+    nees : dict of (str, str) to tuple
+        Per case and NEES kind: ``(spec, mean, lower, upper, inside, prediction)``.
+    runs : int
+        Monte Carlo runs N.
+    confidence : float
+        Probability of the χ² bounds.
+    """
+
+    cases: list = field(default_factory=list)
+    bands: dict = field(default_factory=dict)
+    nees: dict = field(default_factory=dict)
+    runs: int = 0
+    confidence: float = 0.95
+    main_figure: ClassVar[str] = "mc_ratio"
+
+
+@dataclass
+class DualImuResult(StudyResult):
+    """``dual_imu``: the dual-IMU comparison (seed 001), also ``covtool dualnav`` on logs.
+
+    Attributes
+    ----------
+    config : object
+        The typed study configuration.
+    fault_free, fault : list
+        Per flight, the comparison run (innovations, window statistics,
+        g-sensitivity estimates) without and with the injected fault.
+    labels : tuple of str
+        Legend names of the two groups of flights.
+    estimates : bool
+        Whether the g-sensitivity estimate figure applies.
+    """
+
+    config: Any = None
+    fault_free: list = field(default_factory=list)
+    fault: list = field(default_factory=list)
+    labels: tuple = ("fault-free", "g-sensitivity injected")
+    estimates: bool = True
+    main_figure: ClassVar[str] = "difference_envelope"
+
+
+@dataclass
+class TradeGridResult(StudyResult):
+    """``trade_grid``: the filter trade over a grid of settings.
+
+    Attributes
+    ----------
+    nominal : DataFrame
+        Summary rows at nominal tuning (P0, Q, R scales 1).
+    grades : list of dict
+        IMU grades (``name``, ``scale``).
+    filters : list of str
+    duration : float
+        [s]
+    """
+
+    nominal: pd.DataFrame | None = None
+    grades: list = field(default_factory=list)
+    filters: list = field(default_factory=list)
+    duration: float = 0.0
+
+
+#: study kind -> its result class
+RESULT_CLASSES = {"pure_ins": PureInsResult, "zupt_filter_order": ZuptFilterOrderResult,
+                  "error_budget": ErrorBudgetResult, "zupt_sensitivity": ZuptSensitivityResult,
+                  "magnitude_sweep": MagnitudeSweepResult, "ad_reset": AdResetResult,
+                  "monte_carlo": MonteCarloResult, "dual_imu": DualImuResult, "trade_grid": TradeGridResult}

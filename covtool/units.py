@@ -54,7 +54,7 @@ import pint
 
 from covtool.errors import UnitError
 
-__all__ = ["ureg", "parse_quantity", "to_si", "from_si", "DIMENSIONS", "is_unit", "G0", "FT", "ARCMIN", "ARCSEC",
+__all__ = ["ureg", "parse_quantity", "to_si", "from_si", "si_unit", "DIMENSIONS", "is_unit", "G0", "FT", "ARCMIN", "ARCSEC",
            "MAX_LENGTH", "MAX_DEPTH", "MAX_EXPONENT"]
 
 ureg = pint.UnitRegistry()
@@ -648,3 +648,44 @@ def _example(dimension: str) -> str:
         "velocity_random_walk": "ug/sqrt(Hz)", "g_sensitivity": "deg/h/g",
         "g2_sensitivity": "deg/h/g**2", "frequency": "Hz", "inverse_acceleration": "ppm/g",
     }.get(dimension, "SI")
+
+
+_SI_SYMBOL = {"meter": "m", "second": "s", "radian": "rad", "kilogram": "kg", "ampere": "A", "kelvin": "K"}
+
+
+def si_unit(unit: str, power: int = 1, seconds=0) -> str:
+    """The SI unit of ``unit`` (to ``power``), as a header writes it.
+
+    Parameters
+    ----------
+    unit : str
+        A unit expression of the grammar (``"ug"``, ``"deg/sqrt(h)"``);
+        ``""`` is dimensionless.
+    power : int
+        Exponent applied (2 for a variance).
+    seconds : int or Fraction
+        Extra power of the second multiplied in (``Fraction(-1, 2)`` for a
+        random-walk intensity, 1 for a PSD of a variance rate).
+
+    Returns
+    -------
+    str
+        ``"m/s^2"``, ``"rad/s^(1/2)"``, ``"-"`` (dimensionless).
+
+    Raises
+    ------
+    UnitError
+        ``unit`` cannot be read.
+    """
+    u = _ONE if not unit.strip() else (_parse_or_raise(unit, "", need_number=False)[1] or _ONE)
+    dims = (u.power(Fraction(power)) * _unit(1.0, {"second": Fraction(seconds)})).dims
+
+    def part(name, e):
+        sym = _SI_SYMBOL.get(name, name)
+        e = abs(e)
+        return sym if e == 1 else (f"{sym}^{e}" if e.denominator == 1 else f"{sym}^({e})")
+
+    num = [part(k, e) for k, e in dims if e > 0]
+    den = [part(k, e) for k, e in dims if e < 0]
+    text = "*".join(num) or ("1" if den else "-")
+    return text + "".join("/" + d for d in den)

@@ -71,11 +71,11 @@ def test_threshold_is_interpolated_in_log_magnitude():
     from covtool.io.library import load_model_by_name
     truth = load_model_by_name("sdins58")
     sweep = pd.DataFrame({"group": "g", "filter": ["B1"] * 3 + ["D"] * 3, "magnitude": ["1", "4", "8"] * 2,
-                          "magnitude [SI]": [1.0, 4.0, 8.0] * 2, "CEP / A [-]": [1.2, 1.8, 2.0, 1.6, 1.7, 1.9]})
+                          "magnitude, SI value": [1.0, 4.0, 8.0] * 2, "CEP / A [-]": [1.2, 1.8, 2.0, 1.6, 1.7, 1.9]})
     opts = {"groups": [{"name": "g", "states": ["gyro_mis_xy"], "unit_text": ""}]}
     t = threshold_table(sweep, 1.5, ["g"], ["B1", "D"], truth, opts).set_index("filter")
-    assert t.loc["B1", "crossing [SI]"] == pytest.approx(2.0, rel=1e-12)
-    assert t.loc["D", "crossing [SI]"] == 0.0 and t.loc["D", "crossing"].startswith("below the sweep")
+    assert t.loc["B1", "crossing, SI value"] == pytest.approx(2.0, rel=1e-12)
+    assert t.loc["D", "crossing, SI value"] == 0.0 and t.loc["D", "crossing"].startswith("below the sweep")
 
 
 @pytest.mark.parametrize("mutate,match", [

@@ -337,7 +337,13 @@ def test_workbook_round_trip_and_native_charts(short, tmp_path):
         charts = [n for n in z.namelist() if n.startswith("xl/charts/chart")]
         assert len(charts) == 6
         xml = z.read(charts[0]).decode()
-    assert 'logBase val="10"' in xml and "fig8_1_horizontal" in xml   # log x axis, data from the sheet
+    # log-log as the PNG (before: linear y), data from the sheet
+    assert xml.count('logBase val="10"') == 2 and "fig8_1_horizontal" in xml
+    ch = wb["fig8_1_horizontal"]._charts[0]
+    n = len(short.data["scales"])
+    # one series per filter and kind; the swept points span exactly the swept scales (no text cell on a log axis)
+    assert len(ch.series) == 2 * len(short.summary)
+    assert ch.series[0].yVal.numRef.f.endswith(f"$2:${ch.series[0].yVal.numRef.f.split(':$')[1].split('$')[0]}${n + 1}")
     prov = pd.read_excel(xlsx, sheet_name="provenance").set_index("key")["value"]
     assert prov["kind"] == "zupt_sensitivity" and "sensitivity_definition" in prov.index
 

@@ -137,6 +137,12 @@ class BatchResult:
         Per case: ``""`` if every checked covariance was valid, else the
         guard's message for the first one that was not (``on_invalid =
         "flag"``); that case's records from then on are NaN.
+    names, filter_names : tuple of str or None
+        Names of the kept truth and filter states (the ``keep`` sub-block).
+    times : ndarray, shape (n_rec,) or None
+        Times of the record steps [s].
+    update_times : ndarray, shape (n_upd,) or None
+        Times of the update steps [s].
     """
 
     record_steps: np.ndarray
@@ -145,6 +151,25 @@ class BatchResult:
     gains: np.ndarray | None
     update_steps: np.ndarray
     status: list = field(default_factory=list)
+    names: tuple | None = None
+    filter_names: tuple | None = None
+    times: np.ndarray | None = None
+    update_times: np.ndarray | None = None
+
+    def history(self, case: int = 0, *, label: str = ""):
+        """Truth history of batch case ``case`` (:class:`~covtool.lincov.history.CovarianceHistory`).
+
+        Raises
+        ------
+        ValueError
+            The batch was run without state names or times.
+        """
+        from covtool.lincov.history import CovarianceHistory
+
+        if self.names is None or self.times is None:
+            raise ValueError("this batch was run without names= and times=: its history has no labels")
+        tu = np.zeros(0) if self.update_times is None else self.update_times
+        return CovarianceHistory(self.times, self.names, self.P_truth[case], tu, None, label)
 
     @property
     def failed(self) -> np.ndarray:
@@ -474,4 +499,8 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                     Pf = sandwich(filt.Phi[i], Pf)
                     Pf += qs[:, None, None] * (filt.Q[i] if filter_Q is None else filter_Q[:, i])
     out_g[dead] = np.nan
-    return BatchResult(np.array(rec), out_t, out_f, out_g if upd else None, np.array(upd), status)
+    kept = lambda nm, ix: None if nm is None else tuple(np.asarray(nm, object)[ix])  # noqa: E731
+    return BatchResult(np.array(rec), out_t, out_f, out_g if upd else None, np.array(upd), status,
+                       names=kept(names, idx), filter_names=kept(filter_names, fidx) if out_f is not None else None,
+                       times=None if times is None else np.asarray(times, float)[np.array(rec, int)],
+                       update_times=None if times is None else np.asarray(times, float)[np.array(upd, int)])

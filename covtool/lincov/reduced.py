@@ -25,7 +25,7 @@ from covtool.lincov.equivalent_noise import (absorbed_coupling, equivalent_noise
                                              uses_constant_rule, zupt_intervals)
 from covtool.lincov.model.spec import Model
 from covtool.nav.strapdown import NAV_STATES
-from covtool.units import ARCSEC, FT
+from covtool.units import ARCSEC, FT, si_unit
 
 
 VELOCITY_STATES = ("dvN", "dvE", "dvD")
@@ -218,7 +218,9 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
                 Qc += src.qc()
                 sources.append(src)
             rows.append({"filter": spec.name, "dropped state": st.name, "block": st.block, "process": st.process,
-                         "rule": rule, "mode": mode, "P0 [SI]": st.sigma**2, "q_eq [SI^2 s]": q_eq,
+                         "rule": rule, "mode": mode, "P0, SI value": st.sigma**2,
+                         "P0 SI unit": si_unit(st.unit, 2), "q_eq, SI value": q_eq,
+                         "q_eq SI unit": si_unit(st.unit, 2, seconds=1),
                          "pointwise / interval-matched (eq (12) states) [-]": over,
                          "pointwise / interval-matched, worst interval [-]": worst,
                          "absorbed by": ", ".join(f"{spec.kept[sens[k]]} ({alpha[k]:+.3g})"
@@ -236,7 +238,8 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         else:
             P0[i, i] = sig**2
     table = pd.DataFrame(rows) if rows else pd.DataFrame(
-        columns=["filter", "dropped state", "block", "process", "rule", "P0 [SI]", "q_eq [SI^2 s]"])
+        columns=["filter", "dropped state", "block", "process", "rule", "P0, SI value", "P0 SI unit",
+                 "q_eq, SI value", "q_eq SI unit"])
     return FilterModel(spec, list(spec.kept), D, F, Qc, P0, table, Qc_kept=Qc_kept, ewn_noise=sources,
                        ewn_absorb=absorb_by, bounds=bounds)
 

@@ -84,6 +84,10 @@ class FilterRun:
         Priors at the update steps.
     gains : dict of int to ndarray, shape (n_f, m)
         Filter gains at the update steps, eq (7).
+    times : ndarray, shape (N+1,) or None
+        Time of each step [s] (``None``: steps of 1 s).
+    names, filter_names : tuple of str or None
+        Truth and filter state names (rows of ``P_truth``, ``P_filter``).
     """
 
     P_truth: np.ndarray
@@ -91,6 +95,42 @@ class FilterRun:
     prior_truth: dict
     prior_filter: dict
     gains: dict
+    times: np.ndarray | None = None
+    names: tuple | None = None
+    filter_names: tuple | None = None
+
+    def _times(self):
+        return np.arange(self.P_truth.shape[0], dtype=float) if self.times is None else np.asarray(self.times)
+
+    def _history(self, P, priors, names, label):
+        from covtool.lincov.history import CovarianceHistory
+
+        steps = sorted(priors)
+        t = self._times()
+        names = tuple(names) if names is not None else tuple(f"x{i}" for i in range(P.shape[1]))
+        prior = np.array([priors[k] for k in steps]) if steps else np.zeros((0,) + P.shape[1:])
+        return CovarianceHistory(t, names, P, t[steps] if steps else np.zeros(0), prior, label)
+
+    def truth_history(self):
+        """The truth covariance as a :class:`~covtool.lincov.history.CovarianceHistory` (priors kept)."""
+        return self._history(self.P_truth, self.prior_truth, self.names, "truth")
+
+    def filter_history(self):
+        """The filter's own covariance as a :class:`~covtool.lincov.history.CovarianceHistory`."""
+        return self._history(self.P_filter, self.prior_filter, self.filter_names, "filter-claimed")
+
+    def gain_table(self):
+        """Gains with their times and names.
+
+        Returns
+        -------
+        dict
+            ``{"times": ndarray (U,) [s], "filter_names": tuple (n_f),
+            "K": ndarray (U, n_f, m)}``, in time order.
+        """
+        steps = sorted(self.gains)
+        K = np.array([self.gains[k] for k in steps]) if steps else np.zeros((0, self.P_filter.shape[1], 0))
+        return {"times": self._times()[steps] if steps else np.zeros(0), "filter_names": self.filter_names, "K": K}
 
 
 def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_steps,
@@ -190,7 +230,9 @@ def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_ste
         raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
     if check:
         _check_run(label, PT, PF, prior_t, prior_f, form, names, filter_names, times)
-    return FilterRun(PT, PF, prior_t, prior_f, gains)
+    return FilterRun(PT, PF, prior_t, prior_f, gains, None if times is None else np.asarray(times, float),
+                     None if names is None else tuple(names),
+                     None if filter_names is None else tuple(filter_names))
 
 
 def _when(k, times):

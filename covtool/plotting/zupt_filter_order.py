@@ -1,41 +1,49 @@
-"""Figures of the ``zupt_filter_order`` study (moved from its runner, unchanged)."""
+"""Dropped-state impact figure of the ``zupt_filter_order`` study, drawn from its result."""
 
 from __future__ import annotations
 
 import numpy as np
-import pandas as pd
 
 
-def impact_figure(table: pd.DataFrame, t_report: float):
-    """Figure maker: per filter, CEP and altitude PE with each dropped block's noise alone / put back."""
-    def make():
-        import matplotlib.pyplot as plt
-        tab = table[np.isclose(table["t [min]"], t_report / 60.0)]
-        names = list(dict.fromkeys(tab["filter"]))
-        fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.2 + 2.6 * len(names)), squeeze=False)
-        for r, name in enumerate(names):
-            g = tab[tab["filter"] == name]
-            nom = g[g["variant"] == "nominal"].iloc[0]
-            none = g[g["variant"] == "no equivalent noise"].iloc[0]
-            blocks = list(dict.fromkeys(g.loc[g["block"] != "", "block"]))
-            y = np.arange(len(blocks))
-            for c, col in enumerate(("CEP [ft]", "alt PE [ft]")):
-                ax = axes[r, c]
-                only = [g[(g["block"] == b) & (g["variant"] == "noise from block only")][col].iloc[0] for b in blocks]
-                back = [g[(g["block"] == b) & (g["variant"] == "block put back")][col].iloc[0] for b in blocks]
-                ax.barh(y - 0.2, only, 0.4, label="(a) eq (11)-(13) noise of this block only")
-                ax.barh(y + 0.2, back, 0.4, label="(b) this block put back into the filter")
-                ax.axvline(nom[col], color="k", lw=1.2, label="nominal (all dropped blocks as noise)")
-                ax.axvline(none[col], color="0.5", lw=1.0, ls="--", label="no equivalent noise")
-                ax.set_yticks(y)
-                ax.set_yticklabels(blocks, fontsize=8)
-                ax.invert_yaxis()
-                ax.set_xlabel(f"true {col} at {t_report / 60:g} min")
-                ax.set_title(f"filter {name}: {col.split(' [')[0]}")
-                ax.grid(True, axis="x", alpha=0.3)
-        h, lab = axes[0, 0].get_legend_handles_labels()
-        fig.legend(h, lab, loc="lower center", ncol=4, fontsize=8)
-        fig.suptitle("Dropped-state impact (D'Appolito state deletion, seed 002 ref [13])")
-        fig.tight_layout(rect=(0, 0.03, 1, 0.98))
-        return fig
-    return make
+def impact_figure(result):
+    """Per filter, CEP and altitude PE with each dropped block's noise alone / put back.
+
+    Parameters
+    ----------
+    result : covtool.results.ZuptFilterOrderResult
+        Its ``impact`` table and last report time.
+
+    Returns
+    -------
+    matplotlib.figure.Figure
+    """
+    table, t_report = result.tables["impact"], result.report_times[-1]
+    import matplotlib.pyplot as plt
+    tab = table[np.isclose(table["t [min]"], t_report / 60.0)]
+    names = list(dict.fromkeys(tab["filter"]))
+    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.2 + 2.6 * len(names)), squeeze=False)
+    for r, name in enumerate(names):
+        g = tab[tab["filter"] == name]
+        nom = g[g["variant"] == "nominal"].iloc[0]
+        none = g[g["variant"] == "no equivalent noise"].iloc[0]
+        blocks = list(dict.fromkeys(g.loc[g["block"] != "", "block"]))
+        y = np.arange(len(blocks))
+        for c, col in enumerate(("CEP [ft]", "alt PE [ft]")):
+            ax = axes[r, c]
+            only = [g[(g["block"] == b) & (g["variant"] == "noise from block only")][col].iloc[0] for b in blocks]
+            back = [g[(g["block"] == b) & (g["variant"] == "block put back")][col].iloc[0] for b in blocks]
+            ax.barh(y - 0.2, only, 0.4, label="(a) eq (11)-(13) noise of this block only")
+            ax.barh(y + 0.2, back, 0.4, label="(b) this block put back into the filter")
+            ax.axvline(nom[col], color="k", lw=1.2, label="nominal (all dropped blocks as noise)")
+            ax.axvline(none[col], color="0.5", lw=1.0, ls="--", label="no equivalent noise")
+            ax.set_yticks(y)
+            ax.set_yticklabels(blocks, fontsize=8)
+            ax.invert_yaxis()
+            ax.set_xlabel(f"true {col} at {t_report / 60:g} min")
+            ax.set_title(f"filter {name}: {col.split(' [')[0]}")
+            ax.grid(True, axis="x", alpha=0.3)
+    h, lab = axes[0, 0].get_legend_handles_labels()
+    fig.legend(h, lab, loc="lower center", ncol=4, fontsize=8)
+    fig.suptitle("Dropped-state impact (D'Appolito state deletion, seed 002 ref [13])")
+    fig.tight_layout(rect=(0, 0.03, 1, 0.98))
+    return fig

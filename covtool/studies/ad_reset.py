@@ -20,12 +20,14 @@ from __future__ import annotations
 import math
 from pathlib import Path
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
 
 from covtool.board import adreset, alignment as align, output_filter as of
-from covtool.results import StudyResult
+from covtool.plotting.ad_reset import ad_reset_figure, ratio_label
+from covtool.results import AdResetResult
 from covtool.studies.ad_reset_config import parse
 from covtool.units import from_si
 from covtool.version import __version__
@@ -123,8 +125,7 @@ def _pct(a, b):
     return 100.0 * (np.asarray(a, dtype=float) / np.asarray(b, dtype=float) - 1.0)
 
 
-def _ratio_label(r: float) -> str:
-    return f"{100 * r:g}%"
+_ratio_label = ratio_label
 
 
 # --------------------------------------------------------------------------- tables
@@ -184,22 +185,7 @@ def _fig3(p, d, tables, figs, charts):
                    "y_title": "n [samples]"})
     t = d["thresholds"]
 
-    def fig3():
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(7, 4.5))
-        for c, ls in zip(df.columns[1:], ("-", "-", "--", "--", ":")):
-            ax.plot(df["N_a [samples]"], df[c], ls, label=c.replace(" [samples]", ""))
-        for name, v in t.items():
-            ax.axvline(v, color="grey", lw=0.6)
-            ax.text(v, ax.get_ylim()[1], f" {name}", va="top", fontsize=8)
-        ax.set_xlabel("pulse period $N_a$ [samples]")
-        ax.set_ylabel("n [samples]")
-        ax.set_title("Fig 3: zero and extremum points of e[n] (eq 17-18)")
-        ax.legend(fontsize=8)
-        ax.grid(alpha=0.3)
-        return fig
-    figs["fig3"] = fig3
+    figs["fig3"] = {"kind": "fig3", "thresholds": {k: float(v) for k, v in t.items()}}
 
 
 def _table1_fig4(p, d, tables, figs, charts, summary, progress):
@@ -353,22 +339,7 @@ def _bode(p, d, tables, figs, charts):
                        "title": f"Bode magnitude: {', '.join(s[0] for s in systems)}",
                        "x_title": "frequency [Hz]", "y_title": "magnitude [dB]"})
 
-        def make(df=df, name=name):
-            import matplotlib.pyplot as plt
-
-            fig, (a1, a2) = plt.subplots(2, 1, figsize=(7, 5.5), sharex=True)
-            for col in df.columns[1:]:
-                (a1 if "magnitude" in col else a2).semilogx(df["frequency [Hz]"], df[col],
-                                                             label=col.split(" magnitude")[0].split(" phase")[0])
-            a1.set_ylabel("magnitude [dB]")
-            a2.set_ylabel("phase [deg]")
-            a2.set_xlabel("frequency [Hz]")
-            a1.set_title(name.replace("_", " "))
-            a1.legend(fontsize=8)
-            for a in (a1, a2):
-                a.grid(which="both", alpha=0.3)
-            return fig
-        figs[name] = make
+        figs[name] = {"kind": "bode"}
 
 
 def _register_extrema(name, df, xcol, unit, title, p, tables, figs, charts, *, ylabel, anchor, nav=False,
@@ -378,7 +349,8 @@ def _register_extrema(name, df, xcol, unit, title, p, tables, figs, charts, *, y
     ycols = [c for c in df.columns if c.startswith(("max", "min"))]
     charts.append({"sheet": name, "x": xcol, "y": ycols, "anchor": anchor, "title": title,
                    "x_title": xcol, "y_title": f"{ylabel} [{unit}]"})
-    figs[name] = lambda: _plot_extrema(df, xcol, p["ratios"], unit, title, ylabel, nav=nav, tag=tag)
+    figs[name] = {"kind": "extrema", "xcol": xcol, "ratios": list(p["ratios"]), "unit": unit, "title": title,
+                  "ylabel": ylabel, "nav": nav, "tag": tag}
 
 
 def _derived_table(p, d) -> pd.DataFrame:
@@ -421,7 +393,7 @@ def _derived_table(p, d) -> pd.DataFrame:
 # --------------------------------------------------------------------------- entry point
 
 
-def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> AdResetResult:
     """Run an ``ad_reset`` study.
 
     Parameters
@@ -435,7 +407,7 @@ def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> Stud
 
     Returns
     -------
-    StudyResult
+    AdResetResult
         Tables ``summary``, ``derived_parameters``, ``fig2``,
         ``fig2_amplitude``, ``fig3``, ``table1``, ``fig4``, ``table2``,
         ``table3``, ``fig5``, ``alignment_fine`` and Bode data; figures
@@ -457,32 +429,11 @@ def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> Stud
     sm["diff [%]"] = _pct(sm["covtool"], sm["paper"])
     out = {"summary": sm, "derived_parameters": _derived_table(p, d)}
     out.update(tables)
-    return StudyResult(
-        name=p["name"], kind=KIND, tables=out, figures=figs, resolved=decl, charts=charts,
+    result = AdResetResult(
+        name=p["name"], kind=KIND, tables=out, resolved=decl, charts=charts, figure_specs=figs,
         provenance={"covtool_version": __version__, "runtime_s": round(time.perf_counter() - t0, 3),
                     "study_file": str(path) if path else "<dict>"},
         data={"params": p, "derived": d},
     )
-
-
-def _plot_extrema(df, xcol, ratios, unit, title, ylabel, nav=False, tag=None):
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7, 4.5))
-    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for r, col in zip(ratios, colors):
-        lab = _ratio_label(r)
-        for kind in ("max", "min"):
-            ax.plot(df[xcol], df[f"{kind} {lab} [{unit}]"], "-", color=col,
-                    label=f"N_e = {lab} N_t" if kind == "max" else None)
-            if nav:
-                ax.plot(df[xcol], df[f"{kind} {lab} nav [{unit}]"], ":", color=col)
-            if tag:
-                ax.plot(df[xcol], df[f"{kind} {lab}{tag} [{unit}]"], ":", color=col)
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xlabel(xcol.replace("m/s^2", "m/s$^2$"))
-    ax.set_ylabel(f"{ylabel} [{unit}]".replace("m/s^2", "m/s$^2$"))
-    ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=8)
-    ax.grid(alpha=0.3)
-    return fig
+    result.figures = {name: partial(ad_reset_figure, result, name) for name in figs}
+    return result

@@ -201,6 +201,8 @@ class OutputSection(Section):
     history_every: Quantity("time", positive=True) = F("10 s", "Spacing of the rows of `history.csv`.")
     report_times: QuantityList("time", limit="report_times", nonnegative=True) | None = F(
         None, "Times of the summary rows, each within the study (default: the end).")
+    units: OneOf("ft", "m") = F("ft", "Length unit of the figures and workbook charts (seed 002's feet, or "
+                                      "metres); the tables keep both.")
 
 
 class OverrideEntry(Section):

@@ -79,15 +79,12 @@ from covtool.dualnav.run import as_runs, DualRun, DualSetup, ppm_text, run_dual
 from covtool.errors import InputError, StudyFileError
 from covtool.io.imu_log import check_imu_log
 from covtool.nav import attitude as quat, earth
+from covtool.plotting.dual_imu import DIFF_UNITS, dual_imu_figures
 from covtool.progress import progress_bar
-from covtool.results import StudyResult
+from covtool.results import DualImuResult
 from covtool.studies.dual_imu_config import DualConfig, parse_study, PPM_G
 from covtool.studies.inputs import input_file
 from covtool.validation.sensor_errors import GSensitiveErrors
-
-
-#: display units of the difference components
-DIFF_UNITS = {"pos": ("m", 1.0), "vel": ("m/s", 1.0), "att": ("mrad", 1e3)}
 
 
 def make_setup(cfg: DualConfig, initial: dict, where: str) -> DualSetup:
@@ -188,7 +185,7 @@ def _actual_gap_errors(bridged, removed):
     return rows
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path=None, progress: bool = False) -> DualImuResult:
     """Run a dual-IMU verification study; see the module docstring."""
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
@@ -283,7 +280,7 @@ def _run_rows(runs, label, cfg, truth=None):
     return pd.DataFrame(rows)
 
 
-def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
+def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> DualImuResult:
     free, fault = outcome["fault_free"], outcome["fault"]
     t_free = _run_rows(free, "fault-free", cfg)
     t_fault = _run_rows(fault, "g-sensitivity injected", cfg, cfg.fault)
@@ -353,16 +350,17 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
     tables["gaps"] = pd.DataFrame(gap_rows)
     tables["main_states"] = setup.main_model.state_table()
     tables["kimu_states"] = setup.kimu_model.state_table()
-    figures = _figures(cfg, free, fault)
-    return StudyResult(
-        name=cfg.name, kind="dual_imu", tables=tables, figures=figures,
+    result = DualImuResult(
+        name=cfg.name, kind="dual_imu", tables=tables,
         resolved={**decl, "study": {**decl.get("study", {}), "name": cfg.name}},
         provenance={**input_file("main_grade", cfg.grades["main"].path),
                     **input_file("kimu_grade", cfg.grades["kimu"].path),
                     "main_model_sha256": setup.main_model.sha256, "kimu_model_sha256": setup.kimu_model.sha256,
                     "joint_states": ref.model.n, "epochs": ref.t.size, "compute_seconds": f"{elapsed:.2f}"},
         data={"fault_free": free, "fault": fault, "trajectory": traj, "config": cfg, "setup": setup},
-    )
+        config=cfg, fault_free=list(free), fault=list(fault))
+    result.figures = dual_imu_figures(result)
+    return result
 
 
 # --------------------------------------------------------------------------
@@ -370,7 +368,7 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> StudyResult:
 # --------------------------------------------------------------------------
 
 
-def compare_logs(main_log, kimu_log, decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def compare_logs(main_log, kimu_log, decl: dict, *, path=None, progress: bool = False) -> DualImuResult:
     """The dual-IMU comparison of two recorded logs.
 
     Parameters
@@ -388,7 +386,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None, progress: bool = 
 
     Returns
     -------
-    StudyResult
+    DualImuResult
         Tables ``summary``, ``history``, ``gaps`` (every bridged interval),
         ``intervals`` (flagged spans), ``candidates``; figures.
 
@@ -459,88 +457,13 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None, progress: bool = 
                          "GLR": gs.glr[0]})
     tables = {"summary": summary, "history": _history(r, 0, "logs"), "gaps": gaps, "intervals": intervals,
               "candidates": cand}
-    return StudyResult(
+    result = DualImuResult(
         name=f"dualnav_{Path(main_log.path).stem}", kind="dualnav", tables=tables,
-        figures=_figures(cfg, [r], [], estimates=False, labels=("logs", "")),
+        config=cfg, fault_free=[r], fault=[], labels=("logs", ""), estimates=False,
         resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},
         provenance={**input_file("main_grade", cfg.grades["main"].path),
                     **input_file("kimu_grade", cfg.grades["kimu"].path), "compute_seconds": f"{elapsed:.2f}"},
         data={"run": r, "bridged": bridged, "config": cfg},
     )
-
-
-def _figures(cfg, free, fault, estimates=True, labels=("fault-free", "g-sensitivity injected")):
-    def fig_difference():
-        import matplotlib.pyplot as plt
-
-        comps = free[0].model.components if free else fault[0].model.components
-        fig, axs = plt.subplots(2, 3, figsize=(13, 7), sharex=True)
-        for k, c in enumerate(comps[-6:]):
-            ax = axs.flat[k]
-            name = DIFF_NAMES[c]
-            unit, scale = DIFF_UNITS[name[:3]]
-            ref = free[0] if free else fault[0]
-            ci = list(ref.model.components).index(c)
-            ax.fill_between(ref.t, -3 * scale * ref.envelope[:, ci], 3 * scale * ref.envelope[:, ci], color="0.85",
-                            label="±3σ predicted")
-            for runs, color, lab in ((free, "C0", labels[0]), (fault, "C3", labels[1])):
-                for r in runs[:1]:
-                    for i in range(min(3, r.z.shape[0])):
-                        ax.plot(r.t, scale * r.z[i, :, c], color=color, lw=0.8, label=lab if i == 0 else None)
-            ax.set_title(f"{name} (main − KIMU)")
-            ax.set_ylabel(f"[{unit}]")
-            ax.grid(True, alpha=0.3)
-        axs.flat[0].legend(fontsize=8)
-        for ax in axs[-1]:
-            ax.set_xlabel("time [s]")
-        fig.suptitle(f"{cfg.name}: navigation difference after mounting compensation vs predicted envelope")
-        fig.tight_layout()
-        return fig
-
-    def fig_window():
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(9, 4.5))
-        thr = None
-        for runs, color, lab in ((free, "0.6", labels[0]), (fault, "C3", labels[1])):
-            first = True
-            for r in runs:
-                W = r.window_stat.shape[1]
-                tt = r.t[r.t.size - W:]
-                for i in range(r.window_stat.shape[0]):
-                    ax.plot(tt, r.window_stat[i], color=color, lw=0.5, alpha=0.6, label=lab if first else None)
-                    first = False
-                thr = r.window_threshold
-        if thr is not None:
-            ax.axhline(thr, color="k", ls="--", label=f"threshold (α = {cfg.false_alarm:g} per flight)")
-        ax.set_yscale("log")
-        ax.set_xlabel("end of window [s]")
-        ax.set_ylabel(f"Σ NIS over {cfg.window:g} s")
-        ax.legend(fontsize=8)
-        ax.grid(True, alpha=0.3)
-        return fig
-
-    def fig_estimates():
-        import matplotlib.pyplot as plt
-
-        fig, ax = plt.subplots(figsize=(7, 4))
-        if fault:
-            c = fault[0].gsens.candidates.index((cfg.fault[0], cfg.fault[1]))
-            e = np.concatenate([r.gsens.estimate[:, c] for r in fault]) / PPM_G
-            k = cfg.fault[2] / PPM_G
-            ax.hist(e, bins=20, color="C3", alpha=0.7, label="fault runs")
-            ax.axvline(k, color="k", label="injected")
-            ax.axvspan(0.8 * k, 1.2 * k, color="C2", alpha=0.15, label="±20 %")
-        if free:
-            c = free[0].gsens.candidates.index((cfg.fault[0], cfg.fault[1])) if cfg.fault else 0
-            e = np.concatenate([r.gsens.estimate[:, c] for r in free]) / PPM_G
-            ax.hist(e, bins=20, color="0.5", alpha=0.7, label="fault-free runs")
-        ax.set_xlabel("estimated g-sensitive scale factor [ppm/g]")
-        ax.set_ylabel("flights")
-        ax.legend(fontsize=8)
-        return fig
-
-    figs = {"difference_envelope": fig_difference, "window_test": fig_window}
-    if cfg.fault and estimates:
-        figs["gsens_estimates"] = fig_estimates
-    return figs
+    result.figures = dual_imu_figures(result)
+    return result

@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import copy
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -57,8 +58,9 @@ from covtool.io.config import check_keys, choice, integer, names, table
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.noise import compose_noise
 from covtool.lincov.reduced import zupt_matrices
-from covtool.results import StudyResult
-from covtool.studies.inputs import study_header, study_inputs
+from covtool.plotting.budget import budget_figure, top_sources
+from covtool.results import ErrorBudgetResult
+from covtool.studies.inputs import length_unit, study_header, study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
@@ -138,7 +140,7 @@ def record_steps(t: np.ndarray, every: float, report_times) -> np.ndarray:
     return np.unique(np.r_[on, rep, t.size - 1]).astype(int)
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     """Run an error-budget study; see the module docstring."""
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
@@ -182,19 +184,40 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     for c in cases:
         provenance[f"{c}: sum-to-total residual (same Q_d)"] = f"{residuals[c]['same']:.3g}"
         provenance[f"{c}: sum vs nominal run residual"] = f"{residuals[c]['nominal']:.3g}"
-    order = {s.name: i for i, s in enumerate(sources)}
-    figures = {f"budget_{c}": _stack_figure(c, t[rec], var[c], runs[c].sources, order, opts["top"],
-                                            [] if c == PURE else S.update_steps, t)
-               for c in cases}
-    return StudyResult(
-        name=S.hdr["name"], kind="error_budget", tables=tables, figures=figures,
+    result = ErrorBudgetResult(
+        name=S.hdr["name"], kind="error_budget", tables=tables,
+        charts=budget_charts(cases, runs, var, opts["top"]),
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]},
                   "budget": {**decl.get("budget", {}), **opts}},
         provenance=provenance,
         data={"t": t, "record_steps": rec, "events": ev, "truth_system": truth, "noise": Qn, "runs": runs,
               "variances": var, "nominal": nominal, "residuals": residuals, "sources": sources, "factors": factors, "trajectory": nodes,
               "truth": truth_model, "setup": S},
-    )
+        times=t[rec], length_unit=length_unit(decl, where), update_times=t[S.update_steps], stops=S.stops,
+        variances=var, sources={c: [s.name for s in runs[c].sources] for c in cases},
+        source_order=[s.name for s in sources], top=opts["top"])
+    result.figures = {f"budget_{c}": partial(budget_figure, result, c) for c in cases}
+    return result
+
+
+def budget_charts(cases, runs, var, top: int) -> list[dict]:
+    """Workbook chart specs: per error and case, the total and the top sources on a log axis.
+
+    One series per source (variance contribution, not stacked), drawn
+    from the ``history_<error>`` sheets; the first record (t = 0, where
+    the noise sources are zero) is left out of the log axis.
+    """
+    charts = []
+    for k, e in enumerate(ERRORS):
+        si, unit = PAPER_UNITS[e]
+        for j, c in enumerate(cases):
+            idx = top_sources(var[c][e] / si**2, top)
+            ys = [f"total [{unit}^2]"] + [f"{runs[c].sources[i].name} [{unit}^2]" for i in idx]
+            charts.append({"sheet": f"history_{e}", "where": {"case": c}, "x": "t [min]", "y": ys, "skip": 1,
+                           "log_y": True, "title": f"{c}: {_ERROR_TITLES[e]}, variance by source (top {top})",
+                           "x_title": "time [min]", "y_title": f"variance [{unit}^2]",
+                           "target": "charts", "anchor": (1 + 19 * k, 1 + 12 * j)})
+    return charts
 
 
 def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec, *, P0=None):
@@ -344,86 +367,3 @@ def _source_table(sources, factors) -> pd.DataFrame:
         rows.append({"source": s.name, "kind": s.kind, "states": ", ".join(s.states),
                      "noise columns": factors[s.noise].G.shape[2] if s.noise is not None else 0})
     return pd.DataFrame(rows)
-
-
-def top_sources(v: np.ndarray, top: int) -> list[int]:
-    """Indices of the ``top`` sources with the largest peak share.
-
-    Parameters
-    ----------
-    v : ndarray, shape (B, n_rec)
-        Variance contributions over time.
-    top : int
-
-    Returns
-    -------
-    list of int
-        Sources ordered by the largest share of the total they reach at
-        any record time (times with a zero total are skipped); sources that
-        never contribute are left out.
-    """
-    tot = v.sum(axis=0)
-    pos = tot > 0
-    if not pos.any():
-        return []
-    peak = np.max(v[:, pos] / tot[pos], axis=1)
-    return [int(i) for i in np.argsort(-peak, kind="stable")[:top] if peak[i] > 0]
-
-
-def _palette(k: int):
-    import matplotlib.pyplot as plt
-
-    cols = [plt.get_cmap(nm)(i) for nm in ("tab20", "tab20b", "tab20c") for i in range(20)]
-    return cols[k % len(cols)]
-
-
-def _windows(t, upd):
-    """ZUPT windows ``[(first, last)]`` [min] from the update steps."""
-    if not len(upd):
-        return []
-    tu = t[np.asarray(upd)]
-    cut = np.flatnonzero(np.diff(tu) > 2 * (t[1] - t[0])) + 1
-    return [(g[0] / 60.0, g[-1] / 60.0) for g in np.split(tu, cut)]
-
-
-def _stack_figure(case, t_rec, var, sources, order, top, upd, t):
-    """Stacked variance contributions and shares, per error."""
-    def make():
-        import matplotlib.pyplot as plt
-
-        fig, axs = plt.subplots(3, 2, figsize=(15, 11), sharex=True, gridspec_kw={"width_ratios": [3, 2]})
-        tm = t_rec / 60.0
-        wins = _windows(t, upd)
-        for row, e in zip(axs, ERRORS):
-            si, unit = PAPER_UNITS[e]
-            v = var[e] / si**2
-            idx = top_sources(v, top)
-            rest = [i for i in range(len(sources)) if i not in idx]
-            ys = [np.clip(v[i], 0, None) for i in idx]
-            labels = [sources[i].name for i in idx]
-            colors = [_palette(order[sources[i].name]) for i in idx]
-            if rest:
-                ys.append(np.clip(v[rest].sum(axis=0), 0, None))
-                labels.append(f"other ({len(rest)} sources)")
-                colors.append("0.8")
-            tot = np.sum(ys, axis=0)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                pct = [np.where(tot > 0, 100.0 * y / tot, 0.0) for y in ys]
-            row[0].stackplot(tm, *ys, labels=labels, colors=colors)
-            row[1].stackplot(tm, *pct, colors=colors)
-            row[0].set_ylabel(f"variance [{unit}²]")
-            row[1].set_ylabel("share of variance [%]")
-            row[1].set_ylim(0, 100)
-            row[0].set_title(f"{case}: {_ERROR_TITLES[e]}")
-            for ax in row:
-                for a, b in wins:
-                    ax.axvspan(a, max(b, a + 0.05), color="k", alpha=0.12, lw=0)
-                ax.grid(True, alpha=0.3)
-            row[0].legend(loc="upper left", fontsize=7, ncol=2)
-        for ax in axs[-1]:
-            ax.set_xlabel("time [min]")
-        title = f"Error budget, {case}: variance contributions (the {top} sources with the largest peak share)"
-        fig.suptitle(title + ("; grey bands: ZUPT windows" if wins else ""))
-        fig.tight_layout()
-        return fig
-    return make

@@ -230,11 +230,35 @@ def load_trajectory(decl, where, base_dir, dt, duration=None):
     return traj
 
 
+#: ``[output] units``: the length unit of figures and charts (the paper's feet, or metres)
+LENGTH_UNITS = {"ft": 0.3048, "m": 1.0}
+
+
+def length_unit(decl, where, default: str = "ft") -> str:
+    """``[output] units``: ``"ft"`` (seed 002's unit, the default) or ``"m"``.
+
+    Figures and workbook charts of a study draw every length in this unit;
+    tables keep both.
+
+    Raises
+    ------
+    StudyFileError
+        Not one of ``"ft"``, ``"m"``.
+    """
+    out = decl.get("output", {})
+    u = out.get("units", default) if isinstance(out, dict) else default
+    if u not in LENGTH_UNITS:
+        raise StudyFileError(f"{where}: [output] units", f"{u!r} is not a length unit for figures "
+                             f"(one of: {', '.join(LENGTH_UNITS)})")
+    return u
+
+
 def output_options(decl, where, duration):
     from covtool.studies.config import OutputSection, parse_section
 
     out = decl.get("output", {})
     sec = parse_section(OutputSection, out, where, "output")
+    length_unit(decl, where)
     # any spacing is bounded: the history never holds more rows than grid steps
     return sec.history_every, report_times(out, where, duration, sec.report_times)
 

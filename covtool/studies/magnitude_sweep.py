@@ -46,6 +46,7 @@ and every sweep point is a member of one batched engine call per filter
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -58,10 +59,10 @@ from covtool.lincov.impact import check_members
 from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transition, restricted_noise
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.magnitude_sweep import sweep_figure
-from covtool.results import StudyResult
+from covtool.results import MagnitudeSweepResult
 from covtool.studies.resources import progress_bar
 from covtool.studies.zupt_setup import setup
-from covtool.units import ARCMIN, FT
+from covtool.units import ARCMIN, FT, si_unit
 
 
 def sweep_options(decl: dict, where: str, truth) -> dict:
@@ -118,7 +119,7 @@ def sweep_options(decl: dict, where: str, truth) -> dict:
     return {"groups": out, "threshold": float(thr)}
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path=None, progress: bool = False) -> MagnitudeSweepResult:
     """Run a magnitude sweep; see the module docstring."""
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
@@ -202,13 +203,25 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         a = mets["A"][b]
         for name in S.cases:
             m = mets[name][b]
-            rows.append({"group": gname, "magnitude": text, "magnitude [SI]": v, "filter": name,
+            rows.append({"group": gname, "magnitude": text, "magnitude, SI value": v,
+                         "SI unit": si_unit({g["name"]: g["unit_text"] for g in opts["groups"]}[gname]),
+                         "filter": name,
                          "states": S.specs[name].n,
                          "CEP [ft]": m["cep"][k_last] / FT, "alt PE [ft]": m["alt_pe"][k_last] / FT,
                          "azimuth 1sigma [arcmin]": m["sigma_azimuth"][k_last] / ARCMIN,
                          "CEP / A [-]": m["cep"][k_last] / a["cep"][k_last],
                          "alt PE / A [-]": m["alt_pe"][k_last] / a["alt_pe"][k_last]})
     sweep = pd.DataFrame(rows)
+    # one group, then one filter, in contiguous rows: a workbook chart series per filter
+    gpos = {g["name"]: i for i, g in enumerate(opts["groups"])}
+    fpos = {c: i for i, c in enumerate(S.cases)}
+    sweep = sweep.iloc[np.lexsort((sweep["magnitude, SI value"].to_numpy(), sweep["filter"].map(fpos).to_numpy(),
+                                   sweep["group"].map(gpos).to_numpy()))].reset_index(drop=True)
+    charts = [{"sheet": "sweep", "where": {"group": g["name"]}, "group": "filter", "x": "magnitude, SI value",
+               "y": ["CEP / A [-]"], "log_x": True, "marker": "circle", "target": "charts", "anchor": (1 + 19 * k, 1),
+               "title": f"{g['name']}: true CEP / CEP of filter A at the report time, per filter",
+               "x_title": f"{g['name']} 1sigma [{si_unit(g['unit_text'])}]", "y_title": "CEP / CEP_A [-]"}
+              for k, g in enumerate(opts["groups"])]
     thresholds = threshold_table(sweep, opts["threshold"], [g["name"] for g in opts["groups"]],
                                  [c for c in S.cases if c != "A"], truth, opts)
     elapsed = time.perf_counter() - t_start
@@ -216,11 +229,14 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                   "filter_file": ", ".join(map(str, S.filter_files)), "zupt_updates": int(len(S.update_steps)),
                   "threshold CEP / A": opts["threshold"], "members per filter": B,
                   "compute_seconds": f"{elapsed:.2f}"}
-    return StudyResult(
+    result = MagnitudeSweepResult(
         name=S.hdr["name"], kind="magnitude_sweep", tables={"summary": thresholds, "sweep": sweep},
-        figures={"magnitude_sweep": sweep_figure(sweep, opts, truth)},
-        resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
-        data={"setup": S, "results": results, "members": members, "metrics": mets, "report_steps": rep})
+        resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance, charts=charts,
+        data={"setup": S, "results": results, "members": members, "metrics": mets, "report_steps": rep},
+        sweep=sweep, groups=list(opts["groups"]), threshold=opts["threshold"],
+        declared={g["name"]: truth.states[truth.index[g["states"][0]]].sigma for g in opts["groups"]})
+    result.figures = {"magnitude_sweep": partial(sweep_figure, result)}
+    return result
 
 
 def _key(options):
@@ -239,22 +255,23 @@ def threshold_table(sweep: pd.DataFrame, thr: float, groups, filters, truth, opt
     for gi, g in enumerate(groups):
         decl_sig = {truth.states[truth.index[n]].sigma for n in opts["groups"][gi]["states"]}
         for f in filters:
-            s = sweep[(sweep["group"] == g) & (sweep["filter"] == f)].sort_values("magnitude [SI]")
-            x, r = s["magnitude [SI]"].to_numpy(), s["CEP / A [-]"].to_numpy()
+            s = sweep[(sweep["group"] == g) & (sweep["filter"] == f)].sort_values("magnitude, SI value")
+            x, r = s["magnitude, SI value"].to_numpy(), s["CEP / A [-]"].to_numpy()
             above = np.flatnonzero(r >= thr)
             row = {"group": g, "filter": f, "threshold CEP / A": thr,
-                   "declared magnitude [SI]": ", ".join(f"{v:.4g}" for v in sorted(decl_sig)),
+                   "declared magnitude, SI value": ", ".join(f"{v:.4g}" for v in sorted(decl_sig)),
+                   "SI unit": si_unit(opts["groups"][gi]["unit_text"]),
                    "CEP / A at smallest [-]": r[0], "CEP / A at largest [-]": r[-1]}
             if above.size == 0:
-                row["crossing [SI]"] = np.inf
+                row["crossing, SI value"] = np.inf
                 row["crossing"] = f"beyond the sweep (> {s['magnitude'].iloc[-1]})"
             elif above[0] == 0:
-                row["crossing [SI]"] = 0.0
+                row["crossing, SI value"] = 0.0
                 row["crossing"] = f"below the sweep (<= {s['magnitude'].iloc[0]})"
             else:
                 i = above[0]
                 lx = np.log(x[i - 1]) + (thr - r[i - 1]) / (r[i] - r[i - 1]) * (np.log(x[i]) - np.log(x[i - 1]))
-                row["crossing [SI]"] = float(np.exp(lx))
+                row["crossing, SI value"] = float(np.exp(lx))
                 unit = opts["groups"][gi]["unit_text"]
                 if unit:
                     from covtool.units import from_si

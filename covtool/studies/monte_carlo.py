@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import math
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -65,12 +66,13 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.nav.coning import MAX_SAMPLES
 from covtool.nav.strapdown import NAV_STATES
-from covtool.results import StudyResult
-from covtool.studies.inputs import study_header, study_inputs
+from covtool.plotting.monte_carlo import case_figure, nees_figure, ratio_figure
+from covtool.results import MonteCarloResult
+from covtool.studies.inputs import length_unit, study_header, study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, resource_provenance, run_in_chunks
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
-from covtool.units import ARCMIN, FT
+from covtool.units import ARCMIN
 from covtool.validation.feedback import FeedbackFilter
 from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, simulate_chunk
 from covtool.version import __version__
@@ -178,7 +180,7 @@ def _mean(s: EnsembleSums, quantity: str) -> np.ndarray:
 
 
 def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=None,
-        resume: bool = False) -> StudyResult:
+        resume: bool = False) -> MonteCarloResult:
     """Run a Monte Carlo validation study; see the module docstring.
 
     Parameters
@@ -400,11 +402,6 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     settings["value"] = settings["value"].astype(str)
     tables = {"summary": summary, "comparison": comparison, "nees": nees_table, "history": history,
               "settings": settings}
-    upd_t = t[S.update_steps]
-    zupt_marks = np.unique(np.round(upd_t[np.r_[True, np.diff(upd_t) > 2 * dt]]))
-    figures = {f"mc_{c}": _case_figure(c, t, band[c], zupt_marks, N, conf) for c in names}
-    figures["mc_ratio"] = _ratio_figure(names, t, band, N, conf)
-    figures["mc_nees"] = _nees_figure(names, t, nees_stats, N, conf)
     provenance = {**study_inputs(path, decl, truth, S.filter_files), **resource_provenance(S.resources),
                   "truth_model": truth.name, "truth_model_sha256": truth.sha256,
                   "runs": N, "chunks": len(sizes), "seed": opt["seed"], "imu_rate_hz": opt["imu_rate"],
@@ -413,14 +410,21 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                   "compute_seconds": f"{elapsed:.2f}", "monte_carlo_seconds": f"{stats['seconds']:.2f}",
                   "result_store": str(store) if store is not None else "",
                   "result_store_checks": store_checks(rs, stats)}
-    return StudyResult(
-        name=S.hdr["name"], kind="monte_carlo", tables=tables, figures=figures,
+    result = MonteCarloResult(
+        name=S.hdr["name"], kind="monte_carlo", tables=tables,
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
         charts=[{"sheet": "history", "x": "t [min]", "y": ["horizontal RMS MC [m]", "horizontal sigma linear [m]"],
-                 "title": "Horizontal RMS (Monte Carlo) and linear sigma, all cases stacked", "y_title": "m",
+                 "group": "case", "log_y": True, "x_title": "time [min]",
+                 "title": "Horizontal RMS (Monte Carlo) and linear sigma, per case", "y_title": "horizontal [m]",
                  "anchor": "B2", "target": "summary"}],
         data={"t": t, "sums": sums, "linear": lin, "claimed": claimed, "cases": cases, "bands": band,
-              "nees": nees_stats, "options": opt, "stats": stats, "filter_check": pf_check})
+              "nees": nees_stats, "options": opt, "stats": stats, "filter_check": pf_check},
+        times=t, cases=list(names), bands=band, nees=nees_stats, runs=N, confidence=conf,
+        update_times=t[S.update_steps], stops=S.stops, length_unit=length_unit(decl, S.where))
+    result.figures = {f"mc_{c}": partial(case_figure, result, c) for c in names}
+    result.figures["mc_ratio"] = partial(ratio_figure, result)
+    result.figures["mc_nees"] = partial(nees_figure, result)
+    return result
 
 
 def _trajectory(decl, where, path):
@@ -428,96 +432,3 @@ def _trajectory(decl, where, path):
 
     hdr = study_header(decl, where)
     return load_trajectory(decl, where, path.parent if path else None, hdr["dt"], hdr["duration"])
-
-
-_LABELS = {"horizontal": "horizontal position (radial)", "altitude": "altitude", "azimuth": "azimuth"}
-
-
-def _case_figure(case, t, band, zupt_marks, N, conf):
-    def make():
-        import matplotlib.pyplot as plt
-
-        fig, axs = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
-        tm = t / 60.0
-        for ax, (q, unit, f) in zip(axs, COMPARED):
-            x, sig, lo, hi = band[q]
-            scale = f if q == "azimuth" else FT
-            u = "arcmin" if q == "azimuth" else "ft"
-            ax.fill_between(tm, lo / scale, hi / scale, color="C0", alpha=0.25, lw=0,
-                            label=f"{100 * conf:g} % χ² bounds of σ (N = {N})")
-            ax.plot(tm, sig / scale, "C0", lw=1.2, label="linear covariance σ")
-            ax.plot(tm, x / scale, "C3", lw=0.9, label="Monte Carlo RMS")
-            for z in zupt_marks:
-                ax.axvline(z / 60, color="0.7", lw=0.6, ls=":")
-            ax.set_ylabel(f"{_LABELS[q]} [{u}]")
-            ax.grid(True, alpha=0.3)
-            if q != "azimuth" and np.nanmax(sig) / max(np.nanmin(sig[1:]), 1e-300) > 100:
-                ax.set_yscale("log")
-        axs[0].legend(fontsize=8)
-        axs[-1].set_xlabel("time [min]")
-        fig.suptitle(f"{case}: Monte Carlo RMS against the linear covariance analysis (dotted: ZUPT stops)")
-        fig.tight_layout()
-        return fig
-    return make
-
-
-def _ratio_figure(names, t, band, N, conf):
-    def make():
-        import matplotlib.pyplot as plt
-
-        fig, axs = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
-        tm = t / 60.0
-        for ax, (q, _, _) in zip(axs, COMPARED):
-            for i, c in enumerate(names):
-                x, sig, lo, hi = band[c][q]
-                with np.errstate(invalid="ignore", divide="ignore"):
-                    ax.plot(tm[1:], (x / sig)[1:], f"C{i}", lw=0.9, label=c)
-                    if i == 0 or q == "horizontal":
-                        ax.plot(tm[1:], (lo / sig)[1:], f"C{i}" if q == "horizontal" else "k", ls="--", lw=0.6)
-                        ax.plot(tm[1:], (hi / sig)[1:], f"C{i}" if q == "horizontal" else "k", ls="--", lw=0.6)
-            ax.axhline(1.0, color="k", lw=0.5)
-            ax.set_ylabel(f"{_LABELS[q]}: RMS / σ")
-            ax.grid(True, alpha=0.3)
-        axs[0].legend(ncol=len(names), fontsize=8)
-        axs[-1].set_xlabel("time [min]")
-        fig.suptitle(f"Monte Carlo RMS / linear σ, N = {N}; dashed: {100 * conf:g} % χ² bounds")
-        fig.tight_layout()
-        return fig
-    return make
-
-
-def _nees_figure(names, t, nees_stats, N, conf):
-    def make():
-        import matplotlib.pyplot as plt
-
-        keys = ("truth", "filter", "filter_nav")
-        titles = {"truth": "navigation errors vs the linear truth covariance (eq (15)-(16)); band: χ² bounds of d",
-                  "filter": "filter states vs the filter's claimed P_f; dotted: linear prediction, dashed: its bounds",
-                  "filter_nav": "navigation errors vs the filter's claimed P_f; dotted: linear prediction"}
-        fig, axs = plt.subplots(3, 1, figsize=(9, 10), sharex=True)
-        for ax, key in zip(axs, keys):
-            for i, c in enumerate(names):
-                if (c, key) not in nees_stats:
-                    continue
-                spec, mean, lo, hi, _, pred = nees_stats[(c, key)]
-                tm = t[spec.steps] / 60.0
-                d = spec.dof
-                ax.plot(tm, mean / d, f"C{i}", lw=1.0, label=f"{c} (d = {int(np.median(d))})")
-                if pred is not None:
-                    ax.plot(tm, pred[0] / d, f"C{i}", ls=":", lw=1.2)
-                    ax.plot(tm, pred[1] / d, f"C{i}", ls="--", lw=0.5)
-                    ax.plot(tm, pred[2] / d, f"C{i}", ls="--", lw=0.5)
-                if i == 0 or key != "truth":
-                    ax.fill_between(tm, lo / d, hi / d, color="0.5", alpha=0.15, lw=0)
-            ax.axhline(1.0, color="k", lw=0.5)
-            ax.set_yscale("log")
-            ax.set_ylabel("mean NEES / d")
-            ax.set_title(titles[key], fontsize=9)
-            ax.grid(True, which="both", alpha=0.3)
-            if ax.has_data():
-                ax.legend(fontsize=8, ncol=4)
-        axs[-1].set_xlabel("time [min]")
-        fig.suptitle(f"Average NEES over N = {N} runs; grey: {100 * conf:g} % χ² bounds of a consistent covariance")
-        fig.tight_layout()
-        return fig
-    return make

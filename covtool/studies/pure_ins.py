@@ -26,6 +26,7 @@ Study file::
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -34,15 +35,18 @@ from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys
 from covtool.lincov.reference import propagate
-from covtool.results import StudyResult
+from covtool.lincov.history import CovarianceHistory
+from covtool.plotting.navigation import pure_ins_figure
+from covtool.results import PureInsResult
 from covtool.studies.grid import initial_covariance, time_grid, truth_system
-from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
+from covtool.studies.inputs import (length_unit, load_trajectory, load_truth, output_options, study_header,
+                                    study_inputs)
 from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
                                        steps_of)
 from covtool.studies.tables import case_validity, history_frame, summary_row
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path=None, progress: bool = False) -> PureInsResult:
     """Run a pure-INS covariance study; see the module docstring."""
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
@@ -71,35 +75,17 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     elapsed = time.perf_counter() - t0
     tables = {"summary": summary, "history": hist, "truth_states": truth.state_table()}
 
-    def fig_position():
-        import matplotlib.pyplot as plt
-        fig, axs = plt.subplots(3, 1, figsize=(8, 9), sharex=True)
-        tm = t / 60
-        axs[0].plot(tm, m["cep"], label="CEP")
-        axs[0].plot(tm, m["sigma_north"], "--", label="σ north")
-        axs[0].plot(tm, m["sigma_east"], ":", label="σ east")
-        axs[0].set_ylabel("horizontal position [m]")
-        axs[0].legend()
-        axs[1].plot(tm, m["sigma_down"], label="σ altitude")
-        axs[1].set_ylabel("altitude error 1σ [m]")
-        axs[2].plot(tm, m["sigma_azimuth"] * 180 / np.pi * 60, label="azimuth")
-        axs[2].plot(tm, m["sigma_tilt_n"] * 180 / np.pi * 60, "--", label="north tilt")
-        axs[2].plot(tm, m["sigma_tilt_e"] * 180 / np.pi * 60, ":", label="east tilt")
-        axs[2].set_ylabel("attitude error 1σ [arcmin]")
-        axs[2].set_xlabel("time [min]")
-        axs[2].legend()
-        for a in axs:
-            a.grid(True, alpha=0.3)
-        fig.suptitle(f"{hdr['name']}: pure INS, truth model {truth.name}")
-        return fig
-
-    return StudyResult(
-        name=hdr["name"], kind="pure_ins", tables=tables, figures={"pure_ins_errors": fig_position},
+    unit = length_unit(decl, where)
+    result = PureInsResult(
+        name=hdr["name"], kind="pure_ins", tables=tables,
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}},
         provenance={**study_inputs(path, decl, truth), "truth_model": truth.name,
                     "truth_model_sha256": truth.sha256, "states": truth.n, **resource_provenance(est),
                     "compute_seconds": f"{elapsed:.2f}"},
-        charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [m]", "sigma_D [m]"],
-                 "title": "Pure INS position error", "y_title": "[m]", "anchor": "R2"}],
+        charts=[{"sheet": "history", "x": "t [min]", "y": [f"CEP [{unit}]", f"alt PE [{unit}]"], "log_y": True,
+                 "skip": 1, "x_title": "time [min]", "title": "Pure INS position error",
+                 "y_title": f"position error [{unit}]", "anchor": "R2"}],
         data={"t": t, "P": P, "metrics": m, "trajectory": nodes, "model": truth},
-    )
+        times=t, metrics=m, length_unit=unit, history=CovarianceHistory(t, truth.names, P, label="pure INS").nav())
+    result.figures = {"pure_ins_errors": partial(pure_ins_figure, result)}
+    return result

@@ -68,6 +68,7 @@ import math
 import os
 from pathlib import Path
 import time
+from functools import partial
 import warnings
 
 import numpy as np
@@ -80,7 +81,8 @@ from covtool.io.filters import load_filters
 from covtool.io.names import check_name
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.reduced import zupt_matrices
-from covtool.results import StudyResult
+from covtool.plotting.trade_grid import trade_figure
+from covtool.results import TradeGridResult
 from covtool.studies.grid import check_step_motion, time_grid
 from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_header, study_inputs,
                                     trajectory_csv_sha256)
@@ -463,7 +465,7 @@ def compute_chunk(task: dict) -> dict:
 # --------------------------------------------------------------------------
 
 def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=None,
-        resume: bool = False) -> StudyResult:
+        resume: bool = False) -> TradeGridResult:
     """Run a trade grid; see the module docstring.
 
     Parameters
@@ -508,12 +510,14 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                                                                    for f in r.get("reused_truth_phi", [])})) or "none",
                   "result_store": str(store) if store is not None else "",
                   "result_store_checks": store_checks(rs, stats)}
-    return StudyResult(
+    result = TradeGridResult(
         name=plan.hdr["name"], kind="trade_grid", tables=tables,
-        figures={"trade_grid": lambda: trade_figure(summary, plan)},
         resolved={**decl, "study": {**decl["study"], "name": plan.hdr["name"]}}, provenance=provenance,
         data={"plan": plan, "stats": stats, "timing": timing},
-    )
+        nominal=nominal(summary, plan), grades=[{"name": g["name"], "scale": g["scale"]} for g in plan.grades],
+        filters=list(plan.filters), duration=plan.hdr["duration"])
+    result.figures = {"trade_grid": partial(trade_figure, result)}
+    return result
 
 
 def _local_workers(backend) -> int:
@@ -601,30 +605,3 @@ def _grid_table(plan: TradePlan) -> pd.DataFrame:
     rows = [{"axis": a, "values": ", ".join(map(str, v)), "count": len(v)} for a, v in axes]
     rows.append({"axis": "cases", "values": "product of the above", "count": plan.n_cases})
     return pd.DataFrame(rows)
-
-
-def trade_figure(summary: pd.DataFrame, plan: TradePlan):
-    """CEP and altitude PE against ZUPT interval, a panel per grade."""
-    import matplotlib.pyplot as plt
-
-    nom = nominal(summary, plan)
-    ng = len(plan.grades)
-    fig, axes = plt.subplots(2, ng, figsize=(3.6 * ng + 1, 7), squeeze=False, sharex=True)
-    for j, g in enumerate(plan.grades):
-        d = nom[nom["grade"] == g["name"]]
-        for f in plan.filters:
-            df = d[d["filter"] == f].sort_values("ZUPT interval [min]")
-            axes[0, j].plot(df["ZUPT interval [min]"], df["CEP [ft]"], marker="o", ms=3, label=f)
-            axes[1, j].plot(df["ZUPT interval [min]"], df["alt PE [ft]"], marker="o", ms=3, label=f)
-        axes[0, j].set_title(f"{g['name']} (sensor errors ×{g['scale']:g})")
-        axes[1, j].set_xlabel("ZUPT interval [min]")
-        for ax in axes[:, j]:
-            ax.set_yscale("log")
-            ax.grid(True, which="both", alpha=0.3)
-    axes[0, 0].set_ylabel("horizontal CEP [ft]")
-    axes[1, 0].set_ylabel("altitude PE [ft]")
-    axes[0, 0].legend(fontsize=8)
-    tm = nom["t [min]"].max() if len(nom) else plan.hdr["duration"] / 60
-    fig.suptitle(f"Trade grid at {tm:g} min: filter × ZUPT interval × IMU grade (nominal tuning)")
-    fig.tight_layout()
-    return fig

@@ -31,6 +31,7 @@ Study file::
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -42,15 +43,17 @@ from covtool.lincov.kalman import running_scale
 from covtool.lincov.reduced import ewn_navigation_effect, zupt_matrices
 from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.plotting.zupt_filter_order import impact_figure
-from covtool.results import StudyResult
-from covtool.studies.inputs import study_inputs
+from covtool.lincov.history import CovarianceHistory
+from covtool.plotting.navigation import error_history_figure
+from covtool.results import ZuptFilterOrderResult
+from covtool.studies.inputs import length_unit, study_inputs
 from covtool.studies.resources import progress_bar, resource_provenance
 from covtool.studies.tables import case_validity, history_frame, summary_row
 from covtool.studies.zupt_setup import order_memory, setup, ZuptSetup
-from covtool.units import ARCMIN, FT
+from covtool.units import ARCMIN, FT, si_unit
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResult:
     """Run the filter-order trade; see the module docstring."""
     t_start = time.perf_counter()
     pure = (decl.get("filters") or {}).get("pure_ins", True) if isinstance(decl.get("filters", {}), dict) else True
@@ -63,14 +66,14 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     cases, every, rtimes, ffile = S.cases, S.every, S.report_times, S.filter_files
     dt_s, zsig, mean_speed = S.zupt_interval, S.zupt_sigma, S.mean_speed
     fcfg = decl.get("filters", {})
-    metrics, runs, fmodels, claimed = {}, {}, {}, {}
+    metrics, runs, fmodels, claimed, claimed_hist = {}, {}, {}, {}, {}
     # the filter-claimed values are reported at the report times only: computed there (exact CEP is costly)
     rsteps = np.array([int(np.argmin(np.abs(t - tr))) for tr in rtimes], int)
     where = S.where
+    P_pure = None
     if fcfg.get("pure_ins", True):
-        metrics["pure_ins"] = nav_metrics(propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names,
-                                                    times=t, system_checked=True),
-                                          nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+        P_pure = propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names, times=t, system_checked=True)
+        metrics["pure_ins"] = nav_metrics(P_pure, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
     with progress_bar(len(cases), "filters", progress) as bar:
         for c in cases:
             spec = S.specs[c]
@@ -81,6 +84,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                                          names=truth.names, filter_names=fm.names, system_checked=True)
             runs[c], fmodels[c] = run_, fm
             metrics[c] = nav_metrics(run_.P_truth, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+            claimed_hist[c] = run_.filter_history().nav()         # the filter's eq (14) block, by name
             claimed[c] = nav_metrics(run_.P_filter[rsteps, :10, :10], nodes.lat[rsteps], nodes.h[rsteps],
                                      nodes.q_nb[rsteps], nodes.distance[rsteps],
                                      scale=running_scale(run_.P_filter[:, :10, :10])[rsteps])
@@ -114,58 +118,49 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         for nm, s0 in zip(fm.names, sig0):
             st = truth.states[truth.index[nm]]
             fstates.append({"filter": c, "state": nm, "symbol": st.symbol, "unit": st.unit,
-                            "P0 1sigma [SI]": s0, "process": st.process,
+                            "P0 1sigma, SI value": s0, "SI unit": si_unit(st.unit), "process": st.process,
                             "options": f"coriolis={fm.spec.options.coriolis}, "
                                        f"vertical_coupled={fm.spec.options.couple_vertical}"})
     tables = {"summary": summary, "history": hist, "truth_states": truth.state_table(),
               "filter_states": pd.DataFrame(fstates)}
     if len(ewn):
         tables["equivalent_noise"] = ewn
-    figures = {}
     t_imp = time.perf_counter()
     if imp_filters:
         with progress_bar(len(imp_filters), "dropped-state impact", progress) as bar:
             tables["impact"] = impact_table(S, imp_filters, metrics, bar)
-        figures["impact_dropped_states"] = impact_figure(tables["impact"], S.report_times[-1])
     t_imp = time.perf_counter() - t_imp
-    upd_t = t[upd]
-    zupt_marks = np.unique(np.round(upd_t[np.r_[True, np.diff(upd_t) > 2 * hdr["dt"]]]))
-
-    def fig(kind):
-        def make():
-            import matplotlib.pyplot as plt
-            fig, ax = plt.subplots(figsize=(9, 5))
-            for c, m in metrics.items():
-                y = m["cep"] / FT if kind == "horizontal" else m["alt_pe"] / FT
-                ax.plot(t / 60, y, label=c, lw=1.2)
-            for z in zupt_marks:
-                ax.axvline(z / 60, color="0.7", lw=0.6, ls=":")
-            ax.set_yscale("log")
-            ax.set_ylim(bottom=1.0)
-            ax.set_xlabel("time [min]")
-            ax.set_ylabel("horizontal CEP [ft]" if kind == "horizontal" else "altitude PE [ft]")
-            ax.set_title(("Fig 6: horizontal position error" if kind == "horizontal" else
-                          "Fig 7: altitude error") + " by filter model (dotted: ZUPT stops)")
-            ax.grid(True, which="both", alpha=0.3)
-            ax.legend(ncol=4)
-            return fig
-        return make
-
     provenance = {**study_inputs(path, decl, truth, ffile), "truth_model": truth.name,
                   "truth_model_sha256": truth.sha256, "zupt_updates": int(len(upd)), "zupt_interval_s": dt_s,
                   "zupt_sigma_m_s": zsig, "mean_moving_speed_m_s": mean_speed, **resource_provenance(S.resources),
                   "compute_seconds": f"{elapsed:.2f}", "impact_compute_seconds": f"{t_imp:.2f}"}
-    return StudyResult(
+    unit = length_unit(decl, where)
+    histories = {}
+    if "pure_ins" in metrics:
+        histories["pure_ins"] = CovarianceHistory(t, truth.names, P_pure, label="pure INS").nav()
+    for c, r_ in runs.items():
+        histories[c] = r_.truth_history().nav()
+    result = ZuptFilterOrderResult(
         name=hdr["name"], kind="zupt_filter_order", tables=tables,
-        figures={"fig6_horizontal_cep": fig("horizontal"), "fig7_altitude_pe": fig("altitude"), **figures},
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}}, provenance=provenance,
-        charts=[{"sheet": "history", "x": "t [min]", "y": ["CEP [ft]"], "title": "CEP (all cases, stacked rows)",
-                 "y_title": "ft", "anchor": "S2"}],
+        charts=[{"sheet": "history", "x": "t [min]", "y": [f"CEP [{unit}]"], "group": "case", "log_y": True,
+                 "skip": 1, "title": "Fig 6: horizontal CEP by filter model", "x_title": "time [min]",
+                 "y_title": f"horizontal CEP [{unit}]", "anchor": "S2"},
+                {"sheet": "history", "x": "t [min]", "y": [f"alt PE [{unit}]"], "group": "case", "log_y": True,
+                 "skip": 1, "title": "Fig 7: altitude PE by filter model", "x_title": "time [min]",
+                 "y_title": f"altitude PE [{unit}]", "anchor": "S22"}],
         data={"t": t, "runs": runs, "filters": fmodels, "metrics": metrics, "claimed": claimed,
               "claimed_steps": rsteps,
               "update_steps": upd, "trajectory": nodes, "truth": truth, "P0": P0, "Phi": Phi, "Qd": Qd,
               "H": H, "R": R},
-    )
+        times=t, metrics=metrics, length_unit=unit, update_times=t[upd], stops=S.stops,
+        histories=histories, claimed=claimed_hist,
+        claimed_metrics=claimed, report_times=list(rtimes))
+    result.figures = {"fig6_horizontal_cep": partial(error_history_figure, result, "horizontal"),
+                      "fig7_altitude_pe": partial(error_history_figure, result, "altitude")}
+    if "impact" in tables:
+        result.figures["impact_dropped_states"] = partial(impact_figure, result)
+    return result
 
 
 def equivalent_noise_table(S: ZuptSetup, fmodels: dict) -> pd.DataFrame:

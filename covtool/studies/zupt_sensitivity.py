@@ -60,6 +60,7 @@ Loan truth to about 1e-11 (tested to 1e-8).
 from __future__ import annotations
 
 import time
+from functools import partial
 import warnings
 
 import numpy as np
@@ -73,7 +74,8 @@ from covtool.errors import FlaggedCaseWarning, StudyFileError
 from covtool.io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
 from covtool.lincov.batch import events, System
 from covtool.lincov.reduced import zupt_matrices
-from covtool.results import StudyResult
+from covtool.plotting.sensitivity import fig8_figure
+from covtool.results import ZuptSensitivityResult
 from covtool.studies.inputs import study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
 from covtool.studies.tables import case_validity
@@ -150,7 +152,7 @@ def _memory(steps, truth, filters, dynamics):
     return memory_estimate(steps, truth.n, filters=filters, dynamics=dynamics, noise=noise_columns(truth))
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
+def run(decl: dict, *, path=None, progress: bool = False) -> ZuptSensitivityResult:
     """Run the sensitivity / compute-cost trade (module docstring)."""
     t_start, c_start = time.perf_counter(), time.process_time()
     where = str(path) if path else "<study>"
@@ -242,17 +244,22 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         "blas_threads": 1, "sweep_seconds": f"{t_sweep:.2f}", "sweep_cpu_seconds": f"{c_sweep:.2f}",
         "compute_seconds": f"{elapsed:.2f}",
     }
-    figures = {"fig8_1_horizontal": _figure(cases, results, fits, fine, "horizontal", rt[-1]),
-               "fig8_2_altitude": _figure(cases, results, fits, fine, "altitude", rt[-1])}
-    return StudyResult(
-        name=S.hdr["name"], kind="zupt_sensitivity", tables=tables, figures=figures,
+    result = ZuptSensitivityResult(
+        name=S.hdr["name"], kind="zupt_sensitivity", tables=tables,
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
         charts=charts,
         data={"cases": cases, "scales": cases.scales, "record_steps": np.array(rec), "report_times": rt,
               "truth_metrics": {c: r[0] for c, r in results.items()},
               "filter_metrics": {c: r[1] for c, r in results.items()}, "fits": fits, "filters": fmodels,
               "timing": timing, "sweep_seconds": t_sweep, "sweep_cpu_seconds": c_sweep, "cost": cost_rows, "setup": S},
-    )
+        scales=np.asarray(cases.scales), parameters=list(cases.parameters), filters=list(results),
+        curves={(c, p, m): _curve(cases, results, c, p, m) for c in results for p in cases.parameters
+                for m in METRICS},
+        fits=fits, report_time=rt[-1],
+        labels={"metrics": {m: v[0] for m, v in METRICS.items()}, "params": dict(PARAM_LABEL)})
+    result.figures = {"fig8_1_horizontal": partial(fig8_figure, result, "horizontal"),
+                      "fig8_2_altitude": partial(fig8_figure, result, "altitude")}
+    return result
 
 
 def _curve(cases, results, c, p, metric, j=-1):
@@ -474,57 +481,38 @@ def _summary(S, cases, results, fmodels, sens, cost_df, rt, statuses):
 
 
 def _chart_sheets(cases, results, fits, fine):
-    """Wide sheets and specs for the native Fig 8 charts.
+    """Wide sheets and specs for the native Fig 8 charts (log-log, as the PNGs).
 
-    Swept points sit on the rows of their scale (blank between them, so
-    Excel draws them unconnected); the fitted curves fill a grid twice as
-    fine.
+    The fitted curves fill a grid twice as fine (``scale [-]``); the swept
+    points are listed at their own scales (``swept scale [-]``) in the first
+    rows, so that every charted cell holds a number and a log axis never
+    meets a text cell.  One series per filter and kind (points, fit).
     """
     sheets, charts = {}, []
-    on_grid = np.isin(np.round(np.log10(fine), 9), np.round(np.log10(cases.scales), 9))
+    n = len(cases.scales)
+
+    def pad(v):
+        out = np.full(fine.size, np.nan)
+        out[:n] = v
+        return out
+
     for num, metric in ((1, "horizontal"), (2, "altitude")):
         label = METRICS[metric][0]
         name = f"fig8_{num}_{metric}"
-        df = pd.DataFrame({"scale [-]": fine})
+        df = pd.DataFrame({"scale [-]": fine, "swept scale [-]": pad(cases.scales)})
         for p in cases.parameters:
             for c in results:
-                data = np.full(fine.size, np.nan)
-                data[on_grid] = _curve(cases, results, c, p, metric) / FT
-                df[f"{p} {c} swept [ft]"] = data
+                df[f"{p} {c} swept [ft]"] = pad(_curve(cases, results, c, p, metric) / FT)
                 df[f"{p} {c} fit [ft]"] = fits[(c, p, metric)](fine)
         sheets[name] = df
         for k, p in enumerate(cases.parameters):
             ys = [f"{p} {c} {kind} [ft]" for c in results for kind in ("swept", "fit")]
-            charts.append({"sheet": name, "x": "scale [-]", "y": ys, "log_x": True, "marker": "circle",
+            series = {f"{p} {c} swept [ft]": {"x": "swept scale [-]", "rows": n, "marker": "circle", "line": False}
+                      for c in results}
+            charts.append({"sheet": name, "x": "scale [-]", "y": ys, "log_x": True, "log_y": True,
+                           "series": series,
                            "title": f"Fig 8.{num} ({PARAM_LABEL[p]}): {label} vs scale (points: swept, "
                                     f"lines: fit)",
                            "x_title": f"{PARAM_LABEL[p]} scale [-]", "y_title": f"{label} [ft]",
                            "anchor": f"A{fine.size + 4 + 20 * k}"})
     return sheets, charts
-
-
-def _figure(cases, results, fits, fine, metric, t_report):
-    def make():
-        import matplotlib.pyplot as plt
-        label = METRICS[metric][0]
-        npar = len(cases.parameters)
-        fig, axes = plt.subplots(1, npar, figsize=(4.6 * npar, 4.4), sharey=True, squeeze=False)
-        colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-        for ax, p in zip(axes[0], cases.parameters):
-            for k, c in enumerate(results):
-                col = colors[k % len(colors)]
-                ax.plot(cases.scales, _curve(cases, results, c, p, metric) / FT, "o", color=col, ms=4)
-                ax.plot(fine, fits[(c, p, metric)](fine), "-", color=col, lw=1.2, label=c)
-            ax.set_xscale("log")
-            ax.set_yscale("log")
-            ax.set_xlabel(f"{PARAM_LABEL[p]} scale [-]")
-            ax.set_title(f"{PARAM_LABEL[p]} scaled")
-            ax.grid(True, which="both", alpha=0.3)
-        axes[0][0].set_ylabel(f"{label} at {t_report / 60:g} min [ft]")
-        axes[0][-1].legend(title="filter", fontsize=8)
-        num = 1 if metric == "horizontal" else 2
-        fig.suptitle(f"Fig 8.{num}: sensitivity of the {label.split()[0]} error to the filter's "
-                     "P_f(0), Q_f, R_f (points: covariance analysis, lines: least-squares fit)")
-        fig.tight_layout()
-        return fig
-    return make

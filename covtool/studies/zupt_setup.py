@@ -212,6 +212,8 @@ class ZuptSetup:
     #: the model the filters are built from: the truth, or the truth without the study's
     #: overrides (``[truth] override_filters = false``, :func:`covtool.studies.inputs.load_truth`)
     filter_truth: Model | None = None
+    #: the trajectory's stationary intervals holding a ZUPT, ``((start, end), ...)`` [s] (figures shade them)
+    stops: tuple = ()
     _dyn_cache: dict = field(default_factory=dict)
     _filters: dict = field(default_factory=dict)
 
@@ -321,8 +323,11 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
     H = zupt_matrices(truth.names)
     R = np.eye(3) * zsig**2
+    tu = t[upd]
+    stops = tuple((max(a, t[0]), min(b, t[-1])) for a, b in traj.stationary
+                  if np.any((tu >= a - 1e-9) & (tu <= b + 1e-9)))
     return ZuptSetup(hdr, where, t, nodes, truth, ctx, dyn, Phi, Qd, P0, H, R, upd, dt_s, zsig, specs, cases,
-                     mean_speed, ffile, every, rtimes, est, None if ftruth is truth else ftruth)
+                     mean_speed, ffile, every, rtimes, est, None if ftruth is truth else ftruth, stops=stops)
 
 
 def order_memory(pure: bool, impact: bool = True):

@@ -8,6 +8,7 @@ names, symbols and units; every matrix built from a model is indexed by
 from __future__ import annotations
 
 import dataclasses
+from fractions import Fraction
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -16,7 +17,7 @@ import pandas as pd
 from covtool.lincov.model.blocks import BLOCK_KINDS
 from covtool.nav.strapdown import NAV_STATES
 from covtool.nav import attitude as quat
-from covtool.units import from_si
+from covtool.units import from_si, si_unit
 
 #: processes a state may follow
 PROCESSES = ("constant", "random_walk", "markov", "markov_distance")
@@ -235,11 +236,13 @@ class Model:
                 "meaning": s.meaning,
                 "unit": s.unit,
                 "sigma": float(from_si(s.sigma, s.unit)) if s.unit else s.sigma,
-                "sigma [SI]": s.sigma,
+                "sigma, SI value": s.sigma,
+                "SI unit": si_unit(s.unit),
                 "process": s.process,
                 "tau [s]": s.tau if s.tau is not None else np.nan,
                 "corr. distance [m]": s.distance if s.distance is not None else np.nan,
-                "random walk [SI/sqrt(s)]": s.rw,
+                "random walk, SI value": s.rw,
+                "random walk SI unit": si_unit(s.unit, seconds=Fraction(-1, 2)),
                 "source": s.source,
             })
         return pd.DataFrame(rows)

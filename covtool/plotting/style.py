@@ -1,0 +1,118 @@
+"""Shared figure conventions: per-case styles, adaptive log limits, stop bands, legends outside.
+
+Every figure of :mod:`covtool.plotting` uses these so that
+
+* each case has its own colour, line style *and* marker (curves that lie on
+  one another stay distinguishable), and cases whose curves coincide are
+  named together in the legend;
+* a log axis spans the data (no fixed floor clipping a curve);
+* ZUPT stops are shaded bands;
+* legends sit beside the axes, never over a curve.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+#: SI per unit of the length units a study may choose (``[output] units``)
+LENGTH = {"ft": 0.3048, "m": 1.0}
+
+_COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf",
+           "#7f7f7f", "#bcbd22")
+_LINES = ("-", "--", "-.", ":", (0, (5, 1, 1, 1, 1, 1)), (0, (8, 2)))
+_MARKERS = ("o", "s", "^", "v", "D", "P", "X", "*", "<", ">")
+
+
+def case_style(k: int) -> dict:
+    """Colour, line style and marker of the ``k``-th case (all three differ between neighbours)."""
+    return {"color": _COLORS[k % len(_COLORS)], "linestyle": _LINES[k % len(_LINES)],
+            "marker": _MARKERS[k % len(_MARKERS)]}
+
+
+def source_colors(names) -> dict:
+    """One distinct colour per source name, the same in every panel and figure.
+
+    Parameters
+    ----------
+    names : sequence of str
+        Every source of the study, in one fixed order.
+
+    Returns
+    -------
+    dict of str to colour
+        Up to 18 sources from matplotlib's ``tab20`` without its greys
+        (kept for "other"), the strong hues first; more from
+        ``tab20b``/``tab20c``.
+    """
+    import matplotlib.pyplot as plt
+
+    # grey (tab20's 14, 15) is kept for "other"
+    strong = [plt.get_cmap("tab20")(i) for i in range(0, 20, 2) if i != 14]
+    light = [plt.get_cmap("tab20")(i) for i in range(1, 20, 2) if i != 15]
+    more = [plt.get_cmap(nm)(i) for nm in ("tab20b", "tab20c") for i in range(20)]
+    pal = strong + light + more
+    return {n: pal[i % len(pal)] for i, n in enumerate(names)}
+
+
+def log_limits(curves, pad: float = 1.5) -> tuple[float, float] | None:
+    """Limits of a log axis that show every positive finite value of ``curves``.
+
+    Parameters
+    ----------
+    curves : iterable of array_like
+    pad : float
+        Factor of room below the smallest and above the largest value.
+
+    Returns
+    -------
+    (float, float) or None
+        ``None`` when no value is positive.
+    """
+    vals = np.concatenate([np.asarray(c, float).ravel() for c in curves]) if curves else np.zeros(0)
+    vals = vals[np.isfinite(vals) & (vals > 0)]
+    if not vals.size:
+        return None
+    return float(vals.min() / pad), float(vals.max() * pad)
+
+
+def coincident_groups(curves: dict, rtol: float = 0.01) -> list[list[str]]:
+    """Cases whose curves coincide within ``rtol`` everywhere, grouped.
+
+    Parameters
+    ----------
+    curves : dict of str to ndarray, shape (K,)
+    rtol : float
+        Largest relative difference (to the larger value) counted as the same.
+
+    Returns
+    -------
+    list of list of str
+        Groups in first-appearance order; a case alone is a group of one.
+    """
+    names = list(curves)
+    groups: list[list[str]] = []
+    for n in names:
+        y = np.asarray(curves[n], float)
+        for g in groups:
+            y0 = np.asarray(curves[g[0]], float)
+            den = np.maximum(np.abs(y), np.abs(y0))
+            ok = np.isfinite(y) & np.isfinite(y0) & (den > 0)
+            if y.shape == y0.shape and ok.any() and np.all(np.abs(y - y0)[ok] <= rtol * den[ok]) \
+                    and np.array_equal(np.isfinite(y), np.isfinite(y0)):
+                g.append(n)
+                break
+        else:
+            groups.append([n])
+    return groups
+
+
+def shade_stops(ax, stops, *, label: str | None = "stop with ZUPT") -> None:
+    """Shade each ``(start, end)`` stop [s] on a time axis in minutes."""
+    for i, (a, b) in enumerate(stops):
+        ax.axvspan(a / 60.0, max(b, a + 1.0) / 60.0, color="#9ecae1", alpha=0.35, lw=0,
+                   label=label if i == 0 else None, zorder=0)
+
+
+def legend_outside(ax, **kw):
+    """Legend to the right of ``ax``: it never covers a curve."""
+    return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8, **kw)
