@@ -25,7 +25,7 @@ from covtool.nav import attitude as quat, earth, strapdown as sd
 from covtool.validation.feedback import FeedbackFilter, RecordContext, SensorFeedback
 
 __all__ = [
-    "QUANTITIES", "EnsembleCase", "EnsembleSums", "run_ensemble", "simulate_chunk",
+    "QUANTITIES", "EnsembleCase", "EnsembleSums", "run_ensemble", "simulate_chunk", "initial_states",
 ]
 
 
@@ -324,17 +324,50 @@ def simulate_chunk(task: dict) -> dict:
     import time
 
     from covtool.nav.imu.simulator import ImuSimulator
-    from covtool.validation.sensor_errors import SensorErrors, sample_states
+    from covtool.validation.sensor_errors import SensorErrors
 
     t0 = time.perf_counter()
-    ss = np.random.SeedSequence(task["seed"], spawn_key=(int(task["chunk"]),))
-    r_x0, r_sensor, r_meas = (np.random.default_rng(s) for s in ss.spawn(3))
+    _, r_sensor, r_meas = _streams(task["seed"], task["chunk"])
     traj, model, t = task["traj"], task["model"], np.asarray(task["t"], float)
     M = int(task["runs"])
-    x0 = sample_states(model, M, r_x0, q0=traj.sample([t[0]]).q_nb[0])
+    x0 = initial_states(model, M, task["seed"], task["chunk"], traj.sample([t[0]]).q_nb[0])
     errors = SensorErrors(model, x0, r_sensor, noise=task.get("sensor_noise", True),
                           process_dt=task.get("process_dt", 0.1))
     sim = ImuSimulator(traj, task["imu_rate"], t0=float(t[0]), duration=float(t[-1] - t[0]), errors=errors)
     sums = run_ensemble(sim, x0, task["cases"], t, samples_per_step=task["samples_per_step"], R=task["R"],
                         rng=r_meas, measurement_noise=task.get("measurement_noise", True), model=model)
     return {"sums": {k: v.to_json() for k, v in sums.items()}, "seconds": time.perf_counter() - t0}
+
+
+def _streams(seed, chunk):
+    """The chunk's three random streams: initial states, sensor noise, ZUPT noise."""
+    ss = np.random.SeedSequence(seed, spawn_key=(int(chunk),))
+    return tuple(np.random.default_rng(s) for s in ss.spawn(3))
+
+
+def initial_states(model, runs: int, seed, chunk: int, q0) -> np.ndarray:
+    """The initial error states a chunk of runs draws (:func:`simulate_chunk`).
+
+    Parameters
+    ----------
+    model : covtool.lincov.model.spec.Model
+        The truth model (its P0 at the initial attitude).
+    runs : int
+        Runs M of the chunk.
+    seed : int
+        The study seed.
+    chunk : int
+        The chunk index.
+    q0 : ndarray, shape (4,)
+        True initial attitude ``q_nb``.
+
+    Returns
+    -------
+    ndarray, shape (M, n_truth)
+        Exactly the draws the chunk's runs start from, so the study can form
+        their sample second moments (the conditional linear prediction,
+        ``docs/monte_carlo.md``) without storing them.
+    """
+    from covtool.validation.sensor_errors import sample_states
+
+    return sample_states(model, int(runs), _streams(seed, chunk)[0], q0=q0)
