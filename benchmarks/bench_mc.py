@@ -34,11 +34,12 @@ STUDIES = ("monte_carlo_validation", "dual_imu_flight")
 TARGET_S = {"monte_carlo_validation": 30.0, "dual_imu_flight": 30.0}
 
 
-def _once(tree: Path, study: str) -> dict:
-    """One CLI run of ``study`` with the covtool of ``tree``."""
+def _once(tree: Path, study: str, keep: Path | None = None) -> dict:
+    """One CLI run of ``study`` with the covtool of ``tree`` (outputs kept under ``keep``)."""
     env = {**os.environ, "PYTHONPATH": str(tree)}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
-    with tempfile.TemporaryDirectory() as out:
+    with tempfile.TemporaryDirectory() as tmp:
+        out = tmp if keep is None else str(keep / tree.name / study)
         t0 = time.perf_counter()
         p = subprocess.run([sys.executable, "-m", "covtool", "run", str(tree / "studies" / f"{study}.toml"),
                             "--out", out], cwd=tree, env=env, capture_output=True, text=True)
@@ -51,14 +52,14 @@ def _once(tree: Path, study: str) -> dict:
             "peak_rss_mb": after.ru_maxrss / 1024.0}
 
 
-def run(studies=STUDIES, *, baseline: Path | None = None, repeat: int = 1) -> list[dict]:
-    """Time each study (and the baseline's), ``repeat`` times, alternating."""
+def run(studies=STUDIES, *, baseline: Path | None = None, repeat: int = 1, keep: Path | None = None) -> list[dict]:
+    """Time each study (and the baseline's), ``repeat`` times, alternating; ``keep``: keep the outputs."""
     rows = []
     trees = ([baseline] if baseline is not None else []) + [ROOT]
     for study in studies:
         for _ in range(repeat):
             for tree in trees:
-                rows.append(_once(Path(tree), study))
+                rows.append(_once(Path(tree), study, keep))
     return rows
 
 
@@ -93,8 +94,9 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline", type=Path, help="repository root of an older checkout to compare with")
     ap.add_argument("--studies", nargs="+", default=list(STUDIES), choices=STUDIES)
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--keep", type=Path, help="keep each run's outputs in KEEP/<tree>/<study>")
     a = ap.parse_args(argv)
-    rows = run(a.studies, baseline=a.baseline, repeat=a.repeat)
+    rows = run(a.studies, baseline=a.baseline, repeat=a.repeat, keep=a.keep)
     print(report(rows))
     print(f"(load average at the end: {', '.join(f'{x:.1f}' for x in os.getloadavg())} on {os.cpu_count()} CPUs)")
     return 0
