@@ -560,3 +560,39 @@ def test_conditional_horizontal_dof_closed_forms():
     tr = np.trace(A[0] + Pd[0])
     np.testing.assert_allclose(d, 2 * tr**2 / (4 * np.trace(Pd[0] @ A[0]) + 2 * np.trace(Pd[0] @ Pd[0])), rtol=1e-12)
     assert smc.conditional_dof({"P_ne": A}, {"P_ne": 0 * A}, "horizontal")[0] == 1e6
+
+
+def test_conditional_prediction_follows_the_drawn_constants(study, files, monkeypatch, capsys):
+    """Pure-INS azimuth is almost all initial azimuth: given the draws, the linear σ matches the RMS.
+
+    Against the conditional σ (sample second moments of the 60 drawn initial states) the
+    ensemble RMS lies inside the 99 % exact-variance bounds; against the model's σ it carries
+    the draws' sampling error.  The same comparison with the drawn constants' σ 5 % too high
+    (a deliberately wrong linear model, in the linear analysis only) falls outside.
+    """
+    r = study
+    N = int(r.summary["runs"].iloc[0])
+
+    def inside(res):
+        x, sig_c, _, _ = res.data["bands_conditional"]["pure_ins"]["azimuth"]
+        dof = smc.conditional_dof(res.data["linear_conditional"]["pure_ins"], res.data["linear_driven"]["pure_ins"],
+                                  "azimuth")
+        lo, hi = mc.rms_bounds(sig_c, N, dof, confidence=0.99)
+        return mc.inside_fraction(x[1:], lo[1:], hi[1:])["inside"], float(np.mean(x[1:] / sig_c[1:]))
+
+    x, sig, _, _ = r.data["bands"]["pure_ins"]["azimuth"]
+    fr, ratio_c = inside(r)
+    ratio = float(np.mean(x[1:] / sig[1:]))
+    orig = smc._sample_moment
+    monkeypatch.setattr(smc, "_sample_moment", lambda *a: orig(*a) * 1.05**2)
+    wrong = covtool.run_study(small_decl(files), backend=SerialBackend())
+    fr_wrong, ratio_wrong = inside(wrong)
+    with capsys.disabled():
+        print(f"\n[conditional] pure-INS azimuth RMS/σ: model {ratio:.4f}, conditional {ratio_c:.4f} "
+              f"({100 * fr:.1f} % inside 99 % exact bounds); wrong model {ratio_wrong:.4f} ({100 * fr_wrong:.1f} %)")
+    assert fr >= 0.95 and abs(ratio_c - 1.0) < abs(ratio - 1.0)
+    assert fr_wrong < 0.5
+    comp = r.tables["comparison"]
+    assert {"conditional: inside [%]", "conditional, exact variance: inside [%]",
+            "conditional: pass (>= 95 % inside)"} <= set(comp.columns)
+    assert "inside bounds of conditional prediction [%]" in r.tables["nees"].columns

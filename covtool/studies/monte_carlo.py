@@ -42,6 +42,15 @@ Study file (the ``zupt_filter_order`` sections plus ``[monte_carlo]``)::
     measurement_noise = true
     process_dt = "0.1 s"       # grid of the sensor-error processes
 
+Besides the linear σ from the model's P0 (unconditional), the study runs the
+linear analysis with the sample second moments of the initial states the N runs
+drew (:func:`_sample_moment`; driving noise, ZUPT noise and gains unchanged):
+the expectation of the ensemble mean square *given* the draws.  The acceptance
+(≥ 95 % of the time points inside the χ² bounds) applies to this conditional
+comparison; the bounds about it are conservative for the constants' part, and
+an exact-variance band (:func:`conditional_dof`) is reported beside it
+(``docs/monte_carlo.md``, "Statistics").
+
 Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
 (``covtool run --workers N`` or ``--scheduler``), else local processes, one
 per CPU.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
@@ -76,7 +85,7 @@ from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, initial_s
 from covtool.version import __version__
 
 __all__ = [
-    "run", "mc_options",
+    "run", "mc_options", "conditional_dof",
 ]
 
 
