@@ -60,6 +60,9 @@ def run(studies=STUDIES, *, baseline: Path | None = None, repeat: int = 1, keep:
         for _ in range(repeat):
             for tree in trees:
                 rows.append(_once(Path(tree), study, keep))
+                r = rows[-1]
+                print(f"  {study} with {tree}: {r['wall_s']:.1f} s wall, {r['cpu_s']:.1f} s CPU, "
+                      f"{r['peak_rss_mb']:.0f} MB", flush=True)
     return rows
 
 
