@@ -48,6 +48,7 @@ def _once(tree: Path, study: str, keep: Path | None = None) -> dict:
     if p.returncode != 0:
         raise RuntimeError(f"{study} failed in {tree}:\n{p.stderr[-2000:]}")
     cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    # ru_maxrss of RUSAGE_CHILDREN is the largest child so far: exact for the first run only
     return {"tree": str(tree), "study": study, "wall_s": wall, "cpu_s": cpu,
             "peak_rss_mb": after.ru_maxrss / 1024.0}
 
