@@ -999,3 +999,16 @@ def test_cli_refuses_a_header_that_labels_the_wrong_columns(log_files, tmp_path)
     ref = load_imu_log(paths["main"])
     for key in ("t", "dtheta", "dv"):
         np.testing.assert_array_equal(getattr(perm, key), getattr(ref, key))
+
+
+def test_run_dual_reuses_a_difference_model(setup_static):
+    """A model built once serves later batches: same logs give identical innovations; other epochs are refused."""
+    setup = setup_static
+    main, kimu = _static_log(100.0, 20.0), _static_log(400.0, 20.0)
+    r = run_dual(main, kimu, setup)
+    again = run_dual(main, kimu, setup, model=r.model)
+    assert again.model is r.model
+    np.testing.assert_array_equal(again.inn.nis, r.inn.nis)
+    np.testing.assert_array_equal(again.z, r.z)
+    with pytest.raises(ValueError, match="the given difference model has other epochs than these logs"):
+        run_dual(_static_log(100.0, 30.0), _static_log(400.0, 30.0), setup, model=r.model)

@@ -462,3 +462,31 @@ def test_grade_loader_errors(tmp_path):
         load_imu_grade(str(bad))
     with pytest.raises(ModelFileError, match=r"no such IMU grade"):
         load_imu_grade(str(tmp_path / "missing.toml"))
+
+
+def test_compiled_path_kernels_equal_numpy_interpolation():
+    """_mean_path_apply and _path_difference_add equal the numpy interpolation they replaced (issue 13)."""
+    from covtool.validation.sensor_errors import _mean_path_apply, _path_difference_add
+
+    rng = np.random.default_rng(8)
+    M, K, J, nd = 3, 57, 9, 4
+    nx = rng.normal(size=(M, J + 2, nd))[:, 1:-1]                  # a non-contiguous node array, as in use
+    nt = np.sort(rng.uniform(0, 1, J))
+    te = np.linspace(nt[0], nt[-1], K + 1)
+    j = np.clip(np.searchsorted(nt, te, side="right") - 1, 0, J - 2)
+    u = (te - nt[j]) / (nt[j + 1] - nt[j])
+    path = nx[:, j] + u[None, :, None] * (nx[:, j + 1] - nx[:, j])  # (M, K+1, nd): the numpy reference
+    cols = np.array([3, 0, 2], np.int64)
+    for S in (rng.normal(size=(1, K, 3, 3)), rng.normal(size=(M, K, 3, 3))):
+        acc = np.ones((M, K, 3))
+        _mean_path_apply(nx, j.astype(np.int64), u, np.ascontiguousarray(S), cols, acc)
+        xbar = 0.5 * (path[:, 1:] + path[:, :-1])[:, :, cols]
+        ref = 1.0 + np.einsum("vkij,mkj->mki" if S.shape[0] == 1 else "mkij,mkj->mki", S, xbar)
+        np.testing.assert_allclose(acc, ref, rtol=1e-13, atol=1e-13)
+    out = np.zeros((M, K, 3))
+    _path_difference_add(nx, j.astype(np.int64), u, cols, out)
+    np.testing.assert_allclose(out, path[:, 1:, cols] - path[:, :-1, cols], rtol=1e-13, atol=1e-13)
+    single = nx[:, :1]                                               # one node: constant path, zero differences
+    out = np.zeros((M, K, 3))
+    _path_difference_add(single, np.zeros(K + 1, np.int64), np.zeros(K + 1), cols, out)
+    assert not out.any()

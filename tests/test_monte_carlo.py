@@ -441,3 +441,158 @@ def test_study_section_errors(files):
     bad["output"]["report_times"] = ["299.5 s"]
     with pytest.raises(StudyFileError, match="not a whole number of grid steps"):
         covtool.run_study(bad, backend=SerialBackend())
+
+
+# --------------------------------------------------------------------------
+# compiled kernels against the numpy reference (issue 13)
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("kind", sorted(k for k, b in __import__("covtool.lincov.model.blocks", fromlist=["x"])
+                                        .BLOCK_KINDS.items() if b.sensitivity is not None))
+def test_column_table_reproduces_the_block_sensitivity(kind):
+    """Each probed entry (row, 1 | f_a | ω_a | |f_a| | f_a f_b) equals the block's function at new points."""
+    from covtool.lincov.model.blocks import BLOCK_KINDS
+
+    tab = feedback._column_table(kind)
+    assert tab is not None
+    rng = np.random.default_rng(11)
+    f, w = rng.normal(0, 5, (50, 3)), rng.normal(0, 0.5, (50, 3))
+    S = BLOCK_KINDS[kind].sensitivity(f, w)
+    rebuilt = np.zeros_like(S)
+    for col, (r, ty, a, b) in enumerate(tab):
+        rebuilt[:, r, col] = [np.ones(50), f[:, a], w[:, a], np.abs(f[:, a]), f[:, a] * f[:, b]][ty]
+    np.testing.assert_array_equal(rebuilt, S)
+
+
+def test_column_table_refuses_other_shapes(monkeypatch):
+    """A sensitivity with two entries in a column is not tabulated: the numpy reference compensates it."""
+    from covtool.lincov.model import blocks
+
+    bk = blocks.BLOCK_KINDS["gyro_bias"]
+    monkeypatch.setitem(blocks.BLOCK_KINDS, "gyro_bias", type(bk)(**{**bk.__dict__, "sensitivity": lambda f, w: (
+        np.stack([f, w, f], axis=-1))}))
+    feedback._column_table.cache_clear()
+    try:
+        assert feedback._column_table("gyro_bias") is None
+    finally:
+        feedback._column_table.cache_clear()
+
+
+@pytest.mark.parametrize("model_name, keep", [("sdins58", "all"), ("sdins58", "B1"), ("small", "all")])
+def test_compiled_compensation_equals_reference(files, small, model_name, keep):
+    """The compiled compensation equals compensate_reference: increments and the advanced ĉ.
+
+    sdins58 has every block kind (biases, scale factors, asymmetric scale factor,
+    misalignments, g-sensitivity, anisoelasticity, Markov, gravity in distance, AD reset);
+    B1 keeps a subset; random ĉ of 100 σ, measured increments of a turning, climbing record.
+    """
+    from covtool.io.library import load_model_by_name
+
+    decl, S = small
+    truth = load_model_by_name("sdins58") if model_name == "sdins58" else S.truth
+    traj = load_trajectory(decl, "<test>", None, 1.0)
+    names = truth.names
+    if keep == "B1":
+        names = names[:10] + [n for n in names[10:] if n.startswith(("acc_bias", "gyro_bias", "acc_sf", "gyro_sf"))]
+    M, k, h = 4, 250, 0.01
+    rng = np.random.default_rng(3)
+    x0 = sample_states(truth, M, rng, q0=traj.sample([40.0]).q_nb[0]) * 100.0
+    sim = ImuSimulator(traj, 100.0, t0=40.0, duration=k * h, errors=SensorErrors(truth, x0, 5, process_dt=0.1))
+    rec = sim.record()
+    ctx = feedback.RecordContext.along(traj, rec.t0, h, k)
+    a, b = feedback.SensorFeedback(truth, names, M), feedback.SensorFeedback(truth, names, M)
+    est = x0[:, [truth.index[n] for n in a.names]]
+    a.add(est)
+    b.add(est)
+    assert a._table() is not None
+    got = a.compensate(rec.dtheta, rec.dv, h, ctx)
+    ref = b.compensate_reference(rec.dtheta, rec.dv, h, ctx)
+    for g, r, raw in zip(got, ref, (rec.dtheta, rec.dv)):
+        corr = np.abs(raw - r).max()
+        assert corr > 0 and np.abs(g - r).max() <= 1e-12 * corr + 1e-18
+    np.testing.assert_allclose(a.c, b.c, rtol=1e-14, atol=0)
+
+
+# --------------------------------------------------------------------------
+# the conditional prediction (docs/monte_carlo.md, "Statistics")
+# --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("share", [0.0, 0.5, 0.97])
+def test_conditional_bounds_cover_95_percent(share):
+    """Fixed constants a_i plus driven d_i ~ N(0, σ_d²): the conditional bounds cover ≈ 95 %.
+
+    ``share`` of the variance is the constants' part.  The χ² bounds with N dof about the
+    same conditional σ are conservative (cover more) whenever constants are present, and
+    equal to the conditional ones without them.
+    """
+    rng = np.random.default_rng(17)
+    N, trials = 200, 20000
+    a = rng.standard_normal(N) * np.sqrt(share)             # one draw of constants, kept fixed
+    sd2 = 1.0 - share
+    sig_c = np.sqrt(np.mean(a**2) + sd2)
+    ms = np.mean((a[None] + np.sqrt(sd2) * rng.standard_normal((trials, N)))**2, axis=1)
+    rms = np.sqrt(ms)
+    Lc = {"altitude": np.array([sig_c])}
+    Ld = {"altitude": np.array([np.sqrt(sd2)])}
+    lo, hi = mc.rms_bounds(sig_c, N, smc.conditional_dof(Lc, Ld, "altitude"), 0.95)
+    cover = np.mean((rms >= lo) & (rms <= hi))
+    lo2, hi2 = mc.rms_bounds(sig_c, N, 1.0, 0.95)
+    cover_chi2 = np.mean((rms >= lo2) & (rms <= hi2))
+    assert cover == pytest.approx(0.95, abs=0.01)
+    # normal approximation: the χ² band is wider by √(2 / (4 s (1 − s) + 2 (1 − s)²))
+    from scipy.stats import norm
+
+    widen = np.sqrt(2.0 / (4 * share * (1 - share) + 2 * (1 - share) ** 2))
+    assert cover_chi2 == pytest.approx(2 * norm.cdf(1.959964 * widen) - 1, abs=0.01)
+    if share > 0:
+        assert cover_chi2 > cover + 0.02
+
+
+def test_conditional_horizontal_dof_closed_forms():
+    """Horizontal: without constants the dof is Satterthwaite's (λ₁+λ₂)²/(λ₁²+λ₂²); without noise it is capped."""
+    Pd = np.array([[[9.0, 2.0], [2.0, 1.0]]])
+    d = smc.conditional_dof({"P_ne": Pd}, {"P_ne": Pd}, "horizontal")
+    np.testing.assert_allclose(d, mc.horizontal_dof(Pd), rtol=1e-12)
+    A = np.array([[[4.0, 0.0], [0.0, 1.0]]])
+    d = smc.conditional_dof({"P_ne": A + Pd}, {"P_ne": Pd}, "horizontal")
+    tr = np.trace(A[0] + Pd[0])
+    np.testing.assert_allclose(d, 2 * tr**2 / (4 * np.trace(Pd[0] @ A[0]) + 2 * np.trace(Pd[0] @ Pd[0])), rtol=1e-12)
+    assert smc.conditional_dof({"P_ne": A}, {"P_ne": 0 * A}, "horizontal")[0] == 1e6
+
+
+def test_conditional_prediction_follows_the_drawn_constants(study, files, monkeypatch, capsys):
+    """Pure-INS azimuth is almost all initial azimuth: given the draws, the linear σ matches the RMS.
+
+    Against the conditional σ (sample second moments of the 60 drawn initial states) the
+    ensemble RMS lies inside the 99 % exact-variance bounds; against the model's σ it carries
+    the draws' sampling error.  The same comparison with the drawn constants' σ 5 % too high
+    (a deliberately wrong linear model, in the linear analysis only) falls outside.
+    """
+    r = study
+    N = int(r.summary["runs"].iloc[0])
+
+    def inside(res):
+        x, sig_c, _, _ = res.data["bands_conditional"]["pure_ins"]["azimuth"]
+        dof = smc.conditional_dof(res.data["linear_conditional"]["pure_ins"], res.data["linear_driven"]["pure_ins"],
+                                  "azimuth")
+        lo, hi = mc.rms_bounds(sig_c, N, dof, confidence=0.99)
+        return mc.inside_fraction(x[1:], lo[1:], hi[1:])["inside"], float(np.mean(x[1:] / sig_c[1:]))
+
+    x, sig, _, _ = r.data["bands"]["pure_ins"]["azimuth"]
+    fr, ratio_c = inside(r)
+    ratio = float(np.mean(x[1:] / sig[1:]))
+    orig = smc._sample_moment
+    monkeypatch.setattr(smc, "_sample_moment", lambda *a: orig(*a) * 1.05**2)
+    wrong = covtool.run_study(small_decl(files), backend=SerialBackend())
+    fr_wrong, ratio_wrong = inside(wrong)
+    with capsys.disabled():
+        print(f"\n[conditional] pure-INS azimuth RMS/σ: model {ratio:.4f}, conditional {ratio_c:.4f} "
+              f"({100 * fr:.1f} % inside 99 % exact bounds); wrong model {ratio_wrong:.4f} ({100 * fr_wrong:.1f} %)")
+    assert fr >= 0.95 and abs(ratio_c - 1.0) < abs(ratio - 1.0)
+    assert fr_wrong < 0.5
+    comp = r.tables["comparison"]
+    assert {"conditional: inside [%]", "conditional, exact variance: inside [%]",
+            "conditional: pass (>= 95 % inside)"} <= set(comp.columns)
+    assert "inside bounds of conditional prediction [%]" in r.tables["nees"].columns

@@ -188,7 +188,7 @@ def _closed_loop(model, rec_m, rec_k, sm, sk, r, ce, setup, q_ref_m, q_ref_k) ->
 
 
 def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=None,
-             gap_noise=True, feedback=True) -> DualRun:
+             gap_noise=True, feedback=True, model: DifferenceModel | None = None) -> DualRun:
     """Align, navigate, compare and test the two IMUs.
 
     Parameters
@@ -209,6 +209,10 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
         solutions at every epoch (:class:`Whitener`); False whitens the
         open-loop difference (exact only while the errors are small enough
         for the linear model).
+    model : DifferenceModel, optional
+        A difference model built by an earlier call on logs of the same
+        motion, epochs and gaps (e.g. the first batch of a study); it is
+        used as is instead of linearising along this call's run 0.
 
     Returns
     -------
@@ -306,6 +310,13 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
     mid = np.arange(1, hist_m.t.size, 2)
     em, ek = _subsample(hist_m, ep), _subsample(hist_k, ep)
     z = np.swapaxes(nav_difference(em, ek, setup.main_mounting, setup.kimu_mounting), 0, 1)   # (M, J+1, 9)
+    q_ref_m = em.q[:, 0]
+    if model is not None:
+        if model.t.size != em.t.size or np.max(np.abs(model.t - em.t)) > 1e-9 * max(1.0, abs(em.t[-1])):
+            raise ValueError("the given difference model has other epochs than these logs")
+        q_ref_k = _to_kimu(q_ref_m, setup)
+        return _finish(model, main, kimu, setup, rec_m, rec_k, state0, q_m0, q_k0, m_th, m_dv, k_th, k_dv, n_align,
+                       r, ce, q_ref_m, q_ref_k, z, em, ek, e0, k_idx, clock, feedback, n_nav)
     # linearisation along run 0: each IMU's own attitude and mean rates over every step
     N = n_nav // sub
     T = sub * hm
@@ -323,10 +334,9 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
     # declared mountings): references that differ by the open-loop difference itself would put
     # (difference × common error × f) terms into the model
     def to_kimu(q):
-        out = q if setup.main_mounting is None else quat.mul(q, quat.conj(np.asarray(setup.main_mounting, float)))
-        return out if setup.kimu_mounting is None else quat.mul(out, np.asarray(setup.kimu_mounting, float))
+        return _to_kimu(q, setup)
 
-    q_ref_m, q_ref_k = em.q[:, 0], to_kimu(em.q[:, 0])
+    q_ref_k = to_kimu(q_ref_m)
     ctx_m = Context(lat_mid, h_mid, v_mid, hist_m.q[mid, 0], f_ms, w_m)
     ctx_k = Context(lat_mid, h_mid, v_mid, to_kimu(hist_m.q[mid, 0]), f_ks, w_k)
     rest = []
@@ -349,6 +359,19 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
                              substeps_per_epoch=ce // sub, dt_sub=T, heading_sigma=setup.heading_sigma,
                              products=products, candidates=setup.candidates, components=setup.components,
                              noise=setup.noise, extra_noise=extra)
+    return _finish(model, main, kimu, setup, rec_m, rec_k, state0, q_m0, q_k0, m_th, m_dv, k_th, k_dv, n_align, r, ce,
+                   q_ref_m, q_ref_k, z, em, ek, e0, k_idx, clock, feedback, n_nav)
+
+
+def _to_kimu(q, setup):
+    """The main IMU's attitude carried to the KIMU frame through the declared mountings."""
+    out = q if setup.main_mounting is None else quat.mul(q, quat.conj(np.asarray(setup.main_mounting, float)))
+    return out if setup.kimu_mounting is None else quat.mul(out, np.asarray(setup.kimu_mounting, float))
+
+
+def _finish(model, main, kimu, setup, rec_m, rec_k, state0, q_m0, q_k0, m_th, m_dv, k_th, k_dv, n_align, r, ce,
+            q_ref_m, q_ref_k, z, em, ek, e0, k_idx, clock, feedback, n_nav) -> DualRun:
+    """Innovations, window test and g-sensitivity estimates of :func:`run_dual`."""
     if feedback:
         inn = _closed_loop(model, rec_m, rec_k, state0(q_m0, m_th[:, n_align - 1], m_dv[:, n_align - 1]),
                            state0(q_k0, k_th[:, n_align * r - 1], k_dv[:, n_align * r - 1]), r, ce, setup,

@@ -202,6 +202,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> DualImuResult:
     outcome = {}
     gap_rows = []
     bar = progress_bar(cfg.runs + cfg.fault_runs, "flights", progress, unit="flight")   # closed below or by GC
+    model = None
     for label, n_runs, ss, fault in (("fault_free", cfg.runs, ss_free, None),
                                      ("fault", cfg.fault_runs, ss_fault, cfg.fault)):
         batches = [min(cfg.batch, n_runs - a) for a in range(0, n_runs, cfg.batch)]
@@ -211,7 +212,9 @@ def run(decl: dict, *, path=None, progress: bool = False) -> DualImuResult:
             logs, removed = simulate_logs(traj, cfg, b, rng, fault=fault)
             bridged = bridge(logs, cfg, where=f"{where}: simulated logs")
             psi = initial["heading"] + cfg.heading_sigma * rng.standard_normal(b)
-            r = run_dual(bridged["main"], bridged["kimu"], setup, heading=psi)
+            # one difference model for the study (linearised along the first batch's run 0), not one per batch
+            r = run_dual(bridged["main"], bridged["kimu"], setup, heading=psi, model=model)
+            model = r.model
             res.append(r)
             if not gap_rows:
                 actual = _actual_gap_errors(bridged, removed)

@@ -42,6 +42,15 @@ Study file (the ``zupt_filter_order`` sections plus ``[monte_carlo]``)::
     measurement_noise = true
     process_dt = "0.1 s"       # grid of the sensor-error processes
 
+Besides the linear σ from the model's P0 (unconditional), the study runs the
+linear analysis with the sample second moments of the initial states the N runs
+drew (:func:`_sample_moment`; driving noise, ZUPT noise and gains unchanged):
+the expectation of the ensemble mean square *given* the draws.  The acceptance
+(≥ 95 % of the time points inside the χ² bounds) applies to this conditional
+comparison; the bounds about it are conservative for the constants' part, and
+an exact-variance band (:func:`conditional_dof`) is reported beside it
+(``docs/monte_carlo.md``, "Statistics").
+
 Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
 (``covtool run --workers N`` or ``--scheduler``), else local processes, one
 per CPU.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
@@ -74,11 +83,11 @@ from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN
 from covtool.validation.feedback import FeedbackFilter
-from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, simulate_chunk
+from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, initial_states, simulate_chunk
 from covtool.version import __version__
 
 __all__ = [
-    "run", "mc_options",
+    "run", "mc_options", "conditional_dof",
 ]
 
 
@@ -166,7 +175,59 @@ def _linear(P, nodes, case=None) -> dict:
     Pn = ned_position_covariance(P[:, :3, :3], nodes.lat, nodes.h)
     return {"horizontal": m["sigma_horizontal"], "altitude": m["sigma_down"], "azimuth": m["sigma_azimuth"],
             "north": m["sigma_north"], "east": m["sigma_east"], "dof_h": horizontal_dof(Pn[:, :2, :2]),
+            "P_ne": Pn[:, :2, :2],
             "first": case_validity(case, m, nodes.t, warn=case is not None)}
+
+
+def _sample_moment(truth, sizes, seed, q0) -> np.ndarray:
+    """Second moment about zero of the initial states the N runs draw.
+
+    ``(1/N) Σ x0 x0ᵀ`` over the chunks' draws
+    (:func:`covtool.validation.monte_carlo.initial_states`): the P0 of the
+    conditional linear prediction.
+    """
+    S0 = np.zeros((truth.n, truth.n))
+    for i, m in enumerate(sizes):
+        x0 = initial_states(truth, m, seed, i, q0)
+        S0 += x0.T @ x0
+    P = S0 / float(sum(sizes))
+    return 0.5 * (P + P.T)
+
+
+def conditional_dof(Lc: dict, Ld: dict, quantity: str) -> np.ndarray:
+    """Per-run χ² dof of an ensemble mean square given the drawn constants.
+
+    Parameters
+    ----------
+    Lc, Ld : dict
+        :func:`_linear` of the conditional prediction (sample P0) and of the
+        driven part alone (P0 = 0).
+    quantity : {"horizontal", "altitude", "azimuth"}
+
+    Returns
+    -------
+    ndarray, shape (N+1,)
+        ``ν/N`` with ``ν = 2 E[m]² / Var[m]`` (Satterthwaite) for the mean
+        square ``m = (1/N) Σ (a_i + d_i)²``: ``a_i`` the part the run's drawn
+        constants fix, ``d_i ~ N(0, Σ_d)`` the driven part.  Given the draws
+        ``E[m] = tr(A + Σ_d)`` and ``N Var[m] = 4 tr(Σ_d A) + 2 tr(Σ_d²)``,
+        ``A = P_cond − Σ_d`` (docs/monte_carlo.md, "Statistics").  Without
+        constants this is :func:`covtool.analysis.consistency.horizontal_dof`
+        (1 for a scalar); without driven noise the spread vanishes (capped at
+        1e6 per run).
+    """
+    if quantity == "horizontal":
+        Pc, Pd = Lc["P_ne"], Ld["P_ne"]
+        A = Pc - Pd
+        mean = np.trace(Pc, axis1=1, axis2=2)
+        var = 4.0 * np.clip(np.einsum("nij,nji->n", Pd, A), 0.0, None) + 2.0 * np.einsum("nij,nji->n", Pd, Pd)
+    else:
+        c2, d2 = Lc[quantity] ** 2, Ld[quantity] ** 2
+        mean = c2
+        var = 4.0 * np.clip(c2 - d2, 0.0, None) * d2 + 2.0 * d2 * d2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dof = np.where(var > 0, 2.0 * mean**2 / np.where(var > 0, var, 1.0), 1e6)
+    return np.clip(dof, 1e-3, 1e6)
 
 
 def _rms(s: EnsembleSums, quantity: str) -> np.ndarray:
@@ -220,13 +281,26 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     kk = np.arange(1, t.size)
     nees_steps = kk[np.isclose(t[kk] / every, np.round(t[kk] / every), rtol=0, atol=1e-9) | (kk == t.size - 1)]
     lin, claimed, cases, states, pf_check, predicted = {}, {}, [], {}, {}, {}
+    # the conditional prediction (docs/monte_carlo.md): the truth's P0 replaced by the second moments
+    # of the initial states the ensemble actually drew (random constants and initial errors);
+    # driving noises, measurement noise and the filters' gains stay those of the model
+    sizes = _chunks(opt["runs"], opt["runs_per_chunk"])
+    traj = _trajectory(decl, where, path)
+    P0_cond = _sample_moment(truth, sizes, opt["seed"], traj.sample([t[0]]).q_nb[0])
+    lin_c, predicted_c, lin_d = {}, {}, {}
+    Z0 = np.zeros_like(P0_cond)              # the driven part alone: its sampling is all that remains
     if pure:
         P = propagate(S.Phi, S.Qd, S.P0, label=f"{where}: pure INS", names=truth.names, times=t,
                       system_checked=True)
         lin["pure_ins"] = _linear(P, nodes, "pure_ins")
-        cases.append(EnsembleCase("pure_ins", None, {
-            "truth": nees_whitening(P, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)}))
+        spec = nees_whitening(P, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)
+        cases.append(EnsembleCase("pure_ins", None, {"truth": spec}))
         states["pure_ins"] = truth.n
+        P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names, times=t)
+        lin_c["pure_ins"] = _linear(P, nodes)
+        predicted_c[("pure_ins", "truth")] = expected_nees(spec, P, truth.names, nodes.q_nb)
+        P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t)
+        lin_d["pure_ins"] = _linear(P, nodes)
         del P
     for c in S.cases:
         spec = S.specs[c]
@@ -247,14 +321,27 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         # filter states have the truth covariance under its gains (labels are truth state names)
         for key in ("filter", "filter_nav"):
             predicted[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
+        del res
+        res = propagate_with_filter(S.Phi, S.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
+                                    S.R, S.update_steps, Rf=Rf, form=spec.update,
+                                    label=f"{where}: filter {c} (conditional)", times=t, names=truth.names,
+                                    filter_names=fm.names)
+        lin_c[c] = _linear(res.P_truth, nodes)
+        for key in nees:
+            predicted_c[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
+        del res
+        res = propagate_with_filter(S.Phi, S.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
+                                    S.R, S.update_steps, Rf=Rf, form=spec.update,
+                                    label=f"{where}: filter {c} (driven part)", times=t, names=truth.names,
+                                    filter_names=fm.names)
+        lin_d[c] = _linear(res.P_truth, nodes)
         cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
         states[c] = len(fm.names)
         del res
     t_lin = time.perf_counter() - t_lin
 
     # ---- the ensemble, in chunks of runs ------------------------------------------
-    sizes = _chunks(opt["runs"], opt["runs_per_chunk"])
-    base = {"traj": _trajectory(decl, where, path), "model": truth, "t": t, "imu_rate": opt["imu_rate"],
+    base = {"traj": traj, "model": truth, "t": t, "imu_rate": opt["imu_rate"],
             "samples_per_step": opt["samples_per_step"], "R": S.R, "cases": cases, "seed": opt["seed"],
             "sensor_noise": opt["sensor_noise"], "measurement_noise": opt["measurement_noise"],
             "process_dt": opt["process_dt"]}
@@ -288,16 +375,27 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     comp_rows, hist_frames, summary_rows, nees_stats = [], [], [], {}
     band = {}
     hsel = np.isclose(t / S.every, np.round(t / S.every), rtol=0, atol=1e-9) | (np.arange(t.size) == t.size - 1)
+    band_c, nees_cond, band_x = {}, {}, {}
     for c in names:
-        s, L = sums[c], lin[c]
+        s, L, Lc = sums[c], lin[c], lin_c[c]
         row = {"case": c, "states": states[c], "runs": N}
-        band[c] = {}
+        band[c], band_c[c] = {}, {}
         for q, unit, f in COMPARED:
             dof = L["dof_h"] if q == "horizontal" else 1.0
             lo, hi = rms_bounds(L[q], N, dof, conf)
             x = _rms(s, q)
             band[c][q] = (x, L[q], lo, hi)
             fr = inside_fraction(x[k1], lo[k1], hi[k1])
+            # conditional: the same χ² bounds about the prediction from the drawn initial states
+            lo_c, hi_c = rms_bounds(Lc[q], N, Lc["dof_h"] if q == "horizontal" else 1.0, conf)
+            band_c[c][q] = (x, Lc[q], lo_c, hi_c)
+            frc = inside_fraction(x[k1], lo_c[k1], hi_c[k1])
+            # conditional, exact variance: only the driven part (and its cross term) is sampled
+            lo_x, hi_x = rms_bounds(Lc[q], N, conditional_dof(Lc, lin_d[c], q), conf)
+            band_x.setdefault(c, {})[q] = (x, Lc[q], lo_x, hi_x)
+            frx = inside_fraction(x[k1], lo_x[k1], hi_x[k1])
+            with np.errstate(invalid="ignore", divide="ignore"):
+                ratio_c = x[k1] / np.where(Lc[q][k1] > 0, Lc[q][k1], np.nan)
             end = t.size - 1
             comp_rows.append({
                 "case": c, "quantity": q, "time points": fr["points"], "inside [%]": 100 * fr["inside"],
@@ -309,8 +407,20 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                 "unit": unit, "linear sigma at end [unit]": L[q][end] / f, "MC RMS at end [unit]": x[end] / f,
                 "lower bound at end [unit]": lo[end] / f, "upper bound at end [unit]": hi[end] / f,
                 "|MC mean| at end [unit]": _mean(s, q)[end] / f,
-                "dof per run at end": float(np.broadcast_to(dof, t.shape)[end])})
+                "dof per run at end": float(np.broadcast_to(dof, t.shape)[end]),
+                "conditional: inside [%]": 100 * frc["inside"], "conditional: above [%]": 100 * frc["above"],
+                "conditional: below [%]": 100 * frc["below"],
+                "conditional: pass (>= 95 % inside)": bool(frc["inside"] >= 0.95),
+                "conditional: mean RMS/sigma": float(np.nanmean(ratio_c)),
+                "conditional: min RMS/sigma": float(np.nanmin(ratio_c)),
+                "conditional: max RMS/sigma": float(np.nanmax(ratio_c)),
+                "conditional sigma at end [unit]": Lc[q][end] / f,
+                "conditional, exact variance: inside [%]": 100 * frx["inside"],
+                "conditional, exact variance: above [%]": 100 * frx["above"],
+                "conditional, exact variance: below [%]": 100 * frx["below"]})
             row[f"{q} inside [%]"] = 100 * fr["inside"]
+            row[f"{q} conditional inside [%]"] = 100 * frc["inside"]
+            row[f"{q} conditional, exact variance, inside [%]"] = 100 * frx["inside"]
             row[f"{q} RMS/sigma at end"] = x[end] / L[q][end] if L[q][end] > 0 else np.nan
         for key, spec in cases[names.index(c)].nees.items():
             mean = s.nees[key] / N
@@ -321,6 +431,13 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                 plo, phi = nees_bounds(pred[1], N, conf, mean=pred[0])
                 pfr = inside_fraction(mean, plo, phi)
                 pred = (pred[0], plo, phi, pfr)
+            pc = predicted_c.get((c, key))
+            if pc is not None:
+                clo, chi = nees_bounds(pc[1], N, conf, mean=pc[0])
+                pc = (pc[0], clo, chi, inside_fraction(mean, clo, chi))
+                nees_cond[(c, key)] = pc
+                row[f"NEES {key}: conditional-predicted mean/dof"] = float(np.mean(pc[0] / spec.dof))
+                row[f"NEES {key}: inside bounds of conditional prediction [%]"] = 100 * pc[3]["inside"]
             nees_stats[(c, key)] = (spec, mean, lo, hi, fr, pred)
             row[f"NEES {key}: dof"] = int(np.median(spec.dof))
             row[f"NEES {key}: mean/dof"] = float(np.mean(mean / spec.dof))
@@ -338,6 +455,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             h[f"{q} lower bound [{unit}]"] = lo[hsel] / f
             h[f"{q} upper bound [{unit}]"] = hi[hsel] / f
             h[f"{q} MC mean [{unit}]"] = _mean(s, q)[hsel] / f
+        for q, unit, f in COMPARED:
+            _, sig_c, lo_c, hi_c = band_c[c][q]
+            h[f"{q} sigma conditional [{unit}]"] = sig_c[hsel] / f
+            h[f"{q} conditional lower bound [{unit}]"] = lo_c[hsel] / f
+            h[f"{q} conditional upper bound [{unit}]"] = hi_c[hsel] / f
         for ax in ("north", "east"):
             h[f"{ax} sigma linear [m]"] = L[ax][hsel]
             h[f"{ax} RMS MC [m]"] = s.rms(ax)[hsel]
@@ -353,6 +475,10 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             if pred is not None:
                 cols.update({"linear-predicted mean": pred[0], "lower bound of prediction": pred[1],
                              "upper bound of prediction": pred[2]})
+            pc = nees_cond.get((c, key))
+            if pc is not None:
+                cols.update({"conditional-predicted mean": pc[0], "lower bound of conditional prediction": pc[1],
+                             "upper bound of conditional prediction": pc[2]})
             for nm, arr in cols.items():
                 col = pd.Series(np.nan, index=range(t.size))
                 col[spec.steps] = arr
@@ -374,6 +500,10 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             row.update({"linear-predicted time-mean NEES/dof": float(np.mean(pred[0] / spec.dof)),
                         "linear-predicted NEES at end": float(pred[0][-1]),
                         "inside bounds of prediction [%]": 100 * pred[3]["inside"]})
+        pc = nees_cond.get((c, key))
+        if pc is not None:
+            row.update({"conditional-predicted time-mean NEES/dof": float(np.mean(pc[0] / spec.dof)),
+                        "inside bounds of conditional prediction [%]": 100 * pc[3]["inside"]})
         nees_rows.append(row)
     nees_table = pd.DataFrame(nees_rows)
     chunk_seconds = [r["seconds"] for r in results]
@@ -388,6 +518,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         {"setting": "confidence", "value": conf},
         {"setting": "horizontal bound", "value": "chi-square with Satterthwaite dof N(l1+l2)^2/(l1^2+l2^2) "
                                                  "(l: eigenvalues of the 2x2 horizontal covariance)"},
+        {"setting": "conditional prediction", "value": "linear analysis with the truth P0 replaced by the second "
+                                                       "moments of the N drawn initial states (initial errors and "
+                                                       "random constants); driving and measurement noise and the "
+                                                       "filters' gains from the model; the acceptance (>= 95 % inside) "
+                                                       "applies to it (docs/monte_carlo.md)"},
         {"setting": "NEES steps every [s]", "value": every},
         {"setting": "sensor noise", "value": opt["sensor_noise"]},
         {"setting": "measurement noise", "value": opt["measurement_noise"]},
@@ -417,8 +552,10 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                  "group": "case", "log_y": True, "x_title": "time [min]",
                  "title": "Horizontal RMS (Monte Carlo) and linear sigma, per case", "y_title": "horizontal [m]",
                  "anchor": "B2", "target": "summary"}],
-        data={"t": t, "sums": sums, "linear": lin, "claimed": claimed, "cases": cases, "bands": band,
-              "nees": nees_stats, "options": opt, "stats": stats, "filter_check": pf_check},
+        data={"t": t, "sums": sums, "linear": lin, "linear_conditional": lin_c, "bands_conditional": band_c,
+              "linear_driven": lin_d, "bands_conditional_exact": band_x,
+              "nees_conditional": nees_cond, "P0_conditional": P0_cond, "claimed": claimed, "cases": cases,
+              "bands": band, "nees": nees_stats, "options": opt, "stats": stats, "filter_check": pf_check},
         times=t, cases=list(names), bands=band, nees=nees_stats, runs=N, confidence=conf,
         update_times=t[S.update_steps], stops=S.stops, length_unit=length_unit(decl, S.where))
     result.figures = {f"mc_{c}": partial(case_figure, result, c) for c in names}

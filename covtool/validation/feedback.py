@@ -49,7 +49,9 @@ because every earlier estimate was fed back (eq (9)).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
+import numba
 import numpy as np
 
 from covtool.errors import NumericalError
@@ -233,6 +235,79 @@ class SensorFeedback:
     def compensate(self, dtheta, dv, h: float, ctx: "RecordContext | None" = None):
         """Compensated increments of one record; advances ``ĉ`` to its end.
 
+        The compiled kernel (:func:`_compensate_kernel`) when every fed-back
+        block is a single-entry sensitivity (:func:`_column_table`) or the
+        gravity block, else :meth:`compensate_reference`; both give the
+        same increments to round-off (tests).  Parameters and returns as
+        :meth:`compensate_reference`.
+        """
+        if not self.n:
+            return dtheta, dv
+        table = self._table()
+        if table is None:
+            return self.compensate_reference(dtheta, dv, h, ctx)
+        if self.needs_context and ctx is None:
+            raise ValueError("gravity-disturbance and Markov-in-distance feedback need the record context")
+        M, k, _ = dtheta.shape
+        dyn = self.dynamic.any()
+        if dyn:
+            t_mid = (np.arange(k) + 0.5) * h
+            d_mid = ctx.d_mid if ctx is not None else np.zeros(k)
+            f_mid = self._factors(t_mid, d_mid)                            # (k, n_s)
+        else:
+            f_mid = np.ones((1, self.n))
+        target, rows, types, ia, ib, cidx, gcols, gidx, adcols, adidx = table
+        gS = ctx.gravity_sensitivity if gcols.size else np.zeros((1, 3, 3))
+        if adcols.size:
+            f_edge = self._factors(np.arange(k + 1) * h, ctx.d_edge if ctx is not None else np.zeros(k + 1))
+            ad_step = np.ascontiguousarray(f_edge[1:] - f_edge[:-1])            # (k, n_s)
+        else:
+            ad_step = np.zeros((1, self.n))
+        out_th = np.empty((M, k, 3))
+        out_dv = np.empty((M, k, 3))
+        _compensate_kernel(dtheta, dv, float(h), target, rows, types, ia, ib, cidx, f_mid, np.ascontiguousarray(self.c),
+                           np.ascontiguousarray(gS), gcols, gidx, adcols, adidx, ad_step, out_th, out_dv)
+        if dyn:
+            t_end = np.array([k * h])
+            d_end = ctx.d_edge[-1:] if ctx is not None else np.zeros(1)
+            self.c = self.c * self._factors(t_end, d_end)[0][None, :]
+        return out_th, out_dv
+
+    def _table(self):
+        """Entries of the compiled compensation, or None (use the reference)."""
+        if getattr(self, "_tab", False) is not False:
+            return self._tab
+        target, rows, types, ia, ib, cidx, gcols, gidx, adcols, adidx = [], [], [], [], [], [], [], [], [], []
+        tab = None
+        for b in self.blocks:
+            if b.sensor == "ad_reset":
+                adcols += list(b.cols)
+                adidx += list(b.idx)
+                continue
+            if b.sensor == "gravity":
+                gcols += list(b.cols)
+                gidx += list(b.idx)
+                continue
+            cols = _column_table(b.kind) if b.sensor in ("gyro", "accel") else None
+            if cols is None:
+                break
+            for col, j in zip(b.cols, b.idx):
+                r, ty, a, bb = cols[int(col)]
+                target.append(0 if b.sensor == "gyro" else 1)
+                rows.append(r)
+                types.append(ty)
+                ia.append(a)
+                ib.append(bb)
+                cidx.append(int(j))
+        else:
+            tab = tuple(np.array(v, dtype=np.int64) for v in (target, rows, types, ia, ib, cidx, gcols, gidx,
+                                                                     adcols, adidx))
+        self._tab = tab
+        return tab
+
+    def compensate_reference(self, dtheta, dv, h: float, ctx: "RecordContext | None" = None):
+        """Compensated increments of one record (numpy reference).
+
         Parameters
         ----------
         dtheta, dv : ndarray, shape (M, k, 3)
@@ -281,6 +356,131 @@ class SensorFeedback:
         if dyn:
             self.c = self.c * f_edge[-1][None, :]
         return dtheta - h * corr["gyro"], dv - h * corr["accel"] - ad
+
+
+# --------------------------------------------------------------------------
+# compiled compensation (issue 13)
+# --------------------------------------------------------------------------
+
+
+@lru_cache(maxsize=None)
+def _column_table(kind: str):
+    """Each sensitivity column of a block kind as one entry, or None.
+
+    The sensitivities of :mod:`covtool.lincov.model.blocks` put one
+    non-zero in each column: ``S[r, col] = v(f, ω)`` with ``v`` one of
+    1, ``f_a``, ``ω_a``, ``|f_a|``, ``f_a f_b`` (biases, scale factors,
+    misalignments, g-sensitivity, anisoelasticity).  The entry ``(r, type,
+    a, b)`` is found by probing the block's own function at random points,
+    so the compiled kernel evaluates exactly that function; a kind that does
+    not fit (None) is compensated by the numpy reference.
+    """
+    fn = BLOCK_KINDS[kind].sensitivity
+    if fn is None:
+        return None
+    rng = np.random.default_rng(20261201)
+    z = rng.normal(size=(8, 6)) * rng.uniform(0.5, 3.0, size=(8, 6))
+    f, w = z[:, :3], z[:, 3:]
+    S = np.asarray(fn(f, w), dtype=float)                              # (8, 3, nb)
+    values = {(0, 0, 0): np.ones(8)}
+    for a in range(3):
+        values[(1, a, 0)] = f[:, a]
+        values[(2, a, 0)] = w[:, a]
+        values[(3, a, 0)] = np.abs(f[:, a])
+        for b in range(3):
+            values[(4, a, b)] = f[:, a] * f[:, b]
+    out = []
+    for col in range(S.shape[2]):
+        nz = [r for r in range(3) if np.any(S[:, r, col] != 0.0)]
+        if len(nz) != 1:
+            return None
+        r = nz[0]
+        match = next((key for key, v in values.items() if np.allclose(S[:, r, col], v, rtol=1e-14, atol=0.0)), None)
+        if match is None:
+            return None
+        out.append((r, *match))
+    return tuple(out)
+
+
+@numba.njit(cache=True, nogil=True)
+def _compensate_kernel(dth, dv, h, target, rows, types, ia, ib, cidx, fmid, c, gS, gcols, gidx, adcols, adidx,
+                       ad_step, out_th, out_dv):
+    """``Δθ − h S_g ĉ``, ``Δv − h S_a ĉ − h C diag(g, g, −1) ĉ_grav − Δĉ_AD`` per sample.
+
+    ``dth``, ``dv`` (Mv, K, 3) raw (Mv = M or 1); entry e adds
+    ``v_e(f̄, ω̄) ĉ[cidx_e] fmid[k, cidx_e]`` to row ``rows_e`` of the gyro
+    (``target`` 0) or accelerometer (1) correction (:func:`_column_table`);
+    ``fmid`` (K or 1, n_s) the mean-dynamics factors; ``gS`` (K, 3, 3) the
+    gravity sensitivity, its kept columns ``gcols`` at ``gidx``; the AD-reset
+    states ``adcols`` at ``adidx`` subtract ``ĉ ad_step[k]`` (the change of
+    their mean dynamics over the sample).
+    """
+    M = c.shape[0]
+    K = out_th.shape[1]
+    shared = dth.shape[0] == 1
+    nf = fmid.shape[0]
+    for m in range(M):
+        mb = 0 if shared else m
+        for k in range(K):
+            kf = k if nf > 1 else 0
+            f0, f1, f2 = dv[mb, k, 0] / h, dv[mb, k, 1] / h, dv[mb, k, 2] / h
+            w0, w1, w2 = dth[mb, k, 0] / h, dth[mb, k, 1] / h, dth[mb, k, 2] / h
+            g0 = g1 = g2 = 0.0
+            a0 = a1 = a2 = 0.0
+            for e in range(rows.size):
+                ty = types[e]
+                p = ia[e]
+                fp = f0 if p == 0 else (f1 if p == 1 else f2)
+                if ty == 0:
+                    v = 1.0
+                elif ty == 1:
+                    v = fp
+                elif ty == 2:
+                    v = w0 if p == 0 else (w1 if p == 1 else w2)
+                elif ty == 3:
+                    v = abs(fp)
+                else:
+                    q = ib[e]
+                    v = fp * (f0 if q == 0 else (f1 if q == 1 else f2))
+                j = cidx[e]
+                cv = v * c[m, j] * fmid[kf, j]
+                r = rows[e]
+                if target[e] == 0:
+                    if r == 0:
+                        g0 += cv
+                    elif r == 1:
+                        g1 += cv
+                    else:
+                        g2 += cv
+                elif r == 0:
+                    a0 += cv
+                elif r == 1:
+                    a1 += cv
+                else:
+                    a2 += cv
+            for e in range(gcols.size):
+                j = gidx[e]
+                cj = c[m, j] * fmid[kf, j]
+                gc = gcols[e]
+                a0 += gS[k, 0, gc] * cj
+                a1 += gS[k, 1, gc] * cj
+                a2 += gS[k, 2, gc] * cj
+            out_th[m, k, 0] = dth[mb, k, 0] - h * g0
+            out_th[m, k, 1] = dth[mb, k, 1] - h * g1
+            out_th[m, k, 2] = dth[mb, k, 2] - h * g2
+            d0 = d1 = d2 = 0.0
+            for e in range(adcols.size):
+                j = adidx[e]
+                dj = c[m, j] * ad_step[k, j]
+                if adcols[e] == 0:
+                    d0 += dj
+                elif adcols[e] == 1:
+                    d1 += dj
+                else:
+                    d2 += dj
+            out_dv[m, k, 0] = dv[mb, k, 0] - h * a0 - d0
+            out_dv[m, k, 1] = dv[mb, k, 1] - h * a1 - d1
+            out_dv[m, k, 2] = dv[mb, k, 2] - h * a2 - d2
 
 
 @dataclass(frozen=True)

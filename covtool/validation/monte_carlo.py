@@ -25,7 +25,7 @@ from covtool.nav import attitude as quat, earth, strapdown as sd
 from covtool.validation.feedback import FeedbackFilter, RecordContext, SensorFeedback
 
 __all__ = [
-    "QUANTITIES", "EnsembleCase", "EnsembleSums", "run_ensemble", "simulate_chunk",
+    "QUANTITIES", "EnsembleCase", "EnsembleSums", "run_ensemble", "simulate_chunk", "initial_states",
 ]
 
 
@@ -193,36 +193,46 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
     need_ctx = any(r["fb"] is not None and r["fb"].needs_context for r in run)
     truth_idx = model.index if model is not None else {}
 
-    def observe(k):
-        ti = sd.NavState(float(t[k]), tr.lat[k:k + 1], tr.lon[k:k + 1], tr.h[k:k + 1], tr.v_n[k:k + 1],
-                         tr.q[k:k + 1], np.zeros((1, 3)), np.zeros((1, 3)))
-        E = sd.nav_errors(state, ti)
-        PHI = E[:, 6:10] @ Aq[k].T
-        X_all = np.column_stack([E[:, 0] * rmh[k], E[:, 1] * rnhc[k], -E[:, 2], E[:, 3:6], PHI])
+    CM = C * M
+
+    def observe(ks, st):
+        """Add the errors of ``st`` (grid steps ``ks``, rows g-major: (G·C·M,)) to the sums."""
+        ks = np.asarray(ks, int)
+        G = ks.size
+        ti = sd.NavState(float(t[ks[0]]), np.repeat(tr.lat[ks], CM), np.repeat(tr.lon[ks], CM),
+                         np.repeat(tr.h[ks], CM), np.repeat(tr.v_n[ks], CM, axis=0), np.repeat(tr.q[ks], CM, axis=0),
+                         None, None)
+        E = sd.nav_errors(st, ti).reshape(G, CM, 10)
+        PHI = np.einsum("gij,grj->gri", Aq[ks], E[:, :, 6:10])
+        X_all = np.concatenate([(E[:, :, 0] * rmh[ks, None])[..., None], (E[:, :, 1] * rnhc[ks, None])[..., None],
+                                -E[:, :, 2:3], E[:, :, 3:6], PHI], axis=-1)
         for r in run:
-            e, phi, X = E[r["rows"]], PHI[r["rows"]], X_all[r["rows"]]
+            e, phi, X = E[:, r["rows"]], PHI[:, r["rows"]], X_all[:, r["rows"]]
             if r["errors"] is not None:
-                r["errors"][k] = e
+                r["errors"][ks] = e
             s = r["sums"]
-            s.s1[k] += X.sum(axis=0)
-            s.s2[k] += (X * X).sum(axis=0)
-            s.s_ne[k] += float(np.dot(X[:, 0], X[:, 1]))
+            s.s1[ks] += X.sum(axis=1)
+            s.s2[ks] += (X * X).sum(axis=1)
+            s.s_ne[ks] += np.einsum("gm,gm->g", X[:, :, 0], X[:, :, 1])
             for key, spec in r["case"].nees.items():
-                j = r["nees_pos"][key].get(k)
-                if j is None:
-                    continue
-                vec = np.empty((M, len(spec.labels)))
-                for col, lab in enumerate(spec.labels):
-                    if lab in REDUCED_NAV[:6]:
-                        vec[:, col] = e[:, _NAV.index(lab)]
-                    elif lab in ("phiN", "phiE", "phiD"):
-                        vec[:, col] = phi[:, "NED".index(lab[-1])]
-                    else:
-                        fb = r["fb"]
-                        est = fb.c[:, fb.names.index(lab)] if fb is not None and lab in fb.names else 0.0
-                        vec[:, col] = x0[:, truth_idx[lab]] - est
-                u = np.einsum("ij,mj->mi", spec.W[j], vec / spec.scale[j])
-                s.nees[key][j] += float(np.sum(u * u))
+                for g, k in enumerate(ks):
+                    j = r["nees_pos"][key].get(int(k))
+                    if j is None:
+                        continue
+                    vec = np.empty((M, len(spec.labels)))
+                    for col, lab in enumerate(spec.labels):
+                        if lab in REDUCED_NAV[:6]:
+                            vec[:, col] = e[g, :, _NAV.index(lab)]
+                        elif lab in ("phiN", "phiE", "phiD"):
+                            vec[:, col] = phi[g, :, "NED".index(lab[-1])]
+                        else:
+                            # a random constant: its truth is x0, its estimate ĉ does not change between
+                            # updates, so the ĉ at the end of the span is the one at this grid step
+                            fb = r["fb"]
+                            est = fb.c[:, fb.names.index(lab)] if fb is not None and lab in fb.names else 0.0
+                            vec[:, col] = x0[:, truth_idx[lab]] - est
+                    u = np.einsum("ij,mj->mi", spec.W[j], vec / spec.scale[j])
+                    s.nees[key][j] += float(np.sum(u * u))
 
     def update(k):
         dx = None
@@ -243,27 +253,42 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
                 r["fb"].add(xh[:, r["sens_cols"]])
         return state if dx is None else sd.correct(state, dx)
 
-    records = sim.records(chunk=spr * max(1, int(round(60.0 / dt))))
-    buf, pos = None, 0
-    for k in range(N + 1):
+    # The run advances in spans of grid steps with no update inside: the feedback estimates then
+    # follow their mean dynamics, so a whole span is compensated, turned into body increments and
+    # integrated (compiled strapdown kernel) at once, and its grid states are observed together.
+    # The IMU records keep their 60-s chunking (the random draws do not depend on the spans).
+    chunk_steps = max(1, int(round(60.0 / dt)))
+    records = sim.records(chunk=spr * chunk_steps)
+    upd_after = np.array(upd_steps + [N], int)
+    buf, buf_k0 = None, 0
+    k = 0
+    while True:
         state = update(k)
-        observe(k)
+        observe([k], state)
         if k == N:
             break
-        if buf is None or pos >= buf.dtheta.shape[-2]:
-            buf, pos = next(records), 0
-        rec = buf.slice(pos, pos + spr)
-        pos += spr
-        ctx = RecordContext.along(sim.traj, rec.t0, h, spr, sim.mounting) if need_ctx else None
-        raw_th = np.broadcast_to(rec.dtheta, (M, spr, 3))
-        raw_dv = np.broadcast_to(rec.dv, (M, spr, 3))
+        if buf is None or k >= buf_k0 + chunk_steps:
+            buf, buf_k0 = next(records), (k // chunk_steps) * chunk_steps
+        b = min(int(upd_after[np.searchsorted(upd_after, k, side="right")]), buf_k0 + chunk_steps, N)
+        rec = buf.slice((k - buf_k0) * spr, (b - buf_k0) * spr)
+        K = (b - k) * spr
+        ctx = RecordContext.along(sim.traj, rec.t0, h, K, sim.mounting) if need_ctx else None
+        raw_th = np.broadcast_to(rec.dtheta, (M, K, 3))
+        raw_dv = np.broadcast_to(rec.dv, (M, K, 3))
         parts = [r["fb"].compensate(raw_th, raw_dv, h, ctx) if r["fb"] is not None else (raw_th, raw_dv)
                  for r in run]
         dth = np.concatenate([p[0] for p in parts])
         dvv = np.concatenate([p[1] for p in parts])
-        hist = sd.run(state, type(rec)(rec.t0, h, dth, dvv), n, every=10**9)
-        state = hist.state(-1).replace(t=float(t[k + 1]), dtheta_prev=dth[:, -1, :].copy(),
+        hist = sd.run(state, type(rec)(rec.t0, h, dth, dvv), n, every=spr // n)
+        if b - k > 1:
+            G = b - k - 1
+            inner = sd.NavState(float(t[k + 1]), hist.lat[1:b - k].reshape(-1), hist.lon[1:b - k].reshape(-1),
+                                hist.h[1:b - k].reshape(-1), hist.v_n[1:b - k].reshape(G * CM, 3),
+                                hist.q[1:b - k].reshape(G * CM, 4), None, None)
+            observe(np.arange(k + 1, b), inner)
+        state = hist.state(-1).replace(t=float(t[b]), dtheta_prev=dth[:, -1, :].copy(),
                                        dv_prev=dvv[:, -1, :].copy())
+        k = b
     for r in run:
         r["sums"].n_runs = M
     sums = {r["case"].name: r["sums"] for r in run}
@@ -299,17 +324,50 @@ def simulate_chunk(task: dict) -> dict:
     import time
 
     from covtool.nav.imu.simulator import ImuSimulator
-    from covtool.validation.sensor_errors import SensorErrors, sample_states
+    from covtool.validation.sensor_errors import SensorErrors
 
     t0 = time.perf_counter()
-    ss = np.random.SeedSequence(task["seed"], spawn_key=(int(task["chunk"]),))
-    r_x0, r_sensor, r_meas = (np.random.default_rng(s) for s in ss.spawn(3))
+    _, r_sensor, r_meas = _streams(task["seed"], task["chunk"])
     traj, model, t = task["traj"], task["model"], np.asarray(task["t"], float)
     M = int(task["runs"])
-    x0 = sample_states(model, M, r_x0, q0=traj.sample([t[0]]).q_nb[0])
+    x0 = initial_states(model, M, task["seed"], task["chunk"], traj.sample([t[0]]).q_nb[0])
     errors = SensorErrors(model, x0, r_sensor, noise=task.get("sensor_noise", True),
                           process_dt=task.get("process_dt", 0.1))
     sim = ImuSimulator(traj, task["imu_rate"], t0=float(t[0]), duration=float(t[-1] - t[0]), errors=errors)
     sums = run_ensemble(sim, x0, task["cases"], t, samples_per_step=task["samples_per_step"], R=task["R"],
                         rng=r_meas, measurement_noise=task.get("measurement_noise", True), model=model)
     return {"sums": {k: v.to_json() for k, v in sums.items()}, "seconds": time.perf_counter() - t0}
+
+
+def _streams(seed, chunk):
+    """The chunk's three random streams: initial states, sensor noise, ZUPT noise."""
+    ss = np.random.SeedSequence(seed, spawn_key=(int(chunk),))
+    return tuple(np.random.default_rng(s) for s in ss.spawn(3))
+
+
+def initial_states(model, runs: int, seed, chunk: int, q0) -> np.ndarray:
+    """The initial error states a chunk of runs draws (:func:`simulate_chunk`).
+
+    Parameters
+    ----------
+    model : covtool.lincov.model.spec.Model
+        The truth model (its P0 at the initial attitude).
+    runs : int
+        Runs M of the chunk.
+    seed : int
+        The study seed.
+    chunk : int
+        The chunk index.
+    q0 : ndarray, shape (4,)
+        True initial attitude ``q_nb``.
+
+    Returns
+    -------
+    ndarray, shape (M, n_truth)
+        Exactly the draws the chunk's runs start from, so the study can form
+        their sample second moments (the conditional linear prediction,
+        ``docs/monte_carlo.md``) without storing them.
+    """
+    from covtool.validation.sensor_errors import sample_states
+
+    return sample_states(model, int(runs), _streams(seed, chunk)[0], q0=q0)

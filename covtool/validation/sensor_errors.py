@@ -29,6 +29,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
+import numba
 import numpy as np
 
 from covtool.lincov.kalman import symmetrize
@@ -174,10 +175,18 @@ class SensorErrors:
             b[:] = 0.0
         return a, b
 
-    def _dynamic_path(self, t_edges, speed_fn):
-        """Dynamic states at the sample edges, shape (M, K+1, n_dyn)."""
+    def _dynamic_path(self, t_edges, speed_fn, *, nodes: bool = False):
+        """Dynamic states at the sample edges, shape (M, K+1, n_dyn).
+
+        ``nodes=True`` returns the process nodes and the interpolation instead,
+        ``(x_nodes (M, J, n_dyn), j (K+1,), u (K+1,))`` with the edge values
+        ``x_nodes[:, j] + u (x_nodes[:, j+1] − x_nodes[:, j])`` (J = 1: j = 0,
+        u = 0, the single node everywhere).
+        """
         nd = self.dynamic.size
         if nd == 0:
+            if nodes:
+                return np.zeros((self.n_runs, 1, 0)), np.zeros(t_edges.size, np.int64), np.zeros(t_edges.size)
             return np.zeros((self.n_runs, t_edges.size, 0))
         if self._node_t is None:
             self._node_t = np.array([float(t_edges[0])])
@@ -209,9 +218,14 @@ class SensorErrors:
         self._node_x = self._node_x[:, keep:]
         nt, nx = self._node_t, self._node_x
         if nt.size == 1:
+            if nodes:
+                return nx, np.zeros(t_edges.size, np.int64), np.zeros(t_edges.size)
             return np.repeat(nx, t_edges.size, axis=1)
         j = np.clip(np.searchsorted(nt, t_edges, side="right") - 1, 0, nt.size - 2)
-        u = ((t_edges - nt[j]) / (nt[j + 1] - nt[j]))[None, :, None]
+        u = (t_edges - nt[j]) / (nt[j + 1] - nt[j])
+        if nodes:
+            return nx, j.astype(np.int64), u
+        u = u[None, :, None]
         return nx[:, j] + u * (nx[:, j + 1] - nx[:, j])
 
     # ---- injection ---------------------------------------------------------
@@ -242,8 +256,7 @@ class SensorErrors:
         M = self.n_runs
         k = dtheta.shape[-2]
         t_edges = t0 + h * np.arange(k + 1)
-        path = self._dynamic_path(t_edges, speed_fn)                   # (M, k+1, nd)
-        xbar_dyn = 0.5 * (path[:, 1:] + path[:, :-1])                  # (M, k, nd)
+        nx, jn, un = self._dynamic_path(t_edges, speed_fn, nodes=True)  # process nodes, interpolation
         dyn_pos = {int(i): j for j, i in enumerate(self.dynamic)}
         Mv = dtheta.shape[0]
         fbar = (dv / h).reshape(Mv * k, 3)
@@ -279,17 +292,17 @@ class SensorErrors:
                     acc += np.einsum("mkij,mj->mki", S, xc)
             Ss, cols = parts[(target, True)]
             if cols:
-                S = np.stack(Ss, axis=-1)                                  # (Mv, k, 3, nd)
-                acc += np.einsum("vkij,mkj->mki", S, xbar_dyn[:, :, cols]) if Mv == 1 else \
-                    np.einsum("mkij,mkj->mki", S, xbar_dyn[:, :, cols])
+                # S x̄ with x̄ the mean of the interpolated path over the sample (compiled)
+                S = np.ascontiguousarray(np.stack(Ss, axis=-1))            # (Mv, k, 3, nd)
+                _mean_path_apply(nx, jn, un, S, np.array(cols, np.int64), acc)
             out[target] = acc
         ddth = out["gyro"] * h
         ddv = out["accel"] * h
         for g in self.groups:
             if g.sensor == "ad_reset":
                 # δf^b = ė: the velocity-increment error is the change of e
-                cols = [dyn_pos[int(i)] for i in g.cols]
-                ddv += path[:, 1:, cols] - path[:, :-1, cols]
+                cols = np.array([dyn_pos[int(i)] for i in g.cols], np.int64)
+                _path_difference_add(nx, jn, un, cols, ddv)
         if self.arw > 0:
             ddth += self.arw * math.sqrt(h) * self.rng.standard_normal((M, k, 3))
         if self.vrw > 0:
@@ -376,3 +389,46 @@ class GSensitiveErrors(SensorErrors):
         for i, j, k in self.gsens:
             ddth[..., i] += k * (dv[..., j] / h) * dtheta[..., i]
         return ddth, ddv
+
+
+# --------------------------------------------------------------------------
+# compiled path kernels (issue 13): the same arithmetic as the numpy
+# interpolation of _dynamic_path, without (M, K, n_dyn) temporaries
+# --------------------------------------------------------------------------
+
+
+@numba.njit(cache=True, nogil=True)
+def _edge(nx, jn, un, m, e, d):
+    j = jn[e]
+    if nx.shape[1] == 1:
+        return nx[m, 0, d]
+    return nx[m, j, d] + un[e] * (nx[m, j + 1, d] - nx[m, j, d])
+
+
+@numba.njit(cache=True, nogil=True)
+def _mean_path_apply(nx, jn, un, S, cols, acc):
+    """``acc[m, k] += S[k] x̄[m, k, cols]``, x̄ the mean of the edge values.
+
+    ``S`` (Mv, K, 3, len(cols)) with Mv = 1 (shared) or M.
+    """
+    M, K = acc.shape[0], acc.shape[1]
+    shared = S.shape[0] == 1
+    for m in range(M):
+        mv = 0 if shared else m
+        for k in range(K):
+            for c in range(cols.size):
+                d = cols[c]
+                xb = 0.5 * (_edge(nx, jn, un, m, k + 1, d) + _edge(nx, jn, un, m, k, d))
+                for i in range(3):
+                    acc[m, k, i] += S[mv, k, i, c] * xb
+
+
+@numba.njit(cache=True, nogil=True)
+def _path_difference_add(nx, jn, un, cols, out):
+    """``out[m, k, i] += x[m, k+1, cols[i]] − x[m, k, cols[i]]`` (edge values)."""
+    M, K = out.shape[0], out.shape[1]
+    for m in range(M):
+        for k in range(K):
+            for i in range(cols.size):
+                d = cols[i]
+                out[m, k, i] += _edge(nx, jn, un, m, k + 1, d) - _edge(nx, jn, un, m, k, d)
