@@ -29,6 +29,7 @@ other state.
 
 from __future__ import annotations
 
+import abc
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -152,7 +153,7 @@ def transition(state: State, dt: float) -> tuple[float, float]:
 
 
 @dataclass(frozen=True, eq=False)
-class Measurement:
+class Measurement(abc.ABC):
     """One declared measurement: kind, noise, lever arm, own error states.
 
     Subclasses (one per kind, :data:`covtool.lincov.measurements.KINDS`)
@@ -207,15 +208,18 @@ class Measurement:
         i = self.error_index(suffix)
         return 0.0 if i is None else e[i]
 
-    # -- to implement -----------------------------------------------------------------
+    # -- each kind implements these (an abstract base: a kind missing one cannot be built) ----------
+    @abc.abstractmethod
     def predict(self, x, w):
-        raise NotImplementedError
+        """What the INS expects the sensor to read at its own state ``x`` and sample ``w``, shape (m,)."""
 
+    @abc.abstractmethod
     def sensor(self, x, w, e):
-        raise NotImplementedError
+        """What the sensor reads at the true state ``x`` with its own errors ``e``, shape (m,)."""
 
+    @abc.abstractmethod
     def nav_jacobian(self, x, w) -> np.ndarray:
-        raise NotImplementedError
+        """``∂ predict / ∂(navigation error)`` in the truth model's navigation states, shape (m, 10)."""
 
     def error_jacobian(self, x, w) -> np.ndarray:
         """``∂ sensor / ∂e`` at ``e = 0``, shape (m, n_e)."""
