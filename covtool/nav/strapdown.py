@@ -330,6 +330,14 @@ def _nav_core(x, qb, u, r, T):
 
 
 @_njit
+def _store_state(dst, lat, lon, h, vn, ve, vd, q0, q1, q2, q3):
+    """Write one navigation state (lat, lon, h, v_NED, q_nb) into ``dst``, shape (10,)."""
+    dst[0], dst[1], dst[2] = lat, lon, h
+    dst[3], dst[4], dst[5] = vn, ve, vd
+    dst[6], dst[7], dst[8], dst[9] = q0, q1, q2, q3
+
+
+@_njit
 def _nav_core_scalar(lat, lon, h, vn, ve, vd, q0, q1, q2, q3, b0, b1, b2, b3, ux, uy, uz, rx, ry, rz, T):
     W = _OMEGA_IE
     # C(q) u = u + q0 t + qv × t, t = 2 qv × u
@@ -424,19 +432,8 @@ def _nav_loop(x, qb, ub, rb, T, every, offset, out):
                 ub[0, mb, j], ub[1, mb, j], ub[2, mb, j], rb[0, mb, j], rb[1, mb, j], rb[2, mb, j], T)
             if (offset + j + 1) % every == 0:
                 o = (offset + j + 1) // every - offset // every - 1
-                out[0, m, o] = lat
-                out[1, m, o] = lon
-                out[2, m, o] = h
-                out[3, m, o] = vn
-                out[4, m, o] = ve
-                out[5, m, o] = vd
-                out[6, m, o] = q0
-                out[7, m, o] = q1
-                out[8, m, o] = q2
-                out[9, m, o] = q3
-        x[0, m], x[1, m], x[2, m] = lat, lon, h
-        x[3, m], x[4, m], x[5, m] = vn, ve, vd
-        x[6, m], x[7, m], x[8, m], x[9, m] = q0, q1, q2, q3
+                _store_state(out[:, m, o], lat, lon, h, vn, ve, vd, q0, q1, q2, q3)
+        _store_state(x[:, m], lat, lon, h, vn, ve, vd, q0, q1, q2, q3)
 
 
 @_njit
@@ -526,19 +523,8 @@ def _strapdown_loop(x, dth, dv, prev_th, prev_dv, n, wc, T, every, offset, out):
             v0x, v0y, v0z = mx, my, mz
             if (offset + j + 1) % every == 0:
                 o = (offset + j + 1) // every - offset // every - 1
-                out[0, m, o] = lat
-                out[1, m, o] = lon
-                out[2, m, o] = h
-                out[3, m, o] = vn
-                out[4, m, o] = ve
-                out[5, m, o] = vd
-                out[6, m, o] = q0
-                out[7, m, o] = q1
-                out[8, m, o] = q2
-                out[9, m, o] = q3
-        x[0, m], x[1, m], x[2, m] = lat, lon, h
-        x[3, m], x[4, m], x[5, m] = vn, ve, vd
-        x[6, m], x[7, m], x[8, m], x[9, m] = q0, q1, q2, q3
+                _store_state(out[:, m, o], lat, lon, h, vn, ve, vd, q0, q1, q2, q3)
+        _store_state(x[:, m], lat, lon, h, vn, ve, vd, q0, q1, q2, q3)
         prev_th[m, 0], prev_th[m, 1], prev_th[m, 2] = p0x, p0y, p0z
         prev_dv[m, 0], prev_dv[m, 1], prev_dv[m, 2] = v0x, v0y, v0z
 
