@@ -748,8 +748,8 @@ class AidedFiltersSection(FiltersSection):
     ewn_interval: Quantity("time", positive=True) | None = F(None, "Δt_s of seed 002 eq (11)-(13) for the INS "
                                                                    "states a filter drops (default: the duration "
                                                                    "over the number of update epochs).")
-    variant: tuple[FilterVariant, ...] = F((), "Filters dropping measurement-error states: [[filters.variant]] "
-                                                "tables.")
+    variant: Annotated[tuple[FilterVariant, ...], Kind("list of [[filters.variant]] tables")] = F(
+        (), "Filters dropping measurement-error states: [[filters.variant]] tables.")
 
 
 class MeasurementError(Section):
@@ -807,8 +807,10 @@ class MeasurementEntry(Section):
     filter_sigma: Raw = F(None, "The 1σ the filters assume (default: sigma); as sigma.")
     lever_arm: _three("length") | None = F(None, "Body-frame arm from the IMU to the sensing point (kinds with a "
                                                  "lever arm only; default zero).")
-    errors: dict[str, MeasurementError] = F({}, "Own error states: [measurement.errors.<error>] tables.")
-    schedule: MeasurementSchedule = F({}, "When it updates, see [measurement.schedule] (default: every 1 s).")
+    errors: Annotated[dict[str, MeasurementError], Kind("table of [measurement.errors.<error>] tables")] = F(
+        {}, "Own error states: [measurement.errors.<error>] tables.")
+    schedule: Annotated[MeasurementSchedule, Kind("inline table, see [measurement.schedule]")] = F(
+        {}, "When it updates, see [measurement.schedule] (default: every 1 s).")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
 
