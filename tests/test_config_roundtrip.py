@@ -73,6 +73,8 @@ _GNSS = {"name": "gnss", "kind": "gnss_position", "sigma": "1 m"}
     ({"study": {"kind": "aided"}, "measurement": []}, r"^s.toml: \[measurement\]: .*at least 1 item"),
     ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "kind": "gps"}]},
      r"^s.toml: \[\[measurement\]\] #1 kind: 'gps' is not one of: 'zupt', 'cupt', "),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "name": "2gnss"}]},
+     r"^s.toml: \[\[measurement\]\] #1 name: '2gnss' must start with a letter and hold only letters, digits "),
     ({"study": {"kind": "aided"}, "measurement": [_GNSS, {**_GNSS, "sigma": "2 m"}]},
      r"^s.toml: \[\[measurement\]\] #2 name: 'gnss' is used twice"),
     ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "lever_arm": ["1 m", "2 m"]}]},

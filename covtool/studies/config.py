@@ -21,6 +21,7 @@ datasheet units, as a user writes them.
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Any, ClassVar, Literal, Union
 
 from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
@@ -793,13 +794,25 @@ class MeasurementSchedule(Section):
         return self
 
 
+#: a measurement's name: it prefixes its error states' names (``odo_scale_factor``)
+MEASUREMENT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+def _measurement_name(v):
+    name = fields.string(v, "", _Problem, nonempty=True)
+    if not MEASUREMENT_NAME.match(name):
+        raise _Problem("", f"{name!r} must start with a letter and hold only letters, digits and _")
+    return name
+
+
 class MeasurementEntry(Section):
     name: ClassVar[str] = "[measurement]]"
     doc: ClassVar[str] = ("One aiding measurement (covtool.lincov.measurements, docs/aiding.md): its kind, "
                           "white noise, lever arm, own error states and schedule.")
     nested: ClassVar[dict] = {"errors": MeasurementError, "schedule": MeasurementSchedule}
-    name_: Text(nonempty=True) = Field(..., alias="name", description=(
-        "Label, and prefix of its error states: a letter, then letters, digits and `_`."),
+    name_: Annotated[str, BeforeValidator(_wrap(_measurement_name)), Kind("string (a letter, then letters, "
+                                                                          "digits and `_`)")] = Field(
+        ..., alias="name", description="Label, and prefix of its error states (`<name>_<error>`).",
         json_schema_extra={"example": "gnss"})
     kind: OneOf(*MEASUREMENT_KINDS) = F(..., "The measurement kind.", example="gnss_position")
     sigma: Raw = F(..., "True white-noise 1σ (R): one value, or one per component, in the kind's unit; > 0.",
