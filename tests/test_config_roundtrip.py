@@ -65,6 +65,57 @@ def test_refusals_are_one_line_naming_file_section_key(decl, match):
         load_config(decl, "s.toml")
 
 
+_GNSS = {"name": "gnss", "kind": "gnss_position", "sigma": "1 m"}
+
+
+@pytest.mark.parametrize("decl,match", [
+    ({"study": {"kind": "aided"}}, r"^s.toml: missing required key 'measurement'"),
+    ({"study": {"kind": "aided"}, "measurement": []}, r"^s.toml: \[measurement\]: .*at least 1 item"),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "kind": "gps"}]},
+     r"^s.toml: \[\[measurement\]\] #1 kind: 'gps' is not one of: 'zupt', 'cupt', "),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "name": "2gnss"}]},
+     r"^s.toml: \[\[measurement\]\] #1 name: '2gnss' must start with a letter and hold only letters, digits "),
+    ({"study": {"kind": "aided"}, "measurement": [_GNSS, {**_GNSS, "sigma": "2 m"}]},
+     r"^s.toml: \[\[measurement\]\] #2 name: 'gnss' is used twice"),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "lever_arm": ["1 m", "2 m"]}]},
+     r"^s.toml: \[\[measurement\]\] #1 lever_arm: expected three lengths \(body x, y, z\)"),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "lever_arm": ["1 m", "2 s", "0 m"]}]},
+     r"^s.toml: \[\[measurement\]\] #1 lever_arm\[1\]: '2 s' is not a length"),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "errors": {"N": {"sigma": "1 m", "process": "markov"}}}]},
+     r"^s.toml: \[\[measurement\]\] #1 errors.N: a markov error needs 'tau'"),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "errors": {"N": {"sigma": "1 m", "tau": "1 min"}}}]},
+     r"^s.toml: \[\[measurement\]\] #1 errors.N: only a markov state has a correlation time"),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "errors": {"N": {"sigma": "1 m", "taux": 1}}}]},
+     r"^s.toml: \[\[measurement\]\] #1 errors.N: unknown key 'taux'"),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "schedule": {"period": "1 s", "rate": "1 Hz"}}]},
+     r"^s.toml: \[\[measurement\]\] #1 schedule: give period or rate, not both"),
+    ({"study": {"kind": "aided"}, "measurement": [{**_GNSS, "schedule": {"when": "parked"}}]},
+     r"^s.toml: \[\[measurement\]\] #1 schedule.when: 'parked' is not one of: 'always', 'moving', "),
+    ({"study": {"kind": "aided"}, "measurement": [_GNSS], "filters": {"variant": [{"name": "v", "base": "B1"}]}},
+     r"^s.toml: \[filters\] variant #1: missing required key 'drop'"),
+    ({"study": {"kind": "aided"}, "measurement": [_GNSS], "grade": [{"name": "g", "scale": 1e4}]},
+     r"^s.toml: \[\[grade\]\] #1 scale: 10000.0 is not a number >= 0.001 and <= 1000 \(a grade scales every "),
+    ({"study": {"kind": "aided"}, "measurement": [_GNSS], "grade": [{"name": "g", "scale": 1}, {"name": "g",
+                                                                                                "scale": 2}]},
+     r"^s.toml: \[\[grade\]\] #2 name: 'g' is used twice"),
+])
+def test_aided_refusals_name_the_entry_and_key(decl, match):
+    with pytest.raises(StudyFileError, match=match):
+        load_config(decl, "s.toml")
+
+
+def test_aided_configuration_holds_si_and_the_library_defaults():
+    cfg = load_config({"study": {"kind": "aided"}, "measurement": [
+        {**_GNSS, "lever_arm": ["1 ft", "0 m", "-2 m"], "schedule": {"rate": "2 Hz", "outages": [["1 min", "2 min"]]},
+         "errors": {"N": {"sigma": "1 m", "process": "markov", "tau": "10 min"}}}]}, "s.toml")
+    m = cfg.measurement[0]
+    assert m.lever_arm == pytest.approx((0.3048, 0.0, -2.0), rel=1e-15)
+    assert m.schedule.rate == 2.0 and m.schedule.period is None and m.schedule.when == "always"
+    assert m.errors["N"].tau == 600.0 and m.errors["N"].process == "markov"
+    assert cfg.grade is None and cfg.filters.variant == () and cfg.filters.ewn_interval is None
+    assert load_config(dump_config(cfg), "s.toml") == cfg
+
+
 def test_parse_section_refuses_unknown_keys_first():
     with pytest.raises(StudyFileError, match=r"^s.toml: \[zupt\]: unknown key 'intreval' \(allowed: duration, "
                                              r"first, interval, rate, sigma\)"):

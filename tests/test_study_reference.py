@@ -232,3 +232,32 @@ def test_new_refuses_an_unknown_kind(capsys):
     assert "invalid choice: 'zupt_fliter_order'" in capsys.readouterr().err
     with pytest.raises(InputError, match=r"covtool new: unknown study kind 'x' \(one of: pure_ins, "):
         new_study("x")
+
+
+def test_aided_sections_match_their_parser():
+    """Every [[measurement]], schedule, errors, [filters], variant and grade key the aided parser accepts."""
+    from covtool.studies.aided import parse_grades, parse_measurement, parse_schedule, parse_variants, run
+
+    gnss = _decl("aided_gnss_outage.toml")
+    odo = _decl("aided_odometer_nhc.toml")
+    assert _allowed(lambda: run(_inject(gnss, []), path=None)) == set(C.AidedConfig.model_fields)
+    assert _allowed(lambda: run(_inject(gnss, ["study"]), path=None)) == set(section_keys(C.StudySection))
+    assert _allowed(lambda: run(_inject(gnss, ["filters"]), path=None)) == set(section_keys(C.AidedFiltersSection))
+    m0 = gnss["measurement"][0]
+    assert _allowed(lambda: parse_measurement({**m0, UNKNOWN: 1}, 0, "s")) == set(section_keys(C.MeasurementEntry))
+    assert _allowed(lambda: parse_measurement(_inject(m0, ["errors", "N"]), 0, "s")) == \
+        set(section_keys(C.MeasurementError))
+    assert _allowed(lambda: parse_schedule({**m0["schedule"], UNKNOWN: 1}, "s")) == \
+        set(section_keys(C.MeasurementSchedule))
+    variant = odo["filters"]["variant"][0]
+    assert _allowed(lambda: parse_variants({"variant": [{**variant, UNKNOWN: 1}]}, {"B1": None}, [], "s")) == \
+        set(section_keys(C.FilterVariant))
+    assert _allowed(lambda: parse_grades(_inject(gnss, ["grade", 0]), "s")) == set(section_keys(C.AidedGrade))
+    # the measurement kinds and schedule conditions offered are the library's, no more
+    from covtool.lincov.measurements import KINDS as MK, WHEN
+    for k in MK:
+        assert C.MeasurementEntry.model_validate({"name": "m", "kind": k, "sigma": "1 m"}).kind == k
+    for w in WHEN:
+        assert C.MeasurementSchedule.model_validate({"when": w}).when == w
+    with pytest.raises(ValueError, match=re.escape("'gps' is not one of: " + ", ".join(map(repr, MK)))):
+        C.MeasurementEntry.model_validate({"name": "m", "kind": "gps", "sigma": "1 m"})

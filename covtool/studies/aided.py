@@ -69,6 +69,7 @@ from covtool.lincov.measurements.base import error_state
 from covtool.lincov.reduced import build_filter
 from covtool.lincov.reference import propagate
 from covtool.results import StudyResult
+from covtool.studies.config import MEASUREMENT_NAME
 from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
 from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
@@ -82,7 +83,7 @@ SCHEDULE_KEYS = {"period", "rate", "start", "end", "when", "outages", "at"}
 ERROR_KEYS = {"sigma", "process", "tau"}
 #: a measurement with at most this many updates (survey points, stops) gets its before/after table
 SPARSE_UPDATES = 50
-_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+_NAME = MEASUREMENT_NAME                # one rule, declared with the typed [[measurement]] section
 
 
 # --------------------------------------------------------------------------

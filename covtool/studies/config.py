@@ -21,14 +21,16 @@ datasheet units, as a user writes them.
 from __future__ import annotations
 
 import math
+import re
 from typing import Annotated, Any, ClassVar, Literal, Union
 
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError, model_validator
 from pydantic_core import PydanticCustomError
 
 from covtool.errors import InputError, StudyFileError
 from covtool.io import config as fields
 from covtool.io.config import LIMITS
+from covtool.lincov.measurements import KINDS as MEASUREMENT_KINDS, WHEN
 from covtool.units import DIMENSIONS
 
 __all__ = ["si_text", "Section", "KINDS", "SECTIONS", "load_config", "dump_config", "config_class", "parse_section"]
@@ -158,7 +160,8 @@ class StudySection(Section):
     name: ClassVar[str] = "study"
     doc: ClassVar[str] = "What the study is and its time grid."
     kind: OneOf("pure_ins", "zupt_filter_order", "ad_reset", "zupt_sensitivity", "error_budget", "trade_grid",
-                "monte_carlo", "dual_imu", "magnitude_sweep") = F(..., "The study kind: the runner and its tables.")
+                "monte_carlo", "dual_imu", "magnitude_sweep", "aided") = F(..., "The study kind: the runner and "
+                                                                           "its tables.")
     # checked by covtool.io.names.check_study_name (a safe file name), which knows the file's stem
     name_: Annotated[Any, Kind("string (a file name)")] = Field(None, alias="name", description=(
         "Name of the outputs (`<name>.xlsx`): letters, digits, `_`, `-`, `.`; default: the study file's stem."))
@@ -715,6 +718,131 @@ class Reference(Section):
     table3: Raw = F(None, "[reference.table3].")
 
 
+# the aided-navigation study (issue 15, covtool.studies.aided)
+
+def _three(dimension: str):
+    """Three quantities (body x, y, z), as the aided parser requires of a lever arm."""
+    def check(v):
+        if not isinstance(v, list) or len(v) != 3:
+            raise _Problem("", f"expected three lengths (body x, y, z), got {v!r}")
+        return tuple(fields.quantity_list(v, dimension, "", _Problem))
+    return Annotated[tuple[float, ...], BeforeValidator(_wrap(check)),
+                     Kind(f"three quantities ({dimension}): body x, y, z", dimension)]
+
+
+class FilterVariant(Section):
+    name: ClassVar[str] = "[filters.variant]]"
+    doc: ClassVar[str] = ("A filter that drops measurement-error states from a base filter; the dropped states' "
+                          "variance widens the filter's R (covtool.lincov.aided.build_epochs).")
+    name_: Text(nonempty=True) = Field(..., alias="name", description="Label of the variant (a new filter name).",
+                                       json_schema_extra={"example": "B1 no GNSS errors"})
+    base: Text(nonempty=True) = F(..., "The filter it starts from (a case of the filter files).", example="B1")
+    drop: Names(what="measurement-error state") = F(..., "Measurement-error states removed "
+                                                         "(`<measurement>_<error>`).", example=["gnss_N"])
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+
+class AidedFiltersSection(FiltersSection):
+    name: ClassVar[str] = "filters (aided)"
+    doc: ClassVar[str] = ("The filters run against the truth and the measurements (see 'Filter files' below); "
+                          "each keeps every measurement-error state unless a variant drops it.")
+    nested: ClassVar[dict] = {"variant": [FilterVariant]}
+    ewn_interval: Quantity("time", positive=True) | None = F(None, "Δt_s of seed 002 eq (11)-(13) for the INS "
+                                                                   "states a filter drops (default: the duration "
+                                                                   "over the number of update epochs).")
+    variant: Annotated[tuple[FilterVariant, ...], Kind("list of [[filters.variant]] tables")] = F(
+        (), "Filters dropping measurement-error states: [[filters.variant]] tables.")
+
+
+class MeasurementError(Section):
+    name: ClassVar[str] = "measurement.errors.<error>"
+    doc: ClassVar[str] = ("One own error state of a measurement, named `<measurement>_<error>`; the errors each "
+                          "kind has are in docs/aiding.md (e.g. odometer: scale_factor, boresight_pitch, "
+                          "boresight_yaw; gnss_position: N, E, D).")
+    sigma: Raw = F(..., "Initial 1σ (steady-state 1σ of a markov state), in the error's unit (checked by the "
+                        "runner against the kind); >= 0.", example="1000 ppm")
+    process: OneOf("constant", "markov") = F("constant", "The error's process.")
+    tau: Quantity("time", positive=True) | None = F(None, "Correlation time; markov only, and required there.")
+
+    @model_validator(mode="after")
+    def _tau(self):
+        if self.process == "markov" and self.tau is None:
+            raise PydanticCustomError("covtool", "{problem}", {"problem": "a markov error needs 'tau'"})
+        if self.process != "markov" and self.tau is not None:
+            raise PydanticCustomError("covtool", "{problem}", {"problem": "only a markov state has a correlation "
+                                                                          "time (tau)"})
+        return self
+
+
+class MeasurementSchedule(Section):
+    name: ClassVar[str] = "measurement.schedule"
+    doc: ClassVar[str] = ("When a measurement updates (an inline table): every `period` (or at `rate`) from "
+                          "`start` to `end` when the vehicle is moving, stationary or always, except in the "
+                          "`outages`; `at` adds single times.")
+    period: Quantity("time", positive=True) | None = F(None, "Time between updates (default 1 s); not with "
+                                                             "`rate`.")
+    rate: Quantity("frequency", positive=True) | None = F(None, "Updates per second; not with `period`.")
+    start: Quantity("time") = F("0 s", "First possible update.")
+    end: Quantity("time") | None = F(None, "Last possible update (default: the end of the study).")
+    when: OneOf(*WHEN) = F("always", "Vehicle state required for an update (stationary: at the stops).")
+    outages: Raw = F([], "List of [start, end] times without updates.")
+    at: QuantityList("time") | None = F(None, "Extra update times.")
+
+    @model_validator(mode="after")
+    def _one_spacing(self):
+        if self.period is not None and self.rate is not None:
+            raise PydanticCustomError("covtool", "{problem}", {"problem": "give period or rate, not both"})
+        return self
+
+
+#: a measurement's name: it prefixes its error states' names (``odo_scale_factor``)
+MEASUREMENT_NAME = re.compile(r"^[A-Za-z][A-Za-z0-9_]*$")
+
+
+def _measurement_name(v):
+    name = fields.string(v, "", _Problem, nonempty=True)
+    if not MEASUREMENT_NAME.match(name):
+        raise _Problem("", f"{name!r} must start with a letter and hold only letters, digits and _")
+    return name
+
+
+class MeasurementEntry(Section):
+    name: ClassVar[str] = "[measurement]]"
+    doc: ClassVar[str] = ("One aiding measurement (covtool.lincov.measurements, docs/aiding.md): its kind, "
+                          "white noise, lever arm, own error states and schedule.")
+    nested: ClassVar[dict] = {"errors": MeasurementError, "schedule": MeasurementSchedule}
+    name_: Annotated[str, BeforeValidator(_wrap(_measurement_name)), Kind("string (a letter, then letters, "
+                                                                          "digits and `_`)")] = Field(
+        ..., alias="name", description="Label, and prefix of its error states (`<name>_<error>`).",
+        json_schema_extra={"example": "gnss"})
+    kind: OneOf(*MEASUREMENT_KINDS) = F(..., "The measurement kind.", example="gnss_position")
+    sigma: Raw = F(..., "True white-noise 1σ (R): one value, or one per component, in the kind's unit; > 0.",
+                   example="1 m")
+    filter_sigma: Raw = F(None, "The 1σ the filters assume (default: sigma); as sigma.")
+    lever_arm: _three("length") | None = F(None, "Body-frame arm from the IMU to the sensing point (kinds with a "
+                                                 "lever arm only; default zero).")
+    errors: Annotated[dict[str, MeasurementError], Kind("table of [measurement.errors.<error>] tables")] = F(
+        {}, "Own error states: [measurement.errors.<error>] tables.")
+    schedule: Annotated[MeasurementSchedule, Kind("inline table, see [measurement.schedule]")] = F(
+        {}, "When it updates, see [measurement.schedule] (default: every 1 s).")
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+
+class AidedGrade(Section):
+    name: ClassVar[str] = "[grade]] (aided)"
+    doc: ClassVar[str] = ("An IMU grade: every sensor σ, random walk, ARW and VRW of the truth × scale; the filters "
+                          "follow the grade. Default: one grade, the truth as declared.")
+    name_: Text(nonempty=True) = Field(..., alias="name", description="Label of the grade (unique).",
+                                       json_schema_extra={"example": "navigation"})
+    scale: Number(lo=1e-3, hi=1e3, why="a grade scales every sensor error") = F(..., "Factor on every sensor "
+                                                                                      "error.", example=1.0)
+    description: Text() = F("", "One line for the tables.")
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+
 # ---------------------------------------------------------------------------
 # one configuration per study kind
 # ---------------------------------------------------------------------------
@@ -723,6 +851,8 @@ class StudyConfig(Section):
     """A whole study file: one attribute per section."""
 
     kind_doc: ClassVar[str] = ""
+    #: top-level lists of tables (``[[key]]``): key -> Section class of one entry
+    lists: ClassVar[dict] = {}
 
 
 def _S(cls, default=None, doc=""):
@@ -782,7 +912,34 @@ class TradeGridConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Trade grid: IMU grade × ZUPT interval × filter × tuning, run in chunks "
                                "(resumable store).")
     grid: GridSection
+    lists: ClassVar[dict] = {"grade": GradeEntry}
     grade: Raw = F([{"name": "navigation", "scale": 1}], "The IMU grades: [[grade]] tables.")
+
+
+class AidedConfig(StudyConfig):
+    kind_doc: ClassVar[str] = ("Aided navigation (issue 15): reduced filters against the truth with declared "
+                               "measurements (ZUPT, CUPT, odometer, NHC, GNSS, baro, heading) on schedules with "
+                               "outages, filter variants dropping measurement-error states, IMU grades.")
+    lists: ClassVar[dict] = {"measurement": MeasurementEntry, "grade": AidedGrade}
+    study: StudySection
+    trajectory: Trajectory = F({"builtin": "land_vehicle"}, "The trajectory (default: the land-vehicle route).")
+    truth: TruthSection = F({}, TruthSection.doc)
+    filters: AidedFiltersSection = F({}, AidedFiltersSection.doc)
+    measurement: tuple[MeasurementEntry, ...] = Field(..., min_length=1, description=(
+        "The measurements, at least one: [[measurement]] tables with unique names."))
+    grade: tuple[AidedGrade, ...] | None = Field(None, min_length=1, description=(
+        "IMU grades: [[grade]] tables (default: one grade, the truth as declared)."))
+    output: OutputSection = F({}, OutputSection.doc)
+
+    @model_validator(mode="after")
+    def _unique(self):
+        for what, items in (("measurement", self.measurement), ("grade", self.grade or ())):
+            seen = [x.name_ for x in items]
+            j = next((j for j, n in enumerate(seen) if n in seen[:j]), None)
+            if j is not None:               # named as the runner does: the second entry's name
+                raise PydanticCustomError("covtool", "{problem}", {
+                    "problem": f"{seen[j]!r} is used twice", "suffix": f": [[{what}]] #{j + 1} name"})
+        return self
 
 
 class DualImuConfig(StudyConfig):
@@ -813,7 +970,7 @@ KINDS: dict[str, type[StudyConfig]] = {
     "pure_ins": PureInsConfig, "zupt_filter_order": ZuptFilterOrderConfig, "error_budget": ErrorBudgetConfig,
     "zupt_sensitivity": ZuptSensitivityConfig, "monte_carlo": MonteCarloConfig,
     "magnitude_sweep": MagnitudeSweepConfig, "trade_grid": TradeGridConfig, "dual_imu": DualImuConfig,
-    "ad_reset": AdResetConfig,
+    "ad_reset": AdResetConfig, "aided": AidedConfig,
 }
 
 #: every Section class, for the reference
@@ -838,13 +995,16 @@ def _keys(cls) -> list[str]:
 
 
 def _where(where: str, loc) -> str:
-    sec = [str(x) for x in loc if not isinstance(x, int) and not str(x).startswith("function-")]
-    idx = [x for x in loc if isinstance(x, int)]
-    if not sec:
+    parts = [x for x in loc if not (isinstance(x, str) and x.startswith("function-"))]
+    if not parts or isinstance(parts[0], int):
         return where
-    head = f"{where}: [{sec[0]}]"
-    rest = sec[1:]
-    return head + (f" {'.'.join(rest)}" if rest else "") + "".join(f"[{i}]" for i in idx)
+    if len(parts) > 1 and isinstance(parts[1], int):      # an entry of a list of tables: [[measurement]] #2
+        head, parts = f"[[{parts[0]}]] #{parts[1] + 1}", parts[2:]
+    else:
+        head, parts = f"[{parts[0]}]", parts[1:]
+    rest = ".".join(str(x) for x in parts if not isinstance(x, int))
+    return f"{where}: {head}" + (f" {rest}" if rest else "") + "".join(f" #{x + 1}" for x in parts
+                                                                        if isinstance(x, int))
 
 
 def parse_section(cls: type[Section], value, where: str, section: str, error=StudyFileError):
@@ -934,6 +1094,10 @@ def _dump(model: BaseModel) -> dict:
                 kind = next((m for m in getattr(arg, "__metadata__", ()) if isinstance(m, Kind)), kind)
         if isinstance(v, BaseModel):
             out[key] = _dump(v)
+        elif isinstance(v, tuple) and v and all(isinstance(x, BaseModel) for x in v):
+            out[key] = [_dump(x) for x in v]
+        elif isinstance(v, dict) and v and all(isinstance(x, BaseModel) for x in v.values()):
+            out[key] = {k: _dump(x) for k, x in v.items()}
         elif kind is not None and kind.dimension and kind.dimension != "memory":
             out[key] = [si_text(x, kind.dimension) for x in v] if isinstance(v, tuple) else \
                 si_text(v, kind.dimension)
