@@ -184,7 +184,9 @@ def study_files_markdown() -> str:
         out.append(f"| `{kind}` | {cls.kind_doc} | {secs} |")
     out += ["", "## Sections", ""]
     for s in _all_sections():
-        out += [f"### [{s.name}]", "", s.doc, ""] + _table(s) + [""]
+        head = f"[{s.name}]"
+        head = head[:-1] if head.startswith("[[") else head     # an array of tables: "[[grade]] (aided)"
+        out += [f"### {head}", "", s.doc, ""] + _table(s) + [""]
     out += ["## Truth overrides and the filters", "",
             "`[truth.override.<name>]` names a state (`gyro_bias_z`) or a block (`gyro_bias`: every state of "
             "the block). A state's own table wins over its block's, key by key. The keys (`sigma`, `tau`, "
