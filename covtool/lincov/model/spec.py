@@ -181,7 +181,8 @@ class Model:
             physical tilt and azimuth errors unchanged.
         """
         sig = np.array([s.sigma for s in self.states])
-        P = np.diag(sig**2)
+        with np.errstate(over="ignore"):    # a σ whose square overflows gives inf, which the guard refuses by name
+            P = np.diag(sig**2)
         ix = self.index
         for a, b, rho in self.correlations:
             i, j = ix[a], ix[b]
