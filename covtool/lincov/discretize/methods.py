@@ -1,4 +1,4 @@
-"""Front ends: Van Loan, seed 002's Taylor series and :func:`discretize`.
+"""Front ends: Van Loan, seed 002's Taylor series, :func:`discretize`.
 
 :func:`van_loan` and the adaptive :func:`taylor` (seed 002, eq (6b)–(6d))
 are exact for any step; ``taylor(order=N_t)`` is the paper's fixed-order

@@ -1,4 +1,4 @@
-"""The exact series of eq (6b)–(6d) with balancing, scaling and squaring.
+"""The series of eq (6b)–(6d) with balancing, scaling, squaring.
 
 Balancing ``F̃ = D⁻¹ F D`` (:func:`balancing`), the scaling ``h = Δt/2^s``
 with ``νh ≤ θ`` (:func:`scaling`), the adaptive base-step series of

@@ -1,4 +1,4 @@
-"""Block-triangular (sensor-state) discretisation, exact for any step.
+"""Block-triangular (sensor-state) discretisation, any step.
 
 The sensor states (random constants, Markov and random-walk states) are
 driven by nothing but themselves: ordered after the navigation states,
