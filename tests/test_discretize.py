@@ -387,7 +387,7 @@ def test_every_guard_names_the_step(monkeypatch):
     Q[2] = [[-1.0, 0.0], [0.0, 1.0]]
     with pytest.raises(NumericalError, match=r"step 2 \(Δt = nan s\): Q_d is not positive semi-definite"):
         dz.check_qd(Q)
-    monkeypatch.setattr(dz, "MAX_TERMS", 3)
+    monkeypatch.setattr(dz.series, "MAX_TERMS", 3)
     with pytest.raises(NumericalError, match=r"step 0 \(Δt = 0.5 s\): the series of eq \(6b\)-\(6d\) did not "
                                              r"converge in 3 terms at νh = 0.5"):
         dz.taylor(np.full((1, 1, 1), -1.0), np.ones((1, 1, 1)), 0.5)
@@ -453,7 +453,7 @@ def test_sensor_states_by_blocks_equal_the_dense_series(dyn, monkeypatch):
     for dt in (1.0, 30.0):
         Pb, Qb = van_loan(F, Qc, dt)
         with monkeypatch.context() as mp:
-            mp.setattr(dz, "BLOCK_FRACTION", 2.0)
+            mp.setattr(dz.structured, "BLOCK_FRACTION", 2.0)
             Pd, Qd = van_loan(F, Qc, dt)
         assert _phi_column_error(Pb, Pd) <= 1e-14
         assert _q_error(Qb, Qd) <= 1e-14

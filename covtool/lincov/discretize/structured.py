@@ -1,0 +1,183 @@
+"""Block-triangular (sensor-state) discretisation, any step.
+
+The sensor states (random constants, Markov and random-walk states) are
+driven by nothing but themselves: ordered after the navigation states,
+``F = [[A, M], [0, diag(d)]]`` and the series of seed 002, eq (6b)–(6d) is
+summed by blocks (:func:`block_triangular`), ``O(k² m)`` per term instead of
+``O(n³)``.  :func:`_exact` chooses the block or the dense path.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from covtool.lincov.discretize.series import (
+    MAX_TERMS, UNIT_ROUNDOFF, _balanced, _finish, _not_converged, _series, balancing, reach, scaling,
+    sensor_states)
+from covtool.lincov.discretize.steps import _dedup, _expand_phi_qd, _prepare
+
+
+#: use the block path of :func:`_exact` when at least this fraction of the states are sensor states
+BLOCK_FRACTION = 0.25
+
+
+def _exact(F, Qc, dt, what, times):
+    F, Qc, dt, times = _prepare(F, Qc, dt, what, times)
+    sens = sensor_states(F, Qc)
+    k = int(np.count_nonzero(~sens))
+    if 1 <= k and sens.sum() >= BLOCK_FRACTION * F.shape[1]:
+        # the same converged series by blocks (O(k² m) per term instead of O(n³)); exact
+        p = np.r_[np.flatnonzero(~sens), np.flatnonzero(sens)]
+        ip = np.argsort(p)
+        Phi, Qd, inf = _block_triangular(F[:, p][:, :, p], Qc[:, p][:, :, p], dt, k, what, times)
+        return Phi[:, ip][:, :, ip], Qd[:, ip][:, :, ip], inf
+    d = balancing(F)
+    B, Qb, nu = _balanced(F, Qc, d)
+    s, h = scaling(nu, dt)
+    E, Qd, terms, done = _series(B, Qb, h, nu, minus_identity=True)
+    _not_converged(done, what, dt, times, nu, h)
+    return _finish(E, Qd, s, d, terms, nu, dt, what, times)
+
+
+def _block_series(A, M, dd, QA, q, h, nu, rch):
+    """The adaptive series of :func:`_series` for ``[[A, M], [0, diag(dd)]]`` by blocks.
+
+    ``Q_c = blockdiag(QA, diag(q))``.  ``T_i`` and ``C_i`` keep the block
+    form: ``T = [[TA, TM], [0, diag(TD)]]``, ``C = [[CA, CX], [CXᵀ, diag(CS)]]``
+    with ``TA' = A TA``, ``TM' = A TM + M diag(TD)``, ``TD' = d TD`` (times
+    ``h/i``) and ``CA' = (A CA + M CXᵀ) + (·)ᵀ``, ``CX' = A CX + M CS + CX D``,
+    ``CS' = 2 d CS``.  Same stopping rule, with the norms taken by blocks.
+    """
+    N, k, _ = A.shape
+    m = dd.shape[1]
+    hw = h[:, None, None]
+    TA = np.broadcast_to(np.eye(k), (N, k, k)).copy()
+    TM = np.zeros((N, k, m))
+    TD = np.ones((N, m))
+    CA, CX, CS = QA.copy(), np.zeros((N, k, m)), q.copy()
+    # the sums start from the i = 1 terms: Φ − I (see _square)
+    out = [np.zeros((N, k, k)), TM.copy(), np.zeros((N, m)), np.zeros((N, k, k)), np.zeros((N, k, m)),
+           np.zeros((N, m))]
+    work = [x.copy() for x in out]
+    coef = hw.copy()
+    a = nu * h
+    phi_floor = UNIT_ROUNDOFF * (2.0 - np.exp(np.minimum(a, 1.0)))
+    terms = np.zeros(N, int)
+    done = np.zeros(N, bool)
+    idx = np.arange(N)
+    Aw, Mw, dw = A, M, dd
+    for i in range(1, MAX_TERMS):
+        f = hw / i
+        TM = (Aw @ TM + Mw * TD[:, None, :]) * f
+        TA = (Aw @ TA) * f
+        TD = TD * dw * f[:, :, 0]
+        QtA, QtX, QtS = CA * coef, CX * coef, CS * coef[:, :, 0]
+        for x, y in zip(work, (TA, TM, TD, QtA, QtX, QtS)):
+            x += y
+        AC = Aw @ CA + Mw @ np.swapaxes(CX, 1, 2)
+        CX = Aw @ CX + Mw * CS[:, None, :] + CX * dw[:, None, :]
+        CA = AC + np.swapaxes(AC, 1, 2)
+        CS = 2.0 * dw * CS
+        coef = coef * hw / (i + 1)
+        ai = a[idx]
+        rp, rq = ai / (i + 1), 2.0 * ai / (i + 1)
+        col = np.maximum(np.einsum("kij,kij->kj", TA, TA).max(axis=1),
+                         (np.einsum("kij,kij->kj", TM, TM) + TD**2).max(axis=1, initial=0.0))
+        dg = np.concatenate([np.einsum("kii->ki", work[3]), work[5]], axis=1)
+        rc = rch[idx]
+        started = np.all(~rc | (dg > 0), axis=1)
+        sd = np.sqrt(np.where(rc, np.maximum(dg, 1e-32 * dg.sum(axis=1, keepdims=True)), 1.0))
+        sa, ss = sd[:, :k], sd[:, k:]
+        X = np.maximum((np.abs(QtA) / sa[:, :, None] / sa[:, None, :]).max(axis=(1, 2)),
+                       (np.abs(QtX) / sa[:, :, None] / ss[:, None, :]).max(axis=(1, 2), initial=0.0))
+        X = np.maximum(X, (np.abs(QtS) / ss**2).max(axis=1, initial=0.0))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ok = ((rq < 1.0) & (np.sqrt(col) * rp / (1.0 - rp) <= phi_floor[idx]) & started
+                  & (X * rq / (1.0 - rq) <= UNIT_ROUNDOFF))
+        if ok.any():
+            fin = idx[ok]
+            for x, y in zip(out, work):
+                x[fin] = y[ok]
+            terms[fin], done[fin] = i + 1, True
+            keep = ~ok
+            idx = idx[keep]
+            if idx.size == 0:
+                break
+            work = [x[keep] for x in work]
+            Aw, Mw, dw, hw, coef, TA, TM, TD, CA, CX, CS = (
+                x[keep] for x in (Aw, Mw, dw, hw, coef, TA, TM, TD, CA, CX, CS))
+    if idx.size:
+        for x, y in zip(out, work):
+            x[idx] = y
+    PA, PM, PD, SA, SX, SS = out
+    n = k + m
+    Phi = np.zeros((N, n, n))
+    Q = np.zeros((N, n, n))
+    Phi[:, :k, :k], Phi[:, :k, k:] = PA, PM
+    Phi[:, k:, k:] = PD[:, :, None] * np.eye(m)
+    Q[:, :k, :k], Q[:, :k, k:], Q[:, k:, :k] = SA, SX, np.swapaxes(SX, 1, 2)
+    Q[:, k:, k:] = SS[:, :, None] * np.eye(m)
+    return Phi, Q, terms, done        # Φ − I (the sums start from the i = 1 terms)
+
+
+def is_block_triangular(F, Qc, k: int) -> bool:
+    """True if ``F = [[A, M], [0, diag(d)]]`` and ``Q_c = blockdiag(Q_A, diag(q))`` after ``k`` states."""
+    F = np.asarray(F)
+    Qc = np.asarray(Qc)
+    n = F.shape[-1]
+    off = ~np.eye(n - k, dtype=bool)
+    return not (np.any(F[:, k:, :k]) or np.any(F[:, k:, k:][:, off]) or np.any(Qc[:, :k, k:])
+                or np.any(Qc[:, k:, k:][:, off]))
+
+
+def block_triangular(F, Qc, dt, k: int, *, what: str = "", times=None, info: bool = False):
+    """Exact ``Φ, Q_d`` of a navigation block driven by scalar sensor states.
+
+    The adaptive series of :func:`taylor` (exact for any step, module
+    notes) with its products done by blocks: ``O(k² m)`` per term instead
+    of ``O(n³)`` (five times faster for a 10 + 36-state IMU grade model).
+
+    Parameters
+    ----------
+    F : ndarray, shape (N, n, n)
+        ``[[A, M], [0, diag(d)]]``: ``k`` navigation states, ``n − k``
+        random-constant, random-walk or first-order Markov sensor states.
+    Qc : ndarray, shape (N, n, n)
+        ``blockdiag(Q_A, diag(q))``.
+    dt : float or ndarray, shape (N,)
+        Step lengths. [s]
+    k : int
+        Navigation states (the first ones).
+    what, times, info
+        As :func:`taylor`.
+
+    Returns
+    -------
+    Phi, Qd : ndarray, shape (N, n, n)
+    info : StepInfo
+        Only with ``info=True``.
+
+    Raises
+    ------
+    ValueError
+        ``F`` or ``Qc`` does not have this structure
+        (:func:`is_block_triangular`).
+    NumericalError
+        As :func:`taylor`.
+    """
+    Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _block_triangular(F_, Q_, dt_, k, what, t_), F, [(Qc, 2)], dt,
+                          times, _expand_phi_qd)
+    return (Phi, Qd, inf) if info else (Phi, Qd)
+
+
+def _block_triangular(F, Qc, dt, k, what, times):
+    F, Qc, dt, times = _prepare(F, Qc, dt, what, times)
+    if not is_block_triangular(F, Qc, k):
+        raise ValueError(f"F, Q_c are not block triangular with a diagonal sensor block after {k} states")
+    d = balancing(F)
+    B, Qb, nu = _balanced(F, Qc, d)
+    s, h = scaling(nu, dt)
+    rch = reach(B, np.einsum("kii->ki", Qb) > 0)
+    E, Qd, terms, done = _block_series(B[:, :k, :k], B[:, :k, k:], np.einsum("kii->ki", B[:, k:, k:]),
+                                       Qb[:, :k, :k], np.einsum("kii->ki", Qb[:, k:, k:]), h, nu, rch)
+    _not_converged(done, what, dt, times, nu, h)
+    return _finish(E, Qd, s, d, terms, nu, dt, what, times)
