@@ -1,0 +1,170 @@
+"""One configuration per study kind, and the registry.
+
+The ZUPT kinds (zupt_filter_order: seed 002 §3.1, Table 3, eq (15)-(16);
+error_budget; zupt_sensitivity: §3.2, Fig 8, Table 4; monte_carlo;
+magnitude_sweep; trade_grid), pure_ins, aided (issue 15), dual_imu
+(seed 001) and ad_reset (seed 000); :data:`KINDS` maps a kind to its
+class, :data:`SECTIONS` lists every section class (for the reference).
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+from pydantic import Field, model_validator
+from pydantic_core import PydanticCustomError
+
+from covtool.errors import StudyFileError
+from covtool.studies.config.field_types import F, Raw, Section
+from covtool.studies.config.sections import (
+    AdResetStudySection, FiltersSection, OutputSection, StudySection, StudySectionShort, Trajectory, TruthSection,
+    ZuptSection,
+)
+from covtool.studies.config.zupt import (
+    BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep, MonteCarloSection,
+    SensitivitySweep,
+)
+from covtool.studies.config.dual_imu import (
+    Comparison, DualAlignment, FlightTrajectory, Gaps, ImuSection, Monitor, Simulation,
+)
+from covtool.studies.config.ad_reset import Board, BoardAlignment, BoardNavigation, OutputFilter, Reference, Sweeps
+from covtool.studies.config.aided import AidedFiltersSection, AidedGrade, MeasurementEntry
+from covtool.studies.config import ad_reset, aided, dual_imu, sections, zupt
+
+
+class StudyConfig(Section):
+    """A whole study file: one attribute per section."""
+
+    kind_doc: ClassVar[str] = ""
+    #: top-level lists of tables (``[[key]]``): key -> Section class of one entry
+    lists: ClassVar[dict] = {}
+
+
+def _S(cls, default=None, doc=""):
+    return Field(default_factory=dict if default is None else None, description=doc or cls.doc,
+                 json_schema_extra={"section": cls.__name__})
+
+
+class PureInsConfig(StudyConfig):
+    kind_doc: ClassVar[str] = "The unaided INS on a trajectory: the truth model propagated without aiding."
+    study: StudySection
+    trajectory: Trajectory = F({"builtin": "land_vehicle"}, "The trajectory (default: the land-vehicle route).")
+    truth: TruthSection = F({}, TruthSection.doc)
+    output: OutputSection = F({}, OutputSection.doc)
+
+
+class ZuptStudyConfig(StudyConfig):
+    """The sections of every ZUPT study kind."""
+
+    study: StudySection
+    trajectory: Trajectory = F({"builtin": "land_vehicle"}, "The trajectory (default: the land-vehicle route).")
+    truth: TruthSection = F({}, TruthSection.doc)
+    filters: FiltersSection = F({}, FiltersSection.doc)
+    zupt: ZuptSection = F({}, ZuptSection.doc)
+    output: OutputSection = F({}, OutputSection.doc)
+
+
+class ZuptFilterOrderConfig(ZuptStudyConfig):
+    kind_doc: ClassVar[str] = ("Reduced-order filters run against the truth (seed 002 §3.1, Table 3, Figs 6-7): "
+                               "the truth propagated under each filter's gains, eq (15)-(16).")
+    impact: ImpactSection = F({}, ImpactSection.doc)
+
+
+class ErrorBudgetConfig(ZuptStudyConfig):
+    kind_doc: ClassVar[str] = ("Error budget: each error source's share of the navigation errors, pure INS and "
+                               "filters ([filters] cases may list \"pure_ins\").")
+    budget: BudgetSection = F({}, BudgetSection.doc)
+
+
+class ZuptSensitivityConfig(ZuptStudyConfig):
+    kind_doc: ClassVar[str] = "Filter tuning sensitivity (seed 002 §3.2, Fig 8) and cost (Table 4)."
+    sweep: SensitivitySweep = F({}, SensitivitySweep.doc)
+    cost: CostSection = F({}, CostSection.doc)
+
+
+class MonteCarloConfig(ZuptStudyConfig):
+    kind_doc: ClassVar[str] = ("Monte Carlo validation: sampled errors through a nonlinear strapdown and the "
+                               "filters, compared with the linear covariance (RMS and NEES bands).")
+    monte_carlo: MonteCarloSection
+
+
+class MagnitudeSweepConfig(ZuptStudyConfig):
+    kind_doc: ClassVar[str] = "Sweep the magnitude of groups of error sources (e.g. misalignments)."
+    sweep: MagnitudeSweep
+
+
+class TradeGridConfig(ZuptStudyConfig):
+    kind_doc: ClassVar[str] = ("Trade grid: IMU grade × ZUPT interval × filter × tuning, run in chunks "
+                               "(resumable store).")
+    grid: GridSection
+    lists: ClassVar[dict] = {"grade": GradeEntry}
+    grade: Raw = F([{"name": "navigation", "scale": 1}], "The IMU grades: [[grade]] tables.")
+
+
+class AidedConfig(StudyConfig):
+    kind_doc: ClassVar[str] = ("Aided navigation (issue 15): reduced filters against the truth with declared "
+                               "measurements (ZUPT, CUPT, odometer, NHC, GNSS, baro, heading) on schedules with "
+                               "outages, filter variants dropping measurement-error states, IMU grades.")
+    lists: ClassVar[dict] = {"measurement": MeasurementEntry, "grade": AidedGrade}
+    study: StudySection
+    trajectory: Trajectory = F({"builtin": "land_vehicle"}, "The trajectory (default: the land-vehicle route).")
+    truth: TruthSection = F({}, TruthSection.doc)
+    filters: AidedFiltersSection = F({}, AidedFiltersSection.doc)
+    measurement: tuple[MeasurementEntry, ...] = Field(..., min_length=1, description=(
+        "The measurements, at least one: [[measurement]] tables with unique names."))
+    grade: tuple[AidedGrade, ...] | None = Field(None, min_length=1, description=(
+        "IMU grades: [[grade]] tables (default: one grade, the truth as declared)."))
+    output: OutputSection = F({}, OutputSection.doc)
+
+    @model_validator(mode="after")
+    def _unique(self):
+        for what, items in (("measurement", self.measurement), ("grade", self.grade or ())):
+            seen = [x.name_ for x in items]
+            j = next((j for j, n in enumerate(seen) if n in seen[:j]), None)
+            if j is not None:               # named as the runner does: the second entry's name
+                raise PydanticCustomError("covtool", "{problem}", {
+                    "problem": f"{seen[j]!r} is used twice", "suffix": f": [[{what}]] #{j + 1} name"})
+        return self
+
+
+class DualImuConfig(StudyConfig):
+    kind_doc: ClassVar[str] = "Dual-IMU comparison and g-sensitivity fault monitor (seed 001)."
+    study: StudySectionShort
+    trajectory: FlightTrajectory = F({"builtin": "high_dynamics_flight"}, FlightTrajectory.doc)
+    imu: ImuSection = F({}, ImuSection.doc)
+    alignment: DualAlignment = F({}, DualAlignment.doc)
+    comparison: Comparison = F({}, Comparison.doc)
+    monitor: Monitor = F({}, Monitor.doc)
+    gaps: Gaps = F({}, Gaps.doc)
+    simulation: Simulation = F({}, Simulation.doc)
+
+
+class AdResetConfig(StudyConfig):
+    kind_doc: ClassVar[str] = "The A/D-reset accelerometer board (seed 000): scale error, alignment."
+    study: AdResetStudySection
+    board: Board
+    output_filter: OutputFilter
+    navigation: BoardNavigation
+    alignment: BoardAlignment
+    sweeps: Sweeps
+    reference: Reference = F({}, Reference.doc)
+
+
+#: study kind -> its configuration class
+KINDS: dict[str, type[StudyConfig]] = {
+    "pure_ins": PureInsConfig, "zupt_filter_order": ZuptFilterOrderConfig, "error_budget": ErrorBudgetConfig,
+    "zupt_sensitivity": ZuptSensitivityConfig, "monte_carlo": MonteCarloConfig,
+    "magnitude_sweep": MagnitudeSweepConfig, "trade_grid": TradeGridConfig, "dual_imu": DualImuConfig,
+    "ad_reset": AdResetConfig, "aided": AidedConfig,
+}
+
+#: every Section class, for the reference
+SECTIONS = tuple(c for m in (sections, zupt, dual_imu, ad_reset, aided) for c in vars(m).values()
+                 if isinstance(c, type) and issubclass(c, Section) and c.__module__ == m.__name__)
+
+
+def config_class(kind: str) -> type[StudyConfig]:
+    """The configuration class of a study kind (StudyFileError if unknown)."""
+    if kind not in KINDS:
+        raise StudyFileError("[study] kind", f"unknown kind {kind!r} (one of: {', '.join(sorted(KINDS))})")
+    return KINDS[kind]
