@@ -450,9 +450,13 @@ def cmd_dualnav(args) -> int:
         raise StudyFileError(f"{path}: [study] kind", f"{kind!r}: covtool dualnav needs a 'dual_imu' study")
     main = load_imu_log(args.main)
     kimu = load_imu_log(args.kimu)
-    with one_blas_thread():
-        result = compare_logs(main, kimu, decl, path=path, progress=_progress(args))
-    files = write_outputs(result, out, figures=not args.no_figures)
+    from covtool.io.lock import DirLock
+
+    # one run at a time per output directory, as for `covtool run`
+    with DirLock(out, command=f"covtool dualnav {args.main} {args.kimu}"):
+        with one_blas_thread():
+            result = compare_logs(main, kimu, decl, path=path, progress=_progress(args))
+        files = write_outputs(result, out, figures=not args.no_figures)
     if not args.quiet:
         from covtool.io.console import console_table, console_width
 

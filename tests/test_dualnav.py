@@ -844,6 +844,34 @@ def test_cli_dualnav_errors(log_files, tmp_path):
         args.func(args)
 
 
+def test_cli_dualnav_refuses_an_output_directory_in_use(log_files, tmp_path):
+    """Two comparisons never write one directory at once (the lock of `covtool run`)."""
+    import os
+    import socket
+    import subprocess
+    import sys
+
+    from covtool.io.lock import OutputLockedError
+
+    (paths, study, _) = log_files
+    out = tmp_path / "out"
+    hold = ("import sys, time\nfrom covtool.io.lock import DirLock\n"
+            "DirLock(sys.argv[1], command='holder').acquire()\nprint('locked', flush=True)\ntime.sleep(60)\n")
+    proc = subprocess.Popen([sys.executable, "-c", hold, str(out)], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    try:
+        assert proc.stdout.readline() == "locked\n"
+        args = _parser().parse_args(["dualnav", str(paths["main"]), str(paths["kimu"]), "--study", str(study),
+                                     "--out", str(out), "--no-figures"])
+        with pytest.raises(OutputLockedError, match=rf"^{out}: in use by another covtool run \(PID {proc.pid} "
+                                                    rf"on host {socket.gethostname()}, "):
+            args.func(args)
+        assert sorted(p.name for p in out.iterdir()) == [".covtool.lock"]        # nothing written
+    finally:
+        proc.kill()
+        proc.wait()
+
+
 # --------------------------------------------------------------------------
 # issue 9 case 9: recorded times kept, clock rates measured, the right log named
 # --------------------------------------------------------------------------
