@@ -34,10 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from covtool.errors import NumericalError
-from covtool.lincov.kalman import (check_system, covariance_status, filter_update,
-                                   kalman_gain, scale_groups, symmetrize, time_text, truth_update)
+from covtool.lincov.kalman import check_system, covariance_status, scale_groups, symmetrize, time_text
 from covtool.lincov.measurements import place, transition
 from covtool.lincov.measurements.base import nav_point
+from covtool.lincov.reference import filter_loop
 
 
 @dataclass
@@ -316,38 +316,34 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
     PF = np.full((rec.size, nf, nf), np.nan)
     prior_t, prior_f, gains = {}, {}, {}
     guard = _Guard(label, names, filter_names, times, check)
-    P = symmetrize(np.asarray(P0, float))
-    Pf = symmetrize(np.asarray(Pf0, float))
-    k = 0
-    try:
-        with np.errstate(over="ignore", invalid="ignore"):      # a blow-up is reported by the guard
-            for k in range(N + 1):
-                ep = by_step.get(k)
-                if ep is not None:
-                    guard.add(k, P, Pf, prior=True)
-                    if k in slot:
-                        prior_t[k], prior_f[k] = P, Pf
-                    parts = [sl for _, sl in ep.rows] if sequential else [slice(0, ep.H.shape[0])]
-                    Ks = []
-                    for sl in parts:
-                        Hf, Rf = ep.Hf[sl], ep.Rf[sl, sl]
-                        K = kalman_gain(Pf, Hf, Rf)
-                        Pf = filter_update(Pf, K, Hf, Rf, form)
-                        P = truth_update(P, D, K, ep.H[sl], ep.R[sl, sl])
-                        Ks.append(K)
-                    if k in slot:
-                        gains[k] = np.hstack(Ks)
-                guard.add(k, P, Pf, after_update=ep is not None)
-                if k in slot:
-                    PT[slot[k]], PF[slot[k]] = P, Pf
-                if k < N:
-                    P = _propagate(P, Phi[k], Qd[k], e_phi[k], e_qd[k])
-                    Pf = _propagate(Pf, Phi_f[k], Qd_f[k], f_phi[k], f_qd[k])
-    except NumericalError as exc:
+
+    def keep(k, stage, P, Pf, K):
+        if stage == "prior":
+            guard.add(k, P, Pf, prior=True)
+            if k in slot:
+                prior_t[k], prior_f[k] = P, Pf
+            return
+        guard.add(k, P, Pf, after_update=k in by_step)
+        if k in slot:
+            PT[slot[k]], PF[slot[k]] = P, Pf
+            if K is not None:
+                gains[k] = K
+
+    def fail(k, exc):
         guard.flush()
         raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
+
+    filter_loop(N, P0, Pf0, lambda k, P: _propagate(P, Phi[k], Qd[k], e_phi[k], e_qd[k]),
+                lambda k, Pf: _propagate(Pf, Phi_f[k], Qd_f[k], f_phi[k], f_qd[k]),
+                {k: _parts(ep, sequential) for k, ep in by_step.items()}, D, form, keep, fail)
     guard.flush()
     return AidedRun(rec, PT, PF, prior_t, prior_f, gains)
+
+
+def _parts(ep: Epoch, sequential: bool) -> tuple:
+    """The ``(H, R, H_f, R_f)`` parts of an epoch: one stacked part, or one per measurement."""
+    rows = [sl for _, sl in ep.rows] if sequential else [slice(0, ep.H.shape[0])]
+    return tuple((ep.H[sl], ep.R[sl, sl], ep.Hf[sl], ep.Rf[sl, sl]) for sl in rows)
 
 
 def _when(k, times):
