@@ -310,32 +310,12 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         runs = [(c, c, []) for c in cases] + [(v, b, d) for v, (b, d) in variants.items()]
         for label, base, drop in runs:
             if base not in built:
-                spec = specs_g[base]
-                fm = build_filter(spec, truth, ctx, zupt_interval=ewn_dt, q0=nodes.q_nb[0], truth_dynamics=dyn,
-                                  mean_speed=mean_speed, dt_steps=dt_steps, update_steps=all_steps)
-                same = (spec.discretization == hdr["discretization"] and fm.F.shape == dyn.F.shape
-                        and (spec.discretization == "van_loan" or spec.taylor_order is None)
-                        and np.array_equal(fm.F, dyn.F) and np.array_equal(fm.Qc, dyn.Qc))
-                if same:                   # the truth itself (filter A): its Φ, Q_d, not computed again
-                    Phi_f, Qd_f = Phi, Qd
-                else:
-                    Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, dt_steps, spec.discretization,
-                                                     spec.taylor_order, what=f"{spec.path}: filter {base!r}",
-                                                     times=t[:-1])
-                    check_system(f"{where}: filter {base}", Phi_f, Qd_f, names=fm.names, times=t)
-                built[base] = (fm, Phi_f, Qd_f)
+                built[base] = filter_system(specs_g[base], truth, ctx, dyn, Phi, Qd, hdr, t, nodes, ewn_dt=ewn_dt,
+                                            mean_speed=mean_speed, update_steps=all_steps, where=where)
             fm, Phi_f, Qd_f = built[base]
             kept = [s.name for s in states if s.name not in drop]
-            P0a, Pf_e, D = augment(P0, fm.D, states, kept)
-            nf0 = fm.P0.shape[0]
-            Pf0 = np.zeros((nf0 + len(kept),) * 2)
-            Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0, Pf_e
-            fnames = list(fm.names) + kept
-            epochs = build_epochs(meas_pairs, nodes, names_all, fnames)
-            err_f = error_processes([s for s in states if s.name in kept], dt_steps)[:2]
-            r = propagate_aided(Phi, Qd, P0a, Phi_f, Qd_f, Pf0, D, epochs, err=err, err_f=err_f, record=rec,
-                                form=specs_g[base].update, label=f"{where}: {gl}: filter {label}", times=t,
-                                names=names_all, filter_names=fnames, system_checked=True)
+            r, fnames, _, _ = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all,
+                                         err, rec, form=specs_g[base].update, label=f"{where}: {gl}: filter {label}")
             metrics[(gl, label)] = _metrics(r.P_truth, nodes, rec)
             claimed[(gl, label)] = _metrics(r.P_filter[:, :10, :10], nodes, rec)
             nstates[(gl, label)] = len(fnames)
@@ -375,6 +355,52 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                     "compute_seconds": f"{elapsed:.2f}"},
         data={"t": tr, "steps": rec, "metrics": metrics, "claimed": claimed, "trajectory": nodes},
     )
+
+
+def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all, err, rec, *, form,
+               label, all_gains=False):
+    """The truth under one filter with the declared measurements (seed 002, eq (15)–(16)).
+
+    Returns
+    -------
+    run : covtool.lincov.aided.AidedRun
+    filter_names : list of str
+        The filter's INS states, then the measurement-error states it keeps.
+    D : ndarray, shape (n, n_f)
+    epochs : list of covtool.lincov.aided.Epoch
+    """
+    P0a, Pf_e, D = augment(P0, fm.D, states, kept)
+    nf0 = fm.P0.shape[0]
+    Pf0 = np.zeros((nf0 + len(kept),) * 2)
+    Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0, Pf_e
+    fnames = list(fm.names) + list(kept)
+    epochs = build_epochs(meas_pairs, nodes, names_all, fnames)
+    err_f = error_processes([s for s in states if s.name in kept], np.diff(nodes.t))[:2]
+    r = propagate_aided(Phi, Qd, P0a, Phi_f, Qd_f, Pf0, D, epochs, err=err, err_f=err_f, record=rec, form=form,
+                        label=label, times=nodes.t, names=names_all, filter_names=fnames, system_checked=True,
+                        all_gains=all_gains)
+    return r, fnames, D, epochs
+
+
+def filter_system(spec, truth, ctx, dyn, Phi, Qd, hdr, t, nodes, *, ewn_dt, mean_speed, update_steps,
+                  where="<study>"):
+    """A base filter evaluated on the grid: ``(FilterModel, Φ_f, Q_f)``.
+
+    Δt_s of seed 002, eq (11)–(13) is ``ewn_dt``; a filter equal to the
+    truth (filter A) reuses the truth's Φ, Q_d.
+    """
+    dt_steps = np.diff(t)
+    fm = build_filter(spec, truth, ctx, zupt_interval=ewn_dt, q0=nodes.q_nb[0], truth_dynamics=dyn,
+                      mean_speed=mean_speed, dt_steps=dt_steps, update_steps=update_steps)
+    same = (spec.discretization == hdr["discretization"] and fm.F.shape == dyn.F.shape
+            and (spec.discretization == "van_loan" or spec.taylor_order is None)
+            and np.array_equal(fm.F, dyn.F) and np.array_equal(fm.Qc, dyn.Qc))
+    if same:                   # the truth itself (filter A): its Φ, Q_d, not computed again
+        return fm, Phi, Qd
+    Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, dt_steps, spec.discretization, spec.taylor_order,
+                                     what=f"{spec.path}: filter {spec.name!r}", times=t[:-1])
+    check_system(f"{where}: filter {spec.name}", Phi_f, Qd_f, names=fm.names, times=t)
+    return fm, Phi_f, Qd_f
 
 
 def _memory(hdr, truth, specs, cases, variants, states, every, pure) -> dict:

@@ -142,6 +142,9 @@ def record_steps(t: np.ndarray, every: float, report_times) -> np.ndarray:
 
 def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     """Run an error-budget study; see the module docstring."""
+    if "measurement" in decl:              # declared measurements (issue 15): covtool.studies.aided_budget
+        from covtool.studies.aided_budget import run as run_aided
+        return run_aided(decl, path=path, progress=progress)
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     opts = budget_options(decl, where)
