@@ -74,6 +74,10 @@ class ErrorBudgetConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Error budget: each error source's share of the navigation errors, pure INS and "
                                "filters ([filters] cases may list \"pure_ins\").")
     budget: BudgetSection = F({}, BudgetSection.doc)
+    lists: ClassVar[dict] = {"measurement": MeasurementEntry}
+    measurement: tuple[MeasurementEntry, ...] | None = Field(None, min_length=1, description=(
+        "Declared measurements instead of [zupt] (issue 15, as in the aided kind): [[measurement]] tables; their "
+        "error states and white noise R become sources (covtool.studies.aided_budget)."))
 
 
 class ZuptSensitivityConfig(ZuptStudyConfig):
