@@ -51,6 +51,7 @@ Study file::
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import time
 
@@ -59,8 +60,9 @@ import pandas as pd
 
 from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
-from covtool.io.config import (check_keys, choice, names, number, quantity, quantity_list, require, string,
-                               table)
+from covtool.analysis.sensitivity import scale_grid
+from covtool.io.config import (check_keys, choice, integer, LIMITS, names, number, quantity, quantity_list, require,
+                               string, table)
 from covtool.io.filters import load_filters
 from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
 from covtool.lincov.kalman import check_system
@@ -233,7 +235,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
-    check_keys(decl, {"study", "trajectory", "truth", "filters", "measurement", "grade", "output"}, where,
+    check_keys(decl, {"study", "trajectory", "truth", "filters", "measurement", "grade", "output", "sweep"}, where,
                StudyFileError)
     hdr = study_header(decl, where)
     every, rtimes = output_options(decl, where, hdr["duration"])
@@ -259,6 +261,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         raise StudyFileError(f"{where}: [[measurement]] {meas!r} name", f"its error state {clash[0]!r} has the name "
                              f"of a truth-model state or block; rename the measurement")
     variants = parse_variants(fcfg, specs, states, where)
+    sweep = parse_sweep(decl["sweep"], [m for m, _ in plan], where) if "sweep" in decl else None
     est = check_memory(_memory(hdr, truth0, specs, cases, variants, states, every, fcfg.get("pure_ins", True)),
                        where, hdr["max_memory"], "a larger [study] dt or history_every, a shorter duration or fewer "
                        "[filters] cases")
@@ -289,7 +292,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
     meas_pairs = list(zip([m for m, _ in plan], steps))
     names_all = None
-    metrics, claimed, nstates, at_updates = {}, {}, {}, []
+    metrics, claimed, nstates, at_updates, swept = {}, {}, {}, [], {}
     dt_steps = np.diff(t)
     err = error_processes(states, dt_steps)[:2]
     for g in grades:
@@ -317,6 +320,16 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             r, fnames, _, _ = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all,
                                          err, rec, form=specs_g[base].update, label=f"{where}: {gl}: filter {label}")
             metrics[(gl, label)] = _metrics(r.P_truth, nodes, rec)
+            if sweep is not None and not drop:     # the same filter with the swept measurement's σ scaled
+                for sc in sweep["scales"]:
+                    pairs = scaled_plan(meas_pairs, sweep, sc)
+                    rs = r if sc == 1.0 else filter_run(
+                        fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, pairs, nodes, names_all, err, rec,
+                        form=specs_g[base].update, label=f"{where}: {gl}: filter {label}, {sweep['measurement']} "
+                                                         f"{sweep['what']} x{sc:g}")[0]
+                    swept[(gl, label, sc)] = (next(m for m, _ in pairs if m.name == sweep["measurement"]),
+                                              _metrics(rs.P_truth, nodes, rec),
+                                              _metrics(rs.P_filter[:, :10, :10], nodes, rec))
             claimed[(gl, label)] = _metrics(r.P_filter[:, :10, :10], nodes, rec)
             nstates[(gl, label)] = len(fnames)
             pos = {int(k): i for i, k in enumerate(r.steps)}
@@ -342,10 +355,14 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         tables["outages"] = _outage_table(metrics, outage_marks, tr)
     if at_updates:
         tables["sparse_updates"] = pd.DataFrame(at_updates)
+    if sweep is not None:
+        tables["measurement_sweep"] = _sweep_table(swept, sweep, tr, rtimes)
     if variants:
         tables["measurement_state_impact"] = _variant_table(metrics, claimed, variants, tr, rtimes, grades)
     figures = {f"aided_{_slug(g['name'])}": _figure(hdr["name"], g["name"], metrics, tr, outage_marks)
                for g in grades}
+    if sweep is not None:
+        figures["measurement_sweep"] = _sweep_figure(hdr["name"], tables["measurement_sweep"], sweep)
     return StudyResult(
         name=hdr["name"], kind="aided", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}},
@@ -355,6 +372,100 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                     "compute_seconds": f"{elapsed:.2f}"},
         data={"t": tr, "steps": rec, "metrics": metrics, "claimed": claimed, "trajectory": nodes},
     )
+
+
+SWEEP_KEYS = {"measurement", "what", "scales"}
+#: what a measurement sweep scales: the sensor's σ (truth R and the filters' R_f) or only the filters' R_f
+SWEEP_WHAT = ("sigma", "filter_sigma")
+
+
+def parse_sweep(cfg, measurements, where: str) -> dict:
+    """``[sweep]``: scale one declared measurement's σ (issue 15).
+
+    ``measurement`` names a ``[[measurement]]``; ``what = "sigma"`` scales
+    the sensor's white noise (the truth's R and the filters' R_f together:
+    a sensor-quality trade), ``"filter_sigma"`` only what the filters
+    assume (a tuning sensitivity, as seed 002 §3.2 scales R_f);
+    ``scales = {from, to, per_decade}`` (log grid through ×1) or a list of
+    positive factors.
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key, unknown measurement, bad ``what``, bad scales.
+    """
+    w = f"{where}: [sweep]"
+    cfg = table(cfg, w, StudyFileError)
+    check_keys(cfg, SWEEP_KEYS, w, StudyFileError)
+    known = [m.name for m in measurements]
+    name = choice(require(cfg, "measurement", w, StudyFileError), known, f"{w} measurement", StudyFileError)
+    what = choice(cfg.get("what", "sigma"), SWEEP_WHAT, f"{w} what", StudyFileError)
+    bound = LIMITS["filter_scale"]
+    sc = cfg.get("scales", {"from": 0.1, "to": 10, "per_decade": 2})
+    if isinstance(sc, list):
+        if not sc:
+            raise StudyFileError(f"{w} scales", "expected at least one scale")
+        scales = np.array([number(x, f"{w} scales[{j}]", StudyFileError, lo=bound.lo, hi=bound.hi,
+                                  why=bound.reason) for j, x in enumerate(sc)])
+        scales = np.unique(np.r_[scales, 1.0])
+    else:
+        sc = table(sc, f"{w} scales", StudyFileError)
+        check_keys(sc, {"from", "to", "per_decade"}, f"{w} scales", StudyFileError)
+        lo, hi = (number(require(sc, k, f"{w} scales", StudyFileError), f"{w} scales {k}", StudyFileError,
+                         lo=bound.lo, hi=bound.hi, why=bound.reason) for k in ("from", "to"))
+        per = integer(require(sc, "per_decade", f"{w} scales", StudyFileError), f"{w} scales per_decade",
+                      StudyFileError, limit="per_decade")
+        try:
+            scales = scale_grid(lo, hi, per)
+        except ValueError as exc:
+            raise StudyFileError(f"{w} scales", str(exc)) from None
+    if scales.size > LIMITS["sweep_points"].hi:
+        raise StudyFileError(f"{w} scales", f"{scales.size} scales; at most {LIMITS['sweep_points'].hi:g}")
+    return {"measurement": name, "what": what, "scales": tuple(float(x) for x in scales)}
+
+
+def scaled_plan(pairs, sweep: dict, scale: float) -> list:
+    """The plan with the swept measurement's σ (or only its filter σ) times ``scale``."""
+    out = []
+    for m, st in pairs:
+        if m.name == sweep["measurement"] and scale != 1.0:
+            fs = m.sigma if m.filter_sigma is None else m.filter_sigma
+            m = dataclasses.replace(m, filter_sigma=np.asarray(fs, float) * scale,
+                                    **({"sigma": np.asarray(m.sigma, float) * scale} if sweep["what"] == "sigma"
+                                       else {}))
+        out.append((m, st))
+    return out
+
+
+def _sweep_table(swept, sweep, tr, rtimes):
+    rows = []
+    for (g, case, sc), (m, mt, mc) in swept.items():
+        for x in rtimes:
+            i = int(np.argmin(np.abs(tr - x)))
+            rows.append({"grade": g, "case": case, "measurement": sweep["measurement"], "scaled": sweep["what"],
+                         "scale": sc, "sigma [SI]": ", ".join(f"{v:g}" for v in m.sigma),
+                         "filter sigma [SI]": ", ".join(f"{v:g}" for v in np.diag(m.Rf()) ** 0.5),
+                         "t [min]": tr[i] / 60, "CEP [m]": mt["cep"][i], "sigma_N [m]": mt["sigma_north"][i],
+                         "sigma_E [m]": mt["sigma_east"][i], "sigma_D [m]": mt["sigma_down"][i],
+                         "azimuth [arcmin]": mt["sigma_azimuth"][i] / ARCMIN,
+                         "filter-claimed CEP [m]": mc["cep"][i]})
+    return pd.DataFrame(rows)
+
+
+def _sweep_figure(study, df, sweep):
+    def make():
+        import matplotlib.pyplot as plt
+        last = df[df["t [min]"] == df["t [min]"].max()]
+        fig, ax = plt.subplots(figsize=(7, 5))
+        for (g, case), d in last.groupby(["grade", "case"], sort=False):
+            ax.loglog(d["scale"], d["CEP [m]"], "o-", label=f"{g}: {case}" if g != "as declared" else case)
+        ax.set_xlabel(f"{sweep['measurement']} {sweep['what']} scale [-]")
+        ax.set_ylabel(f"CEP at {last['t [min]'].iloc[0]:g} min [m]")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.suptitle(f"{study}: {sweep['measurement']} {sweep['what']} sweep")
+        return fig
+    return make
 
 
 def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all, err, rec, *, form,

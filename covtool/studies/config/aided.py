@@ -144,3 +144,14 @@ class AidedGrade(Section):
     description: Text() = F("", "One line for the tables.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+
+class MeasurementSweep(Section):
+    name: ClassVar[str] = "sweep (aided)"
+    doc: ClassVar[str] = ("Scale one declared measurement's white-noise σ and rerun every [filters] case "
+                          "(covtool.studies.aided.parse_sweep): the measurement_sweep table and figure.")
+    measurement: Text(nonempty=True) = F(..., "The [[measurement]] whose σ is scaled.", example="gnss")
+    what: OneOf("sigma", "filter_sigma") = F("sigma", "'sigma': the sensor's σ (truth R and filter R_f together); "
+                                                      "'filter_sigma': only the σ the filters assume.")
+    scales: Raw = F({"from": 0.1, "to": 10, "per_decade": 2}, "A [sweep.scales]-style table {from, to, "
+                    "per_decade} (log grid through ×1) or a list of positive factors (×1 is added).")

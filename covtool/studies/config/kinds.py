@@ -28,7 +28,7 @@ from covtool.studies.config.dual_imu import (
     Comparison, DualAlignment, FlightTrajectory, Gaps, ImuSection, Monitor, Simulation,
 )
 from covtool.studies.config.ad_reset import Board, BoardAlignment, BoardNavigation, OutputFilter, Reference, Sweeps
-from covtool.studies.config.aided import AidedFiltersSection, AidedGrade, MeasurementEntry
+from covtool.studies.config.aided import AidedFiltersSection, AidedGrade, MeasurementEntry, MeasurementSweep
 from covtool.studies.config import ad_reset, aided, dual_imu, sections, zupt
 
 
@@ -119,6 +119,7 @@ class AidedConfig(StudyConfig):
     grade: tuple[AidedGrade, ...] | None = Field(None, min_length=1, description=(
         "IMU grades: [[grade]] tables (default: one grade, the truth as declared)."))
     output: OutputSection = F({}, OutputSection.doc)
+    sweep: MeasurementSweep | None = F(None, MeasurementSweep.doc)
 
     @model_validator(mode="after")
     def _unique(self):
