@@ -28,7 +28,8 @@ from covtool.studies.config.dual_imu import (
     Comparison, DualAlignment, FlightTrajectory, Gaps, ImuSection, Monitor, Simulation,
 )
 from covtool.studies.config.ad_reset import Board, BoardAlignment, BoardNavigation, OutputFilter, Reference, Sweeps
-from covtool.studies.config.aided import AidedFiltersSection, AidedGrade, MeasurementEntry, MeasurementSweep
+from covtool.studies.config.aided import (AidedFiltersSection, AidedGrade, AidingMix, MeasurementEntry,
+                                          MeasurementSweep)
 from covtool.studies.config import ad_reset, aided, dual_imu, sections, zupt
 
 
@@ -101,8 +102,10 @@ class TradeGridConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Trade grid: IMU grade × ZUPT interval × filter × tuning, run in chunks "
                                "(resumable store).")
     grid: GridSection
-    lists: ClassVar[dict] = {"grade": GradeEntry}
+    lists: ClassVar[dict] = {"grade": GradeEntry, "aiding": AidingMix}
     grade: Raw = F([{"name": "navigation", "scale": 1}], "The IMU grades: [[grade]] tables.")
+    aiding: tuple[AidingMix, ...] | None = Field(None, min_length=1, description=(
+        "Aiding mixes named in [grid] aiding: [[aiding]] tables (issue 15)."))
 
 
 class AidedConfig(StudyConfig):
