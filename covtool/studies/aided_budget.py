@@ -168,12 +168,11 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     tables["sources"] = _source_table(sources, factors)
     tables["measurements"] = _measurement_table(plan, steps, t)
     provenance = {"truth_model": truth.name, "truth_model_file": truth.path, "truth_model_sha256": truth.sha256,
-                  "filter_file": ", ".join(map(str, ffile)) if isinstance(ffile, tuple) else str(ffile),
                   "resolution": opts["resolution"], "sources": len(sources),
                   "measurement_states": ", ".join(s.name for s in states),
                   "updates": int(all_steps.size), "equivalent_noise_interval_s": f"{ewn_dt:g}",
                   **resource_provenance(est), "compute_seconds": f"{elapsed:.2f}"}
-    provenance.update(study_inputs(path, decl, truth))
+    provenance.update(study_inputs(path, decl, truth, ffile))
     for c in cases:
         provenance[f"{c}: sum vs nominal run residual"] = f"{residuals[c]['nominal']:.3g}"
     stops = tuple((max(a, t[0]), min(b, t[-1])) for a, b in traj.stationary if b > t[0] and a < t[-1])
