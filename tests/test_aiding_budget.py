@@ -24,7 +24,7 @@ from covtool.errors import StudyFileError
 from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
 from covtool.lincov.dynamics import Context, error_dynamics, NoiseSource
 from covtool.lincov.discretize import discretize
-from covtool.lincov.measurements import Cupt, GnssPosition, GnssVelocity, Schedule
+from covtool.lincov.measurements import GnssPosition, GnssVelocity, Schedule
 from covtool.lincov.measurements.base import error_state
 from covtool.nav.trajectory.profiles import static
 from covtool.studies.error_budget import run as run_budget_study
@@ -96,7 +96,7 @@ def test_static_fix_R_source_is_the_kalman_closed_form(fix_budget):
 
 @pytest.mark.parametrize("axis", range(3))
 def test_static_fix_bias_source_is_the_kalman_closed_form(fix_budget, axis):
-    """A constant fix bias b_a: prior contribution σ² h hᵀ (its H column), after the fix (I − G) σ² h hᵀ (I − G)ᵀ."""
+    """A constant fix bias: before the fix σ² h hᵀ (h its H column), after it (I − G) σ² h hᵀ (I − G)ᵀ."""
     f = fix_budget
     H, R, k = f["H"], f["R"], f["k"]
     s = f["bias"][axis]
@@ -214,13 +214,51 @@ def test_study_sources_and_residuals():
     (lambda d: d["filters"].update(ewn_interval="1 s"), r"^<study>: \[filters\]: unknown key 'ewn_interval'"),
     (lambda d: d["measurement"][0].update(kind="lidar"),
      r"^<study>: \[\[measurement\]\] 'gnss' kind: unknown measurement kind 'lidar'"),
-    (lambda d: d["measurement"][1].update(name="gnss"), r"^<study>: \[\[measurement\]\] 'gnss': the name is used twice"),
+    (lambda d: d["measurement"][1].update(name="gnss"),
+     r"^<study>: \[\[measurement\]\] 'gnss': the name is used twice"),
     (lambda d: d["measurement"][0]["schedule"].update(end="10 min"),
      r"^<study>: \[\[measurement\]\] 'gnss' schedule: end 600 s is outside the study"),
     (lambda d: d.update(measurement=[]), r"^<study>: \[\[measurement\]\]: expected a non-empty list"),
+    (lambda d: d["measurement"].append({"name": "gyro", "kind": "heading", "sigma": "1 deg",
+                                        "errors": {"bias": {"sigma": "2 deg"}}}),
+     r"^<study>: \[\[measurement\]\] 'gyro' name: its error state 'gyro_bias' has the name of a truth-model"),
+    (lambda d: [m["schedule"].update(outages=[["0 s", "3 min"]]) for m in d["measurement"]],
+     r"^<study>: \[\[measurement\]\]: no update falls inside the study"),
 ])
 def test_bad_budget_declarations_are_one_line(change, match):
     d = budget_decl()
     change(d)
     with pytest.raises(StudyFileError, match=match):
         run_budget_study(d)
+
+
+def test_state_resolution_sums_to_the_nominal_run():
+    d = budget_decl("2 min")
+    d["output"]["report_times"] = ["1 min", "2 min"]
+    d["budget"] = {"resolution": "state"}
+    r = run_budget_study(d)
+    assert r.tables["summary"]["sum vs nominal run residual"].max() <= 1e-9
+    assert {"gnss_N", "gnss noise (R)", "initial gyro_bias_x"} <= set(r.sources["B1"])
+
+
+def test_budget_members_refuse_a_missing_gain_and_name_a_bad_source(fix_budget):
+    from covtool.errors import NumericalError
+    from covtool.lincov.aided import budget_members
+
+    f = fix_budget
+    br = f["br"]
+    n = f["H"].shape[1]
+    N = f["k"]
+    Phi = np.broadcast_to(np.eye(n - 3), (N, n - 3, n - 3))
+    ep = type("E", (), {"step": 2, "H": f["H"], "R": f["R"], "rows": (("fix", slice(0, 3)),)})()
+    P0s = np.zeros((2, n, n))
+    zero_q = lambda k: np.zeros((2, n - 3, n - 3))              # noqa: E731
+    with pytest.raises(ValueError, match=r"^error budget: no gain at step 2$"):
+        budget_members(Phi, P0s, np.eye(n), [ep], {}, qd=zero_q, r_weights=np.zeros((2, 1)), meas_names=["fix"],
+                       record=[0], keep=np.arange(10))
+    P0s[1, 4, 4] = np.nan
+    with pytest.raises(NumericalError, match=r"^b: source 'bad' at step 0: covariance has a non-finite entry "
+                                             r"\(nan\) in state #4$"):
+        budget_members(Phi, P0s, np.eye(n), [], {}, qd=zero_q, r_weights=np.zeros((2, 1)), meas_names=["fix"],
+                       record=[0], keep=np.arange(10), label="b", members=["good", "bad"])
+    assert br.P.shape[0] == len(f["sources"])

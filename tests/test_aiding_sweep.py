@@ -99,6 +99,8 @@ def test_filter_sigma_sweep_is_the_mistuned_joseph_form(prior):
     ({"measurement": "mark", "scales": {"from": 0.3, "to": 10, "per_decade": 2}}, r"^<study>: \[sweep\] scales: "),
     ({"measurement": "mark", "scale": [2.0]}, r"^<study>: \[sweep\]: unknown key 'scale'"),
     ({"what": "sigma"}, r"^<study>: \[sweep\]: missing required key 'measurement'"),
+    ({"measurement": "mark", "scales": [float(x) for x in range(2, 1003)]},
+     r"^<study>: \[sweep\] scales: 1002 scales; at most 1000"),
 ])
 def test_bad_sweep_is_one_line(sweep, match):
     d = decl()

@@ -125,6 +125,8 @@ def _with(change):
     (lambda d: d["aiding"].append({"name": "none", "measurement": ODO["measurement"]}),
      r"^<study>: \[\[aiding\]\] #2 name: 'none' is reserved"),
     (lambda d: d["aiding"][0].update(measurement=[]), r"^<study>: \[\[aiding\]\] 'odo': needs at least one"),
+    (lambda d: d.update(aiding=ODO), r"^<study>: \[\[aiding\]\]: expected an array of tables"),
+    (lambda d: d["aiding"].append(copy.deepcopy(ODO)), r"^<study>: \[\[aiding\]\] #2 name: 'odo' is declared twice"),
     (lambda d: d["aiding"][0]["measurement"][0].update(kind="lidar"),
      r"^<study>: \[\[aiding\]\] 'odo': \[\[measurement\]\] 'odo' kind: unknown measurement kind 'lidar'"),
     (lambda d: d["aiding"][0]["measurement"][0].update(name="zupt"),

@@ -248,8 +248,9 @@ GUARD_BLOCK = 256
 
 
 def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f=None, record=None,
-                    all_gains: bool = False, sequential: bool = False, form: str = "joseph", check: bool = True, label: str = "filter",
-                    times=None, names=None, filter_names=None, system_checked: bool = False) -> AidedRun:
+                    all_gains: bool = False, sequential: bool = False, form: str = "joseph", check: bool = True,
+                    label: str = "filter", times=None, names=None, filter_names=None,
+                    system_checked: bool = False) -> AidedRun:
     """Truth covariance under a filter's gains with scheduled general measurements.
 
     Parameters
