@@ -394,3 +394,146 @@ def relative_residual(P_sum: np.ndarray, P_ref: np.ndarray, q) -> float:
     with np.errstate(divide="ignore", invalid="ignore"):
         rel = np.where(den > 0, diff / den, np.where(diff > 0, np.inf, 0.0))
     return float(rel.max()) if rel.size else 0.0
+
+
+# ---------------------------------------------------------------------------
+# budgets with declared measurements (issue 15)
+
+#: kind of the source made of a measurement's own error state (initial σ and driving noise)
+MEASUREMENT_ERROR = "measurement error"
+
+
+def aided_sources(model, noise, q0, states, measurements, *, resolution: str = "block") -> tuple[list, list]:
+    """The sources of a budget with declared measurements.
+
+    Parameters
+    ----------
+    model : covtool.lincov.model.spec.Model
+        The INS truth model.
+    noise : list of covtool.lincov.dynamics.NoiseSource
+    q0 : array_like, shape (4,)
+        Initial attitude.
+    states : sequence of covtool.lincov.model.spec.State
+        The measurement-error states appended to the truth (order kept).
+    measurements : sequence of str
+        The measurements' names: one white-noise (R) source each.
+    resolution : {"block", "state"}
+        For the INS sources (:func:`budget_sources`).
+
+    Returns
+    -------
+    sources : list of Source
+        The INS sources of :func:`budget_sources` (their ``P0`` over the
+        INS states), then one ``"measurement error"`` source per error
+        state (its initial σ and its driving noise) and one
+        ``"measurement"`` source per measurement's R.
+    factors : list of NoiseSource
+    """
+    sources, factors = budget_sources(model, noise, q0, None, resolution=resolution)
+    sources += [Source(s.name, MEASUREMENT_ERROR, (s.name,)) for s in states]
+    sources += [Source(f"{m} noise (R)", MEASUREMENT, ()) for m in measurements]
+    return sources, factors
+
+
+def run_aided_budget(Phi, F, factors, dt, sources, states, measurements, D, epochs, gains, record, *,
+                     err=None, keep=slice(0, 10), label: str = "error budget", names=None,
+                     times=None, chunk: int = 64) -> BudgetRun:
+    """Every source of an aided run alone, under the nominal gains.
+
+    The truth is ``[x_INS; e]`` (:mod:`covtool.lincov.aided`); the gains
+    are those of the nominal run at every epoch.  Linearity of seed 002
+    eq (15)–(16) in (P0, Q_d, R) makes the contributions sum to the
+    nominal run.
+
+    Parameters
+    ----------
+    Phi, F : ndarray, shape (N, n₀, n₀)
+        INS truth transition and dynamics matrix.
+    factors : list of NoiseSource
+        Noise factors (:func:`aided_sources`); their per-step ``Q_d`` are
+        computed chunk by chunk (:func:`covtool.lincov.discretize.per_source`,
+        the exact Van Loan integral).
+    dt : ndarray, shape (N,)
+        Step lengths. [s]
+    sources : list of Source
+        From :func:`aided_sources`.
+    states : sequence of State
+        Measurement-error states (the order of the truth's ``e``).
+    measurements : sequence of str
+        Measurement names (the ``R`` sources, in order).
+    D : ndarray, shape (n, n_f)
+    epochs : list of covtool.lincov.aided.Epoch
+    gains : dict of int to ndarray
+        The nominal run's gains at every epoch.
+    record : array_like of int
+    err : tuple (phi, qd) of ndarray, shape (N, n_e), optional
+        The error states' exact processes.
+    keep : slice or index array
+        Recorded sub-block (default: the navigation states).
+    label, names, times
+        For messages.
+    chunk : int
+        Steps whose per-source ``Q_d`` are held at once.
+
+    Returns
+    -------
+    BudgetRun
+        ``P_total`` is the sum of the contributions (compare it with the
+        nominal run).
+
+    Raises
+    ------
+    NumericalError
+        A contribution is not finite, symmetric or PSD (the cross piece
+        may be indefinite), naming the source, time and state.
+    """
+    from covtool.lincov.aided import budget_members
+    from covtool.lincov.discretize.sources import per_source
+
+    N, n0, _ = Phi.shape
+    ne = len(states)
+    n = n0 + ne
+    B = len(sources)
+    P0s = np.zeros((B, n, n))
+    ew = np.zeros((B, ne))
+    rw = np.zeros((B, len(measurements)))
+    enames = [s.name for s in states]
+    member = np.full(len(factors), -1)
+    for b, s in enumerate(sources):
+        if s.P0 is not None:
+            P0s[b, :n0, :n0] = s.P0
+        if s.noise is not None:
+            member[s.noise] = b
+        if s.kind == MEASUREMENT_ERROR:
+            i = enames.index(s.states[0])
+            P0s[b, n0 + i, n0 + i] = states[i].sigma**2
+            ew[b, i] = 1.0
+        elif s.kind == MEASUREMENT:
+            rw[b, list(measurements).index(s.name[:-len(" noise (R)")])] = 1.0
+    dt = np.broadcast_to(np.asarray(dt, float), (N,))
+    if factors:
+        G = np.concatenate([f.G for f in factors], axis=2)
+        psd_ = np.concatenate([f.psd for f in factors], axis=1)
+        starts = np.r_[0, np.cumsum([f.G.shape[2] for f in factors])[:-1]]
+    cache = {"a": -1, "Q": None}
+
+    def qd(k):
+        out = np.zeros((B, n0, n0))
+        if not factors:
+            return out
+        a = (k // chunk) * chunk
+        if cache["a"] != a:
+            b = min(N, a + chunk)
+            cache["a"], cache["Q"] = a, per_source(F[a:b], G[a:b], psd_[a:b], dt[a:b], groups=starts,
+                                                   what=f"{label}: per-source Q_d")
+        Qj = cache["Q"][k - a]                                     # (J, n0, n0)
+        used = member >= 0
+        out[member[used]] = Qj[used]
+        return out
+
+    keep_ix = np.arange(n)[keep]
+    P = budget_members(Phi, P0s, D, epochs, gains, qd=qd, r_weights=rw, meas_names=list(measurements),
+                       record=record, keep=keep_ix, err=err, err_weights=ew,
+                       psd=[s.kind != CORRELATION for s in sources], label=label,
+                       members=[s.name for s in sources], names=names, times=times)
+    return BudgetRun(list(sources), np.unique(np.asarray(record, int)), P, P.sum(axis=0))

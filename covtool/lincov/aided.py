@@ -34,10 +34,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from covtool.errors import NumericalError
-from covtool.lincov.kalman import (check_system, covariance_status, filter_update,
-                                   kalman_gain, scale_groups, symmetrize, time_text, truth_update)
+from covtool.lincov.kalman import check_system, covariance_status, scale_groups, symmetrize, time_text
 from covtool.lincov.measurements import place, transition
 from covtool.lincov.measurements.base import nav_point
+from covtool.lincov.reference import filter_loop
 
 
 @dataclass
@@ -201,15 +201,19 @@ def _blockdiag(mats):
 
 
 def _propagate(P, Phi, Qd, phi, qd):
-    """One step of ``[x_INS; e]``: ``blockdiag(Φ, diag φ)`` and ``blockdiag(Q_d, diag q_d)``."""
+    """One step of ``[x_INS; e]``: ``blockdiag(Φ, diag φ)`` and ``blockdiag(Q_d, diag q_d)``.
+
+    ``P`` may be a stack (..., n, n), with ``Q_d`` (..., n₀, n₀) and ``q_d``
+    (..., n_e) per member (the error-budget members).
+    """
     n0 = Phi.shape[0]
-    if P.shape[0] == n0:
+    if P.shape[-1] == n0:
         return symmetrize(Phi @ P @ Phi.T + Qd)
     out = np.empty_like(P)
-    out[:n0, :n0] = Phi @ P[:n0, :n0] @ Phi.T + Qd
-    out[:n0, n0:] = (Phi @ P[:n0, n0:]) * phi
-    out[n0:, :n0] = out[:n0, n0:].T
-    out[n0:, n0:] = P[n0:, n0:] * np.outer(phi, phi) + np.diag(qd)
+    out[..., :n0, :n0] = Phi @ P[..., :n0, :n0] @ Phi.T + Qd
+    out[..., :n0, n0:] = (Phi @ P[..., :n0, n0:]) * phi
+    out[..., n0:, :n0] = np.swapaxes(out[..., :n0, n0:], -1, -2)
+    out[..., n0:, n0:] = P[..., n0:, n0:] * np.outer(phi, phi) + np.asarray(qd)[..., None] * np.eye(phi.size)
     return symmetrize(out)
 
 
@@ -244,8 +248,9 @@ GUARD_BLOCK = 256
 
 
 def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f=None, record=None,
-                    sequential: bool = False, form: str = "joseph", check: bool = True, label: str = "filter",
-                    times=None, names=None, filter_names=None, system_checked: bool = False) -> AidedRun:
+                    all_gains: bool = False, sequential: bool = False, form: str = "joseph", check: bool = True,
+                    label: str = "filter", times=None, names=None, filter_names=None,
+                    system_checked: bool = False) -> AidedRun:
     """Truth covariance under a filter's gains with scheduled general measurements.
 
     Parameters
@@ -267,6 +272,9 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
     record : array_like of int, optional
         Grid indices to keep (default: every one).  Every covariance is
         guarded whether it is kept or not.
+    all_gains : bool
+        Keep the gains of every update, recorded or not (for a fixed-gain
+        error budget, :func:`budget_members`).
     sequential : bool
         Process the measurements of an epoch one after the other instead
         of stacked (the same result when ``H_f = H D``; see the module notes).
@@ -316,38 +324,34 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
     PF = np.full((rec.size, nf, nf), np.nan)
     prior_t, prior_f, gains = {}, {}, {}
     guard = _Guard(label, names, filter_names, times, check)
-    P = symmetrize(np.asarray(P0, float))
-    Pf = symmetrize(np.asarray(Pf0, float))
-    k = 0
-    try:
-        with np.errstate(over="ignore", invalid="ignore"):      # a blow-up is reported by the guard
-            for k in range(N + 1):
-                ep = by_step.get(k)
-                if ep is not None:
-                    guard.add(k, P, Pf, prior=True)
-                    if k in slot:
-                        prior_t[k], prior_f[k] = P, Pf
-                    parts = [sl for _, sl in ep.rows] if sequential else [slice(0, ep.H.shape[0])]
-                    Ks = []
-                    for sl in parts:
-                        Hf, Rf = ep.Hf[sl], ep.Rf[sl, sl]
-                        K = kalman_gain(Pf, Hf, Rf)
-                        Pf = filter_update(Pf, K, Hf, Rf, form)
-                        P = truth_update(P, D, K, ep.H[sl], ep.R[sl, sl])
-                        Ks.append(K)
-                    if k in slot:
-                        gains[k] = np.hstack(Ks)
-                guard.add(k, P, Pf, after_update=ep is not None)
-                if k in slot:
-                    PT[slot[k]], PF[slot[k]] = P, Pf
-                if k < N:
-                    P = _propagate(P, Phi[k], Qd[k], e_phi[k], e_qd[k])
-                    Pf = _propagate(Pf, Phi_f[k], Qd_f[k], f_phi[k], f_qd[k])
-    except NumericalError as exc:
+
+    def keep(k, stage, P, Pf, K):
+        if stage == "prior":
+            guard.add(k, P, Pf, prior=True)
+            if k in slot:
+                prior_t[k], prior_f[k] = P, Pf
+            return
+        guard.add(k, P, Pf, after_update=k in by_step)
+        if k in slot:
+            PT[slot[k]], PF[slot[k]] = P, Pf
+        if K is not None and (all_gains or k in slot):
+            gains[k] = K
+
+    def fail(k, exc):
         guard.flush()
         raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
+
+    filter_loop(N, P0, Pf0, lambda k, P: _propagate(P, Phi[k], Qd[k], e_phi[k], e_qd[k]),
+                lambda k, Pf: _propagate(Pf, Phi_f[k], Qd_f[k], f_phi[k], f_qd[k]),
+                {k: _parts(ep, sequential) for k, ep in by_step.items()}, D, form, keep, fail)
     guard.flush()
     return AidedRun(rec, PT, PF, prior_t, prior_f, gains)
+
+
+def _parts(ep: Epoch, sequential: bool) -> tuple:
+    """The ``(H, R, H_f, R_f)`` parts of an epoch: one stacked part, or one per measurement."""
+    rows = [sl for _, sl in ep.rows] if sequential else [slice(0, ep.H.shape[0])]
+    return tuple((ep.H[sl], ep.R[sl, sl], ep.Hf[sl], ep.Rf[sl, sl]) for sl in rows)
 
 
 def _when(k, times):
@@ -382,3 +386,110 @@ class _Guard:
                 k, stage = items[bad][0], items[bad][1]
                 raise NumericalError(f"{self.label}: {what} {stage} at {_when(k, self.times)}: "
                                      f"{st.problem(bad, nm)}")
+
+
+def budget_members(Phi, P0s, D, epochs, gains, *, qd, r_weights, meas_names, record, keep, err=None,
+                   err_weights=None, psd=None, label: str = "error budget", members=None, names=None,
+                   times=None) -> np.ndarray:
+    """Truth covariance of several sources under fixed gains (error budget).
+
+    With the gains of a nominal run held fixed, the truth recursion of
+    seed 002, eq (15)–(16), is linear in (P0, Q_d, R): each member is the
+    truth run with one source alone, and the members sum to the nominal
+    run (:mod:`covtool.analysis.budget`).
+
+    Parameters
+    ----------
+    Phi : ndarray, shape (N, n₀, n₀)
+        INS truth transition.
+    P0s : ndarray, shape (B, n, n)
+        Each member's initial covariance over ``[x_INS; e]``.
+    D : ndarray, shape (n, n_f)
+    epochs : list of Epoch
+        The updates (:func:`build_epochs`), processed stacked.
+    gains : dict of int to ndarray, shape (n_f, m)
+        The nominal run's gain at every epoch (``propagate_aided(...,
+        all_gains=True)``).
+    qd : callable ``k -> ndarray (B, n₀, n₀)``
+        Each member's INS process noise over step ``k``.
+    r_weights : ndarray, shape (B, n_meas)
+        Member ``b`` takes measurement ``j``'s white noise R times
+        ``r_weights[b, j]`` (0 or 1).
+    meas_names : sequence of str, length n_meas
+        The measurements (names of ``Epoch.rows``) of the columns of
+        ``r_weights``.
+    err : tuple of ndarray (phi, qd), each shape (N, n_e), optional
+        Exact transition and driving noise of the measurement-error states
+        (:func:`error_processes`).
+    err_weights : ndarray, shape (B, n_e), optional
+        Member ``b`` takes error state ``i``'s driving noise times
+        ``err_weights[b, i]`` (default: none).
+    record : array_like of int
+        Grid indices kept.
+    keep : index array
+        Recorded sub-block (e.g. the navigation states).
+    psd : array_like of bool, shape (B,), optional
+        Members that must be PSD (default all; a cross-covariance piece
+        may be indefinite).
+    label, members, names, times
+        For error messages: the run, the members' (sources') names, the
+        truth state names, the grid times.
+
+    Returns
+    -------
+    ndarray, shape (B, r, k, k)
+        Each member's ``keep`` block at the recorded steps.
+
+    Raises
+    ------
+    ValueError
+        An epoch without a gain.
+    NumericalError
+        A member's recorded covariance is not finite and symmetric, or not
+        PSD (members flagged in ``psd``), naming the member, time and state.
+    """
+    N, n0, _ = Phi.shape
+    B, n, _ = P0s.shape
+    ne = n - n0
+    e_phi, e_qd = err if err is not None else (np.ones((N, ne)), np.zeros((N, ne)))
+    ew = np.zeros((B, ne)) if err_weights is None else np.asarray(err_weights, float)
+    r_weights = np.asarray(r_weights, float)
+    col = {m: j for j, m in enumerate(meas_names)}
+    rec = np.unique(np.asarray(record, int))
+    slot = {int(k): i for i, k in enumerate(rec)}
+    keep = np.asarray(keep)
+    out = np.full((B, rec.size, keep.size, keep.size), np.nan)
+    by_step = {ep.step: ep for ep in epochs}
+    missing = [ep.step for ep in epochs if ep.step not in gains]
+    if missing:
+        raise ValueError(f"{label}: no gain at {_when(missing[0], times)}")
+    P = symmetrize(np.asarray(P0s, float))
+    eye = np.eye(n)
+    with np.errstate(over="ignore", invalid="ignore"):          # a blow-up is reported by the check below
+        for k in range(N + 1):
+            ep = by_step.get(k)
+            if ep is not None:
+                DK = D @ gains[k]
+                A = eye - DK @ ep.H
+                # each member's share of the stacked R: its measurements' rows (R is block-diagonal by kind)
+                w = np.zeros((B, ep.H.shape[0]))
+                for nm, sl in ep.rows:
+                    w[:, sl] = r_weights[:, col[nm]:col[nm] + 1]
+                Rb = ep.R * (w[:, :, None] * w[:, None, :])
+                # seed 002, eq (16) with the nominal gain, every member at once
+                P = symmetrize(A @ P @ A.T + DK @ Rb @ DK.T)
+            if k in slot:
+                out[:, slot[k]] = P[:, keep[:, None], keep[None, :]]
+            if k < N:
+                P = _propagate(P, Phi[k], qd(k), e_phi[k], e_qd[k] * ew)
+    psd = np.ones(B, bool) if psd is None else np.asarray(psd, bool)
+    kept = None if names is None else [names[i] for i in keep]
+    # a contribution is judged against the σ of the sum of all of them (its own σ may be round-off)
+    scale = np.sqrt(np.abs(np.einsum("...ii->...i", out.sum(axis=0))))
+    for b in range(B):
+        st = covariance_status(out[b], psd=bool(psd[b]), scale=scale, groups=scale_groups(kept, keep.size))
+        if not np.all(st.ok):
+            i = int(np.flatnonzero(~st.ok)[0])
+            who = repr(members[b]) if members is not None else f"#{b + 1}"
+            raise NumericalError(f"{label}: source {who} at {_when(int(rec[i]), times)}: {st.problem(i, kept)}")
+    return out

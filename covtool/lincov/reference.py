@@ -204,35 +204,104 @@ def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_ste
         sys_ = {} if system_checked else {"truth": (Phi, Qd), "filter": (Phi_f, Qd_f)}
         check_system(f"{label} (truth)", *sys_.get("truth", ()), P0=P0, R=R, names=names, times=times)
         check_system(f"{label} (filter)", *sys_.get("filter", ()), P0=Pf0, R=Rf, names=filter_names, times=times)
-    upd = set(int(k) for k in update_steps)
     PT = np.full((N + 1, n, n), np.nan)
     PF = np.full((N + 1, nf, nf), np.nan)
     prior_t, prior_f, gains = {}, {}, {}
+
+    def keep(k, stage, P, Pf, K):
+        if stage == "prior":
+            prior_t[k], prior_f[k] = P, Pf
+        else:
+            PT[k], PF[k] = P, Pf
+            if K is not None:
+                gains[k] = K
+
+    def fail(k, exc):
+        if check:
+            _check_run(label, PT[:k], PF[:k], prior_t, prior_f, form, names, filter_names, times)
+        raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
+
+    part = ((H, R, Hf, Rf),)
+    filter_loop(N, P0, Pf0, lambda k, P: Phi[k] @ P @ Phi[k].T + Qd[k],
+                lambda k, Pf: Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k],
+                {int(k): part for k in update_steps}, D, form, keep, fail)
+    if check:
+        _check_run(label, PT, PF, prior_t, prior_f, form, names, filter_names, times)
+    return FilterRun(PT, PF, prior_t, prior_f, gains, None if times is None else np.asarray(times, float),
+                     None if names is None else tuple(names),
+                     None if filter_names is None else tuple(filter_names))
+
+
+def filter_loop(N: int, P0, Pf0, step_truth, step_filter, updates: dict, D, form: str, on_state, on_fail) -> None:
+    """The one truth-under-filter loop with a measurement hook.
+
+    Every truth-under-filter run (ZUPT, :func:`propagate_with_filter`, and
+    the scheduled general measurements of :mod:`covtool.lincov.aided`)
+    goes through this loop; callers supply the propagation, the updates
+    and what to keep.
+
+    Parameters
+    ----------
+    N : int
+        Number of steps (grid indices ``0 … N``).
+    P0 : ndarray, shape (n, n)
+        Initial truth covariance.
+    Pf0 : ndarray, shape (n_f, n_f)
+        The filter's initial covariance.
+    step_truth, step_filter : callable ``(k, P) -> P``
+        Propagation ``t_k → t_{k+1}`` of the truth (eq (15)) and of the
+        filter's own covariance (eq (6a)); symmetrised here.
+    updates : dict of int to sequence of (H, R, Hf, Rf)
+        The measurement events: at grid index k, the parts processed one
+        after the other (one part: a stacked update).  ``H`` (m, n), ``R``
+        (m, m): truth matrix and true noise (eq (16)); ``Hf`` (m, n_f),
+        ``Rf`` (m, m): what the filter uses (eq (7)).
+    D : ndarray, shape (n, n_f)
+        Filter states onto truth states (eq (10)).
+    form : {"joseph", "standard"}
+        Filter covariance update (eq (8) is ``"standard"``).
+    on_state : callable ``(k, stage, P, Pf, K)``
+        Called with ``stage = "prior"`` before an update (``K`` None) and
+        ``"posterior"`` after the update or at a step without one (``K``
+        the gains, shape (n_f, m), or None).
+    on_fail : callable ``(k, exc)``
+        Called when a gain cannot be formed (:class:`NumericalError` from
+        :func:`kalman_gain`); must raise.
+
+    Notes
+    -----
+    Between measurements the feedback filter's estimate is zero (eq (9)–(10)),
+    so only covariances are propagated.  At a measurement the filter computes
+    ``K`` from its own ``P_f`` (eq (7)), updates ``P_f`` (eq (8) or Joseph), and
+    the truth is corrected by eq (16): only the truth states the filter
+    estimates (rows of ``D``) are reset; unmodelled states keep running.
+    Overflow is not raised here: the callers' guards report the first bad
+    covariance.
+    """
     P = symmetrize(np.asarray(P0, float))
     Pf = symmetrize(np.asarray(Pf0, float))
     k = 0
     try:
         with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported by the guard
             for k in range(N + 1):
-                if k in upd:
-                    prior_t[k], prior_f[k] = P, Pf
-                    K = kalman_gain(Pf, Hf, Rf)
-                    gains[k] = K
-                    Pf = filter_update(Pf, K, Hf, Rf, form)
-                    P = truth_update(P, D, K, H, R)
-                PT[k], PF[k] = P, Pf
+                parts = updates.get(k)
+                K = None
+                if parts:
+                    on_state(k, "prior", P, Pf, None)
+                    Ks = []
+                    for H, R, Hf, Rf in parts:
+                        Kp = kalman_gain(Pf, Hf, Rf)
+                        Pf = filter_update(Pf, Kp, Hf, Rf, form)
+                        P = truth_update(P, D, Kp, H, R)
+                        Ks.append(Kp)
+                    K = Ks[0] if len(Ks) == 1 else np.hstack(Ks)
+                on_state(k, "posterior", P, Pf, K)
                 if k < N:
-                    P = symmetrize(Phi[k] @ P @ Phi[k].T + Qd[k])
-                    Pf = symmetrize(Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k])
+                    P = symmetrize(step_truth(k, P))
+                    Pf = symmetrize(step_filter(k, Pf))
     except NumericalError as exc:
-        if check:
-            _check_run(label, PT[:k], PF[:k], prior_t, prior_f, form, names, filter_names, times)
-        raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
-    if check:
-        _check_run(label, PT, PF, prior_t, prior_f, form, names, filter_names, times)
-    return FilterRun(PT, PF, prior_t, prior_f, gains, None if times is None else np.asarray(times, float),
-                     None if names is None else tuple(names),
-                     None if filter_names is None else tuple(filter_names))
+        on_fail(k, exc)
+        raise
 
 
 def _when(k, times):

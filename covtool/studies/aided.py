@@ -51,6 +51,7 @@ Study file::
 
 from __future__ import annotations
 
+import dataclasses
 import re
 import time
 
@@ -58,9 +59,10 @@ import numpy as np
 import pandas as pd
 
 from covtool.analysis.metrics import nav_metrics
-from covtool.errors import StudyFileError
-from covtool.io.config import (check_keys, choice, names, number, quantity, quantity_list, require, string,
-                               table)
+from covtool.errors import NumericalError, StudyFileError
+from covtool.analysis.sensitivity import scale_grid
+from covtool.io.config import (check_keys, choice, integer, LIMITS, names, number, quantity, quantity_list, require,
+                               string, table)
 from covtool.io.filters import load_filters
 from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
 from covtool.lincov.kalman import check_system
@@ -233,7 +235,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
-    check_keys(decl, {"study", "trajectory", "truth", "filters", "measurement", "grade", "output"}, where,
+    check_keys(decl, {"study", "trajectory", "truth", "filters", "measurement", "grade", "output", "sweep"}, where,
                StudyFileError)
     hdr = study_header(decl, where)
     every, rtimes = output_options(decl, where, hdr["duration"])
@@ -259,6 +261,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         raise StudyFileError(f"{where}: [[measurement]] {meas!r} name", f"its error state {clash[0]!r} has the name "
                              f"of a truth-model state or block; rename the measurement")
     variants = parse_variants(fcfg, specs, states, where)
+    sweep = parse_sweep(decl["sweep"], [m for m, _ in plan], where) if "sweep" in decl else None
     est = check_memory(_memory(hdr, truth0, specs, cases, variants, states, every, fcfg.get("pure_ins", True)),
                        where, hdr["max_memory"], "a larger [study] dt or history_every, a shorter duration or fewer "
                        "[filters] cases")
@@ -289,7 +292,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
     meas_pairs = list(zip([m for m, _ in plan], steps))
     names_all = None
-    metrics, claimed, nstates, at_updates = {}, {}, {}, []
+    metrics, claimed, nstates, at_updates, swept = {}, {}, {}, [], {}
     dt_steps = np.diff(t)
     err = error_processes(states, dt_steps)[:2]
     for g in grades:
@@ -310,33 +313,23 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         runs = [(c, c, []) for c in cases] + [(v, b, d) for v, (b, d) in variants.items()]
         for label, base, drop in runs:
             if base not in built:
-                spec = specs_g[base]
-                fm = build_filter(spec, truth, ctx, zupt_interval=ewn_dt, q0=nodes.q_nb[0], truth_dynamics=dyn,
-                                  mean_speed=mean_speed, dt_steps=dt_steps, update_steps=all_steps)
-                same = (spec.discretization == hdr["discretization"] and fm.F.shape == dyn.F.shape
-                        and (spec.discretization == "van_loan" or spec.taylor_order is None)
-                        and np.array_equal(fm.F, dyn.F) and np.array_equal(fm.Qc, dyn.Qc))
-                if same:                   # the truth itself (filter A): its Φ, Q_d, not computed again
-                    Phi_f, Qd_f = Phi, Qd
-                else:
-                    Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, dt_steps, spec.discretization,
-                                                     spec.taylor_order, what=f"{spec.path}: filter {base!r}",
-                                                     times=t[:-1])
-                    check_system(f"{where}: filter {base}", Phi_f, Qd_f, names=fm.names, times=t)
-                built[base] = (fm, Phi_f, Qd_f)
+                built[base] = filter_system(specs_g[base], truth, ctx, dyn, Phi, Qd, hdr, t, nodes, ewn_dt=ewn_dt,
+                                            mean_speed=mean_speed, update_steps=all_steps, where=where)
             fm, Phi_f, Qd_f = built[base]
             kept = [s.name for s in states if s.name not in drop]
-            P0a, Pf_e, D = augment(P0, fm.D, states, kept)
-            nf0 = fm.P0.shape[0]
-            Pf0 = np.zeros((nf0 + len(kept),) * 2)
-            Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0, Pf_e
-            fnames = list(fm.names) + kept
-            epochs = build_epochs(meas_pairs, nodes, names_all, fnames)
-            err_f = error_processes([s for s in states if s.name in kept], dt_steps)[:2]
-            r = propagate_aided(Phi, Qd, P0a, Phi_f, Qd_f, Pf0, D, epochs, err=err, err_f=err_f, record=rec,
-                                form=specs_g[base].update, label=f"{where}: {gl}: filter {label}", times=t,
-                                names=names_all, filter_names=fnames, system_checked=True)
+            r, fnames, _, _ = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all,
+                                         err, rec, form=specs_g[base].update, label=f"{where}: {gl}: filter {label}")
             metrics[(gl, label)] = _metrics(r.P_truth, nodes, rec)
+            if sweep is not None and not drop:     # the same filter with the swept measurement's σ scaled
+                for sc in sweep["scales"]:
+                    pairs = scaled_plan(meas_pairs, sweep, sc)
+                    rs = r if sc == 1.0 else filter_run(
+                        fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, pairs, nodes, names_all, err, rec,
+                        form=specs_g[base].update, label=f"{where}: {gl}: filter {label}, {sweep['measurement']} "
+                                                         f"{sweep['what']} x{sc:g}")[0]
+                    swept[(gl, label, sc)] = (next(m for m, _ in pairs if m.name == sweep["measurement"]),
+                                              _metrics(rs.P_truth, nodes, rec),
+                                              _metrics(rs.P_filter[:, :10, :10], nodes, rec))
             claimed[(gl, label)] = _metrics(r.P_filter[:, :10, :10], nodes, rec)
             nstates[(gl, label)] = len(fnames)
             pos = {int(k): i for i, k in enumerate(r.steps)}
@@ -362,10 +355,14 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         tables["outages"] = _outage_table(metrics, outage_marks, tr)
     if at_updates:
         tables["sparse_updates"] = pd.DataFrame(at_updates)
+    if sweep is not None:
+        tables["measurement_sweep"] = _sweep_table(swept, sweep, tr, rtimes)
     if variants:
         tables["measurement_state_impact"] = _variant_table(metrics, claimed, variants, tr, rtimes, grades)
     figures = {f"aided_{_slug(g['name'])}": _figure(hdr["name"], g["name"], metrics, tr, outage_marks)
                for g in grades}
+    if sweep is not None:
+        figures["measurement_sweep"] = _sweep_figure(hdr["name"], tables["measurement_sweep"], sweep)
     return StudyResult(
         name=hdr["name"], kind="aided", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}},
@@ -375,6 +372,146 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                     "compute_seconds": f"{elapsed:.2f}"},
         data={"t": tr, "steps": rec, "metrics": metrics, "claimed": claimed, "trajectory": nodes},
     )
+
+
+SWEEP_KEYS = {"measurement", "what", "scales"}
+#: what a measurement sweep scales: the sensor's σ (truth R and the filters' R_f) or only the filters' R_f
+SWEEP_WHAT = ("sigma", "filter_sigma")
+
+
+def parse_sweep(cfg, measurements, where: str) -> dict:
+    """``[sweep]``: scale one declared measurement's σ (issue 15).
+
+    ``measurement`` names a ``[[measurement]]``; ``what = "sigma"`` scales
+    the sensor's white noise (the truth's R and the filters' R_f together:
+    a sensor-quality trade), ``"filter_sigma"`` only what the filters
+    assume (a tuning sensitivity, as seed 002 §3.2 scales R_f);
+    ``scales = {from, to, per_decade}`` (log grid through ×1) or a list of
+    positive factors.
+
+    Raises
+    ------
+    StudyFileError
+        Unknown key, unknown measurement, bad ``what``, bad scales.
+    """
+    w = f"{where}: [sweep]"
+    cfg = table(cfg, w, StudyFileError)
+    check_keys(cfg, SWEEP_KEYS, w, StudyFileError)
+    known = [m.name for m in measurements]
+    name = choice(require(cfg, "measurement", w, StudyFileError), known, f"{w} measurement", StudyFileError)
+    what = choice(cfg.get("what", "sigma"), SWEEP_WHAT, f"{w} what", StudyFileError)
+    bound = LIMITS["filter_scale"]
+    sc = cfg.get("scales", {"from": 0.1, "to": 10, "per_decade": 2})
+    if isinstance(sc, list):
+        if not sc:
+            raise StudyFileError(f"{w} scales", "expected at least one scale")
+        scales = np.array([number(x, f"{w} scales[{j}]", StudyFileError, lo=bound.lo, hi=bound.hi,
+                                  why=bound.reason) for j, x in enumerate(sc)])
+        scales = np.unique(np.r_[scales, 1.0])
+    else:
+        sc = table(sc, f"{w} scales", StudyFileError)
+        check_keys(sc, {"from", "to", "per_decade"}, f"{w} scales", StudyFileError)
+        lo, hi = (number(require(sc, k, f"{w} scales", StudyFileError), f"{w} scales {k}", StudyFileError,
+                         lo=bound.lo, hi=bound.hi, why=bound.reason) for k in ("from", "to"))
+        per = integer(require(sc, "per_decade", f"{w} scales", StudyFileError), f"{w} scales per_decade",
+                      StudyFileError, limit="per_decade")
+        try:
+            scales = scale_grid(lo, hi, per)
+        except ValueError as exc:
+            raise StudyFileError(f"{w} scales", str(exc)) from None
+    if scales.size > LIMITS["sweep_points"].hi:
+        raise StudyFileError(f"{w} scales", f"{scales.size} scales; at most {LIMITS['sweep_points'].hi:g}")
+    return {"measurement": name, "what": what, "scales": tuple(float(x) for x in scales)}
+
+
+def scaled_plan(pairs, sweep: dict, scale: float) -> list:
+    """The plan with the swept measurement's σ (or only its filter σ) times ``scale``."""
+    out = []
+    for m, st in pairs:
+        if m.name == sweep["measurement"] and scale != 1.0:
+            fs = m.sigma if m.filter_sigma is None else m.filter_sigma
+            m = dataclasses.replace(m, filter_sigma=np.asarray(fs, float) * scale,
+                                    **({"sigma": np.asarray(m.sigma, float) * scale} if sweep["what"] == "sigma"
+                                       else {}))
+        out.append((m, st))
+    return out
+
+
+def _sweep_table(swept, sweep, tr, rtimes):
+    rows = []
+    for (g, case, sc), (m, mt, mc) in swept.items():
+        for x in rtimes:
+            i = int(np.argmin(np.abs(tr - x)))
+            rows.append({"grade": g, "case": case, "measurement": sweep["measurement"], "scaled": sweep["what"],
+                         "scale": sc, "sigma [SI]": ", ".join(f"{v:g}" for v in m.sigma),
+                         "filter sigma [SI]": ", ".join(f"{v:g}" for v in np.diag(m.Rf()) ** 0.5),
+                         "t [min]": tr[i] / 60, "CEP [m]": mt["cep"][i], "sigma_N [m]": mt["sigma_north"][i],
+                         "sigma_E [m]": mt["sigma_east"][i], "sigma_D [m]": mt["sigma_down"][i],
+                         "azimuth [arcmin]": mt["sigma_azimuth"][i] / ARCMIN,
+                         "filter-claimed CEP [m]": mc["cep"][i]})
+    return pd.DataFrame(rows)
+
+
+def _sweep_figure(study, df, sweep):
+    def make():
+        import matplotlib.pyplot as plt
+        last = df[df["t [min]"] == df["t [min]"].max()]
+        fig, ax = plt.subplots(figsize=(7, 5))
+        for (g, case), d in last.groupby(["grade", "case"], sort=False):
+            ax.loglog(d["scale"], d["CEP [m]"], "o-", label=f"{g}: {case}" if g != "as declared" else case)
+        ax.set_xlabel(f"{sweep['measurement']} {sweep['what']} scale [-]")
+        ax.set_ylabel(f"CEP at {last['t [min]'].iloc[0]:g} min [m]")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=8)
+        fig.suptitle(f"{study}: {sweep['measurement']} {sweep['what']} sweep")
+        return fig
+    return make
+
+
+def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all, err, rec, *, form,
+               label, all_gains=False):
+    """The truth under one filter with the declared measurements (seed 002, eq (15)–(16)).
+
+    Returns
+    -------
+    run : covtool.lincov.aided.AidedRun
+    filter_names : list of str
+        The filter's INS states, then the measurement-error states it keeps.
+    D : ndarray, shape (n, n_f)
+    epochs : list of covtool.lincov.aided.Epoch
+    """
+    P0a, Pf_e, D = augment(P0, fm.D, states, kept)
+    nf0 = fm.P0.shape[0]
+    Pf0 = np.zeros((nf0 + len(kept),) * 2)
+    Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0, Pf_e
+    fnames = list(fm.names) + list(kept)
+    epochs = build_epochs(meas_pairs, nodes, names_all, fnames)
+    err_f = error_processes([s for s in states if s.name in kept], np.diff(nodes.t))[:2]
+    r = propagate_aided(Phi, Qd, P0a, Phi_f, Qd_f, Pf0, D, epochs, err=err, err_f=err_f, record=rec, form=form,
+                        label=label, times=nodes.t, names=names_all, filter_names=fnames, system_checked=True,
+                        all_gains=all_gains)
+    return r, fnames, D, epochs
+
+
+def filter_system(spec, truth, ctx, dyn, Phi, Qd, hdr, t, nodes, *, ewn_dt, mean_speed, update_steps,
+                  where="<study>"):
+    """A base filter evaluated on the grid: ``(FilterModel, Φ_f, Q_f)``.
+
+    Δt_s of seed 002, eq (11)–(13) is ``ewn_dt``; a filter equal to the
+    truth (filter A) reuses the truth's Φ, Q_d.
+    """
+    dt_steps = np.diff(t)
+    fm = build_filter(spec, truth, ctx, zupt_interval=ewn_dt, q0=nodes.q_nb[0], truth_dynamics=dyn,
+                      mean_speed=mean_speed, dt_steps=dt_steps, update_steps=update_steps)
+    same = (spec.discretization == hdr["discretization"] and fm.F.shape == dyn.F.shape
+            and (spec.discretization == "van_loan" or spec.taylor_order is None)
+            and np.array_equal(fm.F, dyn.F) and np.array_equal(fm.Qc, dyn.Qc))
+    if same:                   # the truth itself (filter A): its Φ, Q_d, not computed again
+        return fm, Phi, Qd
+    Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, dt_steps, spec.discretization, spec.taylor_order,
+                                     what=f"{spec.path}: filter {spec.name!r}", times=t[:-1])
+    check_system(f"{where}: filter {spec.name}", Phi_f, Qd_f, names=fm.names, times=t)
+    return fm, Phi_f, Qd_f
 
 
 def _memory(hdr, truth, specs, cases, variants, states, every, pure) -> dict:
@@ -495,3 +632,149 @@ def _figure(study, grade, metrics, tr, outages):
         fig.suptitle(f"{study}: truth under each filter, grade {grade}" + (" (outages shaded)" if outages else ""))
         return fig
     return make
+
+
+# --------------------------------------------------------------------------
+# the trade grid's aiding axis (covtool.studies.trade_grid)
+# --------------------------------------------------------------------------
+
+def parse_aiding(decl: dict, axis, where: str) -> list:
+    """``[grid] aiding = [...]`` and the ``[[aiding]]`` tables -> one entry per axis value.
+
+    ``"none"`` is the ZUPT schedule alone; every other value names an
+    ``[[aiding]]`` table (``name`` and ``[[aiding.measurement]]`` tables,
+    declared as in the aided kind) whose measurements are added to the
+    ZUPTs of each interval.
+
+    Returns
+    -------
+    list of dict
+        ``{"name": str, "measurement": list of dict}`` (the declarations,
+        validated; the workers parse them again).
+
+    Raises
+    ------
+    StudyFileError
+        ``aiding`` not a non-empty list of names, a name without its table,
+        a table never used or declared twice, a bad measurement.
+    """
+    w = f"{where}: [grid] aiding"
+    if not isinstance(axis, list) or not axis or not all(isinstance(a, str) for a in axis):
+        raise StudyFileError(w, f"expected a non-empty list of names (\"none\" or an [[aiding]] name), got {axis!r}")
+    if len(set(axis)) != len(axis):
+        raise StudyFileError(w, f"{next(a for j, a in enumerate(axis) if a in axis[:j])!r} is listed twice")
+    tables_ = decl.get("aiding", [])
+    if not isinstance(tables_, list):
+        raise StudyFileError(f"{where}: [[aiding]]", "expected an array of tables ([[aiding]] name = ...)")
+    mixes = {}
+    for j, a in enumerate(tables_):
+        wa = f"{where}: [[aiding]] #{j + 1}"
+        a = table(a, wa, StudyFileError)
+        check_keys(a, {"name", "measurement"}, wa, StudyFileError)
+        nm = string(require(a, "name", wa, StudyFileError), f"{wa} name", StudyFileError, nonempty=True)
+        if nm == "none" or nm in mixes:
+            raise StudyFileError(f"{wa} name", f"{nm!r} is " + ("reserved (the ZUPTs alone)" if nm == "none"
+                                                                else "declared twice"))
+        meas = a.get("measurement")
+        if not isinstance(meas, list) or not meas:
+            raise StudyFileError(f"{where}: [[aiding]] {nm!r}", "needs at least one [[aiding.measurement]]")
+        parsed = [parse_measurement(m, i, f"{where}: [[aiding]] {nm!r}") for i, m in enumerate(meas)]
+        names_ = ["zupt"] + [m.name for m, _ in parsed]
+        dup = next((x for i, x in enumerate(names_) if x in names_[:i]), None)
+        if dup is not None:
+            raise StudyFileError(f"{where}: [[aiding]] {nm!r} [[measurement]] {dup!r}",
+                                 "the name is used twice (\"zupt\" is the grid's own ZUPT)")
+        mixes[nm] = list(meas)
+    unknown = [a for a in axis if a != "none" and a not in mixes]
+    if unknown:
+        raise StudyFileError(w, f"{unknown[0]!r} has no [[aiding]] table (declared: "
+                             f"{', '.join(sorted(mixes)) or 'none'})")
+    unused = [m for m in mixes if m not in axis]
+    if unused:
+        raise StudyFileError(f"{where}: [[aiding]] {unused[0]!r}", "is not in [grid] aiding")
+    return [{"name": a, "measurement": mixes.get(a, [])} for a in axis]
+
+
+def aiding_problem(aiding: dict, t, nodes, where: str) -> None:
+    """Check every schedule of an aiding mix against one trajectory (before any work is sent out)."""
+    for i, m in enumerate(aiding["measurement"]):
+        meas, sch = parse_measurement(m, i, f"{where}: [[aiding]] {aiding['name']!r}")
+        p = sch.problem(t, nodes)
+        if p is not None:
+            raise StudyFileError(f"{where}: [[aiding]] {aiding['name']!r} [[measurement]] {meas.name!r} schedule", p)
+
+
+def trade_cases(S, f: str, cases: list, aiding: dict, rec, label: str) -> list:
+    """The truth under filter ``f`` with the ZUPTs plus an aiding mix, one run per trade-grid case.
+
+    Parameters
+    ----------
+    S : covtool.studies.zupt_setup.ZuptSetup
+        The (grade, interval) system of the chunk.
+    f : str
+        Filter name.
+    cases : list of dict
+        ``_sigma`` (true ZUPT σ [m/s]), ``P0 scale``, ``Q scale``, ``R scale``.
+    aiding : dict
+        ``{"name", "measurement"}`` (:func:`parse_aiding`).
+    rec : sequence of int
+        Recorded grid indices.
+    label : str
+        For messages.
+
+    Returns
+    -------
+    list of (P_truth, P_filter, status)
+        Navigation blocks, shape (r, 10, 10) each, per case; a case whose
+        covariance fails the guard has NaN blocks and the guard's message
+        as status (the grid goes on), otherwise status ``"ok"``.
+
+    Notes
+    -----
+    The filter scales as the ZUPT trade grid's: ``P_f(0) × p0`` (its
+    kept measurement-error states too), ``Q_f × q`` (and their driving
+    noise), every measurement's ``R_f × r``; the ZUPT's filter σ is the
+    filter's declared ``zupt_sigma`` or the true one.  Eq (11)–(13) of the
+    dropped INS states is matched over the ZUPT intervals (the filter as
+    the ZUPT grid builds it).
+    """
+    from covtool.lincov.measurements import Zupt
+
+    where = S.where
+    plan = [parse_measurement(m, i, f"{where}: [[aiding]] {aiding['name']!r}")
+            for i, m in enumerate(aiding["measurement"])]
+    states = [s for m, _ in plan for s in m.states]
+    names_all = list(S.truth.names) + [s.name for s in states]
+    steps = [sch.steps(S.t, S.nodes) for _, sch in plan]
+    fm, Phi_f, Qd_f, _ = S.filter_system(f)
+    spec = S.specs[f]
+    dt = np.diff(S.t)
+    err = error_processes(states, dt)[:2]
+    P0a, Pf_e, D = augment(S.P0, fm.D, states, [s.name for s in states])
+    fnames = list(fm.names) + [s.name for s in states]
+    nf0 = fm.P0.shape[0]
+    out = []
+    for c in cases:
+        sig = float(c["_sigma"])
+        fsig = sig if spec.zupt_sigma is None else float(spec.zupt_sigma)
+        r = float(c["R scale"])
+        z = Zupt(name="zupt", sigma=np.full(3, sig), filter_sigma=np.full(3, fsig * np.sqrt(r)))
+        pairs = [(z, S.update_steps)] + [
+            (dataclasses.replace(m, filter_sigma=np.asarray(m.sigma if m.filter_sigma is None else m.filter_sigma,
+                                                            float) * np.sqrt(r)), st)
+            for (m, _), st in zip(plan, steps)]
+        Pf0 = np.zeros((len(fnames),) * 2)
+        Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0 * c["P0 scale"], Pf_e * c["P0 scale"]
+        q = float(c["Q scale"])
+        epochs = build_epochs(pairs, S.nodes, names_all, fnames)
+        try:
+            run_ = propagate_aided(S.Phi, S.Qd, P0a, Phi_f, Qd_f if q == 1.0 else Qd_f * q, Pf0, D, epochs, err=err,
+                                   err_f=(err[0], err[1] * q), record=rec, form=spec.update,
+                                   label=f"{label}: case {c['case']}", times=S.t, names=names_all,
+                                   filter_names=fnames, system_checked=True)
+        except NumericalError as exc:
+            nan = np.full((len(rec), 10, 10), np.nan)
+            out.append((nan, nan, str(exc)))
+            continue
+        out.append((run_.P_truth[:, :10, :10], run_.P_filter[:, :10, :10], "ok"))
+    return out

@@ -35,6 +35,10 @@ Study file::
     history_every = "30 s"
     report_times = ["10 min", "30 min"]
 
+With ``[[measurement]]`` tables (the aided kind's declaration) instead of
+``[zupt]``, the budget runs in :mod:`covtool.studies.aided_budget`: each
+measurement-error state and each measurement's R are sources too (issue 15).
+
 Reported per navigation error: horizontal (σ_N² + σ_E², the squared RMS
 radial error), altitude (σ_D²) and azimuth (σ_ψ²); shares of variance and
 the 1σ-equivalent ``√(variance)`` in ft or arcmin.  Every case records how
@@ -142,6 +146,9 @@ def record_steps(t: np.ndarray, every: float, report_times) -> np.ndarray:
 
 def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     """Run an error-budget study; see the module docstring."""
+    if "measurement" in decl:              # declared measurements (issue 15): covtool.studies.aided_budget
+        from covtool.studies.aided_budget import run as run_aided
+        return run_aided(decl, path=path, progress=progress)
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     opts = budget_options(decl, where)

@@ -97,7 +97,7 @@ from covtool.version import __version__
 #: truth-model block kinds a grade does not scale (they are not IMU errors)
 UNSCALED_KINDS = ("navigation", "gravity_disturbance")
 
-GRID_KEYS = ("zupt_interval", "zupt_sigma", "p0_scale", "q_scale", "r_scale", "cruise_speed")
+GRID_KEYS = ("zupt_interval", "zupt_sigma", "p0_scale", "q_scale", "r_scale", "cruise_speed", "aiding")
 GRADE_KEYS = ("name", "scale", "description", "override", "arw", "vrw")
 
 
@@ -244,8 +244,8 @@ class TradePlan:
         self.path = Path(path) if path else None
         where = self.where = str(path) if path else "<study>"
         base_dir = self.path.parent if self.path else None
-        check_keys(decl, {"study", "trajectory", "truth", "filters", "zupt", "output", "grid", "grade"}, where,
-                   StudyFileError)
+        check_keys(decl, {"study", "trajectory", "truth", "filters", "zupt", "output", "grid", "grade", "aiding"},
+                   where, StudyFileError)
         self.hdr = study_header(decl, where)
         output_options(decl, where, self.hdr["duration"])
         grid = decl.get("grid")
@@ -278,6 +278,13 @@ class TradePlan:
         self.cruise_speed = quantity(grid.get("cruise_speed", "45 km/h"), "velocity",
                                      f"{where}: [grid] cruise_speed", StudyFileError, positive=True)
         self.grades = _grades(decl, where)
+        # the aiding mix axis (issue 15): measurements added to the ZUPTs; absent, the grid is ZUPT-only as before
+        from covtool.studies.aided import aiding_problem, parse_aiding
+        self.aiding_axis = "aiding" in grid
+        if not self.aiding_axis and "aiding" in decl:
+            raise StudyFileError(f"{where}: [[aiding]]", "declared but not used: list it in [grid] aiding")
+        self.aidings = parse_aiding(decl, grid["aiding"], where) if self.aiding_axis else [{"name": None,
+                                                                                             "measurement": []}]
 
         # truth model, filters, grades: validated here so that workers never fail on input
         truth = load_truth(decl, where, base_dir)
@@ -291,7 +298,7 @@ class TradePlan:
         self.filters = filter_cases(fcfg, specs, self.filter_file, where, nonempty=True)
         self.states = {c: specs[c].n for c in self.filters}
         n_cases = len(self.grades) * len(self.intervals) * len(self.filters) * len(self.sigmas) * \
-            len(self.p0_scales) * len(self.q_scales) * len(self.r_scales)
+            len(self.p0_scales) * len(self.q_scales) * len(self.r_scales) * len(self.aidings)
         lim = LIMITS["grid_cases"]
         if n_cases > lim.hi:
             raise StudyFileError(f"{where}: [grid]", f"{n_cases:,} cases; at most {lim.hi:,} ({lim.reason}); "
@@ -323,6 +330,9 @@ class TradePlan:
             except InputError as exc:
                 raise StudyFileError(f"{where}: [grid] zupt_interval = {text!r}", str(exc)) from None
             check_step_motion(tr, t, where)
+            for a in self.aidings:
+                if a["measurement"]:
+                    aiding_problem(a, t, tr.sample(t), f"{where}: [grid] zupt_interval = {text!r}")
             for gi, g in enumerate(self.grades):
                 self.decls[(gi, ii)] = system_decl(decl, self.grade_truth[gi], text, s, self.cruise_speed,
                                                    self.hdr["duration"], where)
@@ -332,17 +342,22 @@ class TradePlan:
         n = 0
         for gi, g in enumerate(self.grades):
             for ii, s in enumerate(self.intervals):
-                cases = []
-                for f, sig, p0, q, r in itertools.product(self.filters, self.sigmas, self.p0_scales, self.q_scales,
-                                                          self.r_scales):
-                    cases.append({"case": n, "grade": g["name"], "grade scale": g["scale"],
-                                  "ZUPT interval [min]": s / 60.0, "filter": f, "states": self.states[f],
-                                  "ZUPT sigma [ft/s]": float(f"{sig / FT:.12g}"), "P0 scale": p0,
-                                  "Q scale": q, "R scale": r,
-                                  "_sigma": sig})
-                    n += 1
-                self.chunks.append({"key": f"g{gi:02d}-i{ii:02d}", "decl": self.decls[(gi, ii)],
-                                    "path": str(self.path) if self.path else None, "cases": cases})
+                for ai, aid in enumerate(self.aidings):
+                    cases = []
+                    for f, sig, p0, q, r in itertools.product(self.filters, self.sigmas, self.p0_scales,
+                                                              self.q_scales, self.r_scales):
+                        cases.append({"case": n, "grade": g["name"], "grade scale": g["scale"],
+                                      "ZUPT interval [min]": s / 60.0,
+                                      **({"aiding": aid["name"]} if self.aiding_axis else {}),
+                                      "filter": f, "states": self.states[f],
+                                      "ZUPT sigma [ft/s]": float(f"{sig / FT:.12g}"), "P0 scale": p0,
+                                      "Q scale": q, "R scale": r,
+                                      "_sigma": sig})
+                        n += 1
+                    # the store key names the aiding mix: a resumed grid never mixes two mixes' chunks
+                    self.chunks.append({"key": f"g{gi:02d}-i{ii:02d}" + (f"-a{ai:02d}" if self.aiding_axis else ""),
+                                        "decl": self.decls[(gi, ii)], "aiding": aid,
+                                        "path": str(self.path) if self.path else None, "cases": cases})
         self.n_cases = n
 
     def memory(self, workers: int) -> dict:
@@ -416,8 +431,13 @@ def compute_chunk(task: dict) -> dict:
         by_filter.setdefault(c["filter"], []).append(c)
     rows, reused = {}, []
     eye = np.eye(S.H.shape[0])
+    aiding = task.get("aiding") or {"measurement": []}
     for f, cs in by_filter.items():
         a = time.perf_counter()
+        if aiding["measurement"]:          # ZUPTs plus an aiding mix: the aided engine, one run per case
+            _aided_rows(S, f, cs, aiding, rec, task, rows)
+            t_engine += time.perf_counter() - a
+            continue
         fm, Phi_f, Qd_f, same = S.filter_system(f)
         spec = S.specs[f]
         filt = truth if same else System.from_steps(Phi_f, Qd_f, ev)
@@ -517,7 +537,34 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         nominal=nominal(summary, plan), grades=[{"name": g["name"], "scale": g["scale"]} for g in plan.grades],
         filters=list(plan.filters), duration=plan.hdr["duration"])
     result.figures = {"trade_grid": partial(trade_figure, result)}
+    if plan.aiding_axis:                   # one figure per aiding mix (the figure's lines run over the intervals)
+        import dataclasses
+        nom = result.nominal
+        result.figures = {f"trade_grid_{a['name']}": partial(trade_figure, dataclasses.replace(
+            result, nominal=nom[nom["aiding"] == a["name"]])) for a in plan.aidings}
     return result
+
+
+def _aided_rows(S, f, cs, aiding, rec, task, rows) -> None:
+    """Summary rows of one filter's cases with an aiding mix (:func:`covtool.studies.aided.trade_cases`)."""
+    from covtool.studies.aided import trade_cases
+
+    t, nodes = S.t, S.nodes
+    res = trade_cases(S, f, cs, aiding, rec, f"trade grid: {task.get('key', 'chunk')}: filter {f}")
+    geo = (nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec], nodes.distance[rec])
+    for c, (PT, PF, status) in zip(cs, res):
+        mt, mc = nav_metrics(PT, *geo), nav_metrics(PF, *geo)
+        first = first_invalid(mt, t[rec])
+        for j, k in enumerate(rec):
+            row = {key: v for key, v in c.items() if not key.startswith("_")}
+            m = summary_row("", mt, j, float(t[k]), float(nodes.distance[k]), first=first, status=status)
+            del m["case"]
+            row.update(m)
+            row["filter-claimed CEP [ft]"] = mc["cep"][j] / FT
+            row["filter-claimed alt PE [ft]"] = mc["alt_pe"][j] / FT
+            row["filter-claimed azimuth [arcmin]"] = mc["sigma_azimuth"][j] / ARCMIN
+            rows[(c["case"], j)] = {k2: (float(v) if isinstance(v, (np.floating, np.integer)) else v)
+                                    for k2, v in row.items()}
 
 
 def _local_workers(backend) -> int:
@@ -578,18 +625,22 @@ def pivot_tables(summary: pd.DataFrame, plan: TradePlan) -> dict:
     out = {}
     for name, col in (("pivot_cep", "CEP [ft]"), ("pivot_alt_pe", "alt PE [ft]"),
                       ("pivot_azimuth", "azimuth 1sigma [arcmin]")):
-        pv = nom.pivot_table(index=["grade", "ZUPT interval [min]"], columns="filter", values=col, sort=False)
+        pv = nom.pivot_table(index=_pivot_index(plan), columns="filter", values=col, sort=False)
         pv = pv[plan.filters]
         pv.columns = [f"{f} {col}" for f in pv.columns]
         out[name] = pv.reset_index()
     last = summary[summary["t [min]"] == summary["t [min]"].max()]
-    g = last.groupby(["grade", "ZUPT interval [min]", "filter"], sort=False)["CEP [ft]"]
+    g = last.groupby(_pivot_index(plan) + ["filter"], sort=False)["CEP [ft]"]
     spread = pd.DataFrame({"CEP min [ft]": g.min(), "CEP max [ft]": g.max()})
-    spread = spread.join(nom.set_index(["grade", "ZUPT interval [min]", "filter"])["CEP [ft]"].rename(
+    spread = spread.join(nom.set_index(_pivot_index(plan) + ["filter"])["CEP [ft]"].rename(
         "CEP nominal [ft]"))
     spread["max/min [x]"] = spread["CEP max [ft]"] / spread["CEP min [ft]"]
     out["tuning_spread"] = spread.reset_index()
     return out
+
+
+def _pivot_index(plan: TradePlan) -> list:
+    return ["grade", "ZUPT interval [min]"] + (["aiding"] if getattr(plan, "aiding_axis", False) else [])
 
 
 def _grade_table(plan: TradePlan) -> pd.DataFrame:
@@ -602,6 +653,8 @@ def _grid_table(plan: TradePlan) -> pd.DataFrame:
     axes = [("grade", [g["name"] for g in plan.grades]), ("ZUPT interval", plan.interval_text),
             ("filter", plan.filters), ("ZUPT sigma [ft/s]", [f"{s / FT:g}" for s in plan.sigmas]),
             ("P0 scale", plan.p0_scales), ("Q scale", plan.q_scales), ("R scale", plan.r_scales)]
+    if plan.aiding_axis:
+        axes.insert(2, ("aiding", [a["name"] for a in plan.aidings]))
     rows = [{"axis": a, "values": ", ".join(map(str, v)), "count": len(v)} for a, v in axes]
     rows.append({"axis": "cases", "values": "product of the above", "count": plan.n_cases})
     return pd.DataFrame(rows)

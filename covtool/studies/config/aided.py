@@ -144,3 +144,27 @@ class AidedGrade(Section):
     description: Text() = F("", "One line for the tables.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+
+class MeasurementSweep(Section):
+    name: ClassVar[str] = "sweep (aided)"
+    doc: ClassVar[str] = ("Scale one declared measurement's white-noise σ and rerun every [filters] case "
+                          "(covtool.studies.aided.parse_sweep): the measurement_sweep table and figure.")
+    measurement: Text(nonempty=True) = F(..., "The [[measurement]] whose σ is scaled.", example="gnss")
+    what: OneOf("sigma", "filter_sigma") = F("sigma", "'sigma': the sensor's σ (truth R and filter R_f together); "
+                                                      "'filter_sigma': only the σ the filters assume.")
+    scales: Raw = F({"from": 0.1, "to": 10, "per_decade": 2}, "A [sweep.scales]-style table {from, to, "
+                    "per_decade} (log grid through ×1) or a list of positive factors (×1 is added).")
+
+
+class AidingMix(Section):
+    name: ClassVar[str] = "[aiding]] (trade_grid)"
+    doc: ClassVar[str] = ("An aiding mix of the trade grid (issue 15): measurements added to the ZUPTs of every "
+                          "interval, named in [grid] aiding (\"none\": the ZUPTs alone).")
+    nested: ClassVar[dict] = {"measurement": [MeasurementEntry]}
+    name_: Text(nonempty=True) = Field(..., alias="name", description="Label of the mix (not \"none\").",
+                                       json_schema_extra={"example": "odometer"})
+    measurement: tuple[MeasurementEntry, ...] = Field(..., min_length=1, description=(
+        "Its measurements: [[aiding.measurement]] tables, as [[measurement]] in the aided kind."))
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)

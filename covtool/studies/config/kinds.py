@@ -28,7 +28,8 @@ from covtool.studies.config.dual_imu import (
     Comparison, DualAlignment, FlightTrajectory, Gaps, ImuSection, Monitor, Simulation,
 )
 from covtool.studies.config.ad_reset import Board, BoardAlignment, BoardNavigation, OutputFilter, Reference, Sweeps
-from covtool.studies.config.aided import AidedFiltersSection, AidedGrade, MeasurementEntry
+from covtool.studies.config.aided import (AidedFiltersSection, AidedGrade, AidingMix, MeasurementEntry,
+                                          MeasurementSweep)
 from covtool.studies.config import ad_reset, aided, dual_imu, sections, zupt
 
 
@@ -74,6 +75,10 @@ class ErrorBudgetConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Error budget: each error source's share of the navigation errors, pure INS and "
                                "filters ([filters] cases may list \"pure_ins\").")
     budget: BudgetSection = F({}, BudgetSection.doc)
+    lists: ClassVar[dict] = {"measurement": MeasurementEntry}
+    measurement: tuple[MeasurementEntry, ...] | None = Field(None, min_length=1, description=(
+        "Declared measurements instead of [zupt] (issue 15, as in the aided kind): [[measurement]] tables; their "
+        "error states and white noise R become sources (covtool.studies.aided_budget)."))
 
 
 class ZuptSensitivityConfig(ZuptStudyConfig):
@@ -97,8 +102,10 @@ class TradeGridConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Trade grid: IMU grade × ZUPT interval × filter × tuning, run in chunks "
                                "(resumable store).")
     grid: GridSection
-    lists: ClassVar[dict] = {"grade": GradeEntry}
+    lists: ClassVar[dict] = {"grade": GradeEntry, "aiding": AidingMix}
     grade: Raw = F([{"name": "navigation", "scale": 1}], "The IMU grades: [[grade]] tables.")
+    aiding: tuple[AidingMix, ...] | None = Field(None, min_length=1, description=(
+        "Aiding mixes named in [grid] aiding: [[aiding]] tables (issue 15)."))
 
 
 class AidedConfig(StudyConfig):
@@ -115,6 +122,7 @@ class AidedConfig(StudyConfig):
     grade: tuple[AidedGrade, ...] | None = Field(None, min_length=1, description=(
         "IMU grades: [[grade]] tables (default: one grade, the truth as declared)."))
     output: OutputSection = F({}, OutputSection.doc)
+    sweep: MeasurementSweep | None = F(None, MeasurementSweep.doc)
 
     @model_validator(mode="after")
     def _unique(self):

@@ -119,6 +119,8 @@ class GridSection(Section):
     r_scale: Raw = F([1.0], "Scales of the filters' R_f.")
     cruise_speed: Quantity("velocity", positive=True) = F("45 km/h", "land_vehicle: cruise speed for every "
                                                                      "interval.")
+    aiding: Names(what="aiding mix") | None = F(None, "Aiding mixes (issue 15): \"none\" (the ZUPTs alone) or "
+                                                      "[[aiding]] names; one truth system per mix.")
 
 
 class GradeEntry(Section):

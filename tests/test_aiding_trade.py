@@ -1,0 +1,139 @@
+"""The trade grid's aiding axis (issue 15): aiding mixes as one more grid axis.
+
+* The aided path with no extra measurement (the ZUPTs alone, run by the
+  aided engine with the grid's P0/Q/R scales) equals the batched ZUPT
+  engine's rows (≤ 1e-9): the two paths agree on what the scales mean.
+* Riccati monotonicity: under the optimal filter (A) more measurements never
+  increase the covariance, so the odometer + NHC mix has CEP and altitude PE
+  no larger than the ZUPTs alone.
+* The store keys name the mix; a changed mix is another sweep for --resume.
+* Bad declarations are one line.
+"""
+
+from __future__ import annotations
+
+import copy
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from covtool.errors import StudyFileError
+from covtool.io.store import StoreError
+from covtool.studies.aided import trade_cases
+from covtool.studies.trade_grid import run, TradePlan
+from covtool.studies.zupt_setup import setup
+
+ROOT = Path(__file__).resolve().parents[1]
+ODO = {"name": "odo", "measurement": [
+    {"name": "odo", "kind": "odometer", "sigma": "0.02 m/s", "lever_arm": ["-1.2 m", "0.75 m", "0.9 m"],
+     "schedule": {"period": "1 s", "when": "moving"}, "errors": {"scale_factor": {"sigma": "2000 ppm"}}},
+    {"name": "nhc", "kind": "nhc", "sigma": ["0.05 m/s", "0.05 m/s"], "schedule": {"period": "1 s", "when": "moving"}}]}
+
+
+def decl(aiding=("none", "odo"), filters=("A", "B1")) -> dict:
+    d = tomllib.loads((ROOT / "studies" / "trade_grid.toml").read_text())
+    d["study"].update(duration="6 min", discretization="van_loan")
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["filters"]["cases"] = list(filters)
+    d["grid"] = {"zupt_interval": ["5 min"], "zupt_sigma": ["0.01 ft/s"], "q_scale": [1.0, 3.0]}
+    d["grade"] = d["grade"][:1]
+    d["output"] = {"report_times": ["4 min", "6 min"]}
+    if aiding is not None:
+        d["grid"]["aiding"] = list(aiding)
+        d["aiding"] = [copy.deepcopy(ODO)]
+    return d
+
+
+@pytest.fixture(scope="module")
+def grids():
+    return run(decl()), run(decl(aiding=None))
+
+
+COLS = ["CEP [ft]", "alt PE [ft]", "azimuth 1sigma [arcmin]", "filter-claimed CEP [ft]"]
+
+
+def test_none_rows_are_the_zupt_grid(grids):
+    a, b = (g.tables["summary"] for g in grids)
+    none = a[a["aiding"] == "none"].drop(columns=["aiding", "case"]).reset_index(drop=True)
+    np.testing.assert_allclose(none[COLS].to_numpy(), b[COLS].to_numpy(), rtol=1e-12)
+    assert list(none["filter"]) == list(b["filter"])
+
+
+def test_optimal_filter_is_never_worse_with_more_measurements(grids):
+    s = grids[0].tables["summary"]
+    a = s[s["filter"] == "A"]
+    none, odo = (a[a["aiding"] == m].sort_values(["Q scale", "t [min]"]) for m in ("none", "odo"))
+    q1 = (none["Q scale"] == 1.0).to_numpy()        # the optimal filter: A with its own Q
+    for col in ("CEP [ft]", "alt PE [ft]"):
+        assert np.all(odo[col].to_numpy()[q1] <= none[col].to_numpy()[q1] * (1 + 1e-9))
+    # and the odometer is worth something: a clearly smaller CEP at 6 min
+    assert odo["CEP [ft]"].to_numpy()[q1][-1] < 0.8 * none["CEP [ft]"].to_numpy()[q1][-1]
+    pv = grids[0].tables["pivot_cep"]
+    assert list(pv["aiding"]) == ["none", "odo"]
+    assert list(grids[0].figures) == ["trade_grid_none", "trade_grid_odo"]
+
+
+def test_aided_path_without_measurements_equals_the_batched_zupt_engine(grids):
+    """trade_cases with an empty mix (ZUPTs only) against the batched engine's rows, all scales (≤ 1e-9)."""
+    d = decl(aiding=None, filters=("B1",))
+    d["grid"].update(p0_scale=[0.5, 2.0], r_scale=[0.3, 1.0])
+    ref = run(d).tables["summary"]
+    plan = TradePlan(d, None)
+    chunk = plan.chunks[0]
+    S = setup(chunk["decl"])
+    rec = sorted({int(np.argmin(np.abs(S.t - x))) for x in S.report_times})
+    res = trade_cases(S, "B1", chunk["cases"], {"name": "none", "measurement": []}, rec, "test")
+    from covtool.analysis.metrics import nav_metrics
+    from covtool.units import FT
+    geo = (S.nodes.lat[rec], S.nodes.h[rec], S.nodes.q_nb[rec], S.nodes.distance[rec])
+    got = np.array([nav_metrics(PT, *geo)["cep"] / FT for PT, _, st in res]).ravel()
+    claimed = np.array([nav_metrics(PF, *geo)["cep"] / FT for _, PF, st in res]).ravel()
+    assert all(st == "ok" for _, _, st in res)
+    np.testing.assert_allclose(got, ref["CEP [ft]"].to_numpy(), rtol=1e-9)
+    np.testing.assert_allclose(claimed, ref["filter-claimed CEP [ft]"].to_numpy(), rtol=1e-9)
+
+
+def test_store_keys_name_the_mix_and_a_changed_mix_is_another_sweep(tmp_path):
+    d = decl(filters=("D",))
+    d["grid"]["q_scale"] = [1.0]
+    r = run(d, store=tmp_path / "s")
+    assert sorted(p.name for p in (tmp_path / "s").glob("chunk-*.json")) == ["chunk-g00-i00-a00.json",
+                                                                            "chunk-g00-i00-a01.json"]
+    again = run(d, store=tmp_path / "s", resume=True)
+    assert again.provenance["chunks_reused"] == 2
+    np.testing.assert_allclose(again.tables["summary"]["CEP [ft]"], r.tables["summary"]["CEP [ft]"], rtol=0)
+    d["aiding"][0]["measurement"][0]["sigma"] = "0.05 m/s"
+    with pytest.raises(StoreError, match=r"was written for a different sweep \(differs in: study\)"):
+        run(d, store=tmp_path / "s", resume=True)
+
+
+def _with(change):
+    d = decl()
+    change(d)
+    return d
+
+
+@pytest.mark.parametrize("change,match", [
+    (lambda d: d["grid"].update(aiding=["none", "gnss"]),
+     r"^<study>: \[grid\] aiding: 'gnss' has no \[\[aiding\]\] table \(declared: odo\)"),
+    (lambda d: d["grid"].update(aiding="odo"), r"^<study>: \[grid\] aiding: expected a non-empty list of names"),
+    (lambda d: d["grid"].update(aiding=["odo", "odo"]), r"^<study>: \[grid\] aiding: 'odo' is listed twice"),
+    (lambda d: d["grid"].update(aiding=["none"]), r"^<study>: \[\[aiding\]\] 'odo': is not in \[grid\] aiding"),
+    (lambda d: d["grid"].pop("aiding"), r"^<study>: \[\[aiding\]\]: declared but not used: list it in \[grid\] aiding"),
+    (lambda d: d["aiding"].append({"name": "none", "measurement": ODO["measurement"]}),
+     r"^<study>: \[\[aiding\]\] #2 name: 'none' is reserved"),
+    (lambda d: d["aiding"][0].update(measurement=[]), r"^<study>: \[\[aiding\]\] 'odo': needs at least one"),
+    (lambda d: d.update(aiding=ODO), r"^<study>: \[\[aiding\]\]: expected an array of tables"),
+    (lambda d: d["aiding"].append(copy.deepcopy(ODO)), r"^<study>: \[\[aiding\]\] #2 name: 'odo' is declared twice"),
+    (lambda d: d["aiding"][0]["measurement"][0].update(kind="lidar"),
+     r"^<study>: \[\[aiding\]\] 'odo': \[\[measurement\]\] 'odo' kind: unknown measurement kind 'lidar'"),
+    (lambda d: d["aiding"][0]["measurement"][0].update(name="zupt"),
+     r"^<study>: \[\[aiding\]\] 'odo' \[\[measurement\]\] 'zupt': the name is used twice"),
+    (lambda d: d["aiding"][0]["measurement"][1]["schedule"].update(end="10 min"),
+     r"^<study>: \[grid\] zupt_interval = '5 min': \[\[aiding\]\] 'odo' \[\[measurement\]\] 'nhc' schedule: end 600 s"),
+])
+def test_bad_aiding_axis_is_one_line(change, match):
+    with pytest.raises(StudyFileError, match=match):
+        TradePlan(_with(change), None)
