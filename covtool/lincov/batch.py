@@ -25,6 +25,7 @@ Pure numeric core: arrays in, arrays out.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -33,13 +34,17 @@ from covtool.lincov.kalman import (check_covariance, check_finite, covariance_st
                                    NOT_PSD, scale_groups, symmetrize, time_text)
 
 
-def sandwich(A: np.ndarray, P: np.ndarray) -> np.ndarray:
+def sandwich(A: np.ndarray, P: np.ndarray, dynamic=None) -> np.ndarray:
     """``A P_b Aᵀ`` for every ``b``: one large and one batched GEMM.
 
     Parameters
     ----------
     A : ndarray, shape (n, n)
     P : ndarray, shape (B, n, n)
+    dynamic : (ndarray of int, ndarray of int), optional
+        ``(d, c)``: the rows ``c`` of ``A`` are rows of the identity
+        (random-constant states, :func:`dynamic_states`); only the blocks
+        they do not fix are computed (exact, see Notes).
 
     Returns
     -------
@@ -51,10 +56,66 @@ def sandwich(A: np.ndarray, P: np.ndarray) -> np.ndarray:
     stack; ``A (P_b Aᵀ)`` is then a batched GEMM over ``b``.  No operand is
     transposed or copied, which matters for the medium sizes (n ≤ 58) where
     copies cost as much as the products.
+
+    With ``A = [[A_dd, A_dc], [0, I]]`` (states reordered, ``d`` dynamic,
+    ``c`` constant) and ``U = P A_dᵀ`` (``A_d`` the rows ``d``)::
+
+        (A P Aᵀ)_cc = P_cc,   (A P Aᵀ)_cd = U_c,   (A P Aᵀ)_dd = A_d U,
+        (A P Aᵀ)_dc = (A P Aᵀ)_cdᵀ  (P symmetric)
+
+    ``2 n² n_d`` instead of ``4 n³`` FLOP: 3.8 times fewer for the 58-state
+    model (22 dynamic states).  The identity rows multiply exactly, so the
+    result equals the dense product up to the order of the sums.
     """
     B, n, _ = P.shape
-    V = (np.ascontiguousarray(P).reshape(B * n, n) @ A.T).reshape(B, n, n)   # P_b Aᵀ, stacked
-    return np.matmul(A, V)
+    if dynamic is None:
+        V = (np.ascontiguousarray(P).reshape(B * n, n) @ A.T).reshape(B, n, n)   # P_b Aᵀ, stacked
+        return np.matmul(A, V)
+    d, c = dynamic
+    Ad = A[d]                                                                      # (n_d, n)
+    U = (np.ascontiguousarray(P).reshape(B * n, n) @ Ad.T).reshape(B, n, d.size)   # P_b A_dᵀ, stacked
+    out = np.empty_like(P)
+    out[:, :, d] = U                                          # rows c final: (A P Aᵀ)_cd = U_c
+    out[:, d[:, None], d[None, :]] = np.matmul(Ad, U)
+    out[:, d[:, None], c[None, :]] = np.swapaxes(U[:, c, :], 1, 2)
+    out[:, c[:, None], c[None, :]] = P[:, c[:, None], c[None, :]]
+    return out
+
+
+def dynamic_states(Phi: np.ndarray, fraction: float = 0.75):
+    """``(d, c)``: dynamic states and identity rows of a stack of ``Φ``.
+
+    Parameters
+    ----------
+    Phi : ndarray, shape (K, n, n)
+        Transitions (per step or per interval).
+    fraction : float
+        Return None when more than this fraction of the states are
+        dynamic (the dense product is then as fast).
+
+    Returns
+    -------
+    (ndarray of int, ndarray of int) or None
+        ``c``: the states whose ``Φ`` row is the identity's in every
+        interval (random constants: a zero ``F`` row, so
+        ``Φ = [[Φ_dd, Γ], [0, I]]``, exactly); ``d``: the others.  None if
+        the split does not pay.  :func:`sandwich` needs nothing else:
+        ``Q`` is added whole.
+    """
+    Phi = np.asarray(Phi)
+    if Phi.ndim != 3 or Phi.shape[0] == 0 or Phi.shape[1] != Phi.shape[2]:
+        return None
+    n = Phi.shape[1]
+    eye = np.eye(n)
+    const = np.ones(n, bool)
+    for a in range(0, Phi.shape[0], 256):          # in chunks: the temporaries stay small
+        const &= np.all(Phi[a:a + 256] == eye, axis=(0, 2))
+        if not const.any():
+            return None
+    d = np.flatnonzero(~const)
+    if d.size > fraction * n or d.size == 0:
+        return None
+    return d, np.flatnonzero(const)
 
 
 def events(n_steps: int, update_steps, record_steps) -> np.ndarray:
@@ -76,20 +137,60 @@ def compose(Phi: np.ndarray, Qd: np.ndarray, ev: np.ndarray) -> tuple[np.ndarray
     Returns
     -------
     Phi_c, Q_c : ndarray, shape (K, n, n)
+
+    Notes
+    -----
+    With random-constant states (:func:`dynamic_states`: ``Φ`` rows of the
+    identity) and ``Q_d`` zero outside the dynamic block, the products keep
+    that form, so only ``Φ_d = Φ[d, :]`` and ``Q_dd`` are composed::
+
+        Φ_{a→k+1}[d] = Φ_k[d, d] Φ_{a→k}[d] + Φ_k[d, c] E_c,
+        Q_dd ← Φ_k[d, d] Q_dd Φ_k[d, d]ᵀ + Q_d,k[d, d]
+
+    (``E_c`` the identity rows ``c``): exact, ``(n_d/n)²`` of the work.
     """
+    ev = np.asarray(ev, int)
     K = len(ev) - 1
     n = Phi.shape[1]
-    Pc = np.empty((K, n, n))
-    Qc = np.empty((K, n, n))
     eye = np.eye(n)
-    for i in range(K):
-        A = eye
-        Q = np.zeros((n, n))
-        for k in range(ev[i], ev[i + 1]):
-            A = Phi[k] @ A
-            Q = Phi[k] @ Q @ Phi[k].T + Qd[k]
-        Pc[i] = A
-        Qc[i] = symmetrize(Q)
+    if K == 0:
+        return np.empty((0, n, n)), np.empty((0, n, n))
+    dyn = dynamic_states(Phi[ev[0]:ev[-1]])
+    if dyn is not None:
+        d, c = dyn
+        mask = np.ones((n, n), bool)
+        mask[np.ix_(d, d)] = False
+        if any(np.any(Qd[a:a + 256][:, mask]) for a in range(ev[0], ev[-1], 256)):
+            dyn = None
+    # the intervals advance together, step j of each at once (batched products over the intervals)
+    start, length = ev[:-1], np.diff(ev)
+    if dyn is None:
+        A = np.broadcast_to(eye, (K, n, n)).copy()
+        Q = np.zeros((K, n, n))
+        for j in range(int(length.max(initial=0))):
+            act = np.flatnonzero(length > j)
+            F = Phi[start[act] + j]
+            A[act] = F @ A[act]
+            Q[act] = F @ Q[act] @ np.ascontiguousarray(np.swapaxes(F, 1, 2)) + Qd[start[act] + j]
+        return A, symmetrize(Q)
+    nd = d.size
+    perm = np.r_[d, c]
+    Ad = np.broadcast_to(eye[d][:, perm], (K, nd, n)).copy()    # rows d of Φ_{a→k}, columns (d, c)
+    Q = np.zeros((K, nd, nd))
+    for j in range(int(length.max(initial=0))):
+        act = np.flatnonzero(length > j)
+        k = start[act] + j
+        F = Phi[k[:, None, None], d[None, :, None], perm[None, None, :]]   # (act, n_d, n), columns (d, c)
+        Fdd = np.ascontiguousarray(F[:, :, :nd])             # contiguous: BLAS, not numpy's own loop
+        An = Fdd @ Ad[act]
+        An[:, :, nd:] += F[:, :, nd:]
+        Ad[act] = An
+        Q[act] = Fdd @ Q[act] @ np.ascontiguousarray(np.swapaxes(Fdd, 1, 2)) + \
+            Qd[k[:, None, None], d[None, :, None], d[None, None, :]]
+    Pc = np.broadcast_to(eye, (K, n, n)).copy()
+    Pc[:, d[:, None], perm[None, :]] = Ad
+    Qc = np.zeros((K, n, n))
+    Qc[:, d[:, None], d[None, :]] = symmetrize(Q)
     return Pc, Qc
 
 
@@ -113,6 +214,11 @@ class System:
     def from_steps(cls, Phi, Qd, ev) -> "System":
         Pc, Qc = compose(Phi, Qd, ev)
         return cls(np.asarray(ev), Pc, Qc)
+
+    @cached_property
+    def dynamic(self):
+        """``(d, c)`` of :func:`dynamic_states` for the intervals, or None."""
+        return dynamic_states(self.Phi)
 
     @property
     def n(self) -> int:
@@ -429,6 +535,9 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
         if running:
             Pf[bad] = np.eye(nf)
 
+    # random-constant states (identity Φ rows): only the dynamic blocks are propagated (exact)
+    tdyn = truth.dynamic
+    fdyn = filt.dynamic if running else None
     ui = ri = 0
     with np.errstate(over="ignore", invalid="ignore"):      # blow-ups are reported by the guard
         for i, k in enumerate(ev):
@@ -480,7 +589,7 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                 ri += 1
             if i < len(ev) - 1:
                 # eq (15) and (6a); symmetry is restored every SYMMETRIZE_EVERY updates and when recorded
-                P = sandwich(truth.Phi[i], P)
+                P = sandwich(truth.Phi[i], P, tdyn)
                 if truth_Q is None:
                     P += truth.Q[i]
                 else:
@@ -496,7 +605,7 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                                                  f"{st.problem(b, names)}")
                     P += Qi
                 if running:
-                    Pf = sandwich(filt.Phi[i], Pf)
+                    Pf = sandwich(filt.Phi[i], Pf, fdyn)
                     Pf += qs[:, None, None] * (filt.Q[i] if filter_Q is None else filter_Q[:, i])
     out_g[dead] = np.nan
     kept = lambda nm, ix: None if nm is None else tuple(np.asarray(nm, object)[ix])  # noqa: E731
