@@ -358,12 +358,18 @@ def vl_expm(F, Qc, dt):
 
 
 def flagship_engine(path: Path):
-    """covtool's own flagship computation, timed: truth and filter systems, pure INS and 6 cases."""
+    """covtool's own flagship computation, timed: truth and filter systems, pure INS and 6 cases.
+
+    As :func:`covtool.studies.zupt_filter_order.run` does it: Φ, Q_d composed between the events (ZUPTs,
+    history spacing, report times), the batched engine propagating only the dynamic block and recording
+    the navigation block.
+    """
     import tomllib
 
+    from covtool.lincov.batch import System, events, run_batch
     from covtool.lincov.reduced import zupt_matrices
-    from covtool.lincov.reference import propagate, propagate_with_filter
     from covtool.studies.grid import truth_system
+    from covtool.studies.zupt_filter_order import record_steps
     from covtool.studies.zupt_setup import setup
 
     decl = tomllib.loads(path.read_text())
@@ -371,12 +377,19 @@ def flagship_engine(path: Path):
     t0 = time.perf_counter()
     ctx, dyn, Phi, Qd = truth_system(S.truth, _traj(S, decl, path), S.t, S.hdr["discretization"])
     t_truth = time.perf_counter() - t0
-    out = {"pure_ins": propagate(Phi, Qd, S.P0, system_checked=True)[-1]}
+    N = S.t.size - 1
+    rec = record_steps(S.t, S.every, [N])
+    ev = events(N, S.update_steps, rec)
+    truth = System.from_steps(Phi, Qd, ev)
+    m = S.H.shape[0]
+    r = run_batch(truth, S.P0[None], S.H, S.R, np.zeros((S.truth.n, 0)), [], rec, gains=np.zeros((1, 0, 0, m)))
+    out = {"pure_ins": r.P_truth[0, -1]}
     for c in S.cases:
-        fm, Phi_f, Qd_f = S.filter_model(c)
-        r = propagate_with_filter(Phi, Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
-                                  S.update_steps, Rf=S.filter_R(c), form=fm.spec.update, system_checked=True)
-        out[c] = r.P_truth[-1]
+        fm, Phi_f, Qd_f, reused = S.filter_system(c)
+        fsys = truth if reused else System.from_steps(Phi_f, Qd_f, ev)
+        r = run_batch(truth, S.P0[None], S.H, S.R, fm.D, S.update_steps, rec, filt=fsys, Pf0=fm.P0[None],
+                      Hf=zupt_matrices(fm.names), Rf=S.filter_R(c)[None], form=fm.spec.update)
+        out[c] = r.P_truth[0, -1]
     return time.perf_counter() - t0, t_truth, out, S
 
 

@@ -345,6 +345,8 @@ def _joseph(P, K, HP, S, sel=None, symmetrize=True):
 #: updates between full symmetrisations of the covariances (the
 #: propagation and the unsymmetrised update leave round-off asymmetry only)
 SYMMETRIZE_EVERY = 8
+#: record steps whose guard is batched into one call (memory: this many B·n² copies)
+RECORD_CHECKS = 32
 
 
 def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np.ndarray,
@@ -535,6 +537,49 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
         if running:
             Pf[bad] = np.eye(nf)
 
+    # the record-step guard is deferred and batched over up to RECORD_CHECKS records (one call instead of one per
+    # record); it is flushed before every update guard, so the first failure is still the one reported
+    pending = []                                        # (record index, step, truth P, filter P)
+
+    def flush():
+        if not pending:
+            return
+        steps = [k_ for _, k_, _, _ in pending]
+        PT = np.stack([x for _, _, x, _ in pending])
+        scale = None
+        if scale_case is not None:
+            scale = np.sqrt(np.clip(np.diagonal(PT[:, scale_case], axis1=-2, axis2=-1), 0.0, None))[:, None, :]
+        stt = covariance_status(PT, scale=scale, groups=scale_groups(names, n))
+        badt = ~stt.ok & ~(np.isin(stt.code, (NOT_PSD, NEGATIVE_VARIANCE)) & ~psd_mask)
+        badf = None
+        if running:
+            stf = covariance_status(np.stack([x for _, _, _, x in pending]), groups=scale_groups(filter_names, nf))
+            badf = ~stf.ok
+        for j, (rj, k_, _, _) in enumerate(pending):
+            for b in range(B):
+                if dead[b]:
+                    continue
+                if badt[j, b]:
+                    what, prob = "truth", stt.problem((j, b), names)
+                elif badf is not None and badf[j, b]:
+                    what, prob = "filter", stf.problem((j, b), filter_names)
+                else:
+                    continue
+                since = f" (it passed the guard at {when(checked[0])})" if checked[0] is not None else ""
+                msg = (f"{label}{' ' + case_at((b,)) if case_at((b,)) else ''}: {what} at {when(k_)}{since}: {prob}")
+                if on_invalid == "raise":
+                    raise NumericalError(msg)
+                status[b] = msg
+                dead[b] = True
+                out_t[b, rj:] = np.nan
+                if running:
+                    out_f[b, rj:] = np.nan
+                P[b] = np.eye(n)                         # placeholders that keep the batch computable
+                if running:
+                    Pf[b] = np.eye(nf)
+            checked[0] = steps[j]
+        pending.clear()
+
     # random-constant states (identity Φ rows): only the dynamic blocks are propagated (exact)
     tdyn = truth.dynamic
     fdyn = filt.dynamic if running else None
@@ -568,6 +613,7 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                 else:
                     P = _joseph(P, D @ K, HP, HP @ H.T + R, symmetrize=sym)   # eq (16)
                 if check and sym:
+                    flush()
                     guard(P, "truth after the eq (16) update", k, names, psd_mask, scaled=True)
                     if running:
                         guard(Pf, f"filter after the {form} update", k, filter_names)
@@ -575,11 +621,11 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                 ui += 1
             elif check and k in rec_set:
                 P = symmetrize(P)                   # round-off asymmetry of the sandwiches (see above)
-                guard(P, "truth", k, names, psd_mask, scaled=True)
                 if running:
                     Pf = symmetrize(Pf)
-                    guard(Pf, "filter", k, filter_names)
-                checked[0] = k
+                pending.append((ri, k, P, Pf if running else None))     # guarded by flush()
+                if len(pending) >= RECORD_CHECKS:
+                    flush()
             if k in rec_set:
                 out_t[:, ri] = symmetrize(P[:, idx[:, None], idx[None, :]])
                 out_t[dead, ri] = np.nan
@@ -607,6 +653,8 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                 if running:
                     Pf = sandwich(filt.Phi[i], Pf, fdyn)
                     Pf += qs[:, None, None] * (filt.Q[i] if filter_Q is None else filter_Q[:, i])
+    if check:
+        flush()
     out_g[dead] = np.nan
     kept = lambda nm, ix: None if nm is None else tuple(np.asarray(nm, object)[ix])  # noqa: E731
     return BatchResult(np.array(rec), out_t, out_f, out_g if upd else None, np.array(upd), status,
