@@ -11,7 +11,10 @@ truth's Φ(t) and Q(t); only the gains differ.  The engine
        Φ_{a→b} = Φ_{b−1} ⋯ Φ_a,   Q_{a→b} = Σ_k Φ_{k+1→b} Q_k Φ_{k+1→b}ᵀ
 
 2. propagates all cases at once across each interval with two GEMMs of
-   shape ``(n × n)·(n × B n)`` (:func:`sandwich`);
+   shape ``(n × n)·(n × B n)`` (:func:`sandwich`); the random-constant
+   states (zero F row, no noise: ``Φ = [[Φ_dd, Γ], [0, I]]``, 36 of the
+   58 truth states) are not propagated, only the dynamic rows
+   (:func:`dynamic_states`), exactly;
 3. applies the filters' updates (eq (7), (8)/Joseph) and the truth update
    eq (16) batched over cases.
 
@@ -399,7 +402,9 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
         every record step and after every ``SYMMETRIZE_EVERY``-th and the
         last update (when they are symmetrised; a message names the time of
         the check and of the previous one).  Cost: a batched Cholesky
-        factorisation per check (about 10 % of the shipped sweep's CPU time).
+        factorisation per check (about 10 % of the shipped sweep's CPU time);
+        the record steps' checks are batched :data:`RECORD_CHECKS` at a time
+        (and before every update check), so the first failure is reported.
     on_invalid : {"raise", "flag"}
         What a covariance that fails the guard during the run does:
         ``"raise"`` a :class:`NumericalError`; ``"flag"`` the case
