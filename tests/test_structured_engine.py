@@ -128,3 +128,16 @@ def test_batch_on_the_event_grid_equals_the_step_by_step_reference():
     want = ref.P_truth[rec]
     s = np.sqrt(np.einsum("kii->ki", want))
     assert np.max(np.abs(r.P_truth[0] - want) / (s[:, :, None] * s[:, None, :])) <= 1e-10
+
+
+def test_record_steps_are_the_history_rows_and_the_report_steps():
+    """The flagship records what history.csv writes (multiples of history_every, the last) and the reports."""
+    from covtool.studies.zupt_filter_order import record_steps
+    from covtool.studies.zupt_setup import history_records
+
+    t = np.r_[np.arange(0.0, 95.0, 1.0), 94.5]              # a shortened last step
+    rec = record_steps(t, 10.0, [37])
+    assert np.array_equal(rec, [0, 10, 20, 30, 37, 40, 50, 60, 70, 80, 90, t.size - 1])
+    assert np.array_equal(record_steps(t, None, []), np.arange(t.size))
+    n_rec, n_int = history_records(t.size - 1, 1.0, 10.0, [37.0], updates=3)
+    assert rec.size <= n_rec and n_int >= rec.size - 1 + 3 - 1        # upper counts
