@@ -100,8 +100,8 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
     noise-source matrices G (n × columns); every other truth dynamics
     another F, Q_c, G; every filter F_f, Q_c,f, Φ_f, Q_d,f (4 n_f²) and,
     while it is built, the (N, n_f, n) slice of F it is cut from; every
-    history (N+1) m² (or ``records`` m²), every composed system 2 K m².  Van Loan works on :data:`DISCRETIZE_CHUNK` steps of
-    2n × 2n at a time (about five such stacks inside ``expm``), freed
+    history (N+1) m² (or ``records`` m²), every composed system 2 K m².
+    Van Loan works on :data:`DISCRETIZE_CHUNK` steps of 2n × 2n at a time (about five such stacks inside ``expm``), freed
     before the histories are allocated, so only the larger of the two
     counts.  Against ``tracemalloc`` peaks of the shipped studies the
     estimate is high by 5-15 % (``tests/test_input_validation.py`` keeps it
