@@ -5,6 +5,7 @@ Run from the repository root (not part of the test suite)::
     python benchmarks/run.py              # everything, ~2-4 min on a 2-core machine
     python benchmarks/run.py --quick      # skip the as-is flagship timing
     python benchmarks/run.py --cli --baseline /tmp/base   # [0] and [5] only, against another checkout
+    python benchmarks/run.py --long [--baseline /tmp/base] # [L] only: 6 h x 6 cases, 24 h x 20 cases
 
 ``--baseline DIR`` is a checkout of another commit (``git archive <commit> |
 tar -x -C DIR``): the CLI runs of [0] alternate between it and this tree.
@@ -358,12 +359,18 @@ def vl_expm(F, Qc, dt):
 
 
 def flagship_engine(path: Path):
-    """covtool's own flagship computation, timed: truth and filter systems, pure INS and 6 cases."""
+    """covtool's own flagship computation, timed: truth and filter systems, pure INS and 6 cases.
+
+    As :func:`covtool.studies.zupt_filter_order.run` does it: Φ, Q_d composed between the events (ZUPTs,
+    history spacing, report times), the batched engine propagating only the dynamic block and recording
+    the navigation block.
+    """
     import tomllib
 
+    from covtool.lincov.batch import System, events, run_batch
     from covtool.lincov.reduced import zupt_matrices
-    from covtool.lincov.reference import propagate, propagate_with_filter
     from covtool.studies.grid import truth_system
+    from covtool.studies.zupt_filter_order import record_steps
     from covtool.studies.zupt_setup import setup
 
     decl = tomllib.loads(path.read_text())
@@ -371,12 +378,19 @@ def flagship_engine(path: Path):
     t0 = time.perf_counter()
     ctx, dyn, Phi, Qd = truth_system(S.truth, _traj(S, decl, path), S.t, S.hdr["discretization"])
     t_truth = time.perf_counter() - t0
-    out = {"pure_ins": propagate(Phi, Qd, S.P0, system_checked=True)[-1]}
+    N = S.t.size - 1
+    rec = record_steps(S.t, S.every, [N])
+    ev = events(N, S.update_steps, rec)
+    truth = System.from_steps(Phi, Qd, ev)
+    m = S.H.shape[0]
+    r = run_batch(truth, S.P0[None], S.H, S.R, np.zeros((S.truth.n, 0)), [], rec, gains=np.zeros((1, 0, 0, m)))
+    out = {"pure_ins": r.P_truth[0, -1]}
     for c in S.cases:
-        fm, Phi_f, Qd_f = S.filter_model(c)
-        r = propagate_with_filter(Phi, Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
-                                  S.update_steps, Rf=S.filter_R(c), form=fm.spec.update, system_checked=True)
-        out[c] = r.P_truth[-1]
+        fm, Phi_f, Qd_f, reused = S.filter_system(c)
+        fsys = truth if reused else System.from_steps(Phi_f, Qd_f, ev)
+        r = run_batch(truth, S.P0[None], S.H, S.R, fm.D, S.update_steps, rec, filt=fsys, Pf0=fm.P0[None],
+                      Hf=zupt_matrices(fm.names), Rf=S.filter_R(c)[None], form=fm.spec.update)
+        out[c] = r.P_truth[0, -1]
     return time.perf_counter() - t0, t_truth, out, S
 
 
@@ -452,6 +466,62 @@ def rel_diff(a, b) -> float:
     return float(np.max(np.abs(a - b) / (d[:, None] * d[None, :] + 1e-300)))
 
 
+# --------------------------------------------------------------------------
+# --long: the 6-h x 6-case flagship variant and a 24-h x 20-case study
+# --------------------------------------------------------------------------
+
+#: the 14 extra filters of the 20-case study: each of B1 .. D assuming another ZUPT σ, and A with the standard
+#: update form (eq (8))
+_EXTRA_FILTERS = [(f"{b}_{tag}", b, {"zupt_sigma": s}) for b in ("B1", "B2", "B3", "C", "D")
+                  for tag, s in (("s003", "0.003 ft/s"), ("s03", "0.03 ft/s"))] + \
+                 [("A_std", "A", {"update": "standard"}), ("B1_std", "B1", {"update": "standard"}),
+                  ("C_std", "C", {"update": "standard"}), ("D_std", "D", {"update": "standard"})]
+
+
+def long_variants(tmp: Path) -> dict:
+    """Study files of the long variants in ``tmp``: name -> (path, hours, cases)."""
+    import tomllib
+
+    import tomli_w
+
+    base = tomllib.loads(FLAGSHIP.read_text())
+    lib = ROOT / "models" / "filters" / "zupt_filters.toml"
+    filt = tomllib.loads(lib.read_text())
+    for name, b, extra in _EXTRA_FILTERS:
+        filt["filter"].append({"name": name, "base": b, "description": f"{b}, {extra}", **extra})
+    (tmp / "filters20.toml").write_text(tomli_w.dumps(filt))
+    out = {}
+    for name, hours, cases, ffile in (("flagship_6h_6cases", 6, base["filters"]["cases"], str(lib)),
+                                      ("study_24h_20cases", 24, [f["name"] for f in filt["filter"]],
+                                       str(tmp / "filters20.toml"))):
+        d = tomllib.loads(FLAGSHIP.read_text())
+        d["study"].update(name=name, duration=f"{hours} h")
+        d["trajectory"] = {"builtin": "land_vehicle", "cycles": 12 * hours}     # 5-min cycles
+        d["filters"].update(file=ffile, cases=list(cases))
+        d["output"]["report_times"] = [f"{hours} h"]
+        path = tmp / f"{name}.toml"
+        path.write_text(tomli_w.dumps(d))
+        out[name] = (path, hours, len(cases))
+    return out
+
+
+def long_report(trees: dict) -> None:
+    """Wall time and peak RSS of the long variants (CLI, one run each), or the memory check's refusal."""
+    import tempfile
+
+    print("\n[L] long studies: CLI 'covtool run', one run per tree; peak RSS of the child")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, (path, hours, ncases) in long_variants(Path(tmp)).items():
+            for label, tree in trees.items():
+                try:
+                    wall, rss, cpu = cli_run(tree, path, Path(tmp) / "out")
+                    print(f"    {name:20s} {label:10s}: {wall:8.1f} s wall, {cpu:8.1f} s CPU, peak RSS {rss:8.0f} MB "
+                          f"({hours} h, {ncases} cases)")
+                except RuntimeError as exc:
+                    line = [x for x in str(exc).splitlines() if x.startswith("covtool: error")]
+                    print(f"    {name:20s} {label:10s}: refused: {(line or [str(exc)[-300:]])[0]}")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="skip the as-is flagship timing (BLAS pool unlimited)")
@@ -459,7 +529,15 @@ def main(argv=None) -> int:
     ap.add_argument("--baseline", type=Path, help="checkout of another commit to run [0] against, side by side")
     ap.add_argument("--repeats", type=int, default=3, help="CLI runs per study and tree (median) [3]")
     ap.add_argument("--studies", nargs="*", default=CLI_STUDIES, help="studies of [0] (names in studies/)")
+    ap.add_argument("--long", action="store_true",
+                    help="only [L]: the 6-h x 6-case flagship variant and a 24-h x 20-case study (wall, peak RSS)")
     args = ap.parse_args(argv)
+    if args.long:
+        trees = {"this tree": ROOT}
+        if args.baseline is not None:
+            trees["baseline"] = args.baseline.resolve()
+        long_report(trees)
+        return 0
     from threadpoolctl import threadpool_info, threadpool_limits
 
     import covtool

@@ -34,11 +34,43 @@ def short_study(cases, duration="11 min", filters_file=None, **zupt):
     return d
 
 
+def decl_A():
+    # a 1 Hz window (the flagship takes one update per stop): 31 updates per stop exercise eq (7)-(8) more
+    return short_study(["A"], duration="11 min", filters_file=None) | {
+        "zupt": {**short_study(["A"])["zupt"], "duration": "30 s"}}
+
+
 @pytest.fixture(scope="module")
 def run_A():
-    # a 1 Hz window (the flagship takes one update per stop): 31 updates per stop exercise eq (7)-(8) more
-    return covtool.run_study(short_study(["A"], duration="11 min", filters_file=None) | {
-        "zupt": {**short_study(["A"])["zupt"], "duration": "30 s"}})
+    """Model A's truth and filter at every step, by the step-by-step reference (the runner keeps nav blocks)."""
+    from covtool.lincov.reduced import zupt_matrices
+    from covtool.studies.zupt_setup import setup
+
+    S = setup(decl_A())
+    fm, Phi_f, Qd_f = S.filter_model("A")
+    run = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                S.update_steps, Rf=S.filter_R("A"), form=S.specs["A"].update, times=S.t,
+                                names=S.truth.names, filter_names=fm.names)
+    return run, S
+
+
+def test_runner_records_the_reference_navigation_block(run_A):
+    """The study's recorded truth and filter navigation blocks are the step-by-step reference's (≤ 1e-9)."""
+    ref, S = run_A
+    r = covtool.run_study(decl_A())
+    rec = r.data["record_steps"]
+    assert rec[0] == 0 and rec[-1] == S.t.size - 1 and np.allclose(np.diff(S.t[rec]), 10.0)   # history_every
+    np.testing.assert_array_equal(r.times, S.t[rec])
+    b = r.data["runs"]["A"]
+    # physical coordinates (tilt, azimuth instead of δq: the quaternion-norm direction holds only round-off)
+    from covtool.nav.attitude import attitude_error_matrix
+    T = np.zeros((rec.size, 9, 10))
+    T[:, :6, :6] = np.eye(6)
+    T[:, 6:9, 6:10] = attitude_error_matrix(S.nodes.q_nb[rec])
+    for got, want in ((b.P_truth[0], ref.P_truth[rec, :10, :10]), (b.P_filter[0], ref.P_filter[rec, :10, :10])):
+        got, want = (T @ X @ np.swapaxes(T, 1, 2) for X in (got, want))
+        d = np.sqrt(np.einsum("kii->ki", want))
+        assert np.max(np.abs(got - want) / (d[:, :, None] * d[:, None, :] + 1e-300)) <= 1e-9
 
 
 def test_model_A_truth_equals_filter_at_every_step(run_A):
@@ -49,11 +81,11 @@ def test_model_A_truth_equals_filter_at_every_step(run_A):
     scaled by sqrt(P_ii P_jj), in physical coordinates: tilt/azimuth instead of δq).  The truth uses Van Loan and the filter the
     Taylor series of eq (6b)-(6d), so this also checks their agreement.
     """
-    run = run_A.data["runs"]["A"]
+    run, S = run_A
     # physical coordinates: δq → φ = −2 R(q)ᵀ δq (tilt, azimuth); the quaternion
     # norm direction is structurally zero (see covtool.lincov.dynamics) and carries only round-off
     from covtool.nav.attitude import attitude_error_matrix
-    q = run_A.data["trajectory"].q_nb
+    q = S.nodes.q_nb
     n = PT_n = run.P_truth.shape[1]
     T = np.zeros((len(q), n - 1, n))
     T[:, :6, :6] = np.eye(6)

@@ -581,11 +581,11 @@ def test_memory_limit_from_the_environment(monkeypatch):
                                              r"\[filters\] cases") as exc:
         covtool.run_study(d)
     # truth F, Q_c, Φ, Q_d; the truth's F, Q_c once more with D's navigation options (decoupled vertical, no
-    # Coriolis); B1 (22 states) and D (10) F, Q_c, Φ, Q_d; per case the truth and filter histories:
-    # 86 400 steps of doubles; the dropped-state impact table adds the truth transition under a filter's
-    # options and its per-step exponentials (2 N 58²)
+    # Coriolis); B1 (22 states) and D (10) F, Q_c, Φ, Q_d: 86 400 steps of doubles; the dropped-state impact
+    # table adds the truth transition under a filter's options and its per-step exponentials (2 N 58²); the
+    # histories are navigation blocks at the 10 s history spacing (N/10 · 4 · 10², negligible)
     N = 86400
-    floor = 8 * N * (4 * 58**2 + 2 * 58**2 + 4 * (22**2 + 10**2) + 2 * 58**2 + 22**2 + 10**2 + 2 * 58**2)
+    floor = 8 * N * (4 * 58**2 + 2 * 58**2 + 4 * (22**2 + 10**2) + 2 * 58**2)
     assert floor <= _gb(str(exc.value)) <= 1.25 * floor
 
 
@@ -623,7 +623,7 @@ def _peak(decl):
 def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
     """The estimate (reported in provenance) bounds the traced peak, and not by more than 30 %."""
     from covtool.studies.resources import memory_estimate, noise_columns
-    from covtool.studies.zupt_setup import filter_dynamics, order_memory
+    from covtool.studies.zupt_setup import filter_dynamics, history_records, order_memory, truth_copy
     d = make()
     r, peak = _peak(d)
     truth = load_model(SDINS)
@@ -632,7 +632,10 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
         est = memory_estimate(N, 58, histories=[58], noise=noise_columns(truth))["bytes"]
     else:
         specs = {c: fm.spec for c, fm in r.data["filters"].items()}
-        est = order_memory(False)(N, truth, [s.n for s in specs.values()], filter_dynamics(specs, specs))["bytes"]
+        rec, K = history_records(N, 1.0, 10.0, r.report_times, r.data["update_steps"].size)   # the study's dt, spacing
+        shared = sum(truth_copy(s, truth) for s in specs.values())        # filter A holds the truth's arrays
+        est = order_memory(False)(N, truth, [s.n for s in specs.values()], filter_dynamics(specs, specs),
+                                  records=rec, intervals=K, shared=shared)["bytes"]
     assert peak <= est <= 1.3 * peak, (peak, est)
     assert r.provenance["steps"] == N and r.provenance["estimated_peak_memory"].endswith("MB")
 

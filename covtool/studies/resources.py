@@ -42,7 +42,8 @@ def noise_columns(model: Model) -> int:
 
 
 def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histories=(), noise: int | None = None,
-                    extra: float = 0.0, parallel: int = 1) -> dict:
+                    extra: float = 0.0, parallel: int = 1, records: int | None = None, composed=(),
+                    intervals: int | None = None, extra_late: bool = False) -> dict:
     """Peak memory of a study on the propagation grid (an upper estimate).
 
     This is the one place that knows what the covariance code keeps for a
@@ -64,8 +65,9 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
         Truth error dynamics built: one per distinct set of navigation
         options among the truth and the filters (``error_dynamics``).
     histories : sequence of int
-        State counts of the ``(N+1)·m²`` covariance histories held at once
-        (``propagate``: the truth; ``propagate_with_filter``: truth and filter).
+        State counts of the ``records·m²`` covariance histories held at once
+        (``propagate``: the truth; ``propagate_with_filter``: truth and filter;
+        :func:`covtool.lincov.batch.run_batch`: the kept block of each).
     noise : int, optional
         Noise-source columns of the truth model (:func:`noise_columns`;
         default ``n``).
@@ -74,6 +76,18 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
         batch of cases).
     parallel : int
         Copies held at once (worker processes each building one system).
+    records : int, optional
+        Points of each history (default ``N + 1``: every grid time).
+    composed : sequence of int
+        State counts of the systems composed on an event grid
+        (:class:`covtool.lincov.batch.System`: Φ and Q per interval) held at
+        once.
+    intervals : int, optional
+        Intervals of that event grid (default ``records``).
+    extra_late : bool
+        ``extra`` is allocated after every discretisation (like the
+        histories and the composed systems), so after the discretisation
+        workspace is freed.
 
     Returns
     -------
@@ -86,8 +100,8 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
     noise-source matrices G (n × columns); every other truth dynamics
     another F, Q_c, G; every filter F_f, Q_c,f, Φ_f, Q_d,f (4 n_f²) and,
     while it is built, the (N, n_f, n) slice of F it is cut from; every
-    history (N+1) m².  Van Loan works on :data:`DISCRETIZE_CHUNK` steps of
-    2n × 2n at a time (about five such stacks inside ``expm``), freed
+    history (N+1) m² (or ``records`` m²), every composed system 2 K m².
+    Van Loan works on :data:`DISCRETIZE_CHUNK` steps of 2n × 2n at a time (about five such stacks inside ``expm``), freed
     before the histories are allocated, so only the larger of the two
     counts.  Against ``tracemalloc`` peaks of the shipped studies the
     estimate is high by 5-15 % (``tests/test_input_validation.py`` keeps it
@@ -104,12 +118,19 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
         parts["other truth dynamics"] = (dynamics - 1) * (2 * n * n + n * c) * N * _F8
     if len(filters):
         parts["filter F, Q_c, Phi, Q_d"] = sum(4 * N * m * m * _F8 for m in filters) + N * max(filters) * n * _F8
+    rec = N + 1 if records is None else int(records)
     if len(histories):
-        parts["covariance histories"] = sum((N + 1) * m * m * _F8 for m in histories)
+        parts["covariance histories"] = sum(rec * m * m * _F8 for m in histories)
+    if len(composed):
+        K = rec if intervals is None else int(intervals)
+        # Φ and Q per interval, and the composition's gathers of the step stacks (as large again)
+        parts["composed systems"] = sum(2 * K * m * m * _F8 for m in composed) + 2 * K * max(composed) ** 2 * _F8
     if extra:
         parts["other"] = float(extra)
-    # the Van Loan workspace is freed before the histories are allocated
-    total = sum(parts.values()) - min(parts["discretisation workspace"], parts.get("covariance histories", 0.0))
+    # the Van Loan workspace is freed before the histories (and the other late arrays) are allocated
+    late = parts.get("covariance histories", 0.0) + parts.get("composed systems", 0.0) + \
+        (parts.get("other", 0.0) if extra_late else 0.0)
+    total = sum(parts.values()) - min(parts["discretisation workspace"], late)
     if parallel > 1:
         parts = {k: v * parallel for k, v in parts.items()}
         total *= parallel

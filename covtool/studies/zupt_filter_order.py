@@ -41,7 +41,7 @@ from covtool.errors import StudyFileError
 from covtool.io.config import check_keys
 from covtool.lincov.kalman import running_scale
 from covtool.lincov.reduced import ewn_navigation_effect, zupt_matrices
-from covtool.lincov.reference import propagate, propagate_with_filter
+from covtool.lincov.batch import events, run_batch, System
 from covtool.plotting.zupt_filter_order import impact_figure
 from covtool.lincov.history import CovarianceHistory
 from covtool.plotting.navigation import error_history_figure
@@ -69,48 +69,60 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
     metrics, runs, fmodels, claimed, claimed_hist = {}, {}, {}, {}, {}
     # the filter-claimed values are reported at the report times only: computed there (exact CEP is costly)
     rsteps = np.array([int(np.argmin(np.abs(t - tr))) for tr in rtimes], int)
+    # what the outputs need, and only that: the navigation block at the history spacing and the report
+    # times (batched engine, covtool.lincov.batch: Φ, Q_d composed between these events and the ZUPTs)
+    rec = record_steps(t, every, rsteps)
+    pos = np.searchsorted(rec, rsteps)                   # report steps in the record grid
+    tr_ = t[rec]
+    nav = (nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec], nodes.distance[rec])
+    ev = events(t.size - 1, upd, rec)
+    truth_sys = System.from_steps(Phi, Qd, ev)
     where = S.where
     P_pure = None
     if fcfg.get("pure_ins", True):
-        P_pure = propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names, times=t, system_checked=True)
-        metrics["pure_ins"] = nav_metrics(P_pure, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
+        pure_run = run_batch(truth_sys, P0[None], H, R, np.zeros((truth.n, 0)), [], rec,
+                             gains=np.zeros((1, 0, 0, H.shape[0])), label=f"{where}: pure INS", names=truth.names,
+                             times=t)
+        P_pure = pure_run.P_truth[0]
+        metrics["pure_ins"] = nav_metrics(P_pure, *nav)
     with progress_bar(len(cases), "filters", progress) as bar:
         for c in cases:
             spec = S.specs[c]
-            fm, Phi_f, Qd_f = S.filter_model(c)
+            fm, Phi_f, Qd_f, reused = S.filter_system(c)
             Hf = zupt_matrices(fm.names)
-            run_ = propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, fm.P0, H, Hf, fm.D, R, upd, Rf=S.filter_R(c),
-                                         form=spec.update, label=f"{where}: filter {c}", times=t,
-                                         names=truth.names, filter_names=fm.names, system_checked=True)
+            fsys = truth_sys if reused else System.from_steps(Phi_f, Qd_f, ev)
+            run_ = run_batch(truth_sys, P0[None], H, R, fm.D, upd, rec, filt=fsys, Pf0=fm.P0[None], Hf=Hf,
+                             Rf=S.filter_R(c)[None], form=spec.update, label=f"{where}: filter {c}",
+                             names=truth.names, filter_names=fm.names, times=t)
             runs[c], fmodels[c] = run_, fm
-            metrics[c] = nav_metrics(run_.P_truth, nodes.lat, nodes.h, nodes.q_nb, nodes.distance)
-            claimed_hist[c] = run_.filter_history().nav()         # the filter's eq (14) block, by name
-            claimed[c] = nav_metrics(run_.P_filter[rsteps, :10, :10], nodes.lat[rsteps], nodes.h[rsteps],
-                                     nodes.q_nb[rsteps], nodes.distance[rsteps],
-                                     scale=running_scale(run_.P_filter[:, :10, :10])[rsteps])
+            metrics[c] = nav_metrics(run_.P_truth[0], *nav)
+            Pf = run_.P_filter[0]
+            claimed_hist[c] = CovarianceHistory(tr_, run_.filter_names, Pf, t[upd], label="filter-claimed")
+            claimed[c] = nav_metrics(Pf[pos], *(x[pos] for x in nav), scale=running_scale(Pf)[pos])
             bar.update(1)
     elapsed = time.perf_counter() - t_start
 
     rows = []
     for case, m in metrics.items():
-        first = case_validity(case, m, t)
+        first = case_validity(case, m, tr_)
         for j, tr in enumerate(rtimes):
-            k = int(np.argmin(np.abs(t - tr)))
-            row = summary_row(case, m, k, t[k], float(nodes.distance[k]), first=first)
+            k = int(rsteps[j])
+            row = summary_row(case, m, int(pos[j]), t[k], float(nodes.distance[k]), first=first)
             row["states"] = truth.n if case == "pure_ins" else fmodels[case].spec.n
             if case in claimed:
                 row["filter-claimed CEP [ft]"] = claimed[case]["cep"][j] / FT
                 row["filter-claimed alt PE [ft]"] = claimed[case]["alt_pe"][j] / FT
                 row["filter-claimed azimuth [arcmin]"] = claimed[case]["sigma_azimuth"][j] / ARCMIN
             if "pure_ins" in metrics and case != "pure_ins":
-                row["position improvement over pure INS [x]"] = metrics["pure_ins"]["cep"][k] / m["cep"][k]
-                row["altitude improvement over pure INS [x]"] = metrics["pure_ins"]["alt_pe"][k] / m["alt_pe"][k]
+                kr = int(pos[j])
+                row["position improvement over pure INS [x]"] = metrics["pure_ins"]["cep"][kr] / m["cep"][kr]
+                row["altitude improvement over pure INS [x]"] = metrics["pure_ins"]["alt_pe"][kr] / m["alt_pe"][kr]
             rows.append(row)
     summary = pd.DataFrame(rows)
     order = ["case", "states"] + [c for c in summary.columns if c not in ("case", "states")]
     summary = summary[order]
 
-    hist = pd.concat([history_frame(c, t, m, every) for c, m in metrics.items()], ignore_index=True)
+    hist = pd.concat([history_frame(c, tr_, m, every) for c, m in metrics.items()], ignore_index=True)
     ewn = equivalent_noise_table(S, fmodels)
     fstates = []
     for c, fm in fmodels.items():
@@ -128,7 +140,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
     t_imp = time.perf_counter()
     if imp_filters:
         with progress_bar(len(imp_filters), "dropped-state impact", progress) as bar:
-            tables["impact"] = impact_table(S, imp_filters, metrics, bar)
+            tables["impact"] = impact_table(S, imp_filters, metrics, bar, record_steps=rec)
     t_imp = time.perf_counter() - t_imp
     provenance = {**study_inputs(path, decl, truth, ffile), "truth_model": truth.name,
                   "truth_model_sha256": truth.sha256, "zupt_updates": int(len(upd)), "zupt_interval_s": dt_s,
@@ -137,9 +149,9 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
     unit = length_unit(decl, where)
     histories = {}
     if "pure_ins" in metrics:
-        histories["pure_ins"] = CovarianceHistory(t, truth.names, P_pure, label="pure INS").nav()
+        histories["pure_ins"] = CovarianceHistory(tr_, pure_run.names, P_pure, label="pure INS").nav()
     for c, r_ in runs.items():
-        histories[c] = r_.truth_history().nav()
+        histories[c] = CovarianceHistory(tr_, r_.names, r_.P_truth[0], t[upd], label="truth").nav()
     result = ZuptFilterOrderResult(
         name=hdr["name"], kind="zupt_filter_order", tables=tables,
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}}, provenance=provenance,
@@ -150,10 +162,10 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
                  "skip": 1, "title": "Fig 7: altitude PE by filter model", "x_title": "time [min]",
                  "y_title": f"altitude PE [{unit}]", "anchor": "S22"}],
         data={"t": t, "runs": runs, "filters": fmodels, "metrics": metrics, "claimed": claimed,
-              "claimed_steps": rsteps,
+              "claimed_steps": rsteps, "record_steps": rec,
               "update_steps": upd, "trajectory": nodes, "truth": truth, "P0": P0, "Phi": Phi, "Qd": Qd,
               "H": H, "R": R},
-        times=t, metrics=metrics, length_unit=unit, update_times=t[upd], stops=S.stops,
+        times=tr_, metrics=metrics, length_unit=unit, update_times=t[upd], stops=S.stops,
         histories=histories, claimed=claimed_hist,
         claimed_metrics=claimed, report_times=list(rtimes))
     result.figures = {"fig6_horizontal_cep": partial(error_history_figure, result, "horizontal"),
@@ -161,6 +173,33 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
     if "impact" in tables:
         result.figures["impact_dropped_states"] = partial(impact_figure, result)
     return result
+
+
+def record_steps(t: np.ndarray, every: float | None, report_steps) -> np.ndarray:
+    """Grid indices the flagship records: the history spacing, the report steps, the first and the last.
+
+    Parameters
+    ----------
+    t : ndarray, shape (N+1,)
+        Time grid. [s]
+    every : float or None
+        ``[output] history_every`` [s]; None or 0 records every step.
+    report_steps : iterable of int
+
+    Returns
+    -------
+    ndarray of int, increasing
+        The steps :func:`covtool.studies.tables.history_frame` writes (the
+        multiples of ``every`` and the last) and the report steps.
+    """
+    if every:
+        k = np.round(t / every)
+        sel = np.isclose(t, k * every)
+    else:
+        sel = np.ones(t.shape, bool)
+    sel[[0, -1]] = True
+    sel[np.asarray(list(report_steps), int)] = True
+    return np.flatnonzero(sel)
 
 
 def equivalent_noise_table(S: ZuptSetup, fmodels: dict) -> pd.DataFrame:
@@ -213,7 +252,7 @@ def impact_filters(decl: dict, S: ZuptSetup) -> list[str]:
     return list(fl)
 
 
-def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None) -> pd.DataFrame:
+def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None, *, record_steps=None) -> pd.DataFrame:
     """The ``impact`` sheet: every reduced filter × dropped block (D'Appolito state deletion).
 
     For each filter (:func:`covtool.lincov.impact.impact_run`, one batched pass
@@ -248,8 +287,10 @@ def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None) -> pd.DataF
                        "alt PE / nominal [-]": m["alt_pe"][k] / nom["alt_pe"][k],
                        "azimuth / nominal [-]": m["sigma_azimuth"][k] / nom["sigma_azimuth"][k]}
                 if "A" in metrics:
-                    row["CEP / A [-]"] = m["cep"][k] / metrics["A"]["cep"][step]
-                    row["alt PE / A [-]"] = m["alt_pe"][k] / metrics["A"]["alt_pe"][step]
+                    # metrics on the run's record steps (all steps when not given)
+                    ka = step if record_steps is None else int(np.searchsorted(record_steps, step))
+                    row["CEP / A [-]"] = m["cep"][k] / metrics["A"]["cep"][ka]
+                    row["alt PE / A [-]"] = m["alt_pe"][k] / metrics["A"]["alt_pe"][ka]
                 row["filter noise vs its own Q_f (max rel.)"] = r.noise_check
                 rows.append(row)
         if bar is not None:

@@ -256,8 +256,13 @@ class ZuptSetup:
             # the truth is discretised exactly (van_loan, or taylor without an order: the same
             # converged series, covtool.lincov.discretize); so is a filter with either
             same_method = spec.discretization == "van_loan" or spec.taylor_order is None
-            if same_method and fm.F.shape == self.dyn.F.shape and np.array_equal(fm.F, self.dyn.F) \
+            if fm.F.shape == self.dyn.F.shape and np.array_equal(fm.F, self.dyn.F) \
                     and np.array_equal(fm.Qc, self.dyn.Qc):
+                # equal arrays: hold the truth's, not a second (N, n, n) copy of each (exact)
+                if fm.Qc_kept is not None and np.array_equal(fm.Qc_kept, fm.Qc):
+                    fm.Qc_kept = self.dyn.Qc
+                fm.F, fm.Qc = self.dyn.F, self.dyn.Qc
+            if same_method and fm.F is self.dyn.F and fm.Qc is self.dyn.Qc:
                 self._filters[ckey] = (fm, self.Phi, self.Qd, True)
             else:
                 Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(self.t), spec.discretization,
@@ -311,8 +316,16 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
     cases = filter_cases(fcfg, specs, ffile, where)
     est = {}
     if memory is not None:
-        est = check_memory(memory(steps_of(hdr["duration"], hdr["dt"]), truth, [specs[c].n for c in cases],
-                                  filter_dynamics(specs, cases)), where, hdr["max_memory"], shrink)
+        steps = steps_of(hdr["duration"], hdr["dt"])
+        kw = {}
+        if getattr(memory, "records", False):
+            zo = zupt_options(table(decl.get("zupt", {}), f"{where}: [zupt]", StudyFileError), where, hdr["dt"],
+                              hdr["duration"])
+            kw = dict(zip(("records", "intervals"), history_records(
+                steps, hdr["dt"], every, rtimes, zupt_update_count(zo, hdr["duration"]))))
+            kw["shared"] = sum(1 for c in cases if truth_copy(specs[c], truth, ftruth))
+        est = check_memory(memory(steps, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases), **kw),
+                           where, hdr["max_memory"], shrink)
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"], where)
     upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
@@ -333,16 +346,53 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
 def order_memory(pure: bool, impact: bool = True):
     """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter).
 
-    With the dropped-state impact table (``impact``) it also holds, per
-    filter in turn, the truth transition under the filter's options and
-    the per-source noise series (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).
+    The histories are navigation blocks (10 × 10) at the record steps
+    (``records``: the history spacing and the report times); the truth's
+    system composed on the event grid (``intervals``: the records and the
+    ZUPTs) is held throughout, one filter's at a time.  With the
+    dropped-state impact table (``impact``) it also holds, per filter in
+    turn, the truth transition under the filter's options and the
+    per-source noise series (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).
     """
     from covtool.lincov.noise import COMPOSE_WORKSPACE
 
-    def memory(steps, truth, filters, dynamics):
+    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0):
         n = truth.n
-        hist = ([n] if pure else []) + [m for nf in filters for m in (n, nf)]
+        hist = [min(n, 10)] * ((1 if pure else 0) + 2 * len(filters))
         extra = COMPOSE_WORKSPACE + 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
-        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=hist,
-                               noise=noise_columns(truth), extra=extra)
+        # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more
+        own = sorted(filters)[:len(filters) - shared] if shared else filters
+        return memory_estimate(steps, n, filters=own, dynamics=dynamics, histories=hist,
+                               noise=noise_columns(truth), extra=extra, records=records,
+                               composed=[n] + ([max(filters)] if filters else []), intervals=intervals,
+                               extra_late=True)
+    memory.records = True           # setup() passes the record and interval counts
     return memory
+
+
+def truth_copy(spec: FilterSpec, truth: Model, ftruth: Model | None = None) -> bool:
+    """True if filter ``spec`` is the truth itself: all states, the truth's options, an exact discretisation.
+
+    Such a filter's F, Q_c, Φ and Q_d are the truth's arrays
+    (:meth:`ZuptSetup.filter_system`); the memory estimate counts them once.
+    """
+    return (spec.n == truth.n and (ftruth is None or ftruth is truth) and dyn_key(spec.options) == dyn_key(None)
+            and (spec.discretization == "van_loan" or spec.taylor_order is None))
+
+
+def history_records(steps: int, dt: float, every: float | None, report_times, updates: int) -> tuple[int, int]:
+    """``(records, intervals)``: upper counts of the record steps and of the event-grid intervals.
+
+    Parameters
+    ----------
+    steps : int
+        Propagation steps N.
+    dt, every : float
+        Grid step and ``[output] history_every`` (None: every step). [s]
+    report_times : sequence of float
+        Report times. [s]
+    updates : int
+        Measurement updates (each one an event).
+    """
+    rec = steps + 1 if not every else min(steps + 1, int(steps * dt / every) + 2 + len(report_times))
+    return rec, min(steps, rec + updates)
