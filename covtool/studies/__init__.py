@@ -50,10 +50,17 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     kind = study["kind"]
     if not isinstance(kind, str) or kind not in RUNNERS:
         raise StudyFileError(f"{where}: [study]", f"unknown kind {kind!r} (one of: {', '.join(sorted(RUNNERS))})")
+    # the whole file parsed once into its kind's typed configuration, before any computation:
+    # every section is refused here, one line naming the file, the table and the key
+    from covtool.studies.config import load_config
+
+    config = load_config(decl, where)
     module = importlib.import_module(RUNNERS[kind])
     accepts = inspect.signature(module.run).parameters
     options = {k: v for k, v in (("backend", backend), ("store", store), ("resume", resume))
                if v not in (None, False) and k in accepts}
+    if "config" in accepts:
+        options["config"] = config
     refused = [k for k, v in (("backend", backend), ("resume", resume)) if v not in (None, False) and k not in accepts]
     if refused:
         raise InputError(f"{where}: [study] kind", f"{kind!r} runs in-process in one piece; it takes no "

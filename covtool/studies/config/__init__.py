@@ -56,7 +56,7 @@ from covtool.studies.config.kinds import (  # noqa: F401
     ZuptSensitivityConfig, ZuptStudyConfig, _S,
 )
 from covtool.studies.config.parse import (  # noqa: F401
-    dump_config, load_config, parse_section, si_text, _dump, _keys, _raise, _where,
+    dump_config, load_config, parse_section, parse_trajectory, _dump, _keys, _raise, _where,
 )
 
-__all__ = ["si_text", "Section", "KINDS", "SECTIONS", "load_config", "dump_config", "config_class", "parse_section"]
+__all__ = ["Section", "KINDS", "SECTIONS", "load_config", "dump_config", "config_class", "parse_section"]

@@ -57,10 +57,37 @@ def Quantity(dimension: str, *, positive=False, nonnegative=False, hi=None, why=
         Kind(f"quantity ({dimension})", dimension, rng)]
 
 
-def QuantityList(dimension: str, *, limit=None, **kw):
-    """A non-empty list of quantities in SI."""
-    return Annotated[tuple[float, ...], BeforeValidator(_wrap(lambda v: tuple(fields.quantity_list(
-        v, dimension, "", _Problem, limit=limit, **kw)))), Kind(f"list of quantities ({dimension})", dimension)]
+def _once(values: tuple, raw) -> tuple:
+    if len(set(values)) != len(values):
+        raise _Problem("", f"repeated values in {raw!r}")
+    return values
+
+
+def QuantityList(dimension: str, *, limit=None, unique=False, **kw):
+    """A non-empty list of quantities in SI (``unique``: each value once)."""
+    def check(v):
+        out = tuple(fields.quantity_list(v, dimension, "", _Problem, limit=limit, **kw))
+        return _once(out, v) if unique else out
+    return Annotated[tuple[float, ...], BeforeValidator(_wrap(check)),
+                     Kind(f"list of quantities ({dimension})", dimension)]
+
+
+def NumberList(*, limit=None, lo=None, hi=None, why="", unique=False):
+    """A non-empty list of bare numbers in a range (``limit``: a :data:`LIMITS` count; ``unique``: each once)."""
+    def check(v):
+        if not isinstance(v, list) or not v:
+            raise _Problem("", "expected a non-empty list")
+        if limit is not None and len(v) > LIMITS[limit].hi:
+            raise _Problem("", f"{len(v)} values; at most {LIMITS[limit].hi:g} ({LIMITS[limit].reason})")
+        out = []
+        for i, x in enumerate(v):
+            try:
+                out.append(fields.number(x, "", _Problem, lo=lo, hi=hi, why=why))
+            except InputError as exc:
+                raise _Problem(f"[{i}]", exc.problem) from None
+        return _once(tuple(out), v) if unique else tuple(out)
+    rng = f">= {lo:g} and <= {hi:g}" if lo is not None and hi is not None else ""
+    return Annotated[tuple[float, ...], BeforeValidator(_wrap(check)), Kind("list of numbers", None, rng)]
 
 
 def Integer(*, limit=None, lo=None, hi=None):

@@ -38,6 +38,26 @@ class StudyConfig(Section):
     kind_doc: ClassVar[str] = ""
     #: top-level lists of tables (``[[key]]``): key -> Section class of one entry
     lists: ClassVar[dict] = {}
+    #: keys a dump leaves out (set by the runner, refused in the file): table -> keys
+    dump_omit: ClassVar[dict] = {}
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _report_times_within_study(cls, data, handler):
+        self = handler(data)
+        out, st = getattr(self, "output", None), getattr(self, "study", None)
+        duration = getattr(st, "duration", None)
+        if out is None or duration is None or out.report_times is None:
+            return self
+        raw = data.get("output") if isinstance(data, dict) else None
+        shown = raw.get("report_times") if isinstance(raw, dict) else None
+        for i, x in enumerate(out.report_times):
+            if x > duration + 1e-9:
+                v = shown[i] if isinstance(shown, list) and i < len(shown) else f"{x:g} s"
+                raise PydanticCustomError("covtool", "{problem}", {
+                    "problem": f"{v!r} is after the end of the study ({duration:g} s)",
+                    "suffix": f": [output] report_times[{i}]"})
+        return self
 
 
 def _S(cls, default=None, doc=""):
@@ -98,7 +118,30 @@ class TradeGridConfig(ZuptStudyConfig):
                                "(resumable store).")
     grid: GridSection
     lists: ClassVar[dict] = {"grade": GradeEntry}
-    grade: Raw = F([{"name": "navigation", "scale": 1}], "The IMU grades: [[grade]] tables.")
+    dump_omit: ClassVar[dict] = {"zupt": ("interval",), "trajectory": ("period", "cycles", "distance")}
+    grade: Raw = F([{"name": "nominal", "scale": 1}], "The IMU grades: [[grade]] tables, each name once.")
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _trade_grid(cls, data, handler):
+        if isinstance(data, dict):
+            if "grid" not in data:
+                raise PydanticCustomError("covtool", "{problem}", {
+                    "problem": "missing [grid] table (zupt_interval = [...], ...)", "suffix": ""})
+            zc, traj = data.get("zupt"), data.get("trajectory", {"builtin": "land_vehicle"})
+            if isinstance(zc, dict) and "interval" in zc:
+                raise PydanticCustomError("covtool", "{problem}", {
+                    "problem": "the ZUPT interval is a grid axis: give it as [grid] zupt_interval = [...]",
+                    "suffix": ": [zupt] interval"})
+            if isinstance(traj, dict) and traj.get("builtin") == "land_vehicle":
+                for key in ("period", "cycles", "distance"):
+                    if key in traj:
+                        raise PydanticCustomError("covtool", "{problem}", {
+                            "problem": "is set per ZUPT interval by the trade grid (period = interval; distance "
+                                       "from [grid] cruise_speed)", "suffix": f": [trajectory] {key}"})
+            if not (isinstance(data.get("grade"), tuple) and all(isinstance(g, GradeEntry) for g in data["grade"])):
+                data = {**data, "grade": zupt.grade_entries(data.get("grade", [{"name": "nominal", "scale": 1.0}]))}
+        return handler(data)
 
 
 class AidedConfig(StudyConfig):

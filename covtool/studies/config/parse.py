@@ -3,18 +3,22 @@
 :func:`load_config` and :func:`parse_section` turn pydantic's validation
 errors into one :class:`~covtool.errors.StudyFileError` naming the file,
 the table and the key; :func:`dump_config` writes quantities as SI strings
-that parse back exactly (:func:`si_text`).
+that parse back exactly (the dump's own formatter; nothing else turns SI values
+back into strings).
 """
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, TypeAdapter, ValidationError
 
 from covtool.errors import StudyFileError
 from covtool.io import config as fields
 from covtool.units import DIMENSIONS
 from covtool.studies.config.field_types import Kind, Section
 from covtool.studies.config.kinds import KINDS, StudyConfig
+from covtool.studies.config.sections import Trajectory
+
+_TRAJECTORY = TypeAdapter(Trajectory)
 
 
 def _keys(cls) -> list[str]:
@@ -47,6 +51,17 @@ def parse_section(cls: type[Section], value, where: str, section: str, error=Stu
         return cls.model_validate(value)
     except ValidationError as exc:
         _raise(exc, where, (section,), error)
+
+
+def parse_trajectory(value, where: str, error=StudyFileError):
+    """A ``[trajectory]`` table parsed into its form (:data:`~covtool.studies.config.Trajectory`).
+
+    Unknown keys are refused first, with the allowed keys of the form.
+    """
+    try:
+        return _TRAJECTORY.validate_python(value)
+    except ValidationError as exc:
+        _raise(exc, where, ("trajectory",), error)
 
 
 def _raise(exc: ValidationError, where: str, prefix: tuple, error):
@@ -100,7 +115,7 @@ def load_config(decl: dict, where: str = "<study>") -> StudyConfig:
         _raise(exc, where, (), StudyFileError)
 
 
-def si_text(value: float, dimension: str):
+def _si_text(value: float, dimension: str):
     """An SI value as a quantity string that parses back exactly (a bare number when dimensionless)."""
     unit = "Hz" if dimension == "frequency" else DIMENSIONS[dimension][0]   # '1/s' is not a unit string
     if value == 0 or not unit:
@@ -126,8 +141,8 @@ def _dump(model: BaseModel) -> dict:
         elif isinstance(v, dict) and v and all(isinstance(x, BaseModel) for x in v.values()):
             out[key] = {k: _dump(x) for k, x in v.items()}
         elif kind is not None and kind.dimension and kind.dimension != "memory":
-            out[key] = [si_text(x, kind.dimension) for x in v] if isinstance(v, tuple) else \
-                si_text(v, kind.dimension)
+            out[key] = [_si_text(x, kind.dimension) for x in v] if isinstance(v, tuple) else \
+                _si_text(v, kind.dimension)
         elif kind is not None and kind.dimension == "memory":
             out[key] = f"{v!r} B"
         elif isinstance(v, tuple):
@@ -139,4 +154,8 @@ def _dump(model: BaseModel) -> dict:
 
 def dump_config(config: StudyConfig) -> dict:
     """The TOML tables of a configuration: every field, defaults filled in, quantities as exact SI strings."""
-    return _dump(config)
+    out = _dump(config)
+    for section, keys in type(config).dump_omit.items():
+        for key in keys:
+            out.get(section, {}).pop(key, None)
+    return out

@@ -15,6 +15,7 @@ from pydantic import ConfigDict, Field
 
 from covtool.io.config import LIMITS
 from covtool.studies.config.field_types import (
+    NumberList,
     Bool, F, Integer, Names, Number, OneOf, Quantity, QuantityList, Raw, Section, Table, Text,
 )
 
@@ -106,17 +107,21 @@ class MagnitudeSweep(Section):
     group: Raw = F(..., "The groups: [[sweep.group]] tables.")
 
 
+#: a grid axis of filter-tuning scales: each once, within six decades of the nominal filter
+_SCALES = NumberList(limit="grid_axis", lo=LIMITS["filter_scale"].lo, hi=LIMITS["filter_scale"].hi,
+                     why=LIMITS["filter_scale"].reason, unique=True)
+
+
 class GridSection(Section):
     name: ClassVar[str] = "grid"
     doc: ClassVar[str] = "The trade grid's axes: cases are their product with the grades and filters."
-    zupt_interval: QuantityList("time", limit="grid_axis", positive=True) = F(..., "ZUPT intervals (one truth "
-                                                                                   "system each).",
-                                                                              example=["3 min", "5 min"])
-    zupt_sigma: QuantityList("velocity", limit="grid_axis", positive=True) | None = F(
+    zupt_interval: QuantityList("time", limit="grid_axis", positive=True, unique=True) = F(
+        ..., "ZUPT intervals (one truth system each).", example=["3 min", "5 min"])
+    zupt_sigma: QuantityList("velocity", limit="grid_axis", positive=True, unique=True) | None = F(
         None, "True ZUPT σ, assumed alike by the filter (default: [zupt] sigma).")
-    p0_scale: Raw = F([1.0], "Scales of the filters' P0.")
-    q_scale: Raw = F([1.0], "Scales of the filters' Q_f.")
-    r_scale: Raw = F([1.0], "Scales of the filters' R_f.")
+    p0_scale: _SCALES = F([1.0], "Scales of the filters' P0.")
+    q_scale: _SCALES = F([1.0], "Scales of the filters' Q_f.")
+    r_scale: _SCALES = F([1.0], "Scales of the filters' R_f.")
     cruise_speed: Quantity("velocity", positive=True) = F("45 km/h", "land_vehicle: cruise speed for every "
                                                                      "interval.")
 
@@ -135,3 +140,55 @@ class GradeEntry(Section):
     vrw: Raw = F(None, "Accelerometer VRW of the grade.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+
+def grade_entries(value) -> tuple:
+    """``[[grade]]`` tables parsed into :class:`GradeEntry` (the trade grid's IMU grades).
+
+    Raises
+    ------
+    pydantic_core.PydanticCustomError
+        Its ``suffix`` names the entry (``": [[grade]] #3 name"``): not an
+        array of tables, more than :data:`LIMITS` ``["grid_axis"]`` grades, an
+        entry without a valid ``name``, a name used twice, an unknown key, an
+        ``override`` that is not a table of state tables, a bad ``scale`` or
+        ``description``.
+    """
+    from pydantic_core import PydanticCustomError
+
+    from covtool.errors import InputError
+    from covtool.io import config as fields
+    from covtool.io.names import check_name
+
+    def refuse(problem, suffix):
+        return PydanticCustomError("covtool", "{problem}", {"problem": problem, "suffix": suffix})
+
+    if not isinstance(value, list) or not value:
+        raise refuse("expected an array of tables ([[grade]] name = ..., scale = ...)", ": [[grade]]")
+    lim = LIMITS["grid_axis"]
+    if len(value) > lim.hi:
+        raise refuse(f"{len(value)} grades; at most {lim.hi:g} ({lim.reason})", ": [[grade]]")
+    out, seen = [], set()
+    for i, g in enumerate(value):
+        w = f": [[grade]] #{i + 1}"
+        try:
+            fields.table(g, "", InputError)
+            fields.check_keys(g, [f.alias or n for n, f in GradeEntry.model_fields.items()], "", InputError)
+            if "name" not in g:
+                raise InputError("", "missing 'name' (a non-empty string)")
+            name = check_name(g["name"], " name", InputError, what="grade name")
+            if name in seen:
+                raise InputError(" name", f"grade {name!r} is declared twice")
+            seen.add(name)
+            ov = g.get("override", {})
+            if not isinstance(ov, dict) or not all(isinstance(v, dict) for v in ov.values()):
+                raise InputError(" override", "expected a table of state tables, e.g. "
+                                 "override = {gyro_bias_z = {sigma = \"1 deg/h\"}}")
+            b = LIMITS["grade_scale"]
+            fields.number(g.get("scale", 1.0), " scale", InputError, lo=b.lo, hi=b.hi, why=b.reason)
+            fields.string(g.get("description", ""), " description", InputError)
+        except InputError as exc:
+            raise refuse(exc.problem, w + (exc.where or "")) from None
+        out.append(GradeEntry.model_validate(g))
+    return tuple(out)
+
