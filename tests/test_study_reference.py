@@ -100,7 +100,8 @@ def test_shared_sections_match_their_parsers():
     assert _allowed(lambda: load_truth({"truth": {"override": {"acc_bias": {UNKNOWN: 1}}}}, "s", None)) == \
         set(section_keys(C.OverrideEntry))
     assert _allowed(lambda: setup(_inject(flag, ["filters"]))) == set(section_keys(C.FiltersSection))
-    assert _allowed(lambda: setup(_inject(flag, []))) == set(C.ZuptStudyConfig.model_fields)
+    # the whole file is parsed into its kind's configuration (zupt_filter_order: the ZUPT sections and [impact])
+    assert _allowed(lambda: setup(_inject(flag, []))) == set(C.ZuptFilterOrderConfig.model_fields)
 
 
 def test_trajectory_declarations_match_their_parsers():

@@ -200,7 +200,6 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
         max_gap = None
         if "max_gap" in cfg:
             max_gap = trajectory_quantity(cfg["max_gap"], "time", f"{where}: max_gap")
-            check_positive(max_gap, f"{where}: max_gap")
         return csv_trajectory(cfg["csv"], where=where, base_dir=base_dir, max_gap=max_gap, name=name)
     builtin = cfg["builtin"]
     if builtin not in BUILTINS:
@@ -235,6 +234,8 @@ def csv_trajectory(csv, *, where: str, base_dir: Path | None, max_gap: float | N
     TrajectoryError
         Not a file name, no such file, or a bad file (named with ``where``).
     """
+    if max_gap is not None:
+        check_positive(max_gap, f"{where}: max_gap")
     path = resolve_input(csv, base_dir, f"{where}: csv", TrajectoryError, must_exist=False)
     try:
         traj = load_trajectory_csv(path, max_gap=max_gap)

@@ -274,7 +274,8 @@ class CsvTrajectory(Section):
     name: ClassVar[str] = "trajectory (csv = \"file.csv\")"
     doc: ClassVar[str] = "A trajectory read from a CSV file (time, position, velocity, attitude columns)."
     csv: Text(nonempty=True) = F(..., "Path of the CSV, relative to the study file.", example="route.csv")
-    max_gap: Quantity("time", positive=True) | None = F(None, "Longest time step that may be interpolated.")
+    # > 0, checked where the file is read (covtool.io.trajectory.csv_trajectory), as for a CSV named elsewhere
+    max_gap: Quantity("time") | None = F(None, "Longest time step that may be interpolated (> 0).")
     name_: Text() | None = Field(None, alias="name", description="Label of the trajectory.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
