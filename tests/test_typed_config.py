@@ -204,7 +204,7 @@ def _short_sensitivity(units):
     d["study"]["duration"] = "11 min"
     d["output"]["report_times"] = ["11 min"]
     d["output"]["units"] = units
-    d["filters"]["cases"] = ["B1"]
+    d["filters"] = {"cases": ["B1"]}                          # the library's filter file
     d["sweep"].update({"scales": {"from": 0.01, "to": 100, "per_decade": 1}, "fit_degree": 2,
                        "parameters": ["Q"]})
     d["cost"]["measure"] = False

@@ -11,7 +11,6 @@ from covtool.io.config import check_keys, file_sha256, quantity, resolve_input, 
 from covtool.io.library import load_model_by_name
 from covtool.io.names import check_study_name
 from covtool.lincov.model.spec import Model
-from covtool.studies.resources import parse_bytes
 
 __all__ = [
     "study_header", "load_truth",

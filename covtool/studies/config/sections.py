@@ -17,7 +17,7 @@ from pydantic import BeforeValidator, ConfigDict, Field, model_validator
 from pydantic_core import PydanticCustomError
 
 from covtool.studies.config.field_types import (
-    Bool, F, Integer, Kind, Memory, Names, OneOf, Quantity, QuantityList, Raw, Section, Table, Text,
+    Bool, F, Integer, Kind, Memory, Names, OneOf, Quantity, QuantityList, Raw, Section, Text,
 )
 
 
