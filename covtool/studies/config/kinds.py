@@ -112,6 +112,14 @@ class MagnitudeSweepConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = "Sweep the magnitude of groups of error sources (e.g. misalignments)."
     sweep: MagnitudeSweep
 
+    @model_validator(mode="wrap")
+    @classmethod
+    def _sweep_given(cls, data, handler):
+        if isinstance(data, dict) and "sweep" not in data:
+            raise PydanticCustomError("covtool", "{problem}", {
+                "problem": "missing [sweep] table (values = [...], [[sweep.group]] ...)", "suffix": ": [sweep]"})
+        return handler(data)
+
 
 class TradeGridConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Trade grid: IMU grade × ZUPT interval × filter × tuning, run in chunks "

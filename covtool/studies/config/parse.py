@@ -11,8 +11,9 @@ from __future__ import annotations
 
 from pydantic import BaseModel, TypeAdapter, ValidationError
 
-from covtool.errors import StudyFileError
+from covtool.errors import StudyFileError, TrajectoryError
 from covtool.io import config as fields
+from covtool.io.names import check_study_name
 from covtool.units import DIMENSIONS
 from covtool.studies.config.field_types import Kind, Section
 from covtool.studies.config.kinds import KINDS, StudyConfig
@@ -64,9 +65,15 @@ def parse_trajectory(value, where: str, error=StudyFileError):
         _raise(exc, where, ("trajectory",), error)
 
 
+class StudyTrajectoryError(StudyFileError, TrajectoryError):
+    """A ``[trajectory]`` table of a study file is invalid (both kinds of error)."""
+
+
 def _raise(exc: ValidationError, where: str, prefix: tuple, error):
     e = exc.errors(include_url=False)[0]
     loc = prefix + tuple(e["loc"])
+    if loc and loc[0] == "trajectory" and error is StudyFileError:
+        error = StudyTrajectoryError
     if e["type"] == "missing":
         raise error(_where(where, loc[:-1]), f"missing required key {loc[-1]!r}") from None
     if e["type"] == "extra_forbidden":
@@ -102,6 +109,8 @@ def load_config(decl: dict, where: str = "<study>") -> StudyConfig:
                              f"(one of: {', '.join(sorted(KINDS))})")
     if st["kind"] not in KINDS:
         raise StudyFileError(f"{where}: [study]", f"unknown kind {st['kind']!r} (one of: {', '.join(sorted(KINDS))})")
+    # the outputs' name first: a name that is not a safe file name is refused before anything else
+    check_study_name(st, where, StudyFileError, default=st["kind"])
     cls = KINDS[st["kind"]]
     fields.check_keys(decl, _keys(cls), where, StudyFileError)
     for key, f in cls.model_fields.items():

@@ -9,13 +9,14 @@ trade_grid.
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Annotated, ClassVar
 
-from pydantic import ConfigDict, Field
+from pydantic import BeforeValidator, ConfigDict, Field
 
+from covtool.io import config as fields
 from covtool.io.config import LIMITS
 from covtool.studies.config.field_types import (
-    NumberList,
+    _Problem, _wrap, Kind, NumberList,
     Bool, F, Integer, Names, Number, OneOf, Quantity, QuantityList, Raw, Section, Table, Text,
 )
 
@@ -97,13 +98,22 @@ class SweepGroup(Section):
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
 
 
+def _threshold(v):
+    x = fields.number(v, "", _Problem)
+    if not x > 1.0:
+        raise _Problem("", f"{v!r} is not a number greater than 1")
+    return x
+
+
+_Threshold = Annotated[float, BeforeValidator(_wrap(_threshold)), Kind("number", None, "> 1")]
+
+
 class MagnitudeSweep(Section):
     name: ClassVar[str] = "sweep (magnitude_sweep)"
     doc: ClassVar[str] = "Set each group's 1σ to every value and find where the navigation errors grow."
     nested: ClassVar[dict] = {"group": [SweepGroup]}
     values: Raw = F(..., "The magnitudes (in the groups' unit), >= 0.", example=["5 arcsec", "30 arcsec"])
-    threshold: Number(lo=1.0, lo_open=True) = F(1.5, "Error growth over the nominal that marks a magnitude as "
-                                                     "significant.")
+    threshold: _Threshold = F(1.5, "Error growth over the nominal that marks a magnitude as significant.")
     group: Raw = F(..., "The groups: [[sweep.group]] tables.")
 
 
