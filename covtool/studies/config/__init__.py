@@ -36,8 +36,8 @@ from covtool.studies.config.sections import (  # noqa: F401
     _trajectory,
 )
 from covtool.studies.config.zupt import (  # noqa: F401
-    BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep, MonteCarloSection, Scales,
-    SensitivitySweep, SweepGroup,
+    BudgetFilters, BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep,
+    MonteCarloSection, Scales, SensitivitySweep, SweepGroup,
 )
 from covtool.studies.config.dual_imu import (  # noqa: F401
     Comparison, DualAlignment, Fault, FlightInitial, FlightSegment, FlightTrajectory, GapEntry, Gaps, ImuSection,

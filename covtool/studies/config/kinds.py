@@ -21,7 +21,8 @@ from covtool.studies.config.sections import (
     ZuptSection,
 )
 from covtool.studies.config.zupt import (
-    BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep, MonteCarloSection,
+    BudgetFilters, BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep,
+    MonteCarloSection,
     SensitivitySweep,
 )
 from covtool.studies.config.dual_imu import (
@@ -93,6 +94,7 @@ class ZuptFilterOrderConfig(ZuptStudyConfig):
 class ErrorBudgetConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Error budget: each error source's share of the navigation errors, pure INS and "
                                "filters ([filters] cases may list \"pure_ins\").")
+    filters: BudgetFilters = F({}, BudgetFilters.doc)
     budget: BudgetSection = F({}, BudgetSection.doc)
 
 
@@ -106,6 +108,14 @@ class MonteCarloConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Monte Carlo validation: sampled errors through a nonlinear strapdown and the "
                                "filters, compared with the linear covariance (RMS and NEES bands).")
     monte_carlo: MonteCarloSection
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _monte_carlo_given(cls, data, handler):
+        if isinstance(data, dict) and "monte_carlo" not in data:
+            raise PydanticCustomError("covtool", "{problem}", {
+                "problem": "missing [monte_carlo] table (runs = ..., imu_rate = ..., ...)", "suffix": ""})
+        return handler(data)
 
 
 class MagnitudeSweepConfig(ZuptStudyConfig):

@@ -9,23 +9,43 @@ trade_grid.
 
 from __future__ import annotations
 
-from typing import Annotated, ClassVar
+from typing import Annotated, Any, ClassVar
 
 from pydantic import BeforeValidator, ConfigDict, Field
 
 from covtool.io import config as fields
 from covtool.io.config import LIMITS
+from covtool.studies.config.sections import FiltersSection
 from covtool.studies.config.field_types import (
     _Problem, _wrap, Kind, NumberList,
     Bool, F, Integer, Names, Number, OneOf, Quantity, QuantityList, Raw, Section, Table, Text,
 )
 
 
+def _impact_filters(v):
+    if not isinstance(v, list):
+        raise _Problem("", "expected a list of filter names")
+    return tuple(fields.names(v, "", _Problem, nonempty=False, what="filter"))
+
+
+_ImpactFilters = Annotated[tuple[str, ...], BeforeValidator(_wrap(_impact_filters)), Kind("list of filters")]
+
+
+def _budget_cases(v):
+    if v == []:            # the pure INS alone: what the runner passes on (it refuses [] in a file itself)
+        return ()
+    return tuple(fields.names(v, "", _Problem, what='case (a filter or "pure_ins")'))
+
+
+_BudgetCases = Annotated[tuple[str, ...], BeforeValidator(_wrap(_budget_cases)),
+                         Kind('list of cases (filters or "pure_ins")')]
+
+
 class ImpactSection(Section):
     name: ClassVar[str] = "impact"
     doc: ClassVar[str] = "The dropped-state impact table (covtool.lincov.impact)."
-    filters: Names(nonempty=False, what="filter") | None = F(None, "Reduced filters to analyse (default: every "
-                                                                   "reduced filter of the run; [] for none).")
+    filters: _ImpactFilters | None = F(None, "Reduced filters to analyse (default: every reduced filter of the "
+                                             "run; [] for none).")
 
 
 class BudgetSection(Section):
@@ -118,8 +138,7 @@ class MagnitudeSweep(Section):
 
 
 #: a grid axis of filter-tuning scales: each once, within six decades of the nominal filter
-_SCALES = NumberList(limit="grid_axis", lo=LIMITS["filter_scale"].lo, hi=LIMITS["filter_scale"].hi,
-                     why=LIMITS["filter_scale"].reason, unique=True)
+_SCALES = NumberList(limit="grid_axis", bound="filter_scale", unique=True)
 
 
 class GridSection(Section):
@@ -150,6 +169,22 @@ class GradeEntry(Section):
     vrw: Raw = F(None, "Accelerometer VRW of the grade.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+
+def _no_pure_ins(v):
+    raise _Problem("", 'an error budget lists the pure INS as a case: cases = ["pure_ins", ...]')
+
+
+_NoPureIns = Annotated[Any, BeforeValidator(_wrap(_no_pure_ins)), Kind("(refused)")]
+
+
+class BudgetFilters(FiltersSection):
+    name: ClassVar[str] = "filters (error_budget)"
+    doc: ClassVar[str] = ("The cases of the budget: filters and \"pure_ins\" (the unaided INS), listed in "
+                          "`cases`; `pure_ins = ...` is refused here.")
+    cases: _BudgetCases | None = F(None, "Cases, each once: filter names and \"pure_ins\" (default: every "
+                                         "filter and the pure INS).")
+    pure_ins: _NoPureIns | None = F(None, "Refused: an error budget lists the pure INS as a case.")
 
 
 def grade_entries(value) -> tuple:
