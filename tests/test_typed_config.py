@@ -117,6 +117,17 @@ def test_a_grade_override_with_a_bad_unit_names_the_grade():
         load_truth(cfg, "s.toml", None, grade=cfg.grade[0])
 
 
+@pytest.mark.parametrize("key, value, match", [
+    ("arw", "1 m", r"^s.toml: \[\[grade\]\] 'y' arw: '1 m' is not an angle random walk"),
+    ("vrw", "1 m", r"^s.toml: \[\[grade\]\] 'y' vrw: '1 m' is not a velocity random walk"),
+    ("vrw", "-1 ug/sqrt(Hz)", r"^s.toml: \[\[grade\]\] 'y' vrw: '-1 ug/sqrt\(Hz\)' is negative"),
+])
+def test_a_grade_arw_or_vrw_is_checked_with_the_grade_named(key, value, match):
+    cfg = load_config(_grid(grade=[{"name": "y", key: value}]), "s.toml")
+    with pytest.raises(StudyFileError, match=match):
+        load_truth(cfg, "s.toml", None, grade=cfg.grade[0])
+
+
 # ---------------------------------------------------------------------------
 # the trade grid varies typed configurations
 # ---------------------------------------------------------------------------
