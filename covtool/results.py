@@ -209,9 +209,11 @@ class ZuptSensitivityResult(StudyResult):
         ``(filter, parameter, metric) -> error [m]`` at the swept scales,
         metric ``"horizontal"`` (CEP) or ``"altitude"`` (PE), last report time.
     fits : dict of (str, str, str) to callable
-        The least-squares fits, ``scale -> error [ft]``.
+        The least-squares fits, ``scale -> error`` in ``length_unit``.
     report_time : float
         [s]
+    length_unit : {"ft", "m"}
+        Unit of the fits and figures (``[output] units``).
     """
 
     scales: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -221,6 +223,7 @@ class ZuptSensitivityResult(StudyResult):
     fits: dict = field(default_factory=dict)
     report_time: float = 0.0
     labels: dict = field(default_factory=dict)
+    length_unit: str = "ft"
     main_figure: ClassVar[str] = "fig8_1_horizontal"
 
 
@@ -325,12 +328,15 @@ class TradeGridResult(StudyResult):
     filters : list of str
     duration : float
         [s]
+    length_unit : {"ft", "m"}
+        Unit of the pivot tables' lengths and the figure (``[output] units``).
     """
 
     nominal: pd.DataFrame | None = None
     grades: list = field(default_factory=list)
     filters: list = field(default_factory=list)
     duration: float = 0.0
+    length_unit: str = "ft"
 
 
 #: study kind -> its result class

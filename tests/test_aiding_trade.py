@@ -82,7 +82,7 @@ def test_aided_path_without_measurements_equals_the_batched_zupt_engine(grids):
     ref = run(d).tables["summary"]
     plan = TradePlan(d, None)
     chunk = plan.chunks[0]
-    S = setup(chunk["decl"])
+    S = setup(chunk["config"], grade=chunk["grade"])
     rec = sorted({int(np.argmin(np.abs(S.t - x))) for x in S.report_times})
     res = trade_cases(S, "B1", chunk["cases"], {"name": "none", "measurement": []}, rec, "test")
     from covtool.analysis.metrics import nav_metrics
@@ -118,17 +118,17 @@ def _with(change):
 @pytest.mark.parametrize("change,match", [
     (lambda d: d["grid"].update(aiding=["none", "gnss"]),
      r"^<study>: \[grid\] aiding: 'gnss' has no \[\[aiding\]\] table \(declared: odo\)"),
-    (lambda d: d["grid"].update(aiding="odo"), r"^<study>: \[grid\] aiding: expected a non-empty list of names"),
-    (lambda d: d["grid"].update(aiding=["odo", "odo"]), r"^<study>: \[grid\] aiding: 'odo' is listed twice"),
+    (lambda d: d["grid"].update(aiding="odo"), r"^<study>: \[grid\] aiding: expected a non-empty list of aiding mix names, got 'odo'"),
+    (lambda d: d["grid"].update(aiding=["odo", "odo"]), r"^<study>: \[grid\] aiding: aiding mix name 'odo' is listed twice"),
     (lambda d: d["grid"].update(aiding=["none"]), r"^<study>: \[\[aiding\]\] 'odo': is not in \[grid\] aiding"),
     (lambda d: d["grid"].pop("aiding"), r"^<study>: \[\[aiding\]\]: declared but not used: list it in \[grid\] aiding"),
     (lambda d: d["aiding"].append({"name": "none", "measurement": ODO["measurement"]}),
      r"^<study>: \[\[aiding\]\] #2 name: 'none' is reserved"),
-    (lambda d: d["aiding"][0].update(measurement=[]), r"^<study>: \[\[aiding\]\] 'odo': needs at least one"),
-    (lambda d: d.update(aiding=ODO), r"^<study>: \[\[aiding\]\]: expected an array of tables"),
+    (lambda d: d["aiding"][0].update(measurement=[]), r"^<study>: \[\[aiding\]\] #1 measurement: Tuple should have at least 1 item"),
+    (lambda d: d.update(aiding=ODO), r"^<study>: \[aiding\]: Input should be a valid tuple"),
     (lambda d: d["aiding"].append(copy.deepcopy(ODO)), r"^<study>: \[\[aiding\]\] #2 name: 'odo' is declared twice"),
     (lambda d: d["aiding"][0]["measurement"][0].update(kind="lidar"),
-     r"^<study>: \[\[aiding\]\] 'odo': \[\[measurement\]\] 'odo' kind: unknown measurement kind 'lidar'"),
+     r"^<study>: \[\[aiding\]\] #1 measurement\.kind #1: 'lidar' is not one of: 'zupt', 'cupt', 'odometer'"),
     (lambda d: d["aiding"][0]["measurement"][0].update(name="zupt"),
      r"^<study>: \[\[aiding\]\] 'odo' \[\[measurement\]\] 'zupt': the name is used twice"),
     (lambda d: d["aiding"][0]["measurement"][1]["schedule"].update(end="10 min"),

@@ -17,7 +17,7 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.analysis.metrics import nav_metrics
 from covtool.units import ARCMIN, FT
 from covtool.studies.inputs import load_truth
-from covtool.studies.trade_grid import TradePlan, grade_truth, run
+from covtool.studies.trade_grid import TradePlan, run
 from covtool.studies.zupt_setup import setup
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -58,7 +58,7 @@ def test_cases_equal_propagate_with_filter(small, grade, interval, filt, q):
     """A trade case equals the stepwise reference run with the same graded truth and scaled Q_f (≤ 1e-9)."""
     d, r = small
     plan = TradePlan(d, None)
-    S = setup(plan.decls[(grade, interval)])
+    S = setup(plan.configs[interval], grade=plan.grade_entries[grade])
     fm, Phi_f, Qd_f = S.filter_model(filt)
     ref = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, q * Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
                                 S.R, S.update_steps, Rf=S.filter_R(filt))
@@ -86,7 +86,8 @@ def test_filter_A_shares_the_truth_system_and_equals_the_optimal_filter():
     d["grade"] = d["grade"][:1]
     r = run(d)
     assert r.provenance["filters_reusing_truth_phi_qd"] == "A"
-    S = setup(TradePlan(d, None).decls[(0, 0)])
+    plan = TradePlan(d, None)
+    S = setup(plan.configs[0], grade=plan.grade_entries[0])
     fm, Phi_f, Qd_f = S.filter_model("A")                     # computed separately here
     ref = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
                                 S.update_steps, Rf=S.filter_R("A"))
@@ -101,7 +102,7 @@ def test_grade_scales_sensor_errors_only():
     d = small_decl()
     base = load_truth(d, "t", None)
     g = {"name": "x", "scale": 7.0, "override": {"gyro_bias_z": {"sigma": "1 deg/h"}}}
-    graded = load_truth({"truth": grade_truth(d["truth"], g, base)}, "t", None)
+    graded = load_truth(d, "t", None, grade=g)
     for s0, s1 in zip(base.states, graded.states):
         if s1.name == "gyro_bias_z":
             np.testing.assert_allclose(s1.sigma, np.radians(1.0) / 3600, rtol=1e-15)

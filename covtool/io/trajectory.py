@@ -9,7 +9,6 @@ with the file, the key and the problem named, before any computation.
 
 from __future__ import annotations
 
-import inspect
 import math
 from pathlib import Path
 
@@ -17,12 +16,12 @@ from covtool.errors import TrajectoryError
 from covtool.io.config import check_keys, integer, quantity, resolve_input
 from covtool.io.trajectory_csv import load_trajectory_csv
 from covtool.nav.trajectory.core import Trajectory, trajectory_fields
-from covtool.nav.trajectory.profiles import land_vehicle, land_vehicle_profile, static_profile
+from covtool.nav.trajectory.profiles import land_vehicle, static_profile
 from covtool.nav.trajectory.segments import (check_position, check_positive, ProfileBuilder, SEGMENT_KINDS,
                                              TRANSITION)
 
 __all__ = [
-    "from_segments", "trajectory_from_config", "BUILTINS",
+    "from_segments", "trajectory_from_config", "builtin_trajectory", "csv_trajectory", "BUILTINS",
 ]
 
 
@@ -201,15 +200,7 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
         max_gap = None
         if "max_gap" in cfg:
             max_gap = trajectory_quantity(cfg["max_gap"], "time", f"{where}: max_gap")
-            check_positive(max_gap, f"{where}: max_gap")
-        # relative to the study file that names it, never the current directory
-        path = resolve_input(cfg["csv"], base_dir, f"{where}: csv", TrajectoryError, must_exist=False)
-        try:
-            traj = load_trajectory_csv(path, max_gap=max_gap)
-        except TrajectoryError as exc:
-            raise TrajectoryError(f"{where}: {exc.where}", exc.problem) from None
-        return traj if not name else Trajectory(**trajectory_fields(traj), stationary=traj.stationary,
-                                                name=name, _source=traj._source)
+        return csv_trajectory(cfg["csv"], where=where, base_dir=base_dir, max_gap=max_gap, name=name)
     builtin = cfg["builtin"]
     if builtin not in BUILTINS:
         raise TrajectoryError(f"{where}: builtin", f"unknown builtin {builtin!r} (one of: "
@@ -227,14 +218,69 @@ def trajectory_from_config(cfg: dict, *, where: str, base_dir: Path | None, dt: 
             params[key] = trajectory_quantity(cfg[key], dim, f"{w}: {key}")
     if "lon" in params and not abs(params["lon"]) <= math.pi:
         raise TrajectoryError(f"{w}: lon", f"{cfg['lon']!r} is not within ±180 deg")
+    return builtin_trajectory(builtin, params, where=w, dt=dt, name=name, duration=duration)
+
+
+def csv_trajectory(csv, *, where: str, base_dir: Path | None, max_gap: float | None = None,
+                   name: str = "") -> Trajectory:
+    """A trajectory read from a CSV file named in a study (:func:`load_trajectory_csv`).
+
+    ``csv`` is relative to ``base_dir`` (the study file's folder, never the
+    current directory); ``max_gap`` [s] is the longest step that may be
+    interpolated; ``name`` relabels it.
+
+    Raises
+    ------
+    TrajectoryError
+        Not a file name, no such file, or a bad file (named with ``where``).
+    """
+    if max_gap is not None:
+        check_positive(max_gap, f"{where}: max_gap")
+    path = resolve_input(csv, base_dir, f"{where}: csv", TrajectoryError, must_exist=False)
+    try:
+        traj = load_trajectory_csv(path, max_gap=max_gap)
+    except TrajectoryError as exc:
+        raise TrajectoryError(f"{where}: {exc.where}", exc.problem) from None
+    return traj if not name else Trajectory(**trajectory_fields(traj), stationary=traj.stationary,
+                                            name=name, _source=traj._source)
+
+
+def builtin_trajectory(builtin: str, params: dict, *, where: str, dt: float, name: str = "",
+                       duration: float | None = None) -> Trajectory:
+    """A built-in profile from its parameters in SI.
+
+    Parameters
+    ----------
+    builtin : {"land_vehicle", "static"}
+        The profile.
+    params : dict
+        Its parameters (:data:`BUILTINS`) in SI.  A study passes every
+        one, its declaration's values and defaults
+        (:class:`covtool.studies.config.LandVehicle`, ``Static``); the route's
+        own keyword defaults (:func:`covtool.nav.trajectory.profiles.land_vehicle`)
+        fill any left out.
+    where : str
+        Location prefix of error messages.
+    dt : float
+        Time step of the profile. [s]
+    duration : float, optional
+        The ``static`` profile's span when ``params`` has no ``duration``
+        (else 30 min). [s]
+
+    Raises
+    ------
+    TrajectoryError
+        A missing position of ``static``, a position off the NED frame's
+        domain, or a route that does not fit (:func:`land_vehicle_profile`).
+    """
     if builtin == "static":
         for key in ("lat", "lon", "h"):
-            if key not in params:
-                raise TrajectoryError(w, f"missing required key {key!r}")
-        return static_profile(w, duration=params.get("duration", 1800.0 if duration is None else duration), lat=params["lat"], lon=params["lon"],
-                       h=params["h"], heading=params.get("heading", 0.0), dt=dt, name=name or "static")
-    defaults = {k: p.default for k, p in inspect.signature(land_vehicle).parameters.items()
-                if k in spec}
-    defaults.update(params)
-    check_position(defaults["lat"], defaults["h"], w)
-    return land_vehicle_profile(w, dt=dt, name=name or "land_vehicle", **defaults)
+            if params.get(key) is None:
+                raise TrajectoryError(where, f"missing required key {key!r}")
+        span = params.get("duration")
+        return static_profile(where, duration=(1800.0 if duration is None else duration) if span is None else span,
+                              lat=params["lat"], lon=params["lon"], h=params["h"],
+                              heading=params.get("heading", 0.0), dt=dt, name=name or "static")
+    if "lat" in params or "h" in params:
+        check_position(params.get("lat", 0.0), params.get("h", 0.0), where)
+    return land_vehicle(dt=dt, name=name or "land_vehicle", where=where, **params)

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool.plotting.style import case_style, coincident_groups, legend_outside, log_limits
-from covtool.units import FT
+from covtool.plotting.style import case_style, coincident_groups, LENGTH, legend_outside, log_limits
 
 
 def fig8_figure(result, metric: str = "horizontal"):
@@ -35,7 +34,7 @@ def fig8_figure(result, metric: str = "horizontal"):
     for ax, p in zip(axes[0], params):
         for k, c in enumerate(result.filters):
             st = case_style(k)
-            y = result.curves[(c, p, metric)] / FT
+            y = result.curves[(c, p, metric)] / LENGTH[result.length_unit]
             ys.append(y)
             ax.plot(result.scales, y, st["marker"], color=st["color"], ms=5, markerfacecolor="none")
             ax.plot(fine, result.fits[(c, p, metric)](fine), color=st["color"], linestyle=st["linestyle"], lw=1.3,
@@ -48,7 +47,7 @@ def fig8_figure(result, metric: str = "horizontal"):
     lim = log_limits(ys, pad=1.2)
     if lim:
         axes[0][0].set_ylim(*lim)
-    axes[0][0].set_ylabel(f"{label} at {result.report_time / 60:g} min [ft]")
+    axes[0][0].set_ylabel(f"{label} at {result.report_time / 60:g} min [{result.length_unit}]")
     from matplotlib.lines import Line2D
     handles = [Line2D([], [], color=case_style(k)["color"], linestyle=case_style(k)["linestyle"],
                       marker=case_style(k)["marker"], markerfacecolor="none", label=c)

@@ -20,6 +20,8 @@ KINDS = ("pure_ins", "zupt_filter_order", "ad_reset", "zupt_sensitivity", "error
          "dual_imu", "magnitude_sweep", "aided")
 #: study kind -> runner module
 RUNNERS = {kind: f"covtool.studies.{kind}" for kind in KINDS}
+#: kinds whose runners parse their own files (covtool.studies.aided, ad_reset_config, dual_imu_config)
+OWN_PARSER = ("aided", "ad_reset", "dual_imu")
 
 
 def load_study(path_or_dict):
@@ -50,10 +52,19 @@ def run_study(path_or_dict, *, progress: bool = False, backend=None, store=None,
     kind = study["kind"]
     if not isinstance(kind, str) or kind not in RUNNERS:
         raise StudyFileError(f"{where}: [study]", f"unknown kind {kind!r} (one of: {', '.join(sorted(RUNNERS))})")
+    # the whole file parsed once into its kind's typed configuration, before any computation:
+    # every section is refused here, one line naming the file, the table and the key.  The kinds in
+    # OWN_PARSER still validate their files with their own parsers (same rules, their messages name a
+    # measurement or a board table their way) before computing anything; they take no configuration yet
+    from covtool.studies.config import load_config
+
+    config = None if kind in OWN_PARSER else load_config(decl, where)
     module = importlib.import_module(RUNNERS[kind])
     accepts = inspect.signature(module.run).parameters
     options = {k: v for k, v in (("backend", backend), ("store", store), ("resume", resume))
                if v not in (None, False) and k in accepts}
+    if "config" in accepts and config is not None:
+        options["config"] = config
     refused = [k for k, v in (("backend", backend), ("resume", resume)) if v not in (None, False) and k not in accepts]
     if refused:
         raise InputError(f"{where}: [study] kind", f"{kind!r} runs in-process in one piece; it takes no "

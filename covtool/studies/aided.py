@@ -230,8 +230,6 @@ def parse_grades(decl: dict, where: str) -> list:
 
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     """Run an aided-navigation study; see the module docstring."""
-    from covtool.studies.trade_grid import grade_truth
-
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
@@ -296,8 +294,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     dt_steps = np.diff(t)
     err = error_processes(states, dt_steps)[:2]
     for g in grades:
-        gdecl = {**decl, "truth": grade_truth(decl.get("truth", {}), g, truth0)} if g["scale"] != 1.0 else decl
-        truth = load_truth(gdecl, where, base_dir) if g["scale"] != 1.0 else truth0
+        truth = load_truth(decl, where, base_dir, grade=g) if g["scale"] != 1.0 else truth0
         ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
         P0 = initial_covariance(truth, nodes, where)
         names_all = list(truth.names) + [s.name for s in states]

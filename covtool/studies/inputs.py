@@ -7,52 +7,72 @@ import os
 from pathlib import Path
 
 from covtool.errors import StudyFileError
-from covtool.io.config import (check_keys, choice, file_sha256, names, quantity, quantity_list,
-                               resolve_input, string, table)
+from covtool.io.config import check_keys, file_sha256, quantity, resolve_input, table
 from covtool.io.library import load_model_by_name
 from covtool.io.names import check_study_name
 from covtool.lincov.model.spec import Model
-from covtool.studies.resources import parse_bytes
 
 __all__ = [
     "study_header", "load_truth",
 ]
 
 
-def study_header(decl: dict, where: str) -> dict:
-    """Validate ``[study]`` (:class:`covtool.studies.config.StudySection`): the header as a dict.
+def study_config(decl, where: str):
+    """The study's typed configuration: ``decl`` itself, or the dict parsed once.
 
-    Keys ``kind``, ``name`` (checked to be a safe file name, default the
-    study file's stem), ``description``, ``duration`` and ``dt`` [s],
-    ``discretization``, ``max_memory`` [bytes] or None.
+    Parameters
+    ----------
+    decl : dict or covtool.studies.config.StudyConfig
+        A study declaration (TOML tables) or its configuration.
+    where : str
+        The study file, for messages.
+
+    Returns
+    -------
+    StudyConfig
+        Of the kind named by ``[study] kind`` (:func:`covtool.studies.config.load_config`).
+
+    Raises
+    ------
+    StudyFileError
+        Naming the file, the table, the key and the problem.
     """
-    from covtool.studies.config import StudySection, parse_section
+    from covtool.studies.config import StudyConfig, load_config
 
-    st = table(decl["study"], f"{where}: [study]", StudyFileError)
-    sec = parse_section(StudySection, st, where, "study")
-    w = f"{where}: [study]"
-    out = {
+    return decl if isinstance(decl, StudyConfig) else load_config(decl, where)
+
+
+def study_header(decl, where: str) -> dict:
+    """``[study]`` (:class:`covtool.studies.config.StudySection`) as a dict.
+
+    ``decl`` is a study declaration (only its ``[study]`` is parsed) or a
+    configuration.  Keys ``kind``, ``name`` (checked to be a safe file
+    name, default the study file's stem), ``description``, ``duration`` and
+    ``dt`` [s], ``discretization``, ``max_memory`` [bytes] or None.
+    """
+    from covtool.studies.config import StudyConfig, StudySection, parse_section
+
+    if isinstance(decl, StudyConfig):
+        sec = decl.study
+    else:
+        sec = parse_section(StudySection, table(decl["study"], f"{where}: [study]", StudyFileError), where, "study")
+    return {
         "kind": sec.kind,
-        "name": check_study_name(st, where, StudyFileError, default=st["kind"]),
+        "name": check_study_name({} if sec.name_ is None else {"name": sec.name_}, where, StudyFileError,
+                                 default=sec.kind),
         "description": sec.description,
         "duration": sec.duration,
         "dt": sec.dt,
         "discretization": sec.discretization,
         "max_memory": sec.max_memory,
     }
-    if out["dt"] > out["duration"] * (1 + 1e-12):
-        raise StudyFileError(f"{w} dt", f"{st.get('dt', '1 s')!r} is longer than the duration "
-                             f"({out['duration']:g} s): one step would hold F constant over the whole study")
-    return out
 
 
-#: the ``[truth]`` keys
-TRUTH_KEYS = ("model", "only", "override", "arw", "vrw", "override_filters")
 #: the keys of one ``[truth.override.<state or block>]`` table
 OVERRIDE_KEYS = ("sigma", "tau", "distance", "rw")
 
 
-def load_truth(decl: dict, where: str, base_dir, *, for_filters: bool = False):
+def load_truth(decl, where: str, base_dir, *, for_filters: bool = False, grade=None):
     """The study's truth model with ``only`` and ``override`` applied.
 
     ``[truth]`` keys: ``model`` (library name, or a path relative to the
@@ -66,15 +86,24 @@ def load_truth(decl: dict, where: str, base_dir, *, for_filters: bool = False):
 
     Parameters
     ----------
+    decl : dict or StudyConfig or TruthSection
+        The declaration (only ``[truth]`` is parsed), its configuration or
+        its ``[truth]`` section.
     for_filters : bool
         Also return the model the filters are built from.
+    grade : GradeEntry or dict, optional
+        An IMU grade (``name``, ``scale``, optional ``override``, ``arw``,
+        ``vrw``; trade grid, aided): every sensor state's σ and random walk
+        and the ARW and VRW × ``grade.scale`` (:func:`graded`), then the
+        grade's own overrides, ARW and VRW; the filters follow the grade.
 
     Returns
     -------
     Model, or (Model, Model) with ``for_filters``
         The truth; with ``for_filters`` also the filters' model: the truth
-        itself with ``override_filters = true``, else the truth model file
-        as declared (with ``only``), without the study's overrides.
+        itself with ``override_filters = true`` or a grade, else the truth
+        model file as declared (with ``only``), without the study's
+        overrides.
 
     Notes
     -----
@@ -97,24 +126,82 @@ def load_truth(decl: dict, where: str, base_dir, *, for_filters: bool = False):
     ModelFileError
         The model file itself is invalid or missing.
     """
-    from covtool.io.config import boolean
+    from covtool.studies.config import StudyConfig, TruthSection, parse_section
+
+    if isinstance(decl, StudyConfig):
+        tr = decl.truth
+    elif isinstance(decl, TruthSection):
+        tr = decl
+    else:
+        tr = parse_section(TruthSection, decl.get("truth", {}), where, "truth")
+    model = load_model_by_name(tr.model, base_dir=base_dir, where=f"{where}: [truth] model")
+    nominal = model
+    model, overridden = apply_overrides(model, tr.override, tr.arw, tr.vrw, f"{where}: [truth.override")
+    follow = tr.override_filters
+    if grade is not None:
+        g = grade if isinstance(grade, dict) else {**grade.model_dump(by_alias=True)}
+        gw = f"{where}: [[grade]] {g['name']!r}"
+        model = graded(model, g["scale"])
+        arw = None if g.get("arw") is None else quantity(g["arw"], "angle_random_walk", f"{gw} arw",
+                                                         StudyFileError, nonnegative=True)
+        vrw = None if g.get("vrw") is None else quantity(g["vrw"], "velocity_random_walk", f"{gw} vrw",
+                                                         StudyFileError, nonnegative=True)
+        model, _ = apply_overrides(model, g.get("override"), arw, vrw, f"{gw} override", state_tables=False)
+        # the designer is assumed to know the grade's IMU: the filters follow the grade
+        overridden, follow = True, True
+    if tr.only is not None:
+        try:
+            model = model.only(tr.only)
+            nominal = nominal.only(tr.only)
+        except KeyError as exc:
+            raise StudyFileError(f"{where}: [truth] only",
+                                 f"unknown state or block {exc.args[0]!r} of truth model {model.name!r}") from None
+    if not for_filters:
+        return model
+    return model, (model if follow or not overridden else nominal)
+
+
+#: truth-model block kinds an IMU grade does not scale (they are not IMU errors)
+UNSCALED_KINDS = ("navigation", "gravity_disturbance")
+
+
+def graded(model: Model, scale: float) -> Model:
+    """The model of another IMU grade: every sensor error × ``scale``.
+
+    Every state's 1σ and random-walk intensity (except the blocks of kind
+    :data:`UNSCALED_KINDS`) and the ARW and VRW are multiplied by
+    ``scale`` [-], in SI.
+    """
+    if scale == 1.0:
+        return model
+    states = [s if s.kind in UNSCALED_KINDS else dataclasses.replace(s, sigma=s.sigma * scale, rw=s.rw * scale)
+              for s in model.states]
+    return model.replace_states(states, arw=model.arw * scale, vrw=model.vrw * scale)
+
+
+def apply_overrides(model: Model, overrides, arw, vrw, table_where: str, *, state_tables: bool = True):
+    """``model`` with per-state or per-block overrides (datasheet units) and ARW/VRW [SI] applied.
+
+    ``overrides`` maps a state or block name to a table of ``sigma``,
+    ``tau``, ``distance`` and ``rw``; block tables apply first, a state's own
+    table wins key by key.  ``table_where`` prefixes the messages
+    (``"s.toml: [truth.override"``, completed as ``.<name>]``; with
+    ``state_tables=False`` as `` <name>``).  Returns ``(model, changed)``.
+    """
     from covtool.io.model_file import _PROCESS_KEYS, _RW_DIM
 
-    tr = table(decl.get("truth", {}), f"{where}: [truth]", StudyFileError)
-    check_keys(tr, set(TRUTH_KEYS), f"{where}: [truth]", StudyFileError)
-    name = tr.get("model", "sdins58")
-    model = load_model_by_name(name, base_dir=base_dir, where=f"{where}: [truth] model")
-    follow = boolean(tr.get("override_filters", False), f"{where}: [truth] override_filters", StudyFileError)
-    nominal = model
+    def wname(nm):
+        return f"{table_where}.{nm}]" if state_tables else f"{table_where} {nm}"
+
     states = list(model.states)
     ix = model.index
     blocks = model.block_names()
-    overrides = table(tr.get("override") or {}, f"{where}: [truth.override]", StudyFileError)
+    overrides = table(overrides or {}, f"{table_where}]" if state_tables else table_where, StudyFileError)
     # block tables first, then state tables on top: a state's own value wins
     per_state: dict[str, dict] = {}
     origin: dict[tuple, str] = {}
     for nm, ov in sorted(overrides.items(), key=lambda kv: kv[0] in ix):
-        w = f"{where}: [truth.override.{nm}]"
+        w = wname(nm)
         if nm in ix:
             targets = [nm]
         elif nm in blocks:
@@ -122,6 +209,7 @@ def load_truth(decl: dict, where: str, base_dir, *, for_filters: bool = False):
         else:
             raise StudyFileError(w, f"unknown state or block {nm!r} of truth model {model.name!r} "
                                  f"(blocks: {', '.join(blocks)})")
+        table(ov, w, StudyFileError)
         check_keys(ov, set(OVERRIDE_KEYS), w, StudyFileError)
         for key in ov:
             for t in targets:
@@ -150,27 +238,11 @@ def load_truth(decl: dict, where: str, base_dir, *, for_filters: bool = False):
             ch["rw"] = quantity(ov["rw"], _RW_DIM.get(s.dimension, s.dimension), f"{origin[(nm, 'rw')]} rw",
                                 StudyFileError, nonnegative=True)
         states[ix[nm]] = dataclasses.replace(s, **ch)
-    changes = {}
-    if "arw" in tr:
-        changes["arw"] = quantity(tr["arw"], "angle_random_walk", f"{where}: [truth] arw", StudyFileError,
-                                  nonnegative=True)
-    if "vrw" in tr:
-        changes["vrw"] = quantity(tr["vrw"], "velocity_random_walk", f"{where}: [truth] vrw", StudyFileError,
-                                  nonnegative=True)
-    overridden = bool(per_state or changes)
-    if overridden:
+    changes = {k: v for k, v in (("arw", arw), ("vrw", vrw)) if v is not None}
+    changed = bool(per_state or changes)
+    if changed:
         model = model.replace_states(states, **changes)
-    if "only" in tr:
-        only = names(tr["only"], f"{where}: [truth] only", StudyFileError, what="state or block name")
-        try:
-            model = model.only(only)
-            nominal = nominal.only(only)
-        except KeyError as exc:
-            raise StudyFileError(f"{where}: [truth] only",
-                                 f"unknown state or block {exc.args[0]!r} of truth model {model.name!r}") from None
-    if not for_filters:
-        return model
-    return model, (model if follow or not overridden else nominal)
+    return model, changed
 
 
 def input_file(label: str, path) -> dict:
@@ -203,27 +275,35 @@ def study_inputs(path, decl: dict, truth: Model | None = None, filter_file=None)
     return rows
 
 
-def report_times(decl_out: dict, where: str, duration: float, parsed=None) -> list[float]:
-    """``[output] report_times`` in seconds, each within the study (default: the end)."""
-    if "report_times" not in decl_out:
-        return [duration]
-    w = f"{where}: [output] report_times"
-    out = list(parsed) if parsed is not None else quantity_list(
-        decl_out["report_times"], "time", w, StudyFileError, limit="report_times", nonnegative=True)
-    for i, (v, x) in enumerate(zip(decl_out["report_times"], out)):
-        if x > duration + 1e-9:
-            raise StudyFileError(f"{w}[{i}]", f"{v!r} is after the end of the study ({duration:g} s)")
-    if len(set(out)) != len(out):
-        raise StudyFileError(w, f"a time is listed twice in {decl_out['report_times']!r}")
-    return out
-
-
 def load_trajectory(decl, where, base_dir, dt, duration=None):
-    """The study's ``[trajectory]``; it must last at least ``duration`` [s] if given."""
-    from covtool.io.trajectory import trajectory_from_config
+    """The study's ``[trajectory]``; it must last at least ``duration`` [s] if given.
 
-    cfg = decl.get("trajectory", {"builtin": "land_vehicle"})
-    traj = trajectory_from_config(cfg, where=f"{where}: [trajectory]", base_dir=base_dir, dt=dt, duration=duration)
+    ``decl`` is a declaration, a configuration or a ``[trajectory]``
+    section (:data:`covtool.studies.config.Trajectory`).  A built-in
+    profile takes every parameter from its declaration
+    (:class:`~covtool.studies.config.LandVehicle`,
+    :class:`~covtool.studies.config.Static`: the one home of the route's
+    defaults); segments and CSV files are read by
+    :mod:`covtool.io.trajectory`.
+    """
+    from covtool.io.trajectory import builtin_trajectory, csv_trajectory, from_segments
+    from covtool.studies.config import CsvTrajectory, LandVehicle, parse_trajectory, Static, StudyConfig
+
+    if isinstance(decl, StudyConfig):
+        sec = decl.trajectory
+    elif isinstance(decl, dict):
+        sec = parse_trajectory(decl.get("trajectory", {"builtin": "land_vehicle"}), where)
+    else:
+        sec = decl
+    w = f"{where}: [trajectory]"
+    if isinstance(sec, (LandVehicle, Static)):
+        params = {k: getattr(sec, k) for k in type(sec).model_fields if k not in ("builtin", "name_")}
+        traj = builtin_trajectory(sec.builtin, params, where=f"{w}: builtin {sec.builtin!r}", dt=dt,
+                                  name=sec.name_ or "", duration=duration)
+    elif isinstance(sec, CsvTrajectory):
+        traj = csv_trajectory(sec.csv, where=w, base_dir=base_dir, max_gap=sec.max_gap, name=sec.name_ or "")
+    else:
+        traj = from_segments(sec.segment, sec.initial, dt=dt, name=sec.name_ or "segments", where=w)
     if duration is not None and traj.t[-1] < duration - 1e-9:
         raise StudyFileError(f"{where}: [study] duration",
                              f"{duration:g} s is longer than the trajectory ({traj.t[-1]:g} s)")
@@ -237,30 +317,50 @@ LENGTH_UNITS = {"ft": 0.3048, "m": 1.0}
 def length_unit(decl, where, default: str = "ft") -> str:
     """``[output] units``: ``"ft"`` (seed 002's unit, the default) or ``"m"``.
 
-    Figures and workbook charts of a study draw every length in this unit;
-    tables keep both.
+    Figures, workbook charts and fitted curves of a study give every
+    length in this unit; tables keep both.  ``decl`` is a declaration or
+    a configuration.
 
     Raises
     ------
     StudyFileError
         Not one of ``"ft"``, ``"m"``.
     """
+    from covtool.studies.config import OutputSection, parse_section, StudyConfig
+
+    if isinstance(decl, StudyConfig):
+        out = getattr(decl, "output", None)
+        return out.units if out is not None else default
     out = decl.get("output", {})
     u = out.get("units", default) if isinstance(out, dict) else default
     if u not in LENGTH_UNITS:
-        raise StudyFileError(f"{where}: [output] units", f"{u!r} is not a length unit for figures "
-                             f"(one of: {', '.join(LENGTH_UNITS)})")
+        parse_section(OutputSection, {"units": u}, where, "output")
     return u
 
 
 def output_options(decl, where, duration):
-    from covtool.studies.config import OutputSection, parse_section
+    """``[output]``: ``(history_every [s], report_times [s])``, the times each within the study.
 
-    out = decl.get("output", {})
-    sec = parse_section(OutputSection, out, where, "output")
-    length_unit(decl, where)
+    ``decl`` is a declaration (only ``[output]`` is parsed) or a configuration.
+
+    Raises
+    ------
+    StudyFileError
+        A bad key or value, a time listed twice or after the end of the study.
+    """
+    from covtool.studies.config import OutputSection, parse_section, StudyConfig
+
+    if isinstance(decl, StudyConfig):
+        sec = decl.output
+    else:
+        out = decl.get("output", {})
+        sec = parse_section(OutputSection, out, where, "output")
+        for i, x in enumerate(sec.report_times or ()):
+            if x > duration + 1e-9:
+                raise StudyFileError(f"{where}: [output] report_times[{i}]",
+                                     f"{out['report_times'][i]!r} is after the end of the study ({duration:g} s)")
     # any spacing is bounded: the history never holds more rows than grid steps
-    return sec.history_every, report_times(out, where, duration, sec.report_times)
+    return sec.history_every, list(sec.report_times) if sec.report_times is not None else [duration]
 
 
 def trajectory_csv_sha256(decl: dict, base_dir) -> str:

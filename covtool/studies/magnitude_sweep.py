@@ -119,11 +119,11 @@ def sweep_options(decl: dict, where: str, truth) -> dict:
     return {"groups": out, "threshold": float(thr)}
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> MagnitudeSweepResult:
+def run(decl: dict, *, path=None, progress: bool = False, config=None) -> MagnitudeSweepResult:
     """Run a magnitude sweep; see the module docstring."""
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
-    S = setup(decl, path=path, progress=progress, extra_sections=("sweep",))
+    S = setup(decl if config is None else config, path=path, progress=progress, extra_sections=("sweep",))
     opts = sweep_options(decl, where, S.truth)
     if "A" not in S.cases:
         raise StudyFileError(f"{where}: [filters] cases", "a magnitude sweep needs filter \"A\" (the optimal "

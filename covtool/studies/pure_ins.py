@@ -32,33 +32,35 @@ import numpy as np
 import pandas as pd
 
 from covtool.analysis.metrics import nav_metrics
-from covtool.errors import StudyFileError
-from covtool.io.config import check_keys
 from covtool.lincov.reference import propagate
 from covtool.lincov.history import CovarianceHistory
 from covtool.plotting.navigation import pure_ins_figure
 from covtool.results import PureInsResult
 from covtool.studies.grid import initial_covariance, time_grid, truth_system
-from covtool.studies.inputs import (length_unit, load_trajectory, load_truth, output_options, study_header,
-                                    study_inputs)
+from covtool.studies.inputs import (length_unit, load_trajectory, load_truth, output_options, study_config,
+                                    study_header, study_inputs)
 from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
                                        steps_of)
 from covtool.studies.tables import case_validity, history_frame, summary_row
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> PureInsResult:
-    """Run a pure-INS covariance study; see the module docstring."""
+def run(decl: dict, *, path=None, progress: bool = False, config=None) -> PureInsResult:
+    """Run a pure-INS covariance study; see the module docstring.
+
+    ``config`` is ``decl`` parsed (:func:`covtool.run_study` passes it);
+    parsed here, once, if not given.
+    """
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
-    check_keys(decl, {"study", "trajectory", "truth", "output"}, where, StudyFileError)
-    hdr = study_header(decl, where)
-    every, rtimes = output_options(decl, where, hdr["duration"])
+    cfg = study_config(decl if config is None else config, where)
+    hdr = study_header(cfg, where)
+    every, rtimes = output_options(cfg, where, hdr["duration"])
     t0 = time.perf_counter()
-    truth = load_truth(decl, where, base_dir)
+    truth = load_truth(cfg, where, base_dir)
     est = check_memory(memory_estimate(steps_of(hdr["duration"], hdr["dt"]), truth.n, histories=[truth.n],
                                        noise=noise_columns(truth)),
                        where, hdr["max_memory"], "a larger [study] dt or a shorter duration")
-    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
+    traj = load_trajectory(cfg, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"])
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
@@ -75,7 +77,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> PureInsResult:
     elapsed = time.perf_counter() - t0
     tables = {"summary": summary, "history": hist, "truth_states": truth.state_table()}
 
-    unit = length_unit(decl, where)
+    unit = length_unit(cfg, where)
     result = PureInsResult(
         name=hdr["name"], kind="pure_ins", tables=tables,
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}},

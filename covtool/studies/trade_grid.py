@@ -62,7 +62,6 @@ differs).
 
 from __future__ import annotations
 
-import copy
 import itertools
 import math
 import os
@@ -76,16 +75,15 @@ import pandas as pd
 
 from covtool.analysis.metrics import first_invalid, nav_metrics
 from covtool.errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
-from covtool.io.config import boolean, check_keys, file_sha256, LIMITS, number, quantity, string, table
+from covtool.io.config import file_sha256, LIMITS
 from covtool.io.filters import load_filters
-from covtool.io.names import check_name
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.trade_grid import trade_figure
 from covtool.results import TradeGridResult
 from covtool.studies.grid import check_step_motion, time_grid
-from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_header, study_inputs,
-                                    trajectory_csv_sha256)
+from covtool.studies.inputs import (load_trajectory, load_truth, study_config, study_header, study_inputs,
+                                    trajectory_csv_sha256, UNSCALED_KINDS)  # noqa: F401  (UNSCALED_KINDS: re-export)
 from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
                                        run_in_chunks, steps_of, store_checks)
 from covtool.studies.tables import summary_row
@@ -94,208 +92,80 @@ from covtool.units import ARCMIN, FT
 from covtool.version import __version__
 
 
-#: truth-model block kinds a grade does not scale (they are not IMU errors)
-UNSCALED_KINDS = ("navigation", "gravity_disturbance")
-
-GRID_KEYS = ("zupt_interval", "zupt_sigma", "p0_scale", "q_scale", "r_scale", "cruise_speed", "aiding")
-GRADE_KEYS = ("name", "scale", "description", "override", "arw", "vrw")
 
 
 # --------------------------------------------------------------------------
 # declaration -> plan (validated in the parent, before any work is sent out)
 # --------------------------------------------------------------------------
 
-from covtool.studies.config import si_text as _si_text   # one home: the typed configurations' dump
+def system_config(cfg, interval_s: float, cruise_speed: float, duration: float, where: str, shown: str):
+    """The ``zupt_filter_order`` configuration of one truth system (one ZUPT interval).
 
+    Varied from the trade grid's configuration by ``model_copy``, in SI:
+    ``[zupt] interval`` is the grid's interval, ``[filters] pure_ins`` is
+    off, and a ``land_vehicle`` route gets ``period`` = interval, the
+    cycles that cover the study and the distance that gives ``[grid]
+    cruise_speed`` (its other parameters as declared, with their declared
+    defaults).
 
-def grade_truth(truth_decl: dict, grade: dict, model) -> dict:
-    """``[truth]`` table of one IMU grade.
-
-    Parameters
-    ----------
-    truth_decl : dict
-        The study's ``[truth]`` table.
-    grade : dict
-        A validated ``[[grade]]`` table (``scale`` a float).
-    model : covtool.lincov.model.spec.Model
-        The study's truth model (with its own overrides applied).
-
-    Returns
-    -------
-    dict
-        A ``[truth]`` table whose ``override`` sets every scaled sensor
-        state explicitly (SI strings that parse back exactly), then the
-        grade's own overrides, ``arw`` and ``vrw``.
+    Raises
+    ------
+    StudyFileError
+        An interval not longer than the stop plus a speed change.
     """
-    from covtool.io.model_file import _RW_DIM
+    from covtool.studies.config import LandVehicle, ZuptFilterOrderConfig
 
-    k = grade["scale"]
-    out = copy.deepcopy(truth_decl)
-    ov = {nm: dict(v) for nm, v in (out.get("override") or {}).items()}
-    if k != 1.0:
-        for s in model.states:
-            if s.kind in UNSCALED_KINDS:
-                continue
-            entry = ov.setdefault(s.name, {})
-            entry["sigma"] = _si_text(s.sigma * k, s.dimension)
-            if s.rw:
-                entry["rw"] = _si_text(s.rw * k, _RW_DIM.get(s.dimension, s.dimension))
-        out["arw"] = _si_text(model.arw * k, "angle_random_walk")
-        out["vrw"] = _si_text(model.vrw * k, "velocity_random_walk")
-    for nm, v in (grade.get("override") or {}).items():
-        ov.setdefault(nm, {}).update(v)
-    if ov:
-        out["override"] = ov
-    # the designer is assumed to know the grade's IMU (module docstring): filters follow the grade
-    out["override_filters"] = True
-    for key in ("arw", "vrw"):
-        if key in grade:
-            out[key] = grade[key]
-    return out
-
-
-def _axis(cfg: dict, key: str, where: str, default, parse):
-    vals = cfg.get(key, default)
-    w = f"{where}: [grid] {key}"
-    if not isinstance(vals, list) or not vals:
-        raise StudyFileError(w, "expected a non-empty list")
-    lim = LIMITS["grid_axis"]
-    if len(vals) > lim.hi:
-        raise StudyFileError(w, f"{len(vals)} values; at most {lim.hi:g} ({lim.reason})")
-    out = [parse(v, f"{w}[{i}]") for i, v in enumerate(vals)]
-    if len(set(out)) != len(out):
-        raise StudyFileError(w, f"repeated values in {vals!r}")
-    return vals, out
-
-
-def _scale(v, w):
-    b = LIMITS["filter_scale"]
-    return number(v, w, StudyFileError, lo=b.lo, hi=b.hi, why=b.reason)
-
-
-def _grades(decl: dict, where: str) -> list[dict]:
-    gs = decl.get("grade", [{"name": "nominal", "scale": 1.0}])
-    if not isinstance(gs, list) or not gs:
-        raise StudyFileError(f"{where}: [[grade]]", "expected an array of tables ([[grade]] name = ..., scale = ...)")
-    lim = LIMITS["grid_axis"]
-    if len(gs) > lim.hi:
-        raise StudyFileError(f"{where}: [[grade]]", f"{len(gs)} grades; at most {lim.hi:g} ({lim.reason})")
-    out, seen = [], set()
-    for i, g in enumerate(gs):
-        w = f"{where}: [[grade]] #{i + 1}"
-        table(g, w, StudyFileError)
-        check_keys(g, set(GRADE_KEYS), w, StudyFileError)
-        if "name" not in g:
-            raise StudyFileError(w, "missing 'name' (a non-empty string)")
-        name = check_name(g["name"], f"{w} name", StudyFileError, what="grade name")
-        if name in seen:
-            raise StudyFileError(f"{w} name", f"grade {name!r} is declared twice")
-        seen.add(name)
-        ov = g.get("override", {})
-        if not isinstance(ov, dict) or not all(isinstance(v, dict) for v in ov.values()):
-            raise StudyFileError(f"{w} override", "expected a table of state tables, e.g. "
-                                 "override = {gyro_bias_z = {sigma = \"1 deg/h\"}}")
-        b = LIMITS["grade_scale"]
-        scale = number(g.get("scale", 1.0), f"{w} scale", StudyFileError, lo=b.lo, hi=b.hi, why=b.reason)
-        out.append({**g, "scale": scale,
-                    "description": string(g.get("description", ""), f"{w} description", StudyFileError)})
-    return out
-
-
-def _lv_default(key):
-    """A land-vehicle route parameter's declared default [SI] (covtool.studies.config.LandVehicle)."""
-    from covtool.studies.config import LandVehicle
-
-    return getattr(LandVehicle(), key)
-
-
-def system_decl(decl: dict, grade_truth_decl: dict, interval: str, interval_s: float, cruise_speed: float,
-                duration: float, where: str) -> dict:
-    """The ``zupt_filter_order``-style declaration of one truth system."""
-    sub = {k: copy.deepcopy(v) for k, v in decl.items() if k in ("trajectory", "filters", "zupt", "output")}
-    st = decl["study"]
-    sub["study"] = {k: st[k] for k in ("name", "description", "duration", "dt", "discretization") if k in st}
-    sub["study"]["kind"] = "zupt_filter_order"
-    sub["truth"] = grade_truth_decl
-    sub.setdefault("filters", {})["pure_ins"] = False
-    sub.setdefault("zupt", {})["interval"] = interval
-    traj = sub.setdefault("trajectory", {"builtin": "land_vehicle"})
-    if traj.get("builtin") == "land_vehicle":
-        w = f"{where}: [trajectory]"
-        stop = quantity(traj.get("stop_duration", f"{_lv_default('stop_duration')} s"), "time", f"{w} stop_duration",
-                        StudyFileError, positive=True)
-        acc = quantity(traj.get("accel_duration", f"{_lv_default('accel_duration')} s"), "time",
-                       f"{w} accel_duration", StudyFileError, positive=True)
+    traj = cfg.trajectory
+    if isinstance(traj, LandVehicle):
+        stop, acc = traj.stop_duration, traj.accel_duration
         cycles = max(1, math.ceil(duration / interval_s - 1e-9))
         drive = interval_s - stop - acc
         if drive <= 0:
-            raise StudyFileError(f"{where}: [grid] zupt_interval {interval!r}",
+            raise StudyFileError(f"{where}: [grid] zupt_interval {shown!r}",
                                  f"shorter than the stop ({stop:g} s) plus a speed change ({acc:g} s)")
-        traj["period"] = interval
-        traj["cycles"] = cycles
-        traj["distance"] = f"{cruise_speed * cycles * drive!r} m"
-    return sub
+        traj = traj.model_copy(update={"period": interval_s, "cycles": cycles,
+                                       "distance": cruise_speed * cycles * drive})
+    return ZuptFilterOrderConfig(
+        study=cfg.study.model_copy(update={"kind": "zupt_filter_order", "max_memory": None}),
+        trajectory=traj, truth=cfg.truth, filters=cfg.filters.model_copy(update={"pure_ins": False}),
+        zupt=cfg.zupt.model_copy(update={"interval": interval_s}), output=cfg.output)
 
 
 class TradePlan:
     """The validated grid: one chunk per truth system, with its cases."""
 
-    def __init__(self, decl: dict, path):
+    def __init__(self, decl, path, config=None):
         self.path = Path(path) if path else None
         where = self.where = str(path) if path else "<study>"
         base_dir = self.path.parent if self.path else None
-        check_keys(decl, {"study", "trajectory", "truth", "filters", "zupt", "output", "grid", "grade", "aiding"},
-                   where, StudyFileError)
-        self.hdr = study_header(decl, where)
-        output_options(decl, where, self.hdr["duration"])
-        grid = decl.get("grid")
-        if not isinstance(grid, dict):
-            raise StudyFileError(where, "missing [grid] table (zupt_interval = [...], ...)")
-        check_keys(grid, set(GRID_KEYS), f"{where}: [grid]", StudyFileError)
-        zc = decl.get("zupt", {})
-        if not isinstance(zc, dict):
-            raise StudyFileError(f"{where}: [zupt]", "expected a table")
-        if "interval" in zc:
-            raise StudyFileError(f"{where}: [zupt] interval", "the ZUPT interval is a grid axis: "
-                                 "give it as [grid] zupt_interval = [...]")
-        traj = decl.get("trajectory", {"builtin": "land_vehicle"})
-        if isinstance(traj, dict) and traj.get("builtin") == "land_vehicle":
-            for key in ("period", "cycles", "distance"):
-                if key in traj:
-                    raise StudyFileError(f"{where}: [trajectory] {key}", "is set per ZUPT interval by the trade "
-                                         "grid (period = interval; distance from [grid] cruise_speed)")
-        self.interval_text, self.intervals = _axis(
-            grid, "zupt_interval", where, None,
-            lambda v, w: quantity(v, "time", w, StudyFileError, positive=True))
-        nominal_sigma = quantity(zc.get("sigma", "0.01 ft/s"), "velocity", f"{where}: [zupt] sigma",
-                                 StudyFileError, positive=True)
-        _, self.sigmas = _axis(grid, "zupt_sigma", where, [zc.get("sigma", "0.01 ft/s")],
-                               lambda v, w: quantity(v, "velocity", w, StudyFileError, positive=True))
-        self.nominal_sigma = nominal_sigma if nominal_sigma in self.sigmas else self.sigmas[0]
-        self.p0_scales = _axis(grid, "p0_scale", where, [1.0], _scale)[1]
-        self.q_scales = _axis(grid, "q_scale", where, [1.0], _scale)[1]
-        self.r_scales = _axis(grid, "r_scale", where, [1.0], _scale)[1]
-        self.cruise_speed = quantity(grid.get("cruise_speed", "45 km/h"), "velocity",
-                                     f"{where}: [grid] cruise_speed", StudyFileError, positive=True)
-        self.grades = _grades(decl, where)
+        # parsed once (or given by run_study); every chunk's configuration is varied from it
+        cfg = self.config = config if config is not None else study_config(decl, where)
+        self.hdr = study_header(cfg, where)
+        raw_grid = decl.get("grid", {}) if isinstance(decl, dict) else {}
+        self.intervals = list(cfg.grid.zupt_interval)
+        self.interval_text = list(raw_grid.get("zupt_interval") or [f"{s / 60:g} min" for s in self.intervals])
+        self.sigmas = list(cfg.grid.zupt_sigma or (cfg.zupt.sigma,))
+        self.nominal_sigma = cfg.zupt.sigma if cfg.zupt.sigma in self.sigmas else self.sigmas[0]
+        self.p0_scales, self.q_scales, self.r_scales = (list(cfg.grid.p0_scale), list(cfg.grid.q_scale),
+                                                        list(cfg.grid.r_scale))
+        self.cruise_speed = cfg.grid.cruise_speed
+        self.grade_entries = cfg.grade
+        self.grades = [{"name": g.name_, "scale": g.scale, "description": g.description, "override": g.override,
+                        **{k: v for k, v in (("arw", g.arw), ("vrw", g.vrw)) if v is not None}} for g in cfg.grade]
         # the aiding mix axis (issue 15): measurements added to the ZUPTs; absent, the grid is ZUPT-only as before
         from covtool.studies.aided import aiding_problem, parse_aiding
-        self.aiding_axis = "aiding" in grid
-        if not self.aiding_axis and "aiding" in decl:
+        self.aiding_axis = "aiding" in raw_grid
+        if not self.aiding_axis and isinstance(decl, dict) and "aiding" in decl:
             raise StudyFileError(f"{where}: [[aiding]]", "declared but not used: list it in [grid] aiding")
-        self.aidings = parse_aiding(decl, grid["aiding"], where) if self.aiding_axis else [{"name": None,
-                                                                                             "measurement": []}]
+        self.aidings = parse_aiding(decl, raw_grid["aiding"], where) if self.aiding_axis else [{"name": None,
+                                                                                                 "measurement": []}]
 
         # truth model, filters, grades: validated here so that workers never fail on input
-        truth = load_truth(decl, where, base_dir)
+        truth = load_truth(cfg, where, base_dir)
         self.truth_sha256 = truth.sha256
-        fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
-        check_keys(fcfg, {"file", "cases", "pure_ins"}, f"{where}: [filters]", StudyFileError)
-        if "pure_ins" in fcfg:
-            boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
-        self.filter_file = filters_file(fcfg, where, base_dir)
+        self.filter_file = filters_file(cfg.filters, where, base_dir)
         specs = load_filters(self.filter_file, truth)
-        self.filters = filter_cases(fcfg, specs, self.filter_file, where, nonempty=True)
+        self.filters = filter_cases(cfg.filters, specs, self.filter_file, where, nonempty=True)
         self.states = {c: specs[c].n for c in self.filters}
         n_cases = len(self.grades) * len(self.intervals) * len(self.filters) * len(self.sigmas) * \
             len(self.p0_scales) * len(self.q_scales) * len(self.r_scales) * len(self.aidings)
@@ -306,36 +176,28 @@ class TradePlan:
         self.n_truth = truth.n
         self.dynamics = filter_dynamics(specs, self.filters)
         self.truth_decl = truth
-        self.grade_truth = []
-        for g in self.grades:
-            td = grade_truth(decl.get("truth", {}), g, truth)
-            try:
-                load_truth({"truth": td}, where, base_dir)
-            except InputError as exc:
-                raise StudyFileError(f"{where}: [[grade]] {g['name']!r}", str(exc)) from None
-            self.grade_truth.append(td)
+        for g in self.grade_entries:
+            load_truth(cfg, where, base_dir, grade=g)
 
         # one trajectory and ZUPT schedule per interval (cheap; the Φ, Q_d are built by the workers)
         t = time_grid(self.hdr["duration"], self.hdr["dt"])
-        self.decls = {}
+        self.configs = {}
         self.updates = {}
         for ii, (text, s) in enumerate(zip(self.interval_text, self.intervals)):
-            sub = system_decl(decl, self.grade_truth[0], text, s, self.cruise_speed, self.hdr["duration"], where)
+            sub = system_config(cfg, s, self.cruise_speed, self.hdr["duration"], where, text)
             try:
                 tr = load_trajectory(sub, where, base_dir, self.hdr["dt"])
                 if tr.t[-1] < self.hdr["duration"] - 1e-9:
                     raise StudyFileError(f"{where}: [study] duration",
                                          f"{self.hdr['duration']:g} s is longer than the trajectory ({tr.t[-1]:g} s)")
-                self.updates[text] = len(zupt_schedule(sub["zupt"], where, t, tr)[0])
+                self.updates[text] = len(zupt_schedule(sub.zupt, where, t, tr)[0])
             except InputError as exc:
                 raise StudyFileError(f"{where}: [grid] zupt_interval = {text!r}", str(exc)) from None
             check_step_motion(tr, t, where)
             for a in self.aidings:
                 if a["measurement"]:
                     aiding_problem(a, t, tr.sample(t), f"{where}: [grid] zupt_interval = {text!r}")
-            for gi, g in enumerate(self.grades):
-                self.decls[(gi, ii)] = system_decl(decl, self.grade_truth[gi], text, s, self.cruise_speed,
-                                                   self.hdr["duration"], where)
+            self.configs[ii] = sub
 
         # cases, in the order grade, interval, filter, zupt_sigma, p0, q, r
         self.chunks = []
@@ -356,7 +218,7 @@ class TradePlan:
                         n += 1
                     # the store key names the aiding mix: a resumed grid never mixes two mixes' chunks
                     self.chunks.append({"key": f"g{gi:02d}-i{ii:02d}" + (f"-a{ai:02d}" if self.aiding_axis else ""),
-                                        "decl": self.decls[(gi, ii)], "aiding": aid,
+                                        "config": self.configs[ii], "grade": self.grade_entries[gi], "aiding": aid,
                                         "path": str(self.path) if self.path else None, "cases": cases})
         self.n_cases = n
 
@@ -401,7 +263,8 @@ def compute_chunk(task: dict) -> dict:
     Parameters
     ----------
     task : dict
-        ``decl`` (the system's ``zupt_filter_order`` declaration), ``path``
+        ``config`` (the system's ``zupt_filter_order`` configuration),
+        ``grade`` (its IMU grade, applied to the truth), ``path``
         (the study file, for relative paths) and ``cases`` (dicts with
         ``case``, ``filter``, ``_sigma`` [m/s], ``P0 scale``, ``Q scale``,
         ``R scale``).
@@ -418,7 +281,7 @@ def compute_chunk(task: dict) -> dict:
     """
     t0 = time.perf_counter()
     path = Path(task["path"]) if task.get("path") else None
-    S = setup(task["decl"], path=path)
+    S = setup(task["config"], path=path, grade=task["grade"])
     t = S.t
     rec = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
     ev = events(t.size - 1, S.update_steps, rec)
@@ -485,7 +348,7 @@ def compute_chunk(task: dict) -> dict:
 # --------------------------------------------------------------------------
 
 def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=None,
-        resume: bool = False) -> TradeGridResult:
+        resume: bool = False, config=None) -> TradeGridResult:
     """Run a trade grid; see the module docstring.
 
     Parameters
@@ -504,9 +367,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         chunk).  Without it results are kept in memory only.
     resume : bool
         Reuse the chunks already in ``store`` (an interrupted run).
+    config : TradeGridConfig, optional
+        ``decl`` parsed (by :func:`covtool.run_study`); parsed here if not given.
     """
     t_start = time.perf_counter()
-    plan = TradePlan(decl, path)
+    plan = TradePlan(decl, path, config)
     est = check_memory(plan.memory(_local_workers(backend)), plan.where, plan.hdr["max_memory"],
                        "a larger [study] dt, a shorter duration, fewer [grid] values per interval or fewer "
                        "--workers")
@@ -517,7 +382,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     elapsed = time.perf_counter() - t_start
     summary = pd.DataFrame([row for res in results for row in res["rows"]])
     _warn(summary)
-    tables = {"summary": summary, **pivot_tables(summary, plan), "grades": _grade_table(plan),
+    unit = plan.config.output.units
+    tables = {"summary": summary, **pivot_tables(summary, plan, unit), "grades": _grade_table(plan),
               "grid": _grid_table(plan)}
     timing = pd.DataFrame([{"chunk": c["key"], **res["timing"]} for c, res in zip(plan.chunks, results)])
     provenance = {**study_inputs(path, decl, plan.truth_decl, plan.filter_file), **resource_provenance(est),
@@ -535,7 +401,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         resolved={**decl, "study": {**decl["study"], "name": plan.hdr["name"]}}, provenance=provenance,
         data={"plan": plan, "stats": stats, "timing": timing},
         nominal=nominal(summary, plan), grades=[{"name": g["name"], "scale": g["scale"]} for g in plan.grades],
-        filters=list(plan.filters), duration=plan.hdr["duration"])
+        filters=list(plan.filters), duration=plan.hdr["duration"], length_unit=unit)
     result.figures = {"trade_grid": partial(trade_figure, result)}
     if plan.aiding_axis:                   # one figure per aiding mix (the figure's lines run over the intervals)
         import dataclasses
@@ -615,26 +481,29 @@ def nominal(summary: pd.DataFrame, plan: TradePlan) -> pd.DataFrame:
     return summary[sel]
 
 
-def pivot_tables(summary: pd.DataFrame, plan: TradePlan) -> dict:
+def pivot_tables(summary: pd.DataFrame, plan: TradePlan, unit: str = "ft") -> dict:
     """Pivot tables (grade × interval by filter) and tuning spread.
 
     The pivots hold the nominal cases; ``tuning_spread`` gives each
-    filter's CEP range over every ZUPT σ and tuning of the grid.
+    filter's CEP range over every ZUPT σ and tuning of the grid.  Lengths
+    in ``unit`` (``[output] units``: ``"ft"`` or ``"m"``; the summary
+    keeps both).
     """
     nom = nominal(summary, plan)
     out = {}
-    for name, col in (("pivot_cep", "CEP [ft]"), ("pivot_alt_pe", "alt PE [ft]"),
+    cep = f"CEP [{unit}]"
+    for name, col in (("pivot_cep", cep), ("pivot_alt_pe", f"alt PE [{unit}]"),
                       ("pivot_azimuth", "azimuth 1sigma [arcmin]")):
         pv = nom.pivot_table(index=_pivot_index(plan), columns="filter", values=col, sort=False)
         pv = pv[plan.filters]
         pv.columns = [f"{f} {col}" for f in pv.columns]
         out[name] = pv.reset_index()
     last = summary[summary["t [min]"] == summary["t [min]"].max()]
-    g = last.groupby(_pivot_index(plan) + ["filter"], sort=False)["CEP [ft]"]
-    spread = pd.DataFrame({"CEP min [ft]": g.min(), "CEP max [ft]": g.max()})
-    spread = spread.join(nom.set_index(_pivot_index(plan) + ["filter"])["CEP [ft]"].rename(
-        "CEP nominal [ft]"))
-    spread["max/min [x]"] = spread["CEP max [ft]"] / spread["CEP min [ft]"]
+    g = last.groupby(_pivot_index(plan) + ["filter"], sort=False)[cep]
+    spread = pd.DataFrame({f"CEP min [{unit}]": g.min(), f"CEP max [{unit}]": g.max()})
+    spread = spread.join(nom.set_index(_pivot_index(plan) + ["filter"])[cep].rename(
+        f"CEP nominal [{unit}]"))
+    spread["max/min [x]"] = spread[f"CEP max [{unit}]"] / spread[f"CEP min [{unit}]"]
     out["tuning_spread"] = spread.reset_index()
     return out
 

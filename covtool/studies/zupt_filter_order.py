@@ -53,12 +53,12 @@ from covtool.studies.zupt_setup import order_memory, setup, ZuptSetup
 from covtool.units import ARCMIN, FT, si_unit
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResult:
+def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFilterOrderResult:
     """Run the filter-order trade; see the module docstring."""
     t_start = time.perf_counter()
     pure = (decl.get("filters") or {}).get("pure_ins", True) if isinstance(decl.get("filters", {}), dict) else True
     imp = decl.get("impact")
-    S = setup(decl, path=path, progress=progress, extra_sections=("impact",),
+    S = setup(decl if config is None else config, path=path, progress=progress, extra_sections=("impact",),
               memory=order_memory(pure is not False, not (isinstance(imp, dict) and imp.get("filters") == [])))
     imp_filters = impact_filters(decl, S)
     hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth

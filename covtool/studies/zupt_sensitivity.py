@@ -76,7 +76,7 @@ from covtool.lincov.batch import events, System
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.sensitivity import fig8_figure
 from covtool.results import ZuptSensitivityResult
-from covtool.studies.inputs import study_inputs
+from covtool.studies.inputs import length_unit, LENGTH_UNITS, study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
@@ -152,7 +152,7 @@ def _memory(steps, truth, filters, dynamics):
     return memory_estimate(steps, truth.n, filters=filters, dynamics=dynamics, noise=noise_columns(truth))
 
 
-def run(decl: dict, *, path=None, progress: bool = False) -> ZuptSensitivityResult:
+def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSensitivityResult:
     """Run the sensitivity / compute-cost trade (module docstring)."""
     t_start, c_start = time.perf_counter(), time.process_time()
     where = str(path) if path else "<study>"
@@ -162,7 +162,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptSensitivityResu
         raise StudyFileError(f"{where}: [filters] pure_ins", "not used by a zupt_sensitivity study; remove it")
     timing = {}
     tic = time.perf_counter()
-    S = setup(decl, path=path, progress=progress, extra_sections=("sweep", "cost"), memory=_memory)
+    S = setup(decl if config is None else config, path=path, progress=progress, extra_sections=("sweep", "cost"),
+              memory=_memory)
     timing["setup (trajectory, truth Phi/Qd)"] = time.perf_counter() - tic
     for k in co["paper_seconds"]:
         if k not in S.specs:
@@ -217,14 +218,16 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptSensitivityResu
     tic = time.perf_counter()
     rt = [t[k] for k in rec]
     _warn(cases, results, statuses, rt)
-    sweep_df, fits = _sweep_table(S, cases, results, fmodels, rt, sw["fit_degree"], statuses)
-    fits_df = _fits_table(fits, sw["fit_degree"])
+    # [output] units: the fits, their table and the Fig 8 sheets and figures in the chosen length unit
+    unit = length_unit(decl if config is None else config, where)
+    sweep_df, fits = _sweep_table(S, cases, results, fmodels, rt, sw["fit_degree"], statuses, unit)
+    fits_df = _fits_table(fits, sw["fit_degree"], unit)
     sens_df = _sensitivity_table(cases, results, fits, fmodels)
     ratio_df = _ratio_table(sens_df, fmodels)
     cost_df, scaling_df = _cost_tables(cost_rows)
     summary = _summary(S, cases, results, fmodels, sens_df, cost_df, rt, statuses)
     fine = scale_grid(cases.scales[0], cases.scales[-1], 2 * sw["per_decade"])
-    chart_sheets, charts = _chart_sheets(cases, results, fits, fine)
+    chart_sheets, charts = _chart_sheets(cases, results, fits, fine, unit)
     timing["tables and fits"] = time.perf_counter() - tic
     elapsed = time.perf_counter() - t_start
 
@@ -239,7 +242,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptSensitivityResu
         "filter_discretization": sw["discretization"],
         "filters_reusing_truth_phi_qd": ", ".join(c for c, r in reused.items() if r) or "none",
         "sweep_scales": ", ".join(f"{s:.6g}" for s in cases.scales), "batched_cases_per_filter": B,
-        "fit_model": f"log10(error [ft]) = sum_k c_k log10(scale)^k, k = 0..{sw['fit_degree']}, least squares",
+        "fit_model": f"log10(error [{unit}]) = sum_k c_k log10(scale)^k, k = 0..{sw['fit_degree']}, least squares",
         "sensitivity_definition": "max(e(s_max), e(s_min)) / e(1) - 1 at the last report time",
         "blas_threads": 1, "sweep_seconds": f"{t_sweep:.2f}", "sweep_cpu_seconds": f"{c_sweep:.2f}",
         "compute_seconds": f"{elapsed:.2f}",
@@ -255,7 +258,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptSensitivityResu
         scales=np.asarray(cases.scales), parameters=list(cases.parameters), filters=list(results),
         curves={(c, p, m): _curve(cases, results, c, p, m) for c in results for p in cases.parameters
                 for m in METRICS},
-        fits=fits, report_time=rt[-1],
+        fits=fits, report_time=rt[-1], length_unit=unit,
         labels={"metrics": {m: v[0] for m, v in METRICS.items()}, "params": dict(PARAM_LABEL)})
     result.figures = {"fig8_1_horizontal": partial(fig8_figure, result, "horizontal"),
                       "fig8_2_altitude": partial(fig8_figure, result, "altitude")}
@@ -289,15 +292,16 @@ def _fit(scales, err, degree):
     return fit_loglog(scales[ok], err[ok], degree)
 
 
-def _sweep_table(S, cases, results, fmodels, rt, degree, statuses):
+def _sweep_table(S, cases, results, fmodels, rt, degree, statuses, unit="ft"):
     rows, fits = [], {}
+    lu = LENGTH_UNITS[unit]
     last = len(rt) - 1
     for c, (mt, mf) in results.items():
         first = [first_invalid({k: v[b] for k, v in mt.items()}, rt) for b in range(cases.n_cases)]
         for i, p in enumerate(cases.parameters):
             idx = cases.index[i]
             for metric in METRICS:
-                fits[(c, p, metric)] = _fit(cases.scales, _curve(cases, results, c, p, metric) / FT, degree)
+                fits[(c, p, metric)] = _fit(cases.scales, _curve(cases, results, c, p, metric) / lu, degree)
             for j, tr in enumerate(rt):
                 for s, b in zip(cases.scales, idx):
                     row = {"filter": c, "states [-]": fmodels[c].spec.n, "parameter": p, "scale [-]": s,
@@ -311,19 +315,19 @@ def _sweep_table(S, cases, results, fmodels, rt, degree, statuses):
                            "filter-claimed horizontal RMS [ft]": mf["sigma_horizontal"][b, j] / FT,
                            "filter-claimed altitude RMS [ft]": mf["sigma_down"][b, j] / FT}
                     for metric, (label, _) in METRICS.items():
-                        row[f"fitted {label} [ft]"] = float(fits[(c, p, metric)](s)) if j == last else np.nan
+                        row[f"fitted {label} [{unit}]"] = float(fits[(c, p, metric)](s)) if j == last else np.nan
                     row["validity"] = validity_text(first[b], until=tr)
                     row["status"] = statuses[c][b] or "ok"
                     rows.append(row)
     return pd.DataFrame(rows), fits
 
 
-def _fits_table(fits, degree):
+def _fits_table(fits, degree, unit="ft"):
     rows = []
     for (c, p, metric), f in fits.items():
         row = {"filter": c, "parameter": p, "metric": METRICS[metric][0], "degree [-]": f.degree}
         for k in range(degree + 1):
-            row[f"c{k} [log10 ft]" if k == 0 else f"c{k} [-]"] = f.coef[k] if k < f.coef.size else 0.0
+            row[f"c{k} [log10 {unit}]" if k == 0 else f"c{k} [-]"] = f.coef[k] if k < f.coef.size else 0.0
         row.update({"residual RMS [dex]": f.resid_rms, "residual RMS [%]": 100 * np.log(10) * f.resid_rms,
                     "max |residual| [dex]": f.max_abs_resid, "R2 [-]": f.r2})
         rows.append(row)
@@ -480,7 +484,7 @@ def _summary(S, cases, results, fmodels, sens, cost_df, rt, statuses):
     return pd.DataFrame(rows)
 
 
-def _chart_sheets(cases, results, fits, fine):
+def _chart_sheets(cases, results, fits, fine, unit="ft"):
     """Wide sheets and specs for the native Fig 8 charts (log-log, as the PNGs).
 
     The fitted curves fill a grid twice as fine (``scale [-]``); the swept
@@ -490,6 +494,7 @@ def _chart_sheets(cases, results, fits, fine):
     """
     sheets, charts = {}, []
     n = len(cases.scales)
+    lu = LENGTH_UNITS[unit]
 
     def pad(v):
         out = np.full(fine.size, np.nan)
@@ -502,17 +507,17 @@ def _chart_sheets(cases, results, fits, fine):
         df = pd.DataFrame({"scale [-]": fine, "swept scale [-]": pad(cases.scales)})
         for p in cases.parameters:
             for c in results:
-                df[f"{p} {c} swept [ft]"] = pad(_curve(cases, results, c, p, metric) / FT)
-                df[f"{p} {c} fit [ft]"] = fits[(c, p, metric)](fine)
+                df[f"{p} {c} swept [{unit}]"] = pad(_curve(cases, results, c, p, metric) / lu)
+                df[f"{p} {c} fit [{unit}]"] = fits[(c, p, metric)](fine)
         sheets[name] = df
         for k, p in enumerate(cases.parameters):
-            ys = [f"{p} {c} {kind} [ft]" for c in results for kind in ("swept", "fit")]
-            series = {f"{p} {c} swept [ft]": {"x": "swept scale [-]", "rows": n, "marker": "circle", "line": False}
+            ys = [f"{p} {c} {kind} [{unit}]" for c in results for kind in ("swept", "fit")]
+            series = {f"{p} {c} swept [{unit}]": {"x": "swept scale [-]", "rows": n, "marker": "circle", "line": False}
                       for c in results}
             charts.append({"sheet": name, "x": "scale [-]", "y": ys, "log_x": True, "log_y": True,
                            "series": series,
                            "title": f"Fig 8.{num} ({PARAM_LABEL[p]}): {label} vs scale (points: swept, "
                                     f"lines: fit)",
-                           "x_title": f"{PARAM_LABEL[p]} scale [-]", "y_title": f"{label} [ft]",
+                           "x_title": f"{PARAM_LABEL[p]} scale [-]", "y_title": f"{label} [{unit}]",
                            "anchor": f"A{fine.size + 4 + 20 * k}"})
     return sheets, charts

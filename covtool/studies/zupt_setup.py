@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from covtool.errors import StudyFileError
-from covtool.io.config import boolean, check_keys, is_library_name, names, quantity, resolve_input, table
+from covtool.io.config import is_library_name, names, resolve_input
 from covtool.io.filters import default_filter_file, load_filters
 from covtool.lincov.dynamics import Context, dyn_key, error_dynamics, ErrorDynamics
 from covtool.lincov.model.spec import Model
@@ -25,12 +25,14 @@ from covtool.nav.trajectory.core import Trajectory
 from covtool.lincov.kalman import check_system
 from covtool.lincov.reduced import build_filter, zupt_matrices
 from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
-from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header
+from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_config, study_header
 from covtool.studies.resources import check_memory, memory_estimate, noise_columns, steps_of
 
 
-def zupt_options(cfg: dict, where: str, dt: float, duration: float) -> dict:
+def zupt_options(cfg, where: str, dt: float, duration: float) -> dict:
     """Validate ``[zupt]`` against the grid step ``dt`` and the study ``duration`` [s].
+
+    ``cfg`` is the ``[zupt]`` table or its :class:`~covtool.studies.config.ZuptSection`.
 
     Raises
     ------
@@ -45,7 +47,7 @@ def zupt_options(cfg: dict, where: str, dt: float, duration: float) -> dict:
     w = f"{where}: [zupt]"
     # σ = 0 makes S = H P_f Hᵀ + R of eq (7) singular once P_f's velocity block is (a previous
     # exact ZUPT leaves it zero): the gain is undefined, so the noise must be positive (declared so)
-    z = parse_section(ZuptSection, cfg, where, "zupt")
+    z = cfg if isinstance(cfg, ZuptSection) else parse_section(ZuptSection, cfg, where, "zupt")
     o = {"interval": z.interval, "duration": z.duration, "rate": z.rate, "sigma": z.sigma,
          "first": z.interval if z.first is None else z.first}
     if o["duration"] >= o["interval"]:
@@ -71,7 +73,7 @@ def zupt_update_count(o: dict, duration: float) -> int:
     return windows * (int(np.floor(o["duration"] * o["rate"] + 1e-9)) + 1)
 
 
-def zupt_schedule(cfg: dict, where: str, t: np.ndarray, traj) -> tuple[np.ndarray, float, float]:
+def zupt_schedule(cfg, where: str, t: np.ndarray, traj) -> tuple[np.ndarray, float, float]:
     """Grid indices of the ZUPT updates, the interval Δt_s and R's σ.
 
     Raises
@@ -120,10 +122,10 @@ def filters_file(cfg, where, base_dir) -> tuple[Path, ...]:
         Not a string or a non-empty list of strings, a file named twice, or
         no such file.
     """
-    if "file" not in cfg:
+    value = cfg.get("file") if isinstance(cfg, dict) else cfg.file
+    if value is None:
         return (default_filter_file(),)
     w = f"{where}: [filters] file"
-    value = cfg["file"]
     many = isinstance(value, list)
     if many and not value:
         raise StudyFileError(w, "expected a filter file or a non-empty list of filter files, got []")
@@ -146,14 +148,16 @@ def filters_file(cfg, where, base_dir) -> tuple[Path, ...]:
     return tuple(out)
 
 
-def filter_cases(fcfg: dict, specs: dict, ffile, where: str, *, nonempty: bool = False) -> list:
+def filter_cases(fcfg, specs: dict, ffile, where: str, *, nonempty: bool = False) -> list:
     """``[filters] cases``: declared filter names, each once (default: every filter).
 
-    An empty list is allowed unless ``nonempty`` (a pure-INS-only run).
+    ``fcfg`` is the ``[filters]`` table or its section.  An empty list is
+    allowed unless ``nonempty`` (a pure-INS-only run).
     """
-    if "cases" not in fcfg:
+    cases = fcfg.get("cases") if isinstance(fcfg, dict) else fcfg.cases
+    if cases is None:
         return list(specs)
-    return names(fcfg["cases"], f"{where}: [filters] cases", StudyFileError, known=list(specs), nonempty=nonempty,
+    return names(list(cases), f"{where}: [filters] cases", StudyFileError, known=list(specs), nonempty=nonempty,
                  what="filter")
 
 
@@ -283,12 +287,19 @@ class ZuptSetup:
         return np.eye(3) * (zs if zs is not None else self.zupt_sigma) ** 2
 
 
-def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), memory=None,
-          shrink: str = "a larger [study] dt, a shorter duration or fewer [filters] cases") -> ZuptSetup:
+def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=None,
+          shrink: str = "a larger [study] dt, a shorter duration or fewer [filters] cases", grade=None) -> ZuptSetup:
     """Validate a ZUPT study declaration and build the shared truth system.
 
     Parameters
     ----------
+    decl : dict or covtool.studies.config.ZuptStudyConfig
+        The declaration (parsed here, once, into its kind's configuration)
+        or the configuration itself (the trade grid varies one by
+        ``model_copy``).
+    extra_sections : tuple of str
+        Unused: the kind's configuration declares its sections (kept for
+        callers).
     memory : callable, optional
         ``memory(steps, truth, filter_sizes, dynamics) -> dict`` from
         :func:`covtool.studies.resources.memory_estimate`: what the calling
@@ -297,38 +308,33 @@ def setup(decl: dict, *, path=None, progress: bool = False, extra_sections=(), m
         that was checked as a whole).
     shrink : str
         The options that shrink the study, for the refusal message.
+    grade : covtool.studies.config.GradeEntry, optional
+        An IMU grade applied to the truth (:func:`covtool.studies.inputs.load_truth`).
     """
     where = str(path) if path else "<study>"
     base_dir = path.parent if path else None
-    check_keys(decl, {"study", "trajectory", "truth", "filters", "zupt", "output", *extra_sections}, where,
-               StudyFileError)
-    hdr = study_header(decl, where)
-    every, rtimes = output_options(decl, where, hdr["duration"])
-    fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
-    check_keys(fcfg, {"file", "cases", "pure_ins"}, f"{where}: [filters]", StudyFileError)
-    if "pure_ins" in fcfg:
-        boolean(fcfg["pure_ins"], f"{where}: [filters] pure_ins", StudyFileError)
-    zupt_options(table(decl.get("zupt", {}), f"{where}: [zupt]", StudyFileError), where, hdr["dt"],
-                 hdr["duration"])
-    truth, ftruth = load_truth(decl, where, base_dir, for_filters=True)
-    ffile = filters_file(fcfg, where, base_dir)
+    cfg = study_config(decl, where)
+    hdr = study_header(cfg, where)
+    every, rtimes = output_options(cfg, where, hdr["duration"])
+    zupt_options(cfg.zupt, where, hdr["dt"], hdr["duration"])
+    truth, ftruth = load_truth(cfg, where, base_dir, for_filters=True, grade=grade)
+    ffile = filters_file(cfg.filters, where, base_dir)
     specs = load_filters(ffile, truth)
-    cases = filter_cases(fcfg, specs, ffile, where)
+    cases = filter_cases(cfg.filters, specs, ffile, where)
     est = {}
     if memory is not None:
         steps = steps_of(hdr["duration"], hdr["dt"])
         kw = {}
         if getattr(memory, "records", False):
-            zo = zupt_options(table(decl.get("zupt", {}), f"{where}: [zupt]", StudyFileError), where, hdr["dt"],
-                              hdr["duration"])
+            zo = zupt_options(cfg.zupt, where, hdr["dt"], hdr["duration"])
             kw = dict(zip(("records", "intervals"), history_records(
                 steps, hdr["dt"], every, rtimes, zupt_update_count(zo, hdr["duration"]))))
             kw["shared"] = sum(1 for c in cases if truth_copy(specs[c], truth, ftruth))
         est = check_memory(memory(steps, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases), **kw),
                            where, hdr["max_memory"], shrink)
-    traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
+    traj = load_trajectory(cfg, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"], where)
-    upd, dt_s, zsig = zupt_schedule(decl.get("zupt", {}), where, t, traj)
+    upd, dt_s, zsig = zupt_schedule(cfg.zupt, where, t, traj)
     ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
     nodes = traj.sample(t)
     P0 = initial_covariance(truth, nodes, where)

@@ -27,7 +27,7 @@ _LV_TURNS = ((+1, +1), (+1, -1), (-1, -1), (-1, +1), (+1, +1), (+1, +1))
 def land_vehicle(*, dt=1.0, cycles=6, period=300.0, stop_duration=90.0, distance=15000.0,
                  accel_duration=20.0, turn_rate=math.radians(5.0), turn_angle=math.radians(90.0),
                  grade=0.04, grade_duration=60.0, lat=math.radians(36.37), lon=math.radians(127.36),
-                 h=60.0, heading=0.0, name="land_vehicle") -> Trajectory:
+                 h=60.0, heading=0.0, name="land_vehicle", where="land_vehicle") -> Trajectory:
     """Built-in ZUPT land-vehicle route (stands in for seed 002 Fig 3).
 
     Each of ``cycles`` periods drives for ``period − stop_duration`` and
@@ -65,6 +65,8 @@ def land_vehicle(*, dt=1.0, cycles=6, period=300.0, stop_duration=90.0, distance
         Initial heading. [rad]
     name : str
         Label of the trajectory.
+    where : str
+        Location prefix of error messages (a study file's ``[trajectory]``).
 
     Returns
     -------
@@ -77,7 +79,7 @@ def land_vehicle(*, dt=1.0, cycles=6, period=300.0, stop_duration=90.0, distance
     42.9 km/h (seed 002: ~43 km/h), stops on [210, 300], ..., [1710, 1800] s,
     twelve 90-deg turns at 5 deg/s and six 4 % hills.
     """
-    return land_vehicle_profile("land_vehicle", dt=dt, cycles=cycles, period=period,
+    return land_vehicle_profile(where, dt=dt, cycles=cycles, period=period,
                          stop_duration=stop_duration, distance=distance,
                          accel_duration=accel_duration, turn_rate=turn_rate, turn_angle=turn_angle,
                          grade=grade, grade_duration=grade_duration, lat=lat, lon=lon, h=h,

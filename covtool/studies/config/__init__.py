@@ -36,8 +36,8 @@ from covtool.studies.config.sections import (  # noqa: F401
     _trajectory,
 )
 from covtool.studies.config.zupt import (  # noqa: F401
-    BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep, MonteCarloSection, Scales,
-    SensitivitySweep, SweepGroup,
+    BudgetFilters, BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep,
+    MonteCarloSection, Scales, SensitivitySweep, SweepGroup,
 )
 from covtool.studies.config.dual_imu import (  # noqa: F401
     Comparison, DualAlignment, Fault, FlightInitial, FlightSegment, FlightTrajectory, GapEntry, Gaps, ImuSection,
@@ -56,7 +56,7 @@ from covtool.studies.config.kinds import (  # noqa: F401
     ZuptSensitivityConfig, ZuptStudyConfig, _S,
 )
 from covtool.studies.config.parse import (  # noqa: F401
-    dump_config, load_config, parse_section, si_text, _dump, _keys, _raise, _where,
+    dump_config, load_config, parse_section, parse_trajectory, _dump, _keys, _raise, _where,
 )
 
-__all__ = ["si_text", "Section", "KINDS", "SECTIONS", "load_config", "dump_config", "config_class", "parse_section"]
+__all__ = ["Section", "KINDS", "SECTIONS", "load_config", "dump_config", "config_class", "parse_section"]

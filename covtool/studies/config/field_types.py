@@ -57,10 +57,45 @@ def Quantity(dimension: str, *, positive=False, nonnegative=False, hi=None, why=
         Kind(f"quantity ({dimension})", dimension, rng)]
 
 
-def QuantityList(dimension: str, *, limit=None, **kw):
-    """A non-empty list of quantities in SI."""
-    return Annotated[tuple[float, ...], BeforeValidator(_wrap(lambda v: tuple(fields.quantity_list(
-        v, dimension, "", _Problem, limit=limit, **kw)))), Kind(f"list of quantities ({dimension})", dimension)]
+def _once(values: tuple, raw) -> tuple:
+    if len(set(values)) != len(values):
+        raise _Problem("", f"repeated values in {raw!r}")
+    return values
+
+
+def QuantityList(dimension: str, *, limit=None, unique=False, **kw):
+    """A non-empty list of quantities in SI (``unique``: each value once)."""
+    def check(v):
+        out = tuple(fields.quantity_list(v, dimension, "", _Problem, limit=limit, **kw))
+        return _once(out, v) if unique else out
+    return Annotated[tuple[float, ...], BeforeValidator(_wrap(check)),
+                     Kind(f"list of quantities ({dimension})", dimension)]
+
+
+def NumberList(*, limit=None, bound=None, unique=False):
+    """A non-empty list of bare numbers.
+
+    ``limit``: the :data:`LIMITS` entry bounding the count; ``bound``: the
+    entry bounding each value (read when a file is parsed); ``unique``:
+    each value once.
+    """
+    def check(v):
+        if not isinstance(v, list) or not v:
+            raise _Problem("", "expected a non-empty list")
+        if limit is not None and len(v) > LIMITS[limit].hi:
+            raise _Problem("", f"{len(v)} values; at most {LIMITS[limit].hi:g} ({LIMITS[limit].reason})")
+        b = LIMITS[bound] if bound is not None else None
+        out = []
+        for i, x in enumerate(v):
+            try:
+                out.append(fields.number(x, "", _Problem, lo=b.lo if b else None, hi=b.hi if b else None,
+                                         why=b.reason if b else ""))
+            except InputError as exc:
+                raise _Problem(f"[{i}]", exc.problem) from None
+        return _once(tuple(out), v) if unique else tuple(out)
+    b = LIMITS.get(bound)
+    rng = f">= {b.lo:g} and <= {b.hi:g}" if b is not None else ""
+    return Annotated[tuple[float, ...], BeforeValidator(_wrap(check)), Kind("list of numbers", None, rng)]
 
 
 def Integer(*, limit=None, lo=None, hi=None):

@@ -21,7 +21,8 @@ from covtool.studies.config.sections import (
     ZuptSection,
 )
 from covtool.studies.config.zupt import (
-    BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep, MonteCarloSection,
+    BudgetFilters, BudgetSection, CostSection, GradeEntry, GridSection, ImpactSection, MagnitudeSweep,
+    MonteCarloSection,
     SensitivitySweep,
 )
 from covtool.studies.config.dual_imu import (
@@ -39,6 +40,26 @@ class StudyConfig(Section):
     kind_doc: ClassVar[str] = ""
     #: top-level lists of tables (``[[key]]``): key -> Section class of one entry
     lists: ClassVar[dict] = {}
+    #: keys a dump leaves out (set by the runner, refused in the file): table -> keys
+    dump_omit: ClassVar[dict] = {}
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _report_times_within_study(cls, data, handler):
+        self = handler(data)
+        out, st = getattr(self, "output", None), getattr(self, "study", None)
+        duration = getattr(st, "duration", None)
+        if out is None or duration is None or out.report_times is None:
+            return self
+        raw = data.get("output") if isinstance(data, dict) else None
+        shown = raw.get("report_times") if isinstance(raw, dict) else None
+        for i, x in enumerate(out.report_times):
+            if x > duration + 1e-9:
+                v = shown[i] if isinstance(shown, list) and i < len(shown) else f"{x:g} s"
+                raise PydanticCustomError("covtool", "{problem}", {
+                    "problem": f"{v!r} is after the end of the study ({duration:g} s)",
+                    "suffix": f": [output] report_times[{i}]"})
+        return self
 
 
 def _S(cls, default=None, doc=""):
@@ -74,6 +95,7 @@ class ZuptFilterOrderConfig(ZuptStudyConfig):
 class ErrorBudgetConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Error budget: each error source's share of the navigation errors, pure INS and "
                                "filters ([filters] cases may list \"pure_ins\").")
+    filters: BudgetFilters = F({}, BudgetFilters.doc)
     budget: BudgetSection = F({}, BudgetSection.doc)
     lists: ClassVar[dict] = {"measurement": MeasurementEntry}
     measurement: tuple[MeasurementEntry, ...] | None = Field(None, min_length=1, description=(
@@ -92,10 +114,26 @@ class MonteCarloConfig(ZuptStudyConfig):
                                "filters, compared with the linear covariance (RMS and NEES bands).")
     monte_carlo: MonteCarloSection
 
+    @model_validator(mode="wrap")
+    @classmethod
+    def _monte_carlo_given(cls, data, handler):
+        if isinstance(data, dict) and "monte_carlo" not in data:
+            raise PydanticCustomError("covtool", "{problem}", {
+                "problem": "missing [monte_carlo] table (runs = ..., imu_rate = ..., ...)", "suffix": ""})
+        return handler(data)
+
 
 class MagnitudeSweepConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = "Sweep the magnitude of groups of error sources (e.g. misalignments)."
     sweep: MagnitudeSweep
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _sweep_given(cls, data, handler):
+        if isinstance(data, dict) and "sweep" not in data:
+            raise PydanticCustomError("covtool", "{problem}", {
+                "problem": "missing [sweep] table (values = [...], [[sweep.group]] ...)", "suffix": ": [sweep]"})
+        return handler(data)
 
 
 class TradeGridConfig(ZuptStudyConfig):
@@ -103,9 +141,32 @@ class TradeGridConfig(ZuptStudyConfig):
                                "(resumable store).")
     grid: GridSection
     lists: ClassVar[dict] = {"grade": GradeEntry, "aiding": AidingMix}
-    grade: Raw = F([{"name": "navigation", "scale": 1}], "The IMU grades: [[grade]] tables.")
+    dump_omit: ClassVar[dict] = {"zupt": ("interval",), "trajectory": ("period", "cycles", "distance")}
+    grade: Raw = F([{"name": "nominal", "scale": 1}], "The IMU grades: [[grade]] tables, each name once.")
     aiding: tuple[AidingMix, ...] | None = Field(None, min_length=1, description=(
         "Aiding mixes named in [grid] aiding: [[aiding]] tables (issue 15)."))
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _trade_grid(cls, data, handler):
+        if isinstance(data, dict):
+            if "grid" not in data:
+                raise PydanticCustomError("covtool", "{problem}", {
+                    "problem": "missing [grid] table (zupt_interval = [...], ...)", "suffix": ""})
+            zc, traj = data.get("zupt"), data.get("trajectory", {"builtin": "land_vehicle"})
+            if isinstance(zc, dict) and "interval" in zc:
+                raise PydanticCustomError("covtool", "{problem}", {
+                    "problem": "the ZUPT interval is a grid axis: give it as [grid] zupt_interval = [...]",
+                    "suffix": ": [zupt] interval"})
+            if isinstance(traj, dict) and traj.get("builtin") == "land_vehicle":
+                for key in ("period", "cycles", "distance"):
+                    if key in traj:
+                        raise PydanticCustomError("covtool", "{problem}", {
+                            "problem": "is set per ZUPT interval by the trade grid (period = interval; distance "
+                                       "from [grid] cruise_speed)", "suffix": f": [trajectory] {key}"})
+            if not (isinstance(data.get("grade"), tuple) and all(isinstance(g, GradeEntry) for g in data["grade"])):
+                data = {**data, "grade": zupt.grade_entries(data.get("grade", [{"name": "nominal", "scale": 1.0}]))}
+        return handler(data)
 
 
 class AidedConfig(StudyConfig):

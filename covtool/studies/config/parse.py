@@ -3,18 +3,23 @@
 :func:`load_config` and :func:`parse_section` turn pydantic's validation
 errors into one :class:`~covtool.errors.StudyFileError` naming the file,
 the table and the key; :func:`dump_config` writes quantities as SI strings
-that parse back exactly (:func:`si_text`).
+that parse back exactly (the dump's own formatter; nothing else turns SI values
+back into strings).
 """
 
 from __future__ import annotations
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, TypeAdapter, ValidationError
 
-from covtool.errors import StudyFileError
+from covtool.errors import StudyFileError, TrajectoryError
 from covtool.io import config as fields
+from covtool.io.names import check_study_name
 from covtool.units import DIMENSIONS
 from covtool.studies.config.field_types import Kind, Section
 from covtool.studies.config.kinds import KINDS, StudyConfig
+from covtool.studies.config.sections import Trajectory
+
+_TRAJECTORY = TypeAdapter(Trajectory)
 
 
 def _keys(cls) -> list[str]:
@@ -49,9 +54,26 @@ def parse_section(cls: type[Section], value, where: str, section: str, error=Stu
         _raise(exc, where, (section,), error)
 
 
+def parse_trajectory(value, where: str, error=StudyFileError):
+    """A ``[trajectory]`` table parsed into its form (:data:`~covtool.studies.config.Trajectory`).
+
+    Unknown keys are refused first, with the allowed keys of the form.
+    """
+    try:
+        return _TRAJECTORY.validate_python(value)
+    except ValidationError as exc:
+        _raise(exc, where, ("trajectory",), error)
+
+
+class StudyTrajectoryError(StudyFileError, TrajectoryError):
+    """A ``[trajectory]`` table of a study file is invalid (both kinds of error)."""
+
+
 def _raise(exc: ValidationError, where: str, prefix: tuple, error):
     e = exc.errors(include_url=False)[0]
     loc = prefix + tuple(e["loc"])
+    if loc and loc[0] == "trajectory" and error is StudyFileError:
+        error = StudyTrajectoryError
     if e["type"] == "missing":
         raise error(_where(where, loc[:-1]), f"missing required key {loc[-1]!r}") from None
     if e["type"] == "extra_forbidden":
@@ -87,6 +109,8 @@ def load_config(decl: dict, where: str = "<study>") -> StudyConfig:
                              f"(one of: {', '.join(sorted(KINDS))})")
     if st["kind"] not in KINDS:
         raise StudyFileError(f"{where}: [study]", f"unknown kind {st['kind']!r} (one of: {', '.join(sorted(KINDS))})")
+    # the outputs' name first: a name that is not a safe file name is refused before anything else
+    check_study_name(st, where, StudyFileError, default=st["kind"])
     cls = KINDS[st["kind"]]
     fields.check_keys(decl, _keys(cls), where, StudyFileError)
     for key, f in cls.model_fields.items():
@@ -100,7 +124,7 @@ def load_config(decl: dict, where: str = "<study>") -> StudyConfig:
         _raise(exc, where, (), StudyFileError)
 
 
-def si_text(value: float, dimension: str):
+def _si_text(value: float, dimension: str):
     """An SI value as a quantity string that parses back exactly (a bare number when dimensionless)."""
     unit = "Hz" if dimension == "frequency" else DIMENSIONS[dimension][0]   # '1/s' is not a unit string
     if value == 0 or not unit:
@@ -126,8 +150,8 @@ def _dump(model: BaseModel) -> dict:
         elif isinstance(v, dict) and v and all(isinstance(x, BaseModel) for x in v.values()):
             out[key] = {k: _dump(x) for k, x in v.items()}
         elif kind is not None and kind.dimension and kind.dimension != "memory":
-            out[key] = [si_text(x, kind.dimension) for x in v] if isinstance(v, tuple) else \
-                si_text(v, kind.dimension)
+            out[key] = [_si_text(x, kind.dimension) for x in v] if isinstance(v, tuple) else \
+                _si_text(v, kind.dimension)
         elif kind is not None and kind.dimension == "memory":
             out[key] = f"{v!r} B"
         elif isinstance(v, tuple):
@@ -139,4 +163,8 @@ def _dump(model: BaseModel) -> dict:
 
 def dump_config(config: StudyConfig) -> dict:
     """The TOML tables of a configuration: every field, defaults filled in, quantities as exact SI strings."""
-    return _dump(config)
+    out = _dump(config)
+    for section, keys in type(config).dump_omit.items():
+        for key in keys:
+            out.get(section, {}).pop(key, None)
+    return out

@@ -9,14 +9,21 @@ CSV) with the ``Trajectory`` union that picks one by its keys.
 
 from __future__ import annotations
 
+import math
+
 from typing import Annotated, Any, ClassVar, Literal, Union
 
-from pydantic import BeforeValidator, ConfigDict, Field
+from pydantic import BeforeValidator, ConfigDict, Field, model_validator
 from pydantic_core import PydanticCustomError
 
 from covtool.studies.config.field_types import (
-    Bool, F, Integer, Kind, Memory, Names, OneOf, Quantity, QuantityList, Raw, Section, Table, Text,
+    Bool, F, Integer, Kind, Memory, Names, OneOf, Quantity, QuantityList, Raw, Section, Text,
 )
+
+
+def _problem(problem: str, suffix: str = "") -> PydanticCustomError:
+    """A refusal inside a validator: ``suffix`` names the key after the table (``" dt"``)."""
+    return PydanticCustomError("covtool", "{problem}", {"problem": problem, "suffix": suffix})
 
 
 # ---------------------------------------------------------------------------
@@ -43,6 +50,16 @@ class StudySection(Section):
                                         "Refused before computing when the estimate exceeds it.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _dt_within_duration(cls, data, handler):
+        self = handler(data)
+        if self.dt > self.duration * (1 + 1e-12):
+            shown = data.get("dt", "1 s") if isinstance(data, dict) else f"{self.dt:g} s"
+            raise _problem(f"{shown!r} is longer than the duration ({self.duration:g} s): one step would hold "
+                           "F constant over the whole study", " dt")
+        return self
 
 
 class StudySectionShort(Section):
@@ -74,6 +91,16 @@ class OutputSection(Section):
     units: OneOf("ft", "m") = F("ft", "Length unit of the figures and workbook charts (seed 002's feet, or "
                                       "metres); the tables keep both.")
 
+    @model_validator(mode="wrap")
+    @classmethod
+    def _times_once(cls, data, handler):
+        self = handler(data)
+        if self.report_times is not None and len(set(self.report_times)) != len(self.report_times):
+            shown = data["report_times"] if isinstance(data, dict) and "report_times" in data else \
+                [f"{x:g} s" for x in self.report_times]
+            raise _problem(f"a time is listed twice in {shown!r}", " report_times")
+        return self
+
 
 class OverrideEntry(Section):
     name: ClassVar[str] = "truth.override.<state or block>"
@@ -87,15 +114,25 @@ class OverrideEntry(Section):
     rw: Raw = F(None, "Random-walk intensity of a `random_walk` state (e.g. '0.01 deg/h/sqrt(h)'); >= 0.")
 
 
+def _model_name(v):
+    if not isinstance(v, str) or not v.strip():
+        raise _problem(f"{v!r} is not a model name or file")
+    return v
+
+
+_ModelName = Annotated[str, BeforeValidator(_model_name), Kind("string")]
+
+
 class TruthSection(Section):
     name: ClassVar[str] = "truth"
     doc: ClassVar[str] = "The truth model: the real IMU and environment."
     nested: ClassVar[dict] = {"override": OverrideEntry}
-    model: Text(nonempty=True) = F("sdins58", "A library model name (`covtool models`) or a path relative to "
-                                              "the study file.")
+    model: _ModelName = F("sdins58", "A library model name (`covtool models`) or a path relative to "
+                                     "the study file.")
     only: Names(what="state or block name") | None = F(None, "Keep only these error sources (states, blocks, "
                                                              "'arw', 'vrw'); every other is zeroed.")
-    override: Table("table of [truth.override.<state or block>] tables") = F(
+    # checked against the model's states (their dimensions) by covtool.studies.inputs.apply_overrides
+    override: Annotated[Any, Kind("table of [truth.override.<state or block>] tables")] = F(
         {}, "Per-state or per-block changes, see [truth.override.<state or block>].")
     arw: Quantity("angle_random_walk", nonnegative=True) | None = F(None, "Gyro angle random walk "
                                                                           "('0.002 deg/sqrt(h)').")
@@ -137,6 +174,13 @@ class ZuptSection(Section):
 # trajectory
 # ---------------------------------------------------------------------------
 
+def _lon_within(data, self):
+    if self.lon is not None and not abs(self.lon) <= math.pi:
+        shown = data.get("lon") if isinstance(data, dict) else f"{self.lon:g} rad"
+        raise _problem(f"{shown!r} is not within ±180 deg", " lon")
+    return self
+
+
 class LandVehicle(Section):
     name: ClassVar[str] = "trajectory (builtin = \"land_vehicle\")"
     doc: ClassVar[str] = ("The built-in ZUPT land-vehicle route (stands in for seed 002 Fig 3): `cycles` periods "
@@ -161,6 +205,11 @@ class LandVehicle(Section):
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
 
+    @model_validator(mode="wrap")
+    @classmethod
+    def _lon(cls, data, handler):
+        return _lon_within(data, handler(data))
+
 
 class Static(Section):
     name: ClassVar[str] = "trajectory (builtin = \"static\")"
@@ -174,6 +223,11 @@ class Static(Section):
     heading: Quantity("angle") = F("0 deg", "Heading.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _lon(cls, data, handler):
+        return _lon_within(data, handler(data))
 
 
 class Initial(Section):
@@ -220,7 +274,8 @@ class CsvTrajectory(Section):
     name: ClassVar[str] = "trajectory (csv = \"file.csv\")"
     doc: ClassVar[str] = "A trajectory read from a CSV file (time, position, velocity, attitude columns)."
     csv: Text(nonempty=True) = F(..., "Path of the CSV, relative to the study file.", example="route.csv")
-    max_gap: Quantity("time", positive=True) | None = F(None, "Longest time step that may be interpolated.")
+    # > 0, checked where the file is read (covtool.io.trajectory.csv_trajectory), as for a CSV named elsewhere
+    max_gap: Quantity("time") | None = F(None, "Longest time step that may be interpolated (> 0).")
     name_: Text() | None = Field(None, alias="name", description="Label of the trajectory.")
 
     model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, populate_by_name=True)
@@ -231,6 +286,8 @@ TRAJECTORIES = (LandVehicle, Static, Segments, CsvTrajectory)
 
 
 def _trajectory(v):
+    if isinstance(v, TRAJECTORIES):          # a typed section (a configuration varied by model_copy)
+        return v
     if not isinstance(v, dict):
         raise PydanticCustomError("covtool", "{problem}", {"problem": f"expected a table, got {type(v).__name__}"})
     sources = [k for k in ("builtin", "segment", "csv") if k in v]
