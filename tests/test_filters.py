@@ -49,11 +49,11 @@ def test_model_A_truth_equals_filter_at_every_step(run_A):
     scaled by sqrt(P_ii P_jj), in physical coordinates: tilt/azimuth instead of δq).  The truth uses Van Loan and the filter the
     Taylor series of eq (6b)-(6d), so this also checks their agreement.
     """
-    run = run_A.data["runs"]["A"]
+    run = run_A.runs["A"]
     # physical coordinates: δq → φ = −2 R(q)ᵀ δq (tilt, azimuth); the quaternion
     # norm direction is structurally zero (see covtool.lincov.dynamics) and carries only round-off
     from covtool.nav.attitude import attitude_error_matrix
-    q = run_A.data["trajectory"].q_nb
+    q = run_A.trajectory.q_nb
     n = PT_n = run.P_truth.shape[1]
     T = np.zeros((len(q), n - 1, n))
     T[:, :6, :6] = np.eye(6)
@@ -198,7 +198,7 @@ equivalent_noise = false
         r = covtool.run_study(short_study(["B1", "B1_none", "D", "D_none"], duration="30 min", filters_file=tmp))
     finally:
         tmp.unlink(missing_ok=True)
-    m, c = r.data["metrics"], r.data["claimed"]
+    m, c = r.metrics, r.claimed_metrics
 
     def miss(case, key):
         return abs(np.log(c[case][key][-1] ** 2 / m[case][key][-1] ** 2))

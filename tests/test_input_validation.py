@@ -627,11 +627,11 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
     d = make()
     r, peak = _peak(d)
     truth = load_model(SDINS)
-    N = int(r.data["t"].size - 1)
+    N = int(r.times.size - 1)
     if r.kind == "pure_ins":
         est = memory_estimate(N, 58, histories=[58], noise=noise_columns(truth))["bytes"]
     else:
-        specs = {c: fm.spec for c, fm in r.data["filters"].items()}
+        specs = {c: fm.spec for c, fm in r.filters.items()}
         est = order_memory(False)(N, truth, [s.n for s in specs.values()], filter_dynamics(specs, specs))["bytes"]
     assert peak <= est <= 1.3 * peak, (peak, est)
     assert r.provenance["steps"] == N and r.provenance["estimated_peak_memory"].endswith("MB")

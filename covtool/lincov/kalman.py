@@ -438,53 +438,173 @@ def check_system(what: str, Phi=None, Qd=None, *, P0=None, R=None, names=None, t
         check_covariance(R, f"{what}: R", names=measurement_names)
 
 
+def _check_shapes(what: str, P=None, K=None, H=None, R=None, D=None) -> None:
+    """Raise ValueError unless the update's matrices fit together.
+
+    Cheap (shapes only): the kernel's entry check.  ``P`` (..., n, n),
+    ``H`` (m, n) or (..., m, n), ``R`` (..., m, m), ``K`` (..., n_f, m),
+    ``D`` (n, n_f).
+    """
+    def sh(x):
+        return None if x is None else np.shape(x)
+
+    p, k, h, r, d = sh(P), sh(K), sh(H), sh(R), sh(D)
+    problems = []
+    if p is not None and (len(p) < 2 or p[-1] != p[-2]):
+        problems.append(f"P has shape {p}, not (..., n, n)")
+    if h is not None and len(h) < 2:
+        problems.append(f"H has shape {h}, not (m, n)")
+    if not problems and p is not None and h is not None and h[-1] != p[-1]:
+        problems.append(f"H has {h[-1]} columns for {p[-1]} states")
+    if r is not None and (len(r) < 2 or r[-1] != r[-2] or (h is not None and r[-1] != h[-2])):
+        problems.append(f"R has shape {r} for {h[-2] if h is not None and len(h) >= 2 else '?'} measurements")
+    if k is not None and h is not None and len(k) >= 2 and len(h) >= 2 and k[-1] != h[-2]:
+        problems.append(f"K has {k[-1]} columns for {h[-2]} measurements")
+    if d is not None and p is not None and k is not None and len(d) == 2 and (d[0] != p[-1] or d[1] != k[-2]):
+        problems.append(f"D has shape {d}, not ({p[-1]}, {k[-2]})")
+    elif d is None and p is not None and k is not None and len(k) >= 2 and k[-2] != p[-1]:
+        problems.append(f"K has {k[-2]} rows for {p[-1]} states")
+    if problems:
+        raise ValueError((f"{what}: " if what else "") + "; ".join(problems))
+
+
 def innovation_covariance(P: np.ndarray, H: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Innovation covariance ``S = H P Hᵀ + R``, symmetrised (seed 002, eq (7)).
 
     Parameters
     ----------
-    P : ndarray, shape (n, n)
+    P : ndarray, shape (..., n, n)
     H : ndarray, shape (m, n)
-    R : ndarray, shape (m, m)
+    R : ndarray, shape (..., m, m)
 
     Returns
     -------
-    ndarray, shape (m, m)
+    ndarray, shape (..., m, m)
     """
-    return symmetrize(H @ P @ H.T + R)
+    return symmetrize(H @ P @ np.swapaxes(H, -1, -2) + R)
 
 
-def kalman_gain(Pf: np.ndarray, Hf: np.ndarray, R: np.ndarray, *, S: np.ndarray | None = None) -> np.ndarray:
+def kalman_gain(Pf: np.ndarray, Hf: np.ndarray, R: np.ndarray, *, S: np.ndarray | None = None,
+                what: str = "") -> np.ndarray:
     """Kalman gain ``K = P Hᵀ (H P Hᵀ + R)⁻¹`` (seed 002, eq (7)).
 
     Parameters
     ----------
-    Pf : ndarray, shape (n, n)
+    Pf : ndarray, shape (..., n, n)
+        One covariance or a stack (a batch of cases).
     Hf : ndarray, shape (m, n)
-    R : ndarray, shape (m, m)
-    S : ndarray, shape (m, m), optional
+    R : ndarray, shape (..., m, m)
+    S : ndarray, shape (..., m, m), optional
         The innovation covariance if already formed
         (:func:`innovation_covariance`).
+    what : str
+        Names the filter and step in error messages (a prefix).
 
     Returns
     -------
-    ndarray, shape (n, m)
+    ndarray, shape (..., n, m)
 
     Raises
     ------
+    ValueError
+        Shapes that do not fit.
     NumericalError
         ``S`` is singular or not finite.
     """
+    _check_shapes(what, P=Pf, H=Hf, R=R)
     S = innovation_covariance(Pf, Hf, R) if S is None else S
     if not np.all(np.isfinite(S)):
-        raise NumericalError("innovation covariance H P Hᵀ + R is not finite")
+        raise NumericalError(f"{what + ': ' if what else ''}innovation covariance H P Hᵀ + R is not finite")
     try:
-        return np.linalg.solve(S, Hf @ Pf).T
+        return np.swapaxes(np.linalg.solve(S, Hf @ Pf), -1, -2)
     except np.linalg.LinAlgError:
-        raise NumericalError("innovation covariance H P Hᵀ + R is singular") from None
+        raise NumericalError(f"{what + ': ' if what else ''}innovation covariance H P Hᵀ + R is singular") from None
 
 
-def filter_update(Pf, K, Hf, R, form: str = "joseph"):
+def selection(D: np.ndarray):
+    """``(k0, k1)`` if ``D`` selects the consecutive truth states ``k0:k1``, else None.
+
+    Parameters
+    ----------
+    D : ndarray, shape (n, n_f)
+        Map from filter states onto truth states (seed 002, eq (16)).
+
+    Returns
+    -------
+    tuple of int or None
+    """
+    D = np.asarray(D, float)
+    n, nf = D.shape
+    cols = np.flatnonzero(D[:, 0]) if nf else []
+    if len(cols) != 1 or cols[0] + nf > n:
+        return None
+    k0 = int(cols[0])
+    E = np.zeros_like(D)
+    E[k0:k0 + nf] = np.eye(nf)
+    return (k0, k0 + nf) if np.array_equal(D, E) else None
+
+
+def joseph_update(P, K, HP, S, sel=None, symmetrize=True):
+    """Joseph form / eq (16) update in rank-m form, in place: the one home.
+
+    ``P⁺ = (I − D K H) P (I − D K H)ᵀ + D K R Kᵀ Dᵀ`` (seed 002, eq (16);
+    the Joseph form of the filter's own update with ``D = I``).
+
+    Parameters
+    ----------
+    P : ndarray, shape (B, n, n)
+        Prior covariance; overwritten (it must be owned by the caller).
+    K : ndarray, shape (B, n_f, m)
+        Gains (any gain, optimal or not); with ``sel = None`` and a general
+        ``D`` pass ``D K`` (shape (B, n, m)).
+    HP : ndarray, shape (B, m, n)
+        ``H P``.
+    S : ndarray, shape (B, m, m)
+        ``H P Hᵀ + R``.
+    sel : (int, int), optional
+        ``D`` is the selection of truth states ``k0:k1`` (:func:`selection`);
+        ``None`` means ``D = I``.
+    symmetrize : bool
+        Also replace ``P`` by ``(P + Pᵀ)/2`` (one more pass over ``P``).
+
+    Returns
+    -------
+    ndarray, shape (B, n, n)
+        Exactly symmetric if ``symmetrize``.
+
+    Notes
+    -----
+    With ``DK = D K`` and ``R = S − H P Hᵀ`` the Joseph form equals
+    ``P + X + Xᵀ`` with ``X = (DK S/2 − (HP)ᵀ) (DK)ᵀ`` for every gain:
+    ``O(m n n_f)`` instead of ``O(n³)`` per case.  ``X`` is non-zero only in
+    the columns ``k0:k1``.  Symmetrised, the result is formed as ``Y + Yᵀ``
+    with ``Y = P/2 + X``.
+    """
+    k0, k1 = sel if sel is not None else (0, P.shape[1])
+    M = -np.swapaxes(HP, 1, 2)                                  # (B, n, m)
+    M[:, k0:k1] += 0.5 * (K @ S)
+    X = M @ np.swapaxes(K, 1, 2)                                # (B, n, n_f)
+    if not symmetrize:
+        P[:, :, k0:k1] += X
+        P[:, k0:k1, :] += np.swapaxes(X, 1, 2)
+        return P
+    P *= 0.5
+    P[:, :, k0:k1] += X
+    return np.add(P, np.swapaxes(P, 1, 2))
+
+
+def _update(P, DK, H, R, sel, what):
+    """One dense posterior through :func:`joseph_update` (B = 1), finite-checked."""
+    P = np.array(P, float)
+    HP = H @ P
+    out = joseph_update(P[None], np.asarray(DK, float)[None], HP[None],
+                        innovation_covariance(P, H, R)[None], sel)[0]
+    if not np.all(np.isfinite(out)):
+        raise NumericalError(f"{what}: the updated covariance is not finite")
+    return out
+
+
+def filter_update(Pf, K, Hf, R, form: str = "joseph", *, what: str = "filter update"):
     """Filter covariance update: Joseph form or seed 002 eq (8).
 
     Parameters
@@ -496,28 +616,80 @@ def filter_update(Pf, K, Hf, R, form: str = "joseph"):
     Hf : ndarray, shape (m, n)
     R : ndarray, shape (m, m)
     form : {"joseph", "standard"}
-        ``(I − K H) P (I − K H)ᵀ + K R Kᵀ`` or eq (8) ``P − K H P``.
+        ``(I − K H) P (I − K H)ᵀ + K R Kᵀ`` (:func:`joseph_update`) or
+        eq (8) ``P − K H P``.
+    what : str
+        Names the filter and step in error messages.
 
     Returns
     -------
     ndarray, shape (n, n)
         Symmetrised posterior.
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not fit, or an unknown ``form``.
+    NumericalError
+        A non-finite posterior.
     """
+    _check_shapes(what, P=Pf, K=K, H=Hf, R=R)
     if form == "joseph":
-        A = np.eye(Pf.shape[0]) - K @ Hf
-        return symmetrize(A @ Pf @ A.T + K @ R @ K.T)
+        return _update(Pf, K, Hf, R, None, what)
     if form == "standard":
-        return symmetrize(Pf - K @ Hf @ Pf)
+        out = symmetrize(Pf - K @ (Hf @ Pf))
+        if not np.all(np.isfinite(out)):
+            raise NumericalError(f"{what}: the updated covariance is not finite")
+        return out
     raise ValueError(f"unknown update form {form!r} (joseph, standard)")
 
 
-def truth_update(P, D, K, H, R):
-    """Truth covariance at a measurement under the filter's gain (seed 002, eq (16)).
+def truth_update(P, D, K, H, R, *, what: str = "truth update"):
+    """Truth covariance under the filter's gain (seed 002, eq (16)).
 
     ``P⁺ = (I − D K H) P (I − D K H)ᵀ + D K R Kᵀ Dᵀ``, with ``K`` the filter's
     gain, ``H`` the truth measurement matrix and ``D`` (n × n_f) the map from
     filter states onto truth states.  It holds for any gain: the correction
-    ``x ← x − D K z`` of eq (10) with ``z = H x + v``.  It is the Joseph form
-    of :func:`filter_update` with the gain ``D K``.
+    ``x ← x − D K z`` of eq (10) with ``z = H x + v``.  Computed by
+    :func:`joseph_update` (the selection fast path when ``D`` selects
+    consecutive states).
+
+    Parameters
+    ----------
+    P : ndarray, shape (n, n)
+    D : ndarray, shape (n, n_f)
+    K : ndarray, shape (n_f, m)
+    H : ndarray, shape (m, n)
+    R : ndarray, shape (m, m)
+    what : str
+        Names the case and step in error messages.
+
+    Returns
+    -------
+    ndarray, shape (n, n)
+        Symmetrised posterior.
+
+    Raises
+    ------
+    ValueError
+        Shapes that do not fit.
+    NumericalError
+        A non-finite posterior.
     """
-    return filter_update(P, D @ K, H, R, "joseph")
+    _check_shapes(what, P=P, K=K, H=H, R=R, D=D)
+    sel = selection(D)
+    return _update(P, K if sel is not None else np.asarray(D, float) @ K, H, R, sel, what)
+
+
+def propagate(Phi: np.ndarray, P: np.ndarray, Qd: np.ndarray) -> np.ndarray:
+    """Covariance propagation ``Φ P Φᵀ + Q_d``, symmetrised (seed 002, eq (6a)).
+
+    Parameters
+    ----------
+    Phi, P, Qd : ndarray, shape (..., n, n)
+
+    Returns
+    -------
+    ndarray, shape (..., n, n)
+    """
+    return symmetrize(Phi @ P @ np.swapaxes(Phi, -1, -2) + Qd)
