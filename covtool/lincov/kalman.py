@@ -1,11 +1,23 @@
 """The Kalman kernel: gain, updates and the covariance guard, in one place.
 
-Seed 002, eq (7) (gain), eq (8) and the Joseph form (filter update), eq (16)
-(the truth under a filter's gain), and the guard every covariance passes
-(finite, symmetric, PSD: :func:`check_covariance`), with :func:`symmetrize`.
+Seed 002, eq (7) (gain, :func:`kalman_gain`), eq (8) and the Joseph form
+(filter update, :func:`filter_update`), eq (16) (the truth under a filter's
+gain, :func:`truth_update`), eq (6a) (:func:`propagate`), and the guard every
+covariance passes (finite, symmetric, PSD: :func:`check_covariance`), with
+:func:`symmetrize`.  The Joseph / eq (16) update is written once, in its
+batched rank-m form (:func:`joseph_update`, any gain, ``D = I`` or a
+selection or a general ``D``); the dense single-case functions call it.
 The step-by-step reference (:mod:`covtool.lincov.reference`), the batched
 engine (:mod:`covtool.lincov.batch`), the error budget, the Monte Carlo
-feedback filters and the dual-IMU whitener call these.
+feedback filters, the dual-IMU whitener and the timed on-board cycle
+(:mod:`covtool.analysis.cost`) call these.  The discretisation of
+eq (6b)–(6d) lives in :mod:`covtool.lincov.discretize`.
+
+Entry checks: the update functions check the shapes (``ValueError``) and
+that the posterior is finite (:class:`NumericalError`), naming the step
+(``what``); the PSD test costs a Cholesky factorisation, more than a
+rank-m update, so the callers run :func:`check_covariance` at their record
+steps and every few updates.
 
 Pure numeric core: arrays in, arrays out.
 """
