@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from covtool.errors import NumericalError
-from covtool.lincov.kalman import (filter_update, joseph_update, kalman_gain, propagate, selection,
+from covtool.lincov.kalman import (filter_update, joseph_update, kalman_gain, predict, selection,
                                    truth_update)
 
 
@@ -113,11 +113,11 @@ def test_scattered_D_is_not_a_selection_and_still_eq16():
     np.testing.assert_allclose(truth_update(P, D, K, H, R), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
 
 
-def test_propagate_is_eq_6a_and_symmetric():
+def test_predict_is_eq_6a_and_symmetric():
     rng = np.random.default_rng(5)
     Phi = rng.standard_normal((4, 4))
     P, Q = _spd(rng, 4), _spd(rng, 4)
-    out = propagate(Phi, P, Q)
+    out = predict(Phi, P, Q)
     np.testing.assert_allclose(out, Phi @ P @ Phi.T + Q, rtol=1e-13)
     assert np.array_equal(out, out.T)
 

@@ -50,7 +50,7 @@ import numpy as np
 
 from covtool.errors import InputError
 from covtool.lincov import discretize
-from covtool.lincov.kalman import filter_update, kalman_gain, propagate
+from covtool.lincov.kalman import filter_update, kalman_gain, predict
 
 #: Seed 002 Table 4: time of one filter cycle on an 8 MHz 8086/8087. [s]
 PAPER_TABLE4_SECONDS = {"A": 22.62, "B3": 0.74, "C": 0.29, "D": 0.08}
@@ -129,7 +129,7 @@ def onboard_cycle(F, Qc, dt, P, H, R, order: int, form: str = "joseph"):
 
     Eq (6b)–(6d) with ``order`` terms by
     :func:`covtool.lincov.discretize.taylor`, eq (6a) by
-    :func:`covtool.lincov.kalman.propagate`, eq (7) by
+    :func:`covtool.lincov.kalman.predict`, eq (7) by
     :func:`~covtool.lincov.kalman.kalman_gain` and eq (8) or the Joseph
     form by :func:`~covtool.lincov.kalman.filter_update`: the same
     numbers as the dense algorithm of the module table, whose operations
@@ -165,7 +165,7 @@ def onboard_cycle(F, Qc, dt, P, H, R, order: int, form: str = "joseph"):
         (:func:`covtool.lincov.discretize.taylor`).
     """
     Phi, Qd = discretize.taylor(F[None], Qc[None], dt, order, what="on-board cycle")   # eq (6b)-(6d)
-    P = propagate(Phi[0], P, Qd[0])                                                     # eq (6a)
+    P = predict(Phi[0], P, Qd[0])                                                     # eq (6a)
     K = kalman_gain(P, H, R, what="on-board cycle")                                     # eq (7)
     return filter_update(P, K, H, R, form, what="on-board cycle"), K                    # eq (8) / Joseph
 

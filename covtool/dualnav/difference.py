@@ -19,7 +19,7 @@ from covtool.dualnav.alignment import alignment_jacobian, alignment_second_order
 from covtool.lincov.discretize import block_triangular, is_block_triangular, taylor
 from covtool.lincov.dynamics import Context, error_dynamics, nav_error_matrix
 from covtool.lincov.batch import compose
-from covtool.lincov.kalman import check_covariance, propagate, symmetrize
+from covtool.lincov.kalman import check_covariance, predict, symmetrize
 from covtool.lincov.model.spec import Model
 from covtool.nav import attitude as quat, earth, strapdown as sd
 
@@ -227,7 +227,7 @@ class DifferenceModel:
             for j in range(self.t.size):
                 out[j] = self.H[j] @ P @ self.H[j].T + self.R
                 if j < self.t.size - 1:
-                    P = propagate(self.Phi[j], P, self.Qd[j])
+                    P = predict(self.Phi[j], P, self.Qd[j])
         check_covariance(out, "dual-IMU open-loop difference", times=self.t,
                          names=[DIFF_NAMES[c] for c in self.components])
         return out

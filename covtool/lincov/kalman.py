@@ -2,7 +2,7 @@
 
 Seed 002, eq (7) (gain, :func:`kalman_gain`), eq (8) and the Joseph form
 (filter update, :func:`filter_update`), eq (16) (the truth under a filter's
-gain, :func:`truth_update`), eq (6a) (:func:`propagate`), and the guard every
+gain, :func:`truth_update`), eq (6a) (:func:`predict`), and the guard every
 covariance passes (finite, symmetric, PSD: :func:`check_covariance`), with
 :func:`symmetrize`.  The Joseph / eq (16) update is written once, in its
 batched rank-m form (:func:`joseph_update`, any gain, ``D = I`` or a
@@ -693,7 +693,7 @@ def truth_update(P, D, K, H, R, *, what: str = "truth update"):
     return _update(P, K if sel is not None else np.asarray(D, float) @ K, H, R, sel, what)
 
 
-def propagate(Phi: np.ndarray, P: np.ndarray, Qd: np.ndarray) -> np.ndarray:
+def predict(Phi: np.ndarray, P: np.ndarray, Qd: np.ndarray) -> np.ndarray:
     """Covariance propagation ``Φ P Φᵀ + Q_d``, symmetrised (seed 002, eq (6a)).
 
     Parameters

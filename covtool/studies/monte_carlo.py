@@ -71,6 +71,7 @@ from covtool.analysis.consistency import (expected_nees, horizontal_dof, inside_
 from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text
 from covtool.errors import StudyFileError
 from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
+from covtool.lincov.kalman import symmetrize
 from covtool.lincov.reduced import zupt_matrices
 from covtool.lincov.reference import propagate, propagate_with_filter
 from covtool.nav.coning import MAX_SAMPLES
@@ -191,7 +192,7 @@ def _sample_moment(truth, sizes, seed, q0) -> np.ndarray:
         x0 = initial_states(truth, m, seed, i, q0)
         S0 += x0.T @ x0
     P = S0 / float(sum(sizes))
-    return 0.5 * (P + P.T)
+    return symmetrize(P)
 
 
 def conditional_dof(Lc: dict, Ld: dict, quantity: str) -> np.ndarray:
