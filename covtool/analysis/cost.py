@@ -176,7 +176,10 @@ def time_cycle(F, Qc, dt, P, H, R, order: int, form: str = "joseph", *, repeats:
 
     timeit-style: the loop count is raised until one repeat lasts at least
     ``min_time``; the median over ``repeats`` repeats divided by the loop count
-    is returned.  Run it with one BLAS thread (an on-board processor has one;
+    is returned.  It times covtool's kernel, whose Joseph update is the
+    rank-m form (``O(n² m)``, not the table's ``4n³``) and whose series
+    balances ``F`` first: :func:`cycle_flops` divided by this time is an
+    effective rate of the paper's dense algorithm, not the kernel's own.  Run it with one BLAS thread (an on-board processor has one;
     :func:`covtool.studies.run_study` limits the pool).  A benchmark figure,
     never asserted in tests.
     """
