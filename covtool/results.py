@@ -165,7 +165,7 @@ class ZuptFilterOrderResult(_Navigation, StudyResult):
         Per filter, the eq (15)-(16) run
         (:class:`covtool.lincov.reference.FilterRun`: full truth and filter
         covariances, gains).
-    filters : dict of str to FilterModel
+    filter_models : dict of str to FilterModel
         Per filter, its model (spec, state names, ``D``, ``F_f``, ``Q_f``,
         ``P_f(0)``).
     trajectory : object
@@ -177,7 +177,7 @@ class ZuptFilterOrderResult(_Navigation, StudyResult):
     claimed_metrics: dict = field(default_factory=dict)
     report_times: list = field(default_factory=list)
     runs: dict = field(default_factory=dict)
-    filters: dict = field(default_factory=dict)
+    filter_models: dict = field(default_factory=dict)
     trajectory: Any = None
     main_figure: ClassVar[str] = "fig6_horizontal_cep"
 

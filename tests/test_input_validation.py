@@ -631,7 +631,7 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
     if r.kind == "pure_ins":
         est = memory_estimate(N, 58, histories=[58], noise=noise_columns(truth))["bytes"]
     else:
-        specs = {c: fm.spec for c, fm in r.filters.items()}
+        specs = {c: fm.spec for c, fm in r.filter_models.items()}
         est = order_memory(False)(N, truth, [s.n for s in specs.values()], filter_dynamics(specs, specs))["bytes"]
     assert peak <= est <= 1.3 * peak, (peak, est)
     assert r.provenance["steps"] == N and r.provenance["estimated_peak_memory"].endswith("MB")

@@ -149,7 +149,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ZuptFilterOrderResu
                 {"sheet": "history", "x": "t [min]", "y": [f"alt PE [{unit}]"], "group": "case", "log_y": True,
                  "skip": 1, "title": "Fig 7: altitude PE by filter model", "x_title": "time [min]",
                  "y_title": f"altitude PE [{unit}]", "anchor": "S22"}],
-        runs=runs, filters=fmodels, trajectory=nodes,
+        runs=runs, filter_models=fmodels, trajectory=nodes,
         times=t, metrics=metrics, length_unit=unit, update_times=t[upd], stops=S.stops,
         histories=histories, claimed=claimed_hist,
         claimed_metrics=claimed, report_times=list(rtimes))
