@@ -58,7 +58,7 @@ def test_expanded_joseph_equals_product_form_for_any_gain():
     HP = H @ P
     A = np.eye(n) - K @ H
     ref = A @ P @ np.swapaxes(A, 1, 2) + K @ R @ np.swapaxes(K, 1, 2)
-    out = _joseph(P, K, HP, HP @ H.T + R)
+    out = _joseph(P.copy(), K, H, R, HP=HP)
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
     assert np.array_equal(out, np.swapaxes(out, 1, 2))     # exactly symmetric
 

@@ -389,7 +389,7 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                         raise NumericalError(f"{label}: innovation covariance H P_f Hᵀ + R_f is singular at "
                                              f"{when(k)}") from None
                     if form == "joseph":
-                        Pf = _joseph(Pf, K, HPf, S, symmetrize=sym)
+                        Pf = _joseph(Pf, K, Hf, Rf, symmetrize=sym, HP=HPf)
                     else:
                         Pf = Pf - K @ HPf                                     # eq (8)
                         Pf = symmetrize(Pf) if sym else Pf
@@ -398,9 +398,9 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                 out_g[:, ui] = K
                 HP = H @ P
                 if sel is not None:
-                    P = _joseph(P, K, HP, HP @ H.T + R, sel, symmetrize=sym)  # eq (16), D a selection
+                    P = _joseph(P, K, H, R, sel, symmetrize=sym, HP=HP)         # eq (16), D a selection
                 else:
-                    P = _joseph(P, D @ K, HP, HP @ H.T + R, symmetrize=sym)   # eq (16)
+                    P = _joseph(P, D @ K, H, R, symmetrize=sym, HP=HP)          # eq (16)
                 if check and sym:
                     guard(P, "truth after the eq (16) update", k, names, psd_mask, scaled=True)
                     if running:
