@@ -612,7 +612,8 @@ def joseph_update(P, K, H, R, sel=None, symmetrize=True, *, HP=None):
 def _update(P, DK, H, R, sel, what):
     """One posterior through :func:`joseph_update` (B = 1), finite-checked."""
     P = np.array(P, float)
-    out = joseph_update(P[None], np.asarray(DK, float)[None], H, np.asarray(R, float)[None], sel)[0]
+    with np.errstate(over="ignore", invalid="ignore"):          # a non-finite result is reported below
+        out = joseph_update(P[None], np.asarray(DK, float)[None], H, np.asarray(R, float)[None], sel)[0]
     if not np.all(np.isfinite(out)):
         raise NumericalError(f"{what}: the updated covariance is not finite")
     return out
@@ -651,7 +652,8 @@ def filter_update(Pf, K, Hf, R, form: str = "joseph", *, what: str = "filter upd
     if form == "joseph":
         return _update(Pf, K, Hf, R, None, what)
     if form == "standard":
-        out = symmetrize(Pf - K @ (Hf @ Pf))
+        with np.errstate(over="ignore", invalid="ignore"):
+            out = symmetrize(Pf - K @ (Hf @ Pf))
         if not np.all(np.isfinite(out)):
             raise NumericalError(f"{what}: the updated covariance is not finite")
         return out
