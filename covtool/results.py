@@ -53,9 +53,8 @@ class StudyResult:
     charts : list of dict
         Native Excel chart specifications for the workbook writer
         (see :func:`covtool.io.workbook.add_line_chart`).
-    data : dict
-        Internals of the run (setup, raw runs) for tests and advanced use;
-        the labelled fields of each subclass are the public interface.
+
+    Each subclass adds the named, typed fields of its study kind.
     """
 
     name: str
@@ -65,7 +64,6 @@ class StudyResult:
     resolved: dict = field(default_factory=dict)
     provenance: dict = field(default_factory=dict)
     charts: list = field(default_factory=list)
-    data: dict = field(default_factory=dict)
 
     #: the figure :meth:`plot` draws (default: the first of ``figures``)
     main_figure: ClassVar[str | None] = None
@@ -130,9 +128,12 @@ class PureInsResult(_Navigation, StudyResult):
         :func:`covtool.analysis.metrics.nav_metrics` (SI).
     length_unit : {"ft", "m"}
         Unit of lengths in the figures (``[output] units``).
+    truth_history : CovarianceHistory
+        Every truth state (the full model) over ``times``.
     """
 
     history: "CovarianceHistory | None" = None
+    truth_history: "CovarianceHistory | None" = None
     main_figure: ClassVar[str] = "pure_ins_errors"
 
 
@@ -160,12 +161,28 @@ class ZuptFilterOrderResult(_Navigation, StudyResult):
     report_times : list of float
         Times of the summary rows. [s]
     length_unit : {"ft", "m"}
+    runs : dict of str to BatchResult
+        Per filter, the batched eq (15)-(16) run
+        (:class:`covtool.lincov.batch.BatchResult`: navigation blocks of the
+        truth and filter covariances at ``record_steps``).
+    filter_models : dict of str to FilterModel
+        Per filter, its model (spec, state names, ``D``, ``F_f``, ``Q_f``,
+        ``P_f(0)``).
+    trajectory : object
+        The reference trajectory at the grid nodes (``q_nb`` etc.).
+    record_steps : ndarray of int
+        Grid steps at which the navigation blocks are recorded (the history
+        spacing, the report times and the last step); ``times`` are these steps' times.
     """
 
     histories: dict = field(default_factory=dict)
     claimed: dict = field(default_factory=dict)
     claimed_metrics: dict = field(default_factory=dict)
     report_times: list = field(default_factory=list)
+    runs: dict = field(default_factory=dict)
+    filter_models: dict = field(default_factory=dict)
+    trajectory: Any = None
+    record_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     main_figure: ClassVar[str] = "fig6_horizontal_cep"
 
 
@@ -187,12 +204,35 @@ class ErrorBudgetResult(_Navigation, StudyResult):
         figure).
     top : int
         Sources drawn per panel.
+    runs : dict of str to BudgetRun
+        Per case, the batched run of its sources
+        (:mod:`covtool.analysis.budget`).
+    residuals : dict of str to dict of str to float
+        Per case, ``"same"`` (sum of contributions against the total run
+        with the same Q_d) and ``"nominal"`` (against the nominal run):
+        largest relative residual.
+    record_steps : ndarray of int
+        Grid steps of ``times``.
+    setup : ZuptSetup
+        The study's truth, filters and ZUPT schedule
+        (:mod:`covtool.studies.zupt_setup`).
+    truth_system : System
+        The truth Φ, Q_d composed on the event grid
+        (:class:`covtool.lincov.batch.System`).
+    noise : ndarray, shape (n_sources, K, n, n)
+        Per-source truth Q_d of each event interval.
     """
 
     variances: dict = field(default_factory=dict)
     sources: dict = field(default_factory=dict)
     source_order: list = field(default_factory=list)
     top: int = 8
+    runs: dict = field(default_factory=dict)
+    residuals: dict = field(default_factory=dict)
+    record_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, int))
+    setup: Any = None
+    truth_system: Any = None
+    noise: Any = None
 
 
 @dataclass
@@ -214,6 +254,10 @@ class ZuptSensitivityResult(StudyResult):
         [s]
     length_unit : {"ft", "m"}
         Unit of the fits and figures (``[output] units``).
+    filter_models : dict of str to FilterModel
+        Per swept filter, its model (nominal P_f(0), F_f, Q_f).
+    setup : ZuptSetup
+        The study's truth, filters and ZUPT schedule.
     """
 
     scales: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -224,6 +268,8 @@ class ZuptSensitivityResult(StudyResult):
     report_time: float = 0.0
     labels: dict = field(default_factory=dict)
     length_unit: str = "ft"
+    filter_models: dict = field(default_factory=dict)
+    setup: Any = None
     main_figure: ClassVar[str] = "fig8_1_horizontal"
 
 
@@ -257,9 +303,15 @@ class AdResetResult(StudyResult):
     ----------
     figure_specs : dict of str to dict
         Per figure (named as its table), what :func:`covtool.plotting.ad_reset.ad_reset_figure` draws.
+    params : dict
+        The resolved board parameters (SI).
+    derived : dict
+        Derived board quantities (scale factor ``sf``, bandwidths, ...; SI).
     """
 
     figure_specs: dict = field(default_factory=dict)
+    params: dict = field(default_factory=dict)
+    derived: dict = field(default_factory=dict)
     main_figure: ClassVar[str] = "fig2"
 
 
@@ -280,6 +332,19 @@ class MonteCarloResult(_Navigation, StudyResult):
         Monte Carlo runs N.
     confidence : float
         Probability of the χ² bounds.
+    sums : dict of str to EnsembleSums
+        Per case, the Monte Carlo sums of the error moments.
+    linear, linear_conditional, linear_driven : dict of str to dict
+        Per case, the linear covariance's σ and degrees of freedom: of the
+        full run, conditional on the sampled initial errors, and of the
+        noise-driven part alone.
+    bands_conditional : dict of str to dict of str to tuple of ndarray
+        As ``bands``, against the conditional linear σ.
+    filter_check : dict of str to float
+        Per filter, largest absolute difference of the Monte Carlo feedback
+        filter's covariance from the linear run's (SI).
+    stats : dict
+        Run statistics (backend, chunks computed and reused, seconds).
     """
 
     cases: list = field(default_factory=list)
@@ -287,6 +352,13 @@ class MonteCarloResult(_Navigation, StudyResult):
     nees: dict = field(default_factory=dict)
     runs: int = 0
     confidence: float = 0.95
+    sums: dict = field(default_factory=dict)
+    linear: dict = field(default_factory=dict)
+    linear_conditional: dict = field(default_factory=dict)
+    linear_driven: dict = field(default_factory=dict)
+    bands_conditional: dict = field(default_factory=dict)
+    filter_check: dict = field(default_factory=dict)
+    stats: dict = field(default_factory=dict)
     main_figure: ClassVar[str] = "mc_ratio"
 
 
@@ -305,6 +377,9 @@ class DualImuResult(StudyResult):
         Legend names of the two groups of flights.
     estimates : bool
         Whether the g-sensitivity estimate figure applies.
+    bridged : object
+        ``covtool dualnav`` only: the logs with their gaps bridged
+        (:class:`covtool.dualnav.gaps.BridgedLog` pair).
     """
 
     config: Any = None
@@ -312,6 +387,7 @@ class DualImuResult(StudyResult):
     fault: list = field(default_factory=list)
     labels: tuple = ("fault-free", "g-sensitivity injected")
     estimates: bool = True
+    bridged: Any = None
     main_figure: ClassVar[str] = "difference_envelope"
 
 

@@ -51,7 +51,7 @@ def test_derived_scale_factor(result):
     _, a = signal.butter(2, 20 / 1200)
     omega_n = abs(np.angle(np.roots(a)[0]))
     sf = 0.9 * 2 * math.pi / omega_n / 2400
-    assert result.data["derived"]["sf"] == pytest.approx(sf, rel=1e-9)
+    assert result.derived["sf"] == pytest.approx(sf, rel=1e-9)
     assert sf == pytest.approx(0.06361, abs=1e-5)
 
 
@@ -243,7 +243,7 @@ def test_error_message_names_the_file(decl):
 
 def test_velocity_sigma_link_in_derived_table(result):
     d = result.tables["derived_parameters"].set_index("parameter")["value"]
-    sf = result.data["derived"]["sf"]
+    sf = result.derived["sf"]
     expected = adreset.velocity_error_bound(sf, 1066.5, 21.33) / math.sqrt(3)
     assert d["velocity-error 1-sigma, N_e = 2%"] == pytest.approx(expected)
     assert butterworth_filter(20, 2400).ringing_period == pytest.approx(d["2 pi / omega_n"])

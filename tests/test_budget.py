@@ -68,7 +68,7 @@ def short():
 
 
 def _contribution(r, case, name):
-    br = r.data["runs"][case]
+    br = r.runs[case]
     names = [s.name for s in br.sources]
     return br.P[names.index(name)]
 
@@ -94,8 +94,8 @@ def test_contributions_sum_to_the_step_by_step_total(flagship, case):
     it computes itself.
     """
     r = flagship
-    S = r.data["setup"]
-    rec = r.data["record_steps"]
+    S = r.setup
+    rec = r.record_steps
     if case == "pure_ins":
         P_ref = propagate(S.Phi, S.Qd, S.P0)[rec][:, :10, :10]
     else:
@@ -103,7 +103,7 @@ def test_contributions_sum_to_the_step_by_step_total(flagship, case):
         run = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
                                     S.R, S.update_steps, Rf=S.filter_R(case), form=S.specs[case].update)
         P_ref = run.P_truth[rec][:, :10, :10]
-    br = r.data["runs"][case]
+    br = r.runs[case]
     q = S.nodes.q_nb[rec]
     P_sum = br.P.sum(axis=0)
     assert _rel(P_sum, P_ref, q) <= 1e-9
@@ -112,16 +112,16 @@ def test_contributions_sum_to_the_step_by_step_total(flagship, case):
     for e in ("horizontal", "altitude", "azimuth"):
         assert np.max(np.abs(vs[e] - vr[e])[1:] / vr[e][1:]) <= 1e-9, e
     # and the budget's own residual bookkeeping agrees
-    assert r.data["residuals"][case]["same"] <= 1e-9
-    assert r.data["residuals"][case]["nominal"] <= 1e-9
+    assert r.residuals[case]["same"] <= 1e-9
+    assert r.residuals[case]["nominal"] <= 1e-9
     row = r.summary[r.summary["case"] == case].iloc[-1]
     assert row["sum vs nominal run residual"] <= 1e-9
 
 
 def test_sources_and_ranked_tables(flagship):
     r = flagship
-    b1 = [s.name for s in r.data["runs"]["B1"].sources]
-    pure = [s.name for s in r.data["runs"]["pure_ins"].sources]
+    b1 = [s.name for s in r.runs["B1"].sources]
+    pure = [s.name for s in r.runs["pure_ins"].sources]
     assert {"initial tilt", "initial azimuth", "initial velocity", "initial acc_bias", "arw noise", "vrw noise",
             "gyro_markov noise", "ZUPT measurement noise"} <= set(b1)
     assert "initial position" not in b1          # zero initial position error: no source
@@ -148,22 +148,22 @@ def test_sources_and_ranked_tables(flagship):
 def test_single_source_model_is_100_percent_that_source(short, only, name):
     """`[truth] only`: the pure INS budget is that one source, equal to its contribution in the full model."""
     r = covtool.run_study(decl(only=only))
-    pure = r.data["runs"]["pure_ins"]
+    pure = r.runs["pure_ins"]
     assert [s.name for s in pure.sources] == [name]
     for e in ("horizontal", "altitude", "azimuth"):
         t = r.tables[f"budget_{e}"]
         assert t[t["case"] == "pure_ins"]["share [%]"].tolist() == [pytest.approx(100.0, abs=1e-12)]
-    q = r.data["setup"].nodes.q_nb[r.data["record_steps"]]
+    q = r.setup.nodes.q_nb[r.record_steps]
     assert _rel(pure.P[0], _contribution(short, "pure_ins", name), q) <= 1e-12
     # under a filter the measurement noise is the only other source
-    assert {s.name for s in r.data["runs"]["B1"].sources} == {name, "ZUPT measurement noise"}
+    assert {s.name for s in r.runs["B1"].sources} == {name, "ZUPT measurement noise"}
 
 
 def test_doubling_a_source_sigma_quadruples_its_contribution(short):
     """σ of the accelerometer biases and the VRW doubled: ×4 variance for them, others unchanged (pure INS)."""
     over = {"acc_bias_x": {"sigma": "40 ug"}, "acc_bias_y": {"sigma": "40 ug"}, "acc_bias_z": {"sigma": "60 ug"}}
     r = covtool.run_study(decl(override=over, vrw="10 ug/sqrt(Hz)"))
-    q = r.data["setup"].nodes.q_nb[r.data["record_steps"]]
+    q = r.setup.nodes.q_nb[r.record_steps]
     for name in ("initial acc_bias", "vrw noise"):
         assert _rel(_contribution(r, "pure_ins", name), 4 * _contribution(short, "pure_ins", name), q) <= 1e-12
     for name in ("initial tilt", "initial azimuth", "arw noise"):
@@ -172,9 +172,9 @@ def test_doubling_a_source_sigma_quadruples_its_contribution(short):
 
 def test_fixed_gains_make_every_source_linear(short):
     """Under B1's fixed gains, P0 of one source ×4 and R ×4 give ×4 contributions, nothing else moves."""
-    S = short.data["setup"]
-    truth, Qn, rec = short.data["truth_system"], short.data["noise"], short.data["record_steps"]
-    base = short.data["runs"]["B1"]
+    S = short.setup
+    truth, Qn, rec = short.truth_system, short.noise, short.record_steps
+    base = short.runs["B1"]
     sources = [dataclasses.replace(s, P0=4 * s.P0) if s.name == "initial tilt" else
                dataclasses.replace(s, R=4 * s.R) if s.R is not None else s for s in base.sources]
     fm = S.filter_model("B1")[0]
@@ -190,12 +190,12 @@ def test_fixed_gains_make_every_source_linear(short):
 
 def test_state_resolution_refines_the_block_budget(short):
     """Per-state sources sum to their block's source, and to the total (B1, same gains)."""
-    S = short.data["setup"]
-    truth, rec = short.data["truth_system"], short.data["record_steps"]
+    S = short.setup
+    truth, rec = short.truth_system, short.record_steps
     src, fac = budget_sources(S.truth, S.dyn.noise, S.nodes.q_nb[0], S.R, resolution="state")
     Qn = compose_noise(S.Phi, S.dyn.F, fac, np.diff(S.t), truth.ev)
     br, P_nom = case_budget(S, "B1", truth, src, Qn, rec)
-    block = short.data["runs"]["B1"]
+    block = short.runs["B1"]
     q = S.nodes.q_nb[rec]
     assert len(src) > 2 * len(block.sources)
     assert _rel(br.P.sum(axis=0), P_nom, q) <= 1e-9
@@ -214,7 +214,7 @@ def test_state_resolution_refines_the_block_budget(short):
 
 def test_cross_block_correlations_are_a_source_of_their_own(short):
     """P0 = Σ group pieces + cross exactly; the budget with the cross source sums to the correlated total."""
-    S = short.data["setup"]
+    S = short.setup
     model = dataclasses.replace(S.truth, correlations=(("acc_bias_x", "acc_bias_y", 0.5),     # inside a block
                                                        ("acc_bias_z", "acc_sf_z", -0.6),      # across blocks
                                                        ("dq1", "gyro_bias_y", 0.8)))          # nav x sensor
@@ -235,7 +235,7 @@ def test_cross_block_correlations_are_a_source_of_their_own(short):
     np.testing.assert_allclose(cross[qi, ix["gyro_bias_y"]], P0[qi, ix["gyro_bias_y"]], rtol=1e-12)
     src, _ = budget_sources(model, S.dyn.noise, q0)
     assert "initial cross-correlations" in [s.name for s in src]
-    truth, Qn, rec = short.data["truth_system"], short.data["noise"], short.data["record_steps"]
+    truth, Qn, rec = short.truth_system, short.noise, short.record_steps
     br, P_nom = case_budget(S, "pure_ins", truth, src, Qn, rec, P0=P0)
     q = S.nodes.q_nb[rec]
     assert _rel(br.P.sum(axis=0), P_nom, q) <= 1e-9
@@ -245,7 +245,7 @@ def test_cross_block_correlations_are_a_source_of_their_own(short):
 
 def test_nav_groups_are_the_physical_tilt_and_azimuth(short):
     """'initial tilt' carries no azimuth variance at t = 0, 'initial azimuth' no tilt (any initial attitude)."""
-    S = short.data["setup"]
+    S = short.setup
     pieces = dict(split_initial(S.truth, initial_groups(S.truth), S.nodes.q_nb[0])[0])
     q0 = S.nodes.q_nb[:1]
     tilt = physical_nav(pieces["tilt"][None, :10, :10], q0)[0]
@@ -347,7 +347,7 @@ def test_pure_ins_ranking_follows_the_closed_forms(pure30):
     * azimuth: ψ0 = 9.97′ against ≤ 0.75′ of z-gyro drift in 30 min.
     """
     r = pure30
-    S = r.data["setup"]
+    S = r.setup
     lat, h = S.nodes.lat[0], S.nodes.h[0]
     rm, rn = earth.radii(lat)
     R = np.sqrt(rm * rn)
@@ -402,8 +402,8 @@ def test_figure_sources_are_ranked_by_peak_share(flagship):
     assert top_sources(v, 2) == [2, 1]            # peaks 5/6 and 9/11 beat 1/6
     assert top_sources(v, 10) == [2, 1, 0]        # a source that never contributes is left out
     assert top_sources(np.zeros((2, 3)), 2) == []
-    var = flagship.data["variances"]["pure_ins"]["horizontal"]
-    names = [flagship.data["runs"]["pure_ins"].sources[i].name for i in top_sources(var, 3)]
+    var = flagship.variances["pure_ins"]["horizontal"]
+    names = [flagship.runs["pure_ins"].sources[i].name for i in top_sources(var, 3)]
     assert "initial tilt" in names
 
 

@@ -116,8 +116,7 @@ def test_markov_bias_with_five_minute_steps():
     traj = {**STATIC, "duration": "30 min"}
     r = _pure_ins("5 min", duration="30 min", trajectory=traj, truth=truth, method="taylor")
     fine = _pure_ins("10 s", duration="30 min", trajectory=traj, truth=truth)
-    i = r.data["model"].index["acc_markov_x"]
-    np.testing.assert_allclose(np.sqrt(r.data["P"][:, i, i]) / UG, 100.0, rtol=1e-9)
+    np.testing.assert_allclose(r.truth_history.sigma("acc_markov_x") / UG, 100.0, rtol=1e-9)
     cep = _row(r)["CEP [m]"]
     assert cep == pytest.approx(_row(fine)["CEP [m]"], rel=1e-9)
     assert cep == pytest.approx(_schuler_cep(100 * UG, 10.0, 1800.0, math.radians(45.0), 60.0), rel=0.01)

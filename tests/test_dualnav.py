@@ -47,7 +47,8 @@ from covtool.nav.imu.simulator import ImuSimulator, ideal_increments
 from covtool.validation.sensor_errors import SensorErrors
 from covtool.io.imu_grade import load_imu_grade
 from covtool.studies import run_study
-from covtool.studies.dual_imu_config import PPM_G, gsens_coefficient, parse_study
+from covtool.studies.dual_imu_config import gsens_coefficient, parse_study
+from covtool.units import PPM_G
 from covtool.studies.dual_imu import make_setup, simulate_logs
 
 G = 9.80665
@@ -420,7 +421,7 @@ def _draw(model, M, rng, c, feedback):
 
 @pytest.fixture(scope="module")
 def linear_model(short_study):
-    m = short_study.data["fault_free"][0].model
+    m = short_study.fault_free[0].model
     return dataclasses.replace(m, Hphi=None)     # the linear world has no second-order term
 
 
@@ -651,7 +652,7 @@ def test_run_dual_errors(setup_static):
 
 
 def test_difference_model_errors(short_study):
-    r = short_study.data["fault_free"][0]
+    r = short_study.fault_free[0]
     gm = load_imu_grade("main_imu").to_model()
     ctx = Context(np.zeros(3), np.zeros(3), np.zeros((3, 3)), np.tile([1.0, 0, 0, 0], (3, 1)), np.zeros((3, 3)),
                   np.zeros((3, 3)))

@@ -58,10 +58,10 @@ def test_runner_records_the_reference_navigation_block(run_A):
     """The study's recorded truth and filter navigation blocks are the step-by-step reference's (≤ 1e-9)."""
     ref, S = run_A
     r = covtool.run_study(decl_A())
-    rec = r.data["record_steps"]
+    rec = r.record_steps
     assert rec[0] == 0 and rec[-1] == S.t.size - 1 and np.allclose(np.diff(S.t[rec]), 10.0)   # history_every
     np.testing.assert_array_equal(r.times, S.t[rec])
-    b = r.data["runs"]["A"]
+    b = r.runs["A"]
     # physical coordinates (tilt, azimuth instead of δq: the quaternion-norm direction holds only round-off)
     from covtool.nav.attitude import attitude_error_matrix
     T = np.zeros((rec.size, 9, 10))
@@ -230,7 +230,7 @@ equivalent_noise = false
         r = covtool.run_study(short_study(["B1", "B1_none", "D", "D_none"], duration="30 min", filters_file=tmp))
     finally:
         tmp.unlink(missing_ok=True)
-    m, c = r.data["metrics"], r.data["claimed"]
+    m, c = r.metrics, r.claimed_metrics
 
     def miss(case, key):
         return abs(np.log(c[case][key][-1] ** 2 / m[case][key][-1] ** 2))

@@ -323,7 +323,7 @@ def test_vertical_channel_warning_time_matches_the_closed_form():
     row = h[np.isclose(h["t [s]"], 3600.0)].iloc[0]
     assert row["sigma_D [m]"] == pytest.approx(sb * (np.cosh(w * 3600.0) - 1.0) / w**2, rel=0.01)
     t_star = np.arccosh(1.0 + ALTITUDE_LIMIT * w**2 / sb) / w
-    first = first_invalid(r.data["metrics"], r.data["t"])
+    first = first_invalid(r.metrics, r.times)
     assert set(first) == {"altitude"}
     assert t_star <= first["altitude"] < t_star + 0.01 / w + 10.0
     assert r.summary["validity"].iloc[0] == (f"altitude 1sigma > 63.8 km (vertical channel diverged) from "

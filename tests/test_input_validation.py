@@ -627,12 +627,12 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
     d = make()
     r, peak = _peak(d)
     truth = load_model(SDINS)
-    N = int(r.data["t"].size - 1)
+    N = int(r.times.size - 1)
     if r.kind == "pure_ins":
         est = memory_estimate(N, 58, histories=[58], noise=noise_columns(truth))["bytes"]
     else:
-        specs = {c: fm.spec for c, fm in r.data["filters"].items()}
-        rec, K = history_records(N, 1.0, 10.0, r.report_times, r.data["update_steps"].size)   # the study's dt, spacing
+        specs = {c: fm.spec for c, fm in r.filter_models.items()}
+        rec, K = history_records(N, 1.0, 10.0, r.report_times, len(r.update_times))   # the study's dt, spacing
         shared = sum(truth_copy(s, truth) for s in specs.values())        # filter A holds the truth's arrays
         est = order_memory(False)(N, truth, [s.n for s in specs.values()], filter_dynamics(specs, specs),
                                   records=rec, intervals=K, shared=shared)["bytes"]

@@ -320,9 +320,9 @@ def test_small_ensemble_matches_the_linear_sigma(study, capsys):
     comp = r.tables["comparison"]
     N = int(r.summary["runs"].iloc[0])
     lines = []
-    for c, bands in r.data["bands"].items():
+    for c, bands in r.bands.items():
         for q, (x, sig, _, _) in bands.items():
-            dof = r.data["linear"][c]["dof_h"] if q == "horizontal" else 1.0
+            dof = r.linear[c]["dof_h"] if q == "horizontal" else 1.0
             lo, hi = mc.rms_bounds(sig, N, dof, confidence=0.99)
             fr = mc.inside_fraction(x[1:], lo[1:], hi[1:])
             row = comp[(comp["case"] == c) & (comp["quantity"] == q)].iloc[0]
@@ -355,8 +355,8 @@ def test_study_outputs(study, tmp_path):
     r = study
     assert list(r.summary["case"]) == ["pure_ins", "OPT", "B", "N"]
     assert set(r.tables) == {"summary", "comparison", "nees", "history", "settings"}
-    assert r.data["filter_check"] == {"OPT": 0.0, "B": 0.0, "N": 0.0}
-    assert sum(s.n_runs for s in [r.data["sums"]["B"]]) == 60
+    assert r.filter_check == {"OPT": 0.0, "B": 0.0, "N": 0.0}
+    assert sum(s.n_runs for s in [r.sums["B"]]) == 60
     files = {p.name for p in write_outputs(r, tmp_path / "out")}
     assert {"mc_pure_ins.png", "mc_OPT.png", "mc_B.png", "mc_N.png", "mc_ratio.png", "mc_nees.png",
             "mc_test.xlsx", "summary.csv", "history.csv"} <= files
@@ -372,13 +372,13 @@ def test_chunks_are_independent_of_backend_and_resume(files, tmp_path):
     r1 = covtool.run_study(decl, backend=SerialBackend())
     with ProcessBackend(2) as be:
         r2 = covtool.run_study(decl, backend=be, store=tmp_path / "cases")
-    s1, s2 = r1.data["sums"]["B"], r2.data["sums"]["B"]
+    s1, s2 = r1.sums["B"], r2.sums["B"]
     assert s1.n_runs == s2.n_runs == 6
     assert np.array_equal(s1.s2, s2.s2) and np.array_equal(s1.s1, s2.s1)
     assert all(np.array_equal(s1.nees[k], s2.nees[k]) for k in s1.nees)
     r3 = covtool.run_study(decl, backend=SerialBackend(), store=tmp_path / "cases", resume=True)
-    assert r3.data["stats"]["reused"] == 2 and r3.data["stats"]["computed"] == 0
-    assert np.array_equal(r3.data["sums"]["B"].s2, s1.s2)
+    assert r3.stats["reused"] == 2 and r3.stats["computed"] == 0
+    assert np.array_equal(r3.sums["B"].s2, s1.s2)
 
 
 # --------------------------------------------------------------------------
@@ -574,13 +574,13 @@ def test_conditional_prediction_follows_the_drawn_constants(study, files, monkey
     N = int(r.summary["runs"].iloc[0])
 
     def inside(res):
-        x, sig_c, _, _ = res.data["bands_conditional"]["pure_ins"]["azimuth"]
-        dof = smc.conditional_dof(res.data["linear_conditional"]["pure_ins"], res.data["linear_driven"]["pure_ins"],
+        x, sig_c, _, _ = res.bands_conditional["pure_ins"]["azimuth"]
+        dof = smc.conditional_dof(res.linear_conditional["pure_ins"], res.linear_driven["pure_ins"],
                                   "azimuth")
         lo, hi = mc.rms_bounds(sig_c, N, dof, confidence=0.99)
         return mc.inside_fraction(x[1:], lo[1:], hi[1:])["inside"], float(np.mean(x[1:] / sig_c[1:]))
 
-    x, sig, _, _ = r.data["bands"]["pure_ins"]["azimuth"]
+    x, sig, _, _ = r.bands["pure_ins"]["azimuth"]
     fr, ratio_c = inside(r)
     ratio = float(np.mean(x[1:] / sig[1:]))
     orig = smc._sample_moment

@@ -4,7 +4,7 @@ A damaged store is verified, reported and recomputed; a second run into the
 same OUT is refused; SIGINT/SIGTERM stop the workers promptly and a killed
 parent leaves no worker behind (the store-level units are in test_store.py).
 
-Also the engine's rank-m update forms (covtool.lincov.batch._joseph) against the
+Also the engine's rank-m update forms (covtool.lincov.kalman.joseph_update) against the
 product forms they replace.
 """
 
@@ -32,7 +32,8 @@ import tomli_w
 
 from covtool.cli import main
 from covtool.lincov.reference import propagate_with_filter
-from covtool.lincov.batch import System, _joseph, events, run_batch
+from covtool.lincov.batch import System, events, run_batch
+from covtool.lincov.kalman import joseph_update as _joseph
 from covtool.io.lock import LOCK_NAME
 from covtool.parallel import (DaskBackend, ProcessBackend, SerialBackend, WorkerError, call_limited,
                               make_backend, run_chunks)
@@ -57,7 +58,7 @@ def test_expanded_joseph_equals_product_form_for_any_gain():
     HP = H @ P
     A = np.eye(n) - K @ H
     ref = A @ P @ np.swapaxes(A, 1, 2) + K @ R @ np.swapaxes(K, 1, 2)
-    out = _joseph(P, K, HP, HP @ H.T + R)
+    out = _joseph(P.copy(), K, H, R, HP=HP)
     np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
     assert np.array_equal(out, np.swapaxes(out, 1, 2))     # exactly symmetric
 

@@ -282,3 +282,12 @@ def test_figures_are_functions_of_the_result(flagship):
     assert set(flagship.figures) == {"fig6_horizontal_cep", "fig7_altitude_pe"}
     for f in flagship.figures.values():
         assert isinstance(f, partial) and f.args[0] is flagship and f.func.__module__.startswith("covtool.plotting.")
+
+
+def test_results_have_no_untyped_data_dict():
+    """Issue 12 "Labelled results": every field of every result class is named; no ``data`` grab-bag."""
+    import dataclasses
+
+    from covtool.results import RESULT_CLASSES, StudyResult
+    for cls in (StudyResult, *RESULT_CLASSES.values()):
+        assert "data" not in {f.name for f in dataclasses.fields(cls)}, cls.__name__

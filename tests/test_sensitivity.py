@@ -211,8 +211,8 @@ def test_sweep_point_equals_independent_stepwise_run(short, case, param, scale):
 
     propagate_with_filter with P_f(0), Q_f or R_f scaled by hand.
     """
-    S = short.data["setup"]
-    fm = short.data["filters"][case]
+    S = short.setup
+    fm = short.filter_models[case]
     sp, sq, sr = (scale if param == p else 1.0 for p in ("P0", "Q", "R"))
     with threadpool_limits(limits=1, user_api="blas"):
         Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, np.diff(S.t), fm.spec.discretization, fm.spec.taylor_order)
@@ -250,7 +250,7 @@ def test_nominal_point_equals_the_flagship_run(short, flagship, case):
     propagate_with_filter; the sweep's truth is the Taylor series.
     """
     F = flagship
-    assert F.hdr["discretization"] != short.data["setup"].hdr["discretization"]
+    assert F.hdr["discretization"] != short.setup.hdr["discretization"]
     with threadpool_limits(limits=1, user_api="blas"):
         fm, Phi_f, Qd_f = F.filter_model(case)
         ref = propagate_with_filter(F.Phi, F.Qd, F.P0, Phi_f, Qd_f, fm.P0, F.H, zupt_matrices(fm.names), fm.D,
@@ -340,7 +340,7 @@ def test_workbook_round_trip_and_native_charts(short, tmp_path):
     # log-log as the PNG (before: linear y), data from the sheet
     assert xml.count('logBase val="10"') == 2 and "fig8_1_horizontal" in xml
     ch = wb["fig8_1_horizontal"]._charts[0]
-    n = len(short.data["scales"])
+    n = len(short.scales)
     # one series per filter and kind; the swept points span exactly the swept scales (no text cell on a log axis)
     assert len(ch.series) == 2 * len(short.summary)
     assert ch.series[0].yVal.numRef.f.endswith(f"$2:${ch.series[0].yVal.numRef.f.split(':$')[1].split('$')[0]}${n + 1}")

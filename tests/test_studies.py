@@ -78,10 +78,10 @@ def test_only_and_override_select_error_sources():
     d["truth"]["override"] = {"acc_bias_x": {"sigma": "40 ug"}}
     r2 = covtool.run_study(d)
     # linear: doubling the only source doubles every σ
-    np.testing.assert_allclose(r2.data["metrics"]["sigma_north"][1:], 2 * r1.data["metrics"]["sigma_north"][1:],
+    np.testing.assert_allclose(r2.metrics["sigma_north"][1:], 2 * r1.metrics["sigma_north"][1:],
                                rtol=1e-9)
     # an accelerometer bias reaches azimuth only through the transport-rate error: tiny
-    assert r1.data["metrics"]["sigma_azimuth"][-1] < 1e-3 * 2.9e-3
+    assert r1.metrics["sigma_azimuth"][-1] < 1e-3 * 2.9e-3
 
 
 @pytest.mark.parametrize("mutate,match", [

@@ -378,3 +378,10 @@ def test_units_of_dimensions_and_unit_strings():
         to_si(1.0, "deg/h$")
     with pytest.raises(UnitError, match=r"unknown dimension 'speed'"):
         parse_quantity("1 m/s", "speed")
+
+
+def test_ppm_per_g_constant_is_the_parsed_unit():
+    """PPM_G (one home, covtool.units) is what the unit layer reads for '1 ppm/g' (1e-15)."""
+    from covtool.units import PPM_G
+    assert PPM_G == pytest.approx(1e-6 / 9.80665, rel=1e-15)
+    assert to_si(1.0, "ppm/g") == pytest.approx(PPM_G, rel=1e-15)

@@ -5,7 +5,7 @@ Seed 002 Table 4 gives the time of one filter cycle on an 8 MHz Intel
 measure is the floating-point operation count of the cycle, given here in
 closed form as a function of the filter order ``n`` (= n_f), the number of
 measurements ``m`` and the number of Taylor terms ``N_t``; the time on this
-machine is measured with numpy (:func:`time_cycle`).
+machine is that of covtool's kernel doing the same cycle (:func:`time_cycle`).
 
 Counting convention
 -------------------
@@ -19,7 +19,8 @@ n³-like times suggest).
 One cycle
 ---------
 One propagation step of the filter with its on-board discretisation, then
-one ZUPT update (the algorithm of :func:`onboard_cycle`):
+one ZUPT update (:func:`onboard_cycle` computes the same numbers with the
+kernel; tests/test_flops.py counts these loops operation by operation):
 
 =====================  ===========================================  ====================================
 step                   operations                                   FLOPs
@@ -49,6 +50,7 @@ import numpy as np
 
 from covtool.errors import InputError
 from covtool.lincov import discretize
+from covtool.lincov.kalman import filter_update, kalman_gain, predict
 
 #: Seed 002 Table 4: time of one filter cycle on an 8 MHz 8086/8087. [s]
 PAPER_TABLE4_SECONDS = {"A": 22.62, "B3": 0.74, "C": 0.29, "D": 0.08}
@@ -123,7 +125,17 @@ def cycle_flops(n: int, m: int, order: int, form: str = "joseph") -> dict:
 
 
 def onboard_cycle(F, Qc, dt, P, H, R, order: int, form: str = "joseph"):
-    """One on-board filter cycle, exactly the operations counted above.
+    """One on-board filter cycle, by covtool's kernel.
+
+    Eq (6b)–(6d) with ``order`` terms by
+    :func:`covtool.lincov.discretize.taylor`, eq (6a) by
+    :func:`covtool.lincov.kalman.predict`, eq (7) by
+    :func:`~covtool.lincov.kalman.kalman_gain` and eq (8) or the Joseph
+    form by :func:`~covtool.lincov.kalman.filter_update`: the same
+    numbers as the dense algorithm of the module table, whose operations
+    :func:`cycle_flops` counts (the kernel's Joseph update is its rank-m
+    form, cheaper than the table's ``4n³``; the count describes the
+    paper's general-matrix code).
 
     Parameters
     ----------
@@ -145,32 +157,17 @@ def onboard_cycle(F, Qc, dt, P, H, R, order: int, form: str = "joseph"):
         Posterior covariance after propagation and the update.
     K : ndarray, shape (n, m)
         The gain, eq (7).
+
+    Raises
+    ------
+    InputError
+        An ``order`` whose series diverges over ``dt``
+        (:func:`covtool.lincov.discretize.taylor`).
     """
-    n = F.shape[0]
-    A = dt * F                                          # eq (6b)
-    Phi = np.eye(n) + A
-    T = A
-    for i in range(2, order):
-        T = (T @ A) / i
-        Phi += T
-    C = Qc                                              # eq (6c)-(6d)
-    Q = dt * C
-    c = dt
-    for i in range(2, order):
-        G = F @ C
-        C = G + G.T
-        c = c * dt / i
-        Q += c * C
-    P = (Phi @ P) @ Phi.T + Q                           # eq (6a)
-    U = P @ H.T                                         # eq (7)
-    S = H @ U + R
-    K = np.linalg.solve(S, U.T).T
-    if form == "joseph":
-        Aj = np.eye(n) - K @ H
-        P = Aj @ P @ Aj.T + (K @ R) @ K.T
-    else:
-        P = P - K @ (H @ P)                             # eq (8)
-    return P, K
+    Phi, Qd = discretize.taylor(F[None], Qc[None], dt, order, what="on-board cycle")   # eq (6b)-(6d)
+    P = predict(Phi[0], P, Qd[0])                                                     # eq (6a)
+    K = kalman_gain(P, H, R, what="on-board cycle")                                     # eq (7)
+    return filter_update(P, K, H, R, form, what="on-board cycle"), K                    # eq (8) / Joseph
 
 
 def time_cycle(F, Qc, dt, P, H, R, order: int, form: str = "joseph", *, repeats: int = 7,
@@ -179,7 +176,10 @@ def time_cycle(F, Qc, dt, P, H, R, order: int, form: str = "joseph", *, repeats:
 
     timeit-style: the loop count is raised until one repeat lasts at least
     ``min_time``; the median over ``repeats`` repeats divided by the loop count
-    is returned.  Run it with one BLAS thread (an on-board processor has one;
+    is returned.  It times covtool's kernel, whose Joseph update is the
+    rank-m form (``O(n² m)``, not the table's ``4n³``) and whose series
+    balances ``F`` first: :func:`cycle_flops` divided by this time is an
+    effective rate of the paper's dense algorithm, not the kernel's own.  Run it with one BLAS thread (an on-board processor has one;
     :func:`covtool.studies.run_study` limits the pool).  A benchmark figure,
     never asserted in tests.
     """

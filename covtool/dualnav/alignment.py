@@ -149,7 +149,7 @@ def alignment_second_order(f_mean, heading, mounting, cov_u, step: float = 0.05)
     attitude noise (the mean, ~1e-6 rad, is dropped).
     """
     f = np.asarray(f_mean, float).reshape(3)
-    w, V = np.linalg.eigh(0.5 * (np.asarray(cov_u, float) + np.asarray(cov_u, float).T))
+    w, V = np.linalg.eigh(symmetrize(np.asarray(cov_u, float)))
     L = V * np.sqrt(np.clip(w, 0.0, None))
     q0 = triad_alignment(f, heading, mounting)[0]
     h = float(step)

@@ -18,7 +18,8 @@ import numpy as np
 from covtool.dualnav.alignment import alignment_jacobian, alignment_second_order, small_angle
 from covtool.lincov.discretize import block_triangular, is_block_triangular, taylor
 from covtool.lincov.dynamics import Context, error_dynamics, nav_error_matrix
-from covtool.lincov.kalman import check_covariance, symmetrize
+from covtool.lincov.batch import compose
+from covtool.lincov.kalman import check_covariance, predict, symmetrize
 from covtool.lincov.model.spec import Model
 from covtool.nav import attitude as quat, earth, strapdown as sd
 
@@ -226,7 +227,7 @@ class DifferenceModel:
             for j in range(self.t.size):
                 out[j] = self.H[j] @ P @ self.H[j].T + self.R
                 if j < self.t.size - 1:
-                    P = symmetrize(self.Phi[j] @ P @ self.Phi[j].T + self.Qd[j])
+                    P = predict(self.Phi[j], P, self.Qd[j])
         check_covariance(out, "dual-IMU open-loop difference", times=self.t,
                          names=[DIFF_NAMES[c] for c in self.components])
         return out
@@ -358,19 +359,13 @@ def difference_model(main: ImuLinearization, kimu: ImuLinearization, *, t_epochs
                 Fc[:, 6:10, c] = halfQ[:, :, i] * products[:, i, j][:, None]
         Phi_s, Qd_s, Gam_s = discretize_difference(dyn.F, dyn.Qc, dt_sub, Fc, chunk)
         nc = Gam_s.shape[-1]
-        Phi = np.empty((J, n, n))
-        Qd = np.empty((J, n, n))
+        Phi, Qd = compose(Phi_s, Qd_s, np.arange(0, N + 1, k))        # chained over each epoch interval
         Gam = np.zeros((J, n, nc))
         for jj in range(J):
-            P = np.eye(n)
-            Q = np.zeros((n, n))
             G = np.zeros((n, nc))
             for s in range(jj * k, (jj + 1) * k):
-                Ps = Phi_s[s]
-                P = Ps @ P
-                Q = Ps @ Q @ Ps.T + Qd_s[s]
-                G = Ps @ G + Gam_s[s]
-            Phi[jj], Qd[jj], Gam[jj] = P, symmetrize(Q), G
+                G = Phi_s[s] @ G + Gam_s[s]
+            Gam[jj] = G
         blocks.append((Phi, Qd, Gam))
     nm, nk = main.model.n, kimu.model.n
     n = nm + nk

@@ -24,7 +24,7 @@ from scipy.stats import chi2
 from covtool.dualnav.difference import DifferenceModel
 from covtool.errors import NumericalError
 from covtool.lincov.kalman import (check_covariance, check_finite, filter_update, innovation_covariance,
-                                   kalman_gain, symmetrize, time_text)
+                                   kalman_gain, predict, time_text)
 
 __all__ = [
     "AXES", "Innovations", "Whitener", "innovations", "window_test", "flagged_intervals",
@@ -172,7 +172,7 @@ class Whitener:
         model = self.model
         Phi = model.Phi[j]
         self.x = self.x @ Phi.T
-        self.P = symmetrize(Phi @ self.P @ Phi.T + model.Qd[j])
+        self.P = predict(Phi, self.P, model.Qd[j])
         self._check(j + 1, "after the prediction")
         self.mu = Phi @ self.mu + model.Gamma[j]
 

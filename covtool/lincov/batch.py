@@ -35,6 +35,8 @@ import numpy as np
 from covtool.errors import NumericalError
 from covtool.lincov.kalman import (check_covariance, check_finite, covariance_status, NEGATIVE_VARIANCE,
                                    NOT_PSD, scale_groups, symmetrize, time_text)
+# the rank-m Joseph / eq (16) update and the selection test live in the kernel (one home)
+from covtool.lincov.kalman import joseph_update as _joseph, selection as _selection
 
 
 def sandwich(A: np.ndarray, P: np.ndarray, dynamic=None) -> np.ndarray:
@@ -284,65 +286,6 @@ class BatchResult:
     def failed(self) -> np.ndarray:
         """Boolean mask of the cases flagged by the guard, shape (B,)."""
         return np.array([bool(s) for s in self.status], bool)
-
-
-def _selection(D: np.ndarray):
-    """``(k0, k1)`` if ``D`` selects truth states ``k0:k1``, else None."""
-    n, nf = D.shape
-    cols = np.flatnonzero(D[:, 0]) if nf else []
-    if len(cols) != 1 or cols[0] + nf > n:
-        return None
-    k0 = int(cols[0])
-    E = np.zeros_like(D)
-    E[k0:k0 + nf] = np.eye(nf)
-    return (k0, k0 + nf) if np.array_equal(D, E) else None
-
-
-def _joseph(P, K, HP, S, sel=None, symmetrize=True):
-    """Joseph form / eq (16) update in rank-m form, in place.
-
-    ``(I − D K H) P (I − D K H)ᵀ + D K R Kᵀ Dᵀ``.
-
-    Parameters
-    ----------
-    P : ndarray, shape (B, n, n)
-        Prior covariance; overwritten (it must be owned by the caller).
-    K : ndarray, shape (B, n_f, m)
-        Gains.
-    HP : ndarray, shape (B, m, n)
-        ``H P``.
-    S : ndarray, shape (B, m, m)
-        ``H P Hᵀ + R``.
-    sel : (int, int), optional
-        ``D`` is the selection of truth states ``k0:k1`` (:func:`_selection`);
-        ``None`` means ``D = I``.
-    symmetrize : bool
-        Also replace ``P`` by ``(P + Pᵀ)/2`` (one more pass over ``P``).
-
-    Returns
-    -------
-    ndarray, shape (B, n, n)
-        Exactly symmetric if ``symmetrize``.
-
-    Notes
-    -----
-    With ``DK = D K`` the Joseph form (and eq (16)) equals
-    ``P + X + Xᵀ`` with ``X = (DK S/2 − (HP)ᵀ) (DK)ᵀ`` for every gain (optimal
-    or not): ``O(m n n_f)`` instead of ``O(n³)`` per case.  ``X`` is non-zero
-    only in the columns ``k0:k1``.  Symmetrised, the result is formed as
-    ``Y + Yᵀ`` with ``Y = P/2 + X``.
-    """
-    k0, k1 = sel if sel is not None else (0, P.shape[1])
-    M = -np.swapaxes(HP, 1, 2)                                  # (B, n, m)
-    M[:, k0:k1] += 0.5 * (K @ S)
-    X = M @ np.swapaxes(K, 1, 2)                                # (B, n, n_f)
-    if not symmetrize:
-        P[:, :, k0:k1] += X
-        P[:, k0:k1, :] += np.swapaxes(X, 1, 2)
-        return P
-    P *= 0.5
-    P[:, :, k0:k1] += X
-    return np.add(P, np.swapaxes(P, 1, 2))
 
 
 #: updates between full symmetrisations of the covariances (the
@@ -605,7 +548,7 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                         raise NumericalError(f"{label}: innovation covariance H P_f Hᵀ + R_f is singular at "
                                              f"{when(k)}") from None
                     if form == "joseph":
-                        Pf = _joseph(Pf, K, HPf, S, symmetrize=sym)
+                        Pf = _joseph(Pf, K, Hf, Rf, symmetrize=sym, HP=HPf)
                     else:
                         Pf = Pf - K @ HPf                                     # eq (8)
                         Pf = symmetrize(Pf) if sym else Pf
@@ -614,9 +557,9 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                 out_g[:, ui] = K
                 HP = H @ P
                 if sel is not None:
-                    P = _joseph(P, K, HP, HP @ H.T + R, sel, symmetrize=sym)  # eq (16), D a selection
+                    P = _joseph(P, K, H, R, sel, symmetrize=sym, HP=HP)         # eq (16), D a selection
                 else:
-                    P = _joseph(P, D @ K, HP, HP @ H.T + R, symmetrize=sym)   # eq (16)
+                    P = _joseph(P, D @ K, H, R, symmetrize=sym, HP=HP)          # eq (16)
                 if check and sym:
                     flush()
                     guard(P, "truth after the eq (16) update", k, names, psd_mask, scaled=True)

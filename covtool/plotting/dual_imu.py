@@ -6,12 +6,10 @@ import numpy as np
 
 from covtool.dualnav.difference import DIFF_NAMES
 from covtool.plotting.style import legend_outside
-from covtool.units import G0
+from covtool.units import PPM_G
 
 #: component kind -> (unit, SI to unit)
 DIFF_UNITS = {"pos": ("m", 1.0), "vel": ("m/s", 1.0), "att": ("mrad", 1e3)}
-#: 1 ppm/g in 1/(m/s²)
-PPM_G = 1e-6 / G0
 
 
 def dual_imu_figures(result) -> dict:

@@ -433,7 +433,7 @@ def run(decl: dict, *, path: Path | None = None, progress: bool = False) -> AdRe
         name=p["name"], kind=KIND, tables=out, resolved=decl, charts=charts, figure_specs=figs,
         provenance={"covtool_version": __version__, "runtime_s": round(time.perf_counter() - t0, 3),
                     "study_file": str(path) if path else "<dict>"},
-        data={"params": p, "derived": d},
+        params=p, derived=d,
     )
     result.figures = {name: partial(ad_reset_figure, result, name) for name in figs}
     return result

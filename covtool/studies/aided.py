@@ -367,7 +367,6 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                     "truth_model_sha256": truth0.sha256, "measurement_states": ", ".join(s.name for s in states),
                     "equivalent_noise_interval_s": f"{ewn_dt:g}", **resource_provenance(est),
                     "compute_seconds": f"{elapsed:.2f}"},
-        data={"t": tr, "steps": rec, "metrics": metrics, "claimed": claimed, "trajectory": nodes},
     )
 
 

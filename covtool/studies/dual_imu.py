@@ -82,7 +82,8 @@ from covtool.nav import attitude as quat, earth
 from covtool.plotting.dual_imu import DIFF_UNITS, dual_imu_figures
 from covtool.progress import progress_bar
 from covtool.results import DualImuResult
-from covtool.studies.dual_imu_config import DualConfig, parse_study, PPM_G
+from covtool.studies.dual_imu_config import DualConfig, parse_study
+from covtool.units import PPM_G
 from covtool.studies.inputs import input_file
 from covtool.validation.sensor_errors import GSensitiveErrors
 
@@ -360,7 +361,6 @@ def _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed) -> DualImuResult
                     **input_file("kimu_grade", cfg.grades["kimu"].path),
                     "main_model_sha256": setup.main_model.sha256, "kimu_model_sha256": setup.kimu_model.sha256,
                     "joint_states": ref.model.n, "epochs": ref.t.size, "compute_seconds": f"{elapsed:.2f}"},
-        data={"fault_free": free, "fault": fault, "trajectory": traj, "config": cfg, "setup": setup},
         config=cfg, fault_free=list(free), fault=list(fault))
     result.figures = dual_imu_figures(result)
     return result
@@ -466,7 +466,7 @@ def compare_logs(main_log, kimu_log, decl: dict, *, path=None, progress: bool = 
         resolved={**decl, "logs": {"main": main_log.path, "kimu": kimu_log.path}},
         provenance={**input_file("main_grade", cfg.grades["main"].path),
                     **input_file("kimu_grade", cfg.grades["kimu"].path), "compute_seconds": f"{elapsed:.2f}"},
-        data={"run": r, "bridged": bridged, "config": cfg},
+        bridged=bridged,
     )
     result.figures = dual_imu_figures(result)
     return result

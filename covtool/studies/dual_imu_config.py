@@ -17,13 +17,11 @@ from covtool.errors import ModelFileError, StudyFileError
 from covtool.io.config import check_keys, choice, integer, names, number, quantity, string, table
 from covtool.io.names import check_study_name
 from covtool.nav import attitude as quat
-from covtool.units import G0
 
 
 COMPONENT_GROUPS = {"position": (0, 1, 2), "velocity": (3, 4, 5), "attitude": (6, 7, 8)}
 
 
-PPM_G = 1e-6 / G0          # 1 ppm/g in 1/(m/s²)
 _TOP = {"study", "trajectory", "imu", "alignment", "comparison", "monitor", "gaps", "simulation"}
 
 

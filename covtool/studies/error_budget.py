@@ -197,9 +197,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]},
                   "budget": {**decl.get("budget", {}), **opts}},
         provenance=provenance,
-        data={"t": t, "record_steps": rec, "events": ev, "truth_system": truth, "noise": Qn, "runs": runs,
-              "variances": var, "nominal": nominal, "residuals": residuals, "sources": sources, "factors": factors, "trajectory": nodes,
-              "truth": truth_model, "setup": S},
+        runs=runs, residuals=residuals, record_steps=np.asarray(rec), setup=S, truth_system=truth, noise=Qn,
         times=t[rec], length_unit=length_unit(decl, where), update_times=t[S.update_steps], stops=S.stops,
         variances=var, sources={c: [s.name for s in runs[c].sources] for c in cases},
         source_order=[s.name for s in sources], top=opts["top"])

@@ -232,7 +232,6 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
     result = MagnitudeSweepResult(
         name=S.hdr["name"], kind="magnitude_sweep", tables={"summary": thresholds, "sweep": sweep},
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance, charts=charts,
-        data={"setup": S, "results": results, "members": members, "metrics": mets, "report_steps": rep},
         sweep=sweep, groups=list(opts["groups"]), threshold=opts["threshold"],
         declared={g["name"]: truth.states[truth.index[g["states"][0]]].sigma for g in opts["groups"]})
     result.figures = {"magnitude_sweep": partial(sweep_figure, result)}

@@ -87,7 +87,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> PureIn
         charts=[{"sheet": "history", "x": "t [min]", "y": [f"CEP [{unit}]", f"alt PE [{unit}]"], "log_y": True,
                  "skip": 1, "x_title": "time [min]", "title": "Pure INS position error",
                  "y_title": f"position error [{unit}]", "anchor": "R2"}],
-        data={"t": t, "P": P, "metrics": m, "trajectory": nodes, "model": truth},
-        times=t, metrics=m, length_unit=unit, history=CovarianceHistory(t, truth.names, P, label="pure INS").nav())
+        times=t, metrics=m, length_unit=unit, truth_history=CovarianceHistory(t, truth.names, P, label="pure INS"))
+    result.history = result.truth_history.nav()
     result.figures = {"pure_ins_errors": partial(pure_ins_figure, result)}
     return result

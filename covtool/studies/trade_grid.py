@@ -399,7 +399,6 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     result = TradeGridResult(
         name=plan.hdr["name"], kind="trade_grid", tables=tables,
         resolved={**decl, "study": {**decl["study"], "name": plan.hdr["name"]}}, provenance=provenance,
-        data={"plan": plan, "stats": stats, "timing": timing},
         nominal=nominal(summary, plan), grades=[{"name": g["name"], "scale": g["scale"]} for g in plan.grades],
         filters=list(plan.filters), duration=plan.hdr["duration"], length_unit=unit)
     result.figures = {"trade_grid": partial(trade_figure, result)}

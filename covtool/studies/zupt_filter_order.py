@@ -161,10 +161,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
                 {"sheet": "history", "x": "t [min]", "y": [f"alt PE [{unit}]"], "group": "case", "log_y": True,
                  "skip": 1, "title": "Fig 7: altitude PE by filter model", "x_title": "time [min]",
                  "y_title": f"altitude PE [{unit}]", "anchor": "S22"}],
-        data={"t": t, "runs": runs, "filters": fmodels, "metrics": metrics, "claimed": claimed,
-              "claimed_steps": rsteps, "record_steps": rec,
-              "update_steps": upd, "trajectory": nodes, "truth": truth, "P0": P0, "Phi": Phi, "Qd": Qd,
-              "H": H, "R": R},
+        runs=runs, filter_models=fmodels, trajectory=nodes, record_steps=rec,
         times=tr_, metrics=metrics, length_unit=unit, update_times=t[upd], stops=S.stops,
         histories=histories, claimed=claimed_hist,
         claimed_metrics=claimed, report_times=list(rtimes))

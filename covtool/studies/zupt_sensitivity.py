@@ -251,10 +251,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
         name=S.hdr["name"], kind="zupt_sensitivity", tables=tables,
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance,
         charts=charts,
-        data={"cases": cases, "scales": cases.scales, "record_steps": np.array(rec), "report_times": rt,
-              "truth_metrics": {c: r[0] for c, r in results.items()},
-              "filter_metrics": {c: r[1] for c, r in results.items()}, "fits": fits, "filters": fmodels,
-              "timing": timing, "sweep_seconds": t_sweep, "sweep_cpu_seconds": c_sweep, "cost": cost_rows, "setup": S},
+        filter_models=fmodels, setup=S,
         scales=np.asarray(cases.scales), parameters=list(cases.parameters), filters=list(results),
         curves={(c, p, m): _curve(cases, results, c, p, m) for c in results for p in cases.parameters
                 for m in METRICS},

@@ -27,6 +27,8 @@ FT = 0.3048
 #: arc minute and arc second [rad]
 ARCMIN = math.pi / 180 / 60
 ARCSEC = ARCMIN / 60
+#: 1 ppm/g (a g-sensitivity coefficient) [1/(m/s^2)]
+PPM_G = 1e-6 / G0
 
 #: longest quantity string read [characters]
 MAX_LENGTH = 100

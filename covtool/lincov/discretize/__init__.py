@@ -61,6 +61,8 @@ Markov state.
 
 Layout
 ------
+:mod:`~covtool.lincov.discretize.limits`
+    every limit and tolerance (``THETA``, ``MAX_TERMS``, ``MAX_ORDER``, ``PSD_TOL`` …).
 :mod:`~covtool.lincov.discretize.steps`
     :class:`StepInfo`, :func:`repeated_steps`, input checks, :func:`check_qd`.
 :mod:`~covtool.lincov.discretize.series`

@@ -15,16 +15,9 @@ from scipy.linalg import matrix_balance
 
 from covtool.errors import NumericalError
 from covtool.lincov.discretize.steps import StepInfo, _check_result, _step_where
+from covtool.lincov.discretize.limits import MAX_ORDER, MAX_TERMS, THETA, UNIT_ROUNDOFF  # noqa: F401 - re-exported
 
 
-#: base-step bound ``νh ≤ θ`` (see the module notes)
-THETA = 0.5
-#: unit round-off: the adaptive series stops when its tail is below this fraction of the sum
-UNIT_ROUNDOFF = 2.0**-53
-#: cap of the adaptive base-step series: ``νh ≤ θ`` gains a factor ≥ 10 per term, so reaching it is an error
-MAX_TERMS = 40
-#: largest fixed order accepted (terms beyond ~30 are below round-off for any step the criterion accepts)
-MAX_ORDER = 100
 def balancing(F: np.ndarray) -> np.ndarray:
     """Diagonal scaling that balances a stack of dynamics matrices.
 

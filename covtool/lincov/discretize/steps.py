@@ -13,10 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from covtool.errors import NumericalError
+from covtool.lincov.discretize.limits import PSD_TOL  # noqa: F401 - re-exported
 
 
-#: relative tolerance of the PSD check of an exact ``Q_d`` (correlation scaling)
-PSD_TOL = 1e-9
 @dataclass(frozen=True)
 class StepInfo:
     """How each step of a stack was discretised.

@@ -14,10 +14,7 @@ from covtool.lincov.discretize.series import (
     MAX_TERMS, UNIT_ROUNDOFF, _balanced, _finish, _not_converged, _series, balancing, reach, scaling,
     sensor_states)
 from covtool.lincov.discretize.steps import _dedup, _expand_phi_qd, _prepare
-
-
-#: use the block path of :func:`_exact` when at least this fraction of the states are sensor states
-BLOCK_FRACTION = 0.25
+from covtool.lincov.discretize.limits import BLOCK_FRACTION
 
 
 def _exact(F, Qc, dt, what, times):
