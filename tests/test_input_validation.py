@@ -627,7 +627,7 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
     d = make()
     r, peak = _peak(d)
     truth = load_model(SDINS)
-    N = int(r.times.size - 1)
+    N = int(r.provenance["steps"])                 # the propagation grid (times may be the record grid)
     if r.kind == "pure_ins":
         est = memory_estimate(N, 58, histories=[58], noise=noise_columns(truth))["bytes"]
     else:
