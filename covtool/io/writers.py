@@ -11,6 +11,8 @@ workbook's name is checked to be one plain file-name component first.
 from __future__ import annotations
 
 import datetime as _dt
+import os
+import pickle
 import platform
 from pathlib import Path
 
@@ -86,20 +88,102 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
     with staging_dir(out_dir) as stage:
         for name, df in result.tables.items():
             write_csv(df, _inside(stage, f"{name}.csv"))
-        build_workbook(result.tables, provenance_rows(result), result.charts,
-                       path=_inside(stage, f"{result.name}.xlsx"))
-        (stage / "resolved_study.toml").write_text(
-            f"# resolved by covtool {__version__}, source {source_revision()}\n" + tomli_w.dumps(_toml_safe(result.resolved)), encoding="utf-8")
-        if figures and result.figures:
-            import matplotlib
-            matplotlib.use("Agg")
-            import matplotlib.pyplot as plt
-            for name, make in result.figures.items():
-                fig = make()
-                # a layout computed with the figure (no bbox_inches="tight": it draws every figure twice)
-                if fig.get_layout_engine() is None:
-                    fig.set_layout_engine("constrained")
-                fig.savefig(_inside(stage, f"{name}.png"), dpi=120)
-                plt.close(fig)
+        items = [(name, make, _inside(stage, f"{name}.png")) for name, make in result.figures.items()] \
+            if figures and result.figures else []
+        # the figures are drawn in forked processes while this one writes the tables and the workbook
+        children = _start_figures(items)
+        try:
+            build_workbook(result.tables, provenance_rows(result), result.charts,
+                           path=_inside(stage, f"{result.name}.xlsx"))
+            (stage / "resolved_study.toml").write_text(
+                f"# resolved by covtool {__version__}, source {source_revision()}\n" + tomli_w.dumps(_toml_safe(result.resolved)), encoding="utf-8")
+        except BaseException:
+            _finish_figures(children, report=False)
+            raise
+        _finish_figures(children)
         written = [out_dir / p.relative_to(stage) for p in sorted(stage.rglob("*")) if p.is_file()]
     return written
+
+
+#: processes that draw a study's figures at once (besides the one writing the tables)
+FIGURE_PROCESSES = 2
+
+
+def draw_figures(items) -> None:
+    """Draw and save ``(name, make, path)`` figures with the Agg backend.
+
+    A layout is computed with each figure (never ``bbox_inches="tight"``,
+    which draws every figure twice).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    for _name, make, path in items:
+        fig = make()
+        if fig.get_layout_engine() is None:
+            fig.set_layout_engine("constrained")
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+
+
+def _start_figures(items):
+    """Draw ``items`` in up to :data:`FIGURE_PROCESSES` forked children; ``[(pid, fd)]``.
+
+    Without ``os.fork`` (or with one figure process) they are drawn here
+    and now, and the list is empty.
+    """
+    n = min(len(items), FIGURE_PROCESSES)
+    if n == 0:
+        return []
+    if not hasattr(os, "fork"):
+        draw_figures(items)
+        return []
+    children = []
+    for w in range(n):
+        r, wfd = os.pipe()
+        pid = os.fork()
+        if pid == 0:                                   # the child: draw, report, leave without cleanup
+            code, payload = 0, b""
+            try:
+                os.close(r)
+                draw_figures(items[w::n])
+            except BaseException as e:                 # noqa: BLE001 - re-raised in the parent
+                code = 1
+                try:
+                    payload = pickle.dumps(e)
+                except Exception:                      # noqa: BLE001
+                    payload = pickle.dumps(RuntimeError(f"{type(e).__name__}: {e}"))
+            finally:
+                try:
+                    view = memoryview(payload)
+                    while view:
+                        view = view[os.write(wfd, view):]
+                finally:
+                    os._exit(code)
+        os.close(wfd)
+        children.append((pid, r))
+    return children
+
+
+def _finish_figures(children, report: bool = True) -> None:
+    """Wait for the figure processes; re-raise the first error one reported (if ``report``)."""
+    error = None
+    for pid, r in children:
+        chunks = []
+        while True:
+            b = os.read(r, 65536)
+            if not b:
+                break
+            chunks.append(b)
+        os.close(r)
+        _, status = os.waitpid(pid, 0)
+        if error is None and chunks:
+            try:
+                error = pickle.loads(b"".join(chunks))
+            except Exception:                          # noqa: BLE001
+                error = RuntimeError("a figure process failed")
+        elif error is None and os.waitstatus_to_exitcode(status) != 0:
+            error = RuntimeError(f"a figure process ended with status {os.waitstatus_to_exitcode(status)}")
+    if error is not None and report:
+        raise error

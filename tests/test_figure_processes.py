@@ -1,0 +1,74 @@
+"""Figures drawn in forked processes while the tables are written (issue 13).
+
+:func:`covtool.io.writers.write_outputs` draws a study's figures in up to
+``FIGURE_PROCESSES`` children: the files must be the same as drawn in
+process, an error raised while drawing must reach the caller as itself
+(type and message), and a failed run must leave no output.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from covtool.errors import InputError
+from covtool.io import writers
+from covtool.results import StudyResult
+
+
+def _figure(k: int):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(3, 2))
+    ax.plot(np.arange(5), np.arange(5) ** k)
+    ax.set_title(f"power {k} (pid-independent)")
+    return fig
+
+
+def _result(figures: dict) -> StudyResult:
+    table = pd.DataFrame({"x [m]": [1.0, 2.0]})
+    res = StudyResult(name="figs", kind="test", tables={"summary": table},
+                      resolved={"study": {"kind": "test", "name": "figs"}}, provenance={})
+    res.figures = figures
+    return res
+
+
+def _png_size(path):
+    head = open(path, "rb").read(24)
+    assert head[:8] == b"\x89PNG\r\n\x1a\n"
+    return int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+
+
+def test_figures_from_child_processes_equal_those_drawn_in_process(tmp_path):
+    figs = {f"p{k}": (lambda k=k: _figure(k)) for k in range(3)}
+    files = writers.write_outputs(_result(figs), tmp_path / "out")
+    assert sorted(p.name for p in files if p.suffix == ".png") == ["p0.png", "p1.png", "p2.png"]
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    writers.draw_figures([(n, m, ref / f"{n}.png") for n, m in figs.items()])
+    for n in figs:
+        assert _png_size(tmp_path / "out" / f"{n}.png") == _png_size(ref / f"{n}.png") == (360, 240)
+        assert (tmp_path / "out" / f"{n}.png").read_bytes() == (ref / f"{n}.png").read_bytes()
+
+
+def test_an_error_while_drawing_reaches_the_caller_and_nothing_is_written(tmp_path):
+    def bad():
+        raise InputError("figs.toml: [output] figure", "cannot be drawn (test)")
+
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"figs.toml: \[output\] figure: cannot be drawn \(test\)"):
+        writers.write_outputs(_result({"good": lambda: _figure(1), "bad": bad}), out)
+    assert not [p for p in out.rglob("*") if p.is_file()]
+
+
+def test_a_figure_process_that_dies_is_reported(tmp_path):
+    def dies():
+        os._exit(3)
+
+    with pytest.raises(RuntimeError, match="a figure process ended with status 3"):
+        writers.write_outputs(_result({"dies": dies}), tmp_path / "out")
