@@ -70,5 +70,49 @@ def test_a_figure_process_that_dies_is_reported(tmp_path):
     def dies():
         os._exit(3)
 
-    with pytest.raises(RuntimeError, match="a figure process ended with status 3"):
+    with pytest.raises(RuntimeError, match="a worker process ended with status 3 and no result"):
         writers.write_outputs(_result({"dies": dies}), tmp_path / "out")
+
+
+# ---------------------------------------------------------------------------
+# covtool.forked.Forked, the one helper behind the figure processes and the flagship's impact table
+
+
+def _child_work(n):
+    import warnings
+
+    from covtool.errors import CovtoolWarning
+
+    warnings.warn(f"from the child: {n}", CovtoolWarning)
+    return os.getpid(), np.arange(n) ** 2
+
+
+def test_forked_call_returns_its_value_from_another_process_and_reissues_its_warnings():
+    from covtool.errors import CovtoolWarning
+    from covtool.forked import Forked
+
+    job = Forked(_child_work, 5)
+    with pytest.warns(CovtoolWarning, match="from the child: 5"):
+        pid, sq = job.result()
+    assert pid != os.getpid()
+    np.testing.assert_array_equal(sq, [0, 1, 4, 9, 16])
+    np.testing.assert_array_equal(job.result()[1], sq)          # collected once, kept
+
+
+def test_forked_call_reraises_the_error_and_cancel_reaps_the_child():
+    import time
+
+    from covtool.errors import NumericalError
+    from covtool.forked import Forked
+
+    def fails():
+        raise NumericalError("impact: filter B1: step 3 is not PSD")
+
+    with pytest.raises(NumericalError, match="impact: filter B1: step 3 is not PSD"):
+        Forked(fails).result()
+    job = Forked(time.sleep, 60)
+    job.cancel()
+    with pytest.raises(ChildProcessError):
+        os.waitpid(job.pid, os.WNOHANG)                     # reaped: no such child any more
+    with pytest.raises(RuntimeError, match="a worker process ended with status -9 and no result"):
+        job.result()

@@ -11,8 +11,6 @@ workbook's name is checked to be one plain file-name component first.
 from __future__ import annotations
 
 import datetime as _dt
-import os
-import pickle
 import platform
 from pathlib import Path
 
@@ -127,63 +125,24 @@ def draw_figures(items) -> None:
         plt.close(fig)
 
 
-def _start_figures(items):
-    """Draw ``items`` in up to :data:`FIGURE_PROCESSES` forked children; ``[(pid, fd)]``.
+def _start_figures(items) -> list:
+    """Draw ``items`` in up to :data:`FIGURE_PROCESSES` forked children (:class:`covtool.forked.Forked`)."""
+    from covtool.forked import Forked
 
-    Without ``os.fork`` (or with one figure process) they are drawn here
-    and now, and the list is empty.
-    """
     n = min(len(items), FIGURE_PROCESSES)
-    if n == 0:
-        return []
-    if not hasattr(os, "fork"):
-        draw_figures(items)
-        return []
-    children = []
-    for w in range(n):
-        r, wfd = os.pipe()
-        pid = os.fork()
-        if pid == 0:                                   # the child: draw, report, leave without cleanup
-            code, payload = 0, b""
-            try:
-                os.close(r)
-                draw_figures(items[w::n])
-            except BaseException as e:                 # noqa: BLE001 - re-raised in the parent
-                code = 1
-                try:
-                    payload = pickle.dumps(e)
-                except Exception:                      # noqa: BLE001
-                    payload = pickle.dumps(RuntimeError(f"{type(e).__name__}: {e}"))
-            finally:
-                try:
-                    view = memoryview(payload)
-                    while view:
-                        view = view[os.write(wfd, view):]
-                finally:
-                    os._exit(code)
-        os.close(wfd)
-        children.append((pid, r))
-    return children
+    return [Forked(draw_figures, items[w::n]) for w in range(n)]
 
 
 def _finish_figures(children, report: bool = True) -> None:
-    """Wait for the figure processes; re-raise the first error one reported (if ``report``)."""
+    """Wait for the figure processes; re-raise the first error (if ``report``; else stop them)."""
     error = None
-    for pid, r in children:
-        chunks = []
-        while True:
-            b = os.read(r, 65536)
-            if not b:
-                break
-            chunks.append(b)
-        os.close(r)
-        _, status = os.waitpid(pid, 0)
-        if error is None and chunks:
-            try:
-                error = pickle.loads(b"".join(chunks))
-            except Exception:                          # noqa: BLE001
-                error = RuntimeError("a figure process failed")
-        elif error is None and os.waitstatus_to_exitcode(status) != 0:
-            error = RuntimeError(f"a figure process ended with status {os.waitstatus_to_exitcode(status)}")
-    if error is not None and report:
+    for c in children:
+        if not report:
+            c.cancel()
+            continue
+        try:
+            c.result()
+        except BaseException as e:                     # noqa: BLE001 - the first one is re-raised
+            error = error or e
+    if error is not None:
         raise error
