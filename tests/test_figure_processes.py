@@ -116,3 +116,39 @@ def test_forked_call_reraises_the_error_and_cancel_reaps_the_child():
         os.waitpid(job.pid, os.WNOHANG)                     # reaped: no such child any more
     with pytest.raises(RuntimeError, match="a worker process ended with status -9 and no result"):
         job.result()
+
+
+def test_fixed_margins_place_the_axes_in_inches_and_no_writer_overrides_them(tmp_path):
+    import matplotlib.pyplot as plt
+
+    from covtool.plotting.style import fixed_margins
+
+    fig = _figure(2)
+    fig.set_size_inches(10, 5)
+    fixed_margins(fig, left=1.0, right=2.0, bottom=0.5, top=1.0)
+    writers.draw_figures([("m", lambda: fig, tmp_path / "m.png")])      # the writer's path: no other layout
+    x0, y0, x1, y1 = fig.axes[0].get_position().extents
+    assert (x0, x1) == pytest.approx((0.1, 0.8), abs=1e-12)
+    assert (y0, y1) == pytest.approx((0.1, 0.8), abs=1e-12)
+    assert _png_size(tmp_path / "m.png") == (1200, 600)
+    plt.close(fig)
+
+
+def test_budget_figure_legend_lies_beside_the_axes_and_inside_the_figure():
+    import matplotlib.pyplot as plt
+
+    from covtool.plotting.budget import budget_figure
+    from covtool.results import ErrorBudgetResult
+
+    t = np.linspace(0, 600, 61)
+    v = {e: np.array([(1.0 + t) * 10.0 ** -k for k in range(12)]) for e in ("horizontal", "altitude", "azimuth")}
+    names = [f"initial source {k}" for k in range(12)]
+    r = ErrorBudgetResult(name="b", kind="error_budget", tables={"summary": pd.DataFrame()}, times=t,
+                          variances={"B1": v}, sources={"B1": names}, source_order=names, top=8,
+                          stops=((200.0, 300.0),), length_unit="ft")
+    fig = budget_figure(r, "B1")
+    fig.canvas.draw()
+    leg = fig.legends[0].get_window_extent()
+    right = max(ax.get_window_extent().x1 for ax in fig.axes)
+    assert leg.x0 >= right and leg.x1 <= fig.bbox.x1
+    plt.close(fig)
