@@ -146,15 +146,18 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     ci_kept, ci_ewn = 0, {b: 1 + k for k, b in enumerate(ewn_blocks)}
     ci_own_kept = {b: 1 + len(ewn_blocks) + k for k, b in enumerate(noisy)}
     ci_own_full = {}
-    if noisy:
-        # every noisy block's own noise on the kept states and that block, in one pass over the union
-        # of those rows: no kept state drives a dropped one (F_dropped,kept = 0) and no dropped block
-        # drives another, so each source's composed noise on the union is its noise on
-        # (kept ∪ its block) bordered by zeros, and the union's Φ is that of the truth restricted
-        urows = np.array(sorted(kset.union(*(block_states[b] for b in noisy))))
+    # every noisy block's own noise on (kept ∪ that block): in one pass over the union of those rows
+    # when no noisy block drives another (no kept state drives a dropped one, F_dropped,kept = 0), for
+    # then each source's composed noise on the union is its noise on (kept ∪ its block) bordered by
+    # zeros; else one pass per block
+    apart = all(not np.any(dyn.F[:, block_states[c]][:, :, block_states[b]])
+                and not np.any(Phi_pad[:, block_states[c]][:, :, block_states[b]])
+                for b in noisy for c in noisy if c != b)
+    for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
+        urows = np.array(sorted(kset.union(*(block_states[b] for b in group))))
         Qu = compose_noise(Phi_pad[:, urows][:, :, urows], dyn.F[:, urows][:, :, urows],
-                           [restricted_noise(f"noise {b}", own_noise[b], urows) for b in noisy], dt, ev)
-        for j, b in enumerate(noisy):
+                           [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev)
+        for j, b in enumerate(group):
             rows = np.array(sorted(kset | set(block_states[b])))
             sub = np.searchsorted(urows, rows)
             ci_own_full[b] = len(components)
