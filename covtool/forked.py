@@ -17,6 +17,12 @@ import pickle
 import warnings
 
 
+def _tracing() -> bool:
+    import sys
+
+    return "tracemalloc" in sys.modules and sys.modules["tracemalloc"].is_tracing()
+
+
 class Forked:
     """``fn(*args, **kwargs)`` running in a forked child.
 
@@ -33,13 +39,15 @@ class Forked:
     in the parent by :meth:`result`; an exception is re-raised there as
     itself (or as a ``RuntimeError`` naming it if it cannot be pickled).
     A child whose result is never collected is stopped when the object
-    is deleted (the caller failed first).
+    is deleted (the caller failed first).  While :mod:`tracemalloc`
+    traces, the call runs in this process, so that a traced peak is that
+    of the whole computation.
     """
 
     def __init__(self, fn, *args, **kwargs):
         self.pid = None
         self._done = False
-        if not hasattr(os, "fork"):
+        if not hasattr(os, "fork") or _tracing():
             self._run_here(fn, args, kwargs)
             return
         r, w = os.pipe()
@@ -90,6 +98,8 @@ class Forked:
             raise RuntimeError(f"a worker process ended with status {self._status} and no result")
         if not hasattr(self, "_outcome"):
             ok, value, caught = pickle.loads(self._payload)
+            if not ok:
+                value = _rebuild(*value)
             self._outcome = ok, value
             for w in caught:                                # issued once, at the first collection
                 warnings.warn_explicit(w[0], w[1], w[2], w[3])
@@ -122,16 +132,29 @@ class Forked:
 
 
 def _outcome(fn, args, kwargs) -> bytes:
-    """Pickled ``(ok, value or exception, warnings)`` of one call."""
+    """Pickled ``(ok, value or (exception class, args, attributes), warnings)`` of one call.
+
+    An exception travels as its class, ``args`` and attributes, not pickled
+    itself: an exception whose ``__init__`` takes other arguments than its
+    ``args`` (``InputError(where, problem)``) does not unpickle.
+    """
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         try:
             out = (True, fn(*args, **kwargs))
         except BaseException as e:                          # noqa: BLE001 - re-raised by Forked.result
-            out = (False, e)
+            out = (False, (type(e), e.args, dict(getattr(e, "__dict__", {}))))
     ws = [(w.message, w.category, w.filename, w.lineno) for w in caught]
     try:
         return pickle.dumps((*out, ws))
     except Exception as e:                                  # noqa: BLE001 - an unpicklable result or error
-        what = out[1] if not out[0] else e
-        return pickle.dumps((False, RuntimeError(f"{type(what).__name__}: {what}"), []))
+        what = f"{out[1][0].__name__}: {out[1][1]}" if not out[0] else f"{type(e).__name__}: {e}"
+        return pickle.dumps((False, (RuntimeError, (what,), {}), []))
+
+
+def _rebuild(cls, args, attrs) -> BaseException:
+    """The exception ``cls`` with ``args`` and attributes, without calling its ``__init__``."""
+    e = cls.__new__(cls)
+    BaseException.__init__(e, *args)
+    e.__dict__.update(attrs)
+    return e

@@ -152,3 +152,16 @@ def test_budget_figure_legend_lies_beside_the_axes_and_inside_the_figure():
     right = max(ax.get_window_extent().x1 for ax in fig.axes)
     assert leg.x0 >= right and leg.x1 <= fig.bbox.x1
     plt.close(fig)
+
+
+def test_forked_call_runs_in_process_while_tracemalloc_traces():
+    import tracemalloc
+
+    from covtool.forked import Forked
+
+    tracemalloc.start()
+    try:
+        assert Forked(os.getpid).result() == os.getpid()
+    finally:
+        tracemalloc.stop()
+    assert Forked(os.getpid).result() != os.getpid()

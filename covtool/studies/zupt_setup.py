@@ -335,14 +335,15 @@ def order_memory(pure: bool, impact: bool = True):
 
     With the dropped-state impact table (``impact``) it also holds, per
     filter in turn, the truth transition under the filter's options and
-    the per-source noise series (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).
+    the per-source noise series.
     """
-    from covtool.lincov.noise import COMPOSE_WORKSPACE
 
     def memory(steps, truth, filters, dynamics):
         n = truth.n
         hist = ([n] if pure else []) + [m for nf in filters for m in (n, nf)]
-        extra = COMPOSE_WORKSPACE + 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
+        # the per-source series runs on each source's reach set (covtool.lincov.noise), mostly the 10
+        # navigation states: its stacks stay far below COMPOSE_WORKSPACE, the two transition copies dominate
+        extra = 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
         return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=hist,
                                noise=noise_columns(truth), extra=extra)
     return memory
