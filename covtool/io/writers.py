@@ -86,20 +86,63 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
     with staging_dir(out_dir) as stage:
         for name, df in result.tables.items():
             write_csv(df, _inside(stage, f"{name}.csv"))
-        build_workbook(result.tables, provenance_rows(result), result.charts,
-                       path=_inside(stage, f"{result.name}.xlsx"))
-        (stage / "resolved_study.toml").write_text(
-            f"# resolved by covtool {__version__}, source {source_revision()}\n" + tomli_w.dumps(_toml_safe(result.resolved)), encoding="utf-8")
-        if figures and result.figures:
-            import matplotlib
-            matplotlib.use("Agg")
-            import matplotlib.pyplot as plt
-            for name, make in result.figures.items():
-                fig = make()
-                # a layout computed with the figure (no bbox_inches="tight": it draws every figure twice)
-                if fig.get_layout_engine() is None:
-                    fig.set_layout_engine("constrained")
-                fig.savefig(_inside(stage, f"{name}.png"), dpi=120)
-                plt.close(fig)
+        items = [(name, make, _inside(stage, f"{name}.png")) for name, make in result.figures.items()] \
+            if figures and result.figures else []
+        # the figures are drawn in forked processes while this one writes the tables and the workbook
+        children = _start_figures(items)
+        try:
+            build_workbook(result.tables, provenance_rows(result), result.charts,
+                           path=_inside(stage, f"{result.name}.xlsx"))
+            (stage / "resolved_study.toml").write_text(
+                f"# resolved by covtool {__version__}, source {source_revision()}\n" + tomli_w.dumps(_toml_safe(result.resolved)), encoding="utf-8")
+        except BaseException:
+            _finish_figures(children, report=False)
+            raise
+        _finish_figures(children)
         written = [out_dir / p.relative_to(stage) for p in sorted(stage.rglob("*")) if p.is_file()]
     return written
+
+
+#: processes that draw a study's figures at once (besides the one writing the tables)
+FIGURE_PROCESSES = 2
+
+
+def draw_figures(items) -> None:
+    """Draw and save ``(name, make, path)`` figures with the Agg backend.
+
+    A layout is computed with each figure (never ``bbox_inches="tight"``,
+    which draws every figure twice).
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    for _name, make, path in items:
+        fig = make()
+        if fig.get_layout_engine() is None:
+            fig.set_layout_engine("constrained")
+        fig.savefig(path, dpi=120)
+        plt.close(fig)
+
+
+def _start_figures(items) -> list:
+    """Draw ``items`` in up to :data:`FIGURE_PROCESSES` forked children (:class:`covtool.forked.Forked`)."""
+    from covtool.forked import Forked
+
+    n = min(len(items), FIGURE_PROCESSES)
+    return [Forked(draw_figures, items[w::n]) for w in range(n)]
+
+
+def _finish_figures(children, report: bool = True) -> None:
+    """Wait for the figure processes; re-raise the first error (if ``report``; else stop them)."""
+    error = None
+    for c in children:
+        if not report:
+            c.cancel()
+            continue
+        try:
+            c.result()
+        except BaseException as e:                     # noqa: BLE001 - the first one is re-raised
+            error = error or e
+    if error is not None:
+        raise error

@@ -33,7 +33,7 @@ import numpy as np
 
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.discretize import van_loan
-from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transition, restricted_noise
+from covtool.lincov.noise import CombinedNoise, compose_noise, compose_scan, compose_transition, restricted_noise
 
 
 #: steps discretised at once by :func:`_transition` (bounds its workspace)
@@ -146,14 +146,24 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     ci_kept, ci_ewn = 0, {b: 1 + k for k, b in enumerate(ewn_blocks)}
     ci_own_kept = {b: 1 + len(ewn_blocks) + k for k, b in enumerate(noisy)}
     ci_own_full = {}
-    for b in noisy:
-        rows = np.array(sorted(kset | set(block_states[b])))
-        Qb = compose_noise(Phi_pad[:, rows][:, :, rows], dyn.F[:, rows][:, :, rows],
-                           [restricted_noise(f"noise {b}", own_noise[b], rows)], dt, ev)[0]
-        ci_own_full[b] = len(components)
-        components.append((Qb, rows))
+    # every noisy block's own noise on (kept ∪ that block): in one pass over the union of those rows
+    # when no noisy block drives another (no kept state drives a dropped one, F_dropped,kept = 0), for
+    # then each source's composed noise on the union is its noise on (kept ∪ its block) bordered by
+    # zeros; else one pass per block
+    apart = all(not np.any(dyn.F[:, block_states[c]][:, :, block_states[b]])
+                and not np.any(Phi_pad[:, block_states[c]][:, :, block_states[b]])
+                for b in noisy for c in noisy if c != b)
+    for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
+        urows = np.array(sorted(kset.union(*(block_states[b] for b in group))))
+        Qu = compose_noise(Phi_pad[:, urows][:, :, urows], dyn.F[:, urows][:, :, urows],
+                           [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev)
+        for j, b in enumerate(group):
+            rows = np.array(sorted(kset | set(block_states[b])))
+            sub = np.searchsorted(urows, rows)
+            ci_own_full[b] = len(components)
+            components.append((Qu[j][:, sub[:, None], sub[None, :]], rows))
     # the summed sources against the filter's own composed Q_f
-    ref = System.from_steps(Phi_f, Qd_f, ev).Q
+    ref = compose_scan(Phi_f, Qd_f, ev)[1]
     tot = QX[0] + sum(QX[ci_ewn[b]] for b in ewn_blocks)
     d = np.sqrt(np.clip(np.einsum("kii->ki", ref), 0, None))
     den = d[:, :, None] * d[:, None, :]

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool.lincov.batch import sandwich
 from covtool.lincov.discretize import per_source
 from covtool.lincov.dynamics import NoiseSource
 from covtool.lincov.kalman import symmetrize
@@ -54,7 +53,73 @@ COMPOSE_WORKSPACE = 32e6
 _STACKS = 6
 
 
+def reached_states(pattern: np.ndarray, seed: np.ndarray) -> np.ndarray:
+    """States reached from ``seed`` through the couplings of ``pattern``.
+
+    Parameters
+    ----------
+    pattern : ndarray of bool, shape (n, n)
+        ``pattern[i, j]``: state ``j`` drives state ``i`` at some step.
+    seed : ndarray of bool, shape (n,)
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+        The smallest set ``R ⊇ seed`` with ``pattern[i, j] ⇒ i ∈ R`` for every
+        ``j ∈ R``.
+    """
+    R = np.asarray(seed, bool).copy()
+    P = np.asarray(pattern, bool)
+    while True:
+        Rn = R | P[:, R].any(axis=1)
+        if np.array_equal(Rn, R):
+            return R
+        R = Rn
+
+
 def _compose_noise(Phi, F, factors, dt, ev, chunk):
+    """Per-source noise composed on the states each source reaches.
+
+    A source whose ``G`` has non-zero rows ``S`` drives only the states
+    ``R`` reached from ``S`` (:func:`reached_states` over the couplings of
+    every step's ``F`` and ``Φ``).  Nothing in ``R`` drives a state outside
+    it, so ``F`` and ``Φ`` are block triangular for ``(R, rest)`` (the
+    zero block is exact in every discretisation, a sum of products with a
+    zero factor), the composed noise is zero outside ``R × R`` and its
+    ``R × R`` block is that of the system restricted to ``R``: exact, and
+    far cheaper where a sensor source reaches its own state and the 10
+    navigation states of a 58-state truth.  Sources that reach the same
+    states are composed together.
+    """
+    N, n, _ = Phi.shape
+    J = len(factors)
+    K = len(ev) - 1
+    out = np.zeros((J, K, n, n))
+    if J == 0 or N == 0:
+        return out
+    if not (np.isfinite(F).all() and np.isfinite(Phi).all()):
+        return _compose_block(Phi, F, factors, dt, ev, chunk)          # its checks name the step
+    pattern = (F != 0).any(axis=0) | (Phi != 0).any(axis=0)
+    sets: dict = {}
+    for j, f in enumerate(factors):
+        seed = (np.asarray(f.G) != 0).any(axis=(0, 2)) if np.size(f.G) else np.zeros(n, bool)
+        R = reached_states(pattern, seed)
+        sets.setdefault(R.tobytes(), (R, []))[1].append(j)
+    for R, js in sets.values():
+        idx = np.flatnonzero(R)
+        if idx.size == 0:
+            continue                                   # a source with a zero G: zero noise
+        if idx.size == n:
+            out[js] = _compose_block(Phi, F, [factors[j] for j in js], dt, ev, chunk)
+            continue
+        sub = [NoiseSource(factors[j].name, np.asarray(factors[j].G)[:, idx, :], factors[j].psd) for j in js]
+        Qs = _compose_block(Phi[:, idx][:, :, idx], F[:, idx][:, :, idx], sub, dt, ev, chunk)
+        for q, j in enumerate(js):
+            out[j][:, idx[:, None], idx[None, :]] = Qs[q]
+    return out
+
+
+def _compose_block(Phi, F, factors, dt, ev, chunk):
     N, n, _ = Phi.shape
     J = len(factors)
     K = len(ev) - 1
@@ -66,22 +131,17 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk):
     starts = np.r_[0, np.cumsum(widths)[:-1]]
     G = np.concatenate([f.G for f in factors], axis=2)
     psd = np.concatenate([f.psd for f in factors], axis=1)
-    acc = np.zeros((J, n, n))
-    i = 0
     # per step the series holds four (k, n, terms) stacks (terms ≈ 15-25 at νh ≤ θ) and (J, n, n)
     # sums: bound them by COMPOSE_WORKSPACE
     per_step = 8 * (4 * 25 * n * G.shape[2] + _STACKS * J * n * n)
     chunk = max(1, min(chunk, int(COMPOSE_WORKSPACE // per_step)))
+    fold = _Fold(ev, n, J)
     for a in range(0, N, chunk):
         b = min(N, a + chunk)
         Qj = per_source(F[a:b], G[a:b], psd[a:b], dt[a:b], what="error budget: per-source Q_d",
                         groups=starts)                                        # (c, J, n, n)
-        for s in range(a, b):
-            acc = sandwich(Phi[s], acc) + Qj[s - a]
-            if s + 1 == ev[i + 1]:
-                out[:, i] = symmetrize(acc)
-                acc = np.zeros((J, n, n))
-                i += 1
+        fold.add(a, Phi[a:b], Qj)
+    out[:] = np.swapaxes(fold.finish()[1], 0, 1)
     return out
 
 
@@ -146,15 +206,119 @@ class CombinedNoise:
 
 
 def compose_transition(Phi, ev):
-    K = len(ev) - 1
-    n = Phi.shape[1]
-    out = np.empty((K, n, n))
-    for i in range(K):
-        A = np.eye(n)
-        for k in range(ev[i], ev[i + 1]):
-            A = Phi[k] @ A
-        out[i] = A
-    return out
+    """Transition over each event interval, ``Φ_{a→b} = Φ_{b−1} ⋯ Φ_a``.
+
+    Parameters
+    ----------
+    Phi : ndarray, shape (N, n, n)
+    ev : ndarray of int, shape (K+1,)
+
+    Returns
+    -------
+    ndarray, shape (K, n, n)
+    """
+    return compose_scan(Phi, None, ev)[0]
+
+
+def compose_scan(Phi: np.ndarray, Qd, ev, *, chunk: int | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Transition and noise over each event interval, by pairwise reduction.
+
+    Parameters
+    ----------
+    Phi : ndarray, shape (N, n, n)
+        Per-step transition.
+    Qd : ndarray, shape (N, n, n) or (N, J, n, n), or None
+        Per-step noise (one or ``J`` sources); None for the transition only.
+    ev : ndarray of int, shape (K+1,)
+        Event grid (:func:`covtool.lincov.batch.events`), increasing.
+    chunk : int, optional
+        Steps reduced at once (bounds the workspace); all by default.
+
+    Returns
+    -------
+    Phi_c : ndarray, shape (K, n, n)
+    Q_c : ndarray, shape (K, n, n) or (K, J, n, n), or None
+        ``Σ_k Φ_{k+1→b} Q_k Φ_{k+1→b}ᵀ`` over ``k ∈ [ev_i, ev_{i+1})``,
+        symmetrised, as :func:`covtool.lincov.batch.compose` sums it step
+        by step.
+
+    Notes
+    -----
+    Two consecutive steps compose as
+    ``(Φ₂, Q₂)∘(Φ₁, Q₁) = (Φ₂Φ₁, Φ₂Q₁Φ₂ᵀ + Q₂)``, an associative product, so
+    each interval is reduced pairwise in ``⌈log₂ L⌉`` batched levels
+    instead of ``L`` sequential steps: the same products (every ``Q`` term is
+    still a congruence of a PSD matrix), in another order, with round-off
+    of the same order (relative 1e-16 per product).
+    """
+    Phi = np.asarray(Phi, float)
+    N, n, _ = Phi.shape
+    single = Qd is not None and np.ndim(Qd) == 3
+    J = 0 if Qd is None else (1 if single else np.shape(Qd)[1])
+    fold = _Fold(ev, n, J)
+    step = N if chunk is None else max(1, int(chunk))
+    for a in range(0, N, step):
+        b = min(N, a + step)
+        Q = None if Qd is None else (np.asarray(Qd[a:b], float)[:, None] if single else np.asarray(Qd[a:b], float))
+        fold.add(a, Phi[a:b], Q)
+    Pc, Qc = fold.finish()
+    if Qc is not None and single:
+        Qc = Qc[:, 0]
+    return Pc, Qc
+
+
+def _reduce(Phi, Q, seg):
+    """Pairwise reduction of consecutive steps of each segment: one ``(Φ, Q)`` per segment."""
+    while True:
+        M = seg.size
+        first = np.r_[True, seg[1:] != seg[:-1]]
+        if first.all():
+            return Phi, Q, seg
+        start = np.maximum.accumulate(np.where(first, np.arange(M), 0))
+        even = (np.arange(M) - start) % 2 == 0
+        nxt = np.r_[seg[1:] == seg[:-1], False]            # a later step of the same segment follows
+        left = np.flatnonzero(even & nxt)
+        keep = np.flatnonzero(even)
+        paired = np.isin(keep, left)
+        A = Phi[left + 1]                                   # the later step acts on the earlier one
+        Phi = Phi[keep]
+        Phi[paired] = A @ Phi[paired]
+        if Q is not None:
+            Ql, Qr = Q[left], Q[left + 1]
+            Q = Q[keep]
+            Q[paired] = A[:, None] @ Ql @ np.swapaxes(A, 1, 2)[:, None] + Qr
+        seg = seg[keep]
+
+
+class _Fold:
+    """Running composition over event intervals, fed in chunks of steps (:func:`compose_scan`)."""
+
+    def __init__(self, ev, n, J):
+        self.ev = np.asarray(ev, int)
+        K = len(self.ev) - 1
+        self.Pc = np.broadcast_to(np.eye(n), (K, n, n)).copy()
+        self.Qc = np.zeros((K, J, n, n)) if J else None
+        self.J = J
+
+    def add(self, a, Phi, Q):
+        """Steps ``a … a+len(Phi)−1`` (``Q``: shape (c, J, n, n) or None)."""
+        steps = a + np.arange(Phi.shape[0])
+        seg = np.searchsorted(self.ev, steps, side="right") - 1
+        ok = (seg >= 0) & (seg < len(self.ev) - 1)
+        if not ok.all():
+            Phi, seg = Phi[ok], seg[ok]
+            Q = None if Q is None else Q[ok]
+        if not seg.size:
+            return
+        P, Qr, seg = _reduce(np.array(Phi, float), None if Q is None else np.array(Q, float), seg)
+        # each segment's piece follows what earlier chunks composed of it (identity and zero if nothing)
+        old = self.Pc[seg]
+        self.Pc[seg] = P @ old
+        if Qr is not None:
+            self.Qc[seg] = P[:, None] @ self.Qc[seg] @ np.swapaxes(P, 1, 2)[:, None] + Qr
+
+    def finish(self):
+        return self.Pc, None if self.Qc is None else symmetrize(self.Qc)
 
 
 def restricted_noise(name, sources, rows):

@@ -116,3 +116,32 @@ def shade_stops(ax, stops, *, label: str | None = "stop with ZUPT") -> None:
 def legend_outside(ax, **kw):
     """Legend to the right of ``ax``: it never covers a curve."""
     return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8, **kw)
+
+
+def fixed_margins(fig, *, left: float = 0.9, right: float = 0.25, bottom: float = 0.6, top: float = 0.45,
+                  wspace: float | None = None, hspace: float | None = None) -> None:
+    """Place the axes with margins given in inches (no layout pass).
+
+    ``tight_layout`` and the constrained layout measure every tick label
+    of every axes, a second draw of the figure; the figures of
+    :mod:`covtool.plotting` have known contents (tick labels of a few
+    characters, a legend of known width beside the axes), so their margins
+    are declared instead, in inches so that they hold at any figure size.
+
+    Parameters
+    ----------
+    fig : matplotlib.figure.Figure
+    left, right, bottom, top : float
+        Margins between the figure's edges and the axes grid. [in]
+    wspace, hspace : float, optional
+        Space between axes as a fraction of the average axes width/height
+        (matplotlib's ``subplots_adjust``).
+    """
+    from matplotlib.layout_engine import PlaceHolderLayoutEngine
+
+    w, h = fig.get_size_inches()
+    fig.set_layout_engine(None)
+    fig.subplots_adjust(left=left / w, right=1.0 - right / w, bottom=bottom / h, top=1.0 - top / h,
+                        wspace=wspace, hspace=hspace)
+    # a placeholder engine: the layout is done, and no writer may impose another
+    fig.set_layout_engine(PlaceHolderLayoutEngine(adjust_compatible=True, colorbar_gridspec=True))

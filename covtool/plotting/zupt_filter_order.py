@@ -45,5 +45,8 @@ def impact_figure(result):
     h, lab = axes[0, 0].get_legend_handles_labels()
     fig.legend(h, lab, loc="lower center", ncol=4, fontsize=8)
     fig.suptitle("Dropped-state impact (D'Appolito state deletion, seed 002 ref [13])")
-    fig.tight_layout(rect=(0, 0.03, 1, 0.98))
+    from covtool.plotting.style import fixed_margins
+
+    # block names of up to ~14 characters at 8 pt on the left; the legend row at the bottom
+    fixed_margins(fig, left=1.0, right=0.3, bottom=1.05, top=0.9, wspace=0.22, hspace=0.55)
     return fig

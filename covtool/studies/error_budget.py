@@ -61,6 +61,7 @@ from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, choice, integer, names, table
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.noise import compose_noise
+from covtool.forked import Forked
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.budget import budget_figure, top_sources
 from covtool.results import ErrorBudgetResult
@@ -170,9 +171,12 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
 
     runs, var, nominal, residuals, first = {}, {}, {}, {}, {}
+    # the second half of the cases is computed in a forked process meanwhile (covtool.forked)
+    later = cases[(len(cases) + 1) // 2:]
+    job = Forked(lambda: {c: case_budget(S, c, truth, sources, Qn, rec) for c in later}) if later else None
     with progress_bar(len(cases), "budget cases", progress) as bar:
         for c in cases:
-            br, nominal[c] = case_budget(S, c, truth, sources, Qn, rec)
+            br, nominal[c] = job.result()[c] if c in later else case_budget(S, c, truth, sources, Qn, rec)
             runs[c] = br
             var[c] = nav_variances(br.P, lat, h, q)
             residuals[c] = _residuals(br, nominal[c], lat, h, q)

@@ -38,6 +38,7 @@ import pandas as pd
 
 from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
+from covtool.forked import Forked
 from covtool.io.config import check_keys
 from covtool.lincov.kalman import running_scale
 from covtool.lincov.reduced import ewn_navigation_effect, zupt_matrices
@@ -78,6 +79,13 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
     ev = events(t.size - 1, upd, rec)
     truth_sys = System.from_steps(Phi, Qd, ev)
     where = S.where
+    # the dropped-state impact (independent of the cases' runs) is computed in a forked process while
+    # this one propagates the cases (the filters' systems are built first, for both)
+    imp_job = None
+    if imp_filters:
+        for c in cases:
+            S.filter_model(c)
+        imp_job = Forked(impact_runs, S, imp_filters)
     P_pure = None
     if fcfg.get("pure_ins", True):
         pure_run = run_batch(truth_sys, P0[None], H, R, np.zeros((truth.n, 0)), [], rec,
@@ -137,11 +145,11 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
               "filter_states": pd.DataFrame(fstates)}
     if len(ewn):
         tables["equivalent_noise"] = ewn
-    t_imp = time.perf_counter()
+    t_imp = 0.0
     if imp_filters:
         with progress_bar(len(imp_filters), "dropped-state impact", progress) as bar:
-            tables["impact"] = impact_table(S, imp_filters, metrics, bar, record_steps=rec)
-    t_imp = time.perf_counter() - t_imp
+            imp_runs, t_imp = imp_job.result()
+            tables["impact"] = impact_table(S, imp_filters, metrics, bar, runs=imp_runs, record_steps=rec)
     provenance = {**study_inputs(path, decl, truth, ffile), "truth_model": truth.name,
                   "truth_model_sha256": truth.sha256, "zupt_updates": int(len(upd)), "zupt_interval_s": dt_s,
                   "zupt_sigma_m_s": zsig, "mean_moving_speed_m_s": mean_speed, **resource_provenance(S.resources),
@@ -249,7 +257,20 @@ def impact_filters(decl: dict, S: ZuptSetup) -> list[str]:
     return list(fl)
 
 
-def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None, *, record_steps=None) -> pd.DataFrame:
+def impact_runs(S: ZuptSetup, names: list) -> tuple[list, float]:
+    """:func:`covtool.lincov.impact.impact_run` of each filter against one shared truth, and the seconds taken."""
+    from covtool.lincov.batch import System, events
+    from covtool.lincov.impact import impact_run
+
+    t0 = time.perf_counter()
+    N = S.t.size - 1
+    rep = sorted({int(np.argmin(np.abs(S.t - tr))) for tr in S.report_times})
+    truth_sys = System.from_steps(S.Phi, S.Qd, events(N, S.update_steps, rep))
+    out = [impact_run(S, name, rep, truth_system=truth_sys) for name in names]
+    return out, time.perf_counter() - t0
+
+
+def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None, *, runs=None, record_steps=None) -> pd.DataFrame:
     """The ``impact`` sheet: every reduced filter × dropped block (D'Appolito state deletion).
 
     For each filter (:func:`covtool.lincov.impact.impact_run`, one batched pass
@@ -259,17 +280,11 @@ def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None, *, record_s
     each dropped block put back as filter states; ratios to the nominal
     and to filter A when it is in the run.
     """
-    from covtool.lincov.batch import System, events
-    from covtool.lincov.impact import impact_run
-
-    N = S.t.size - 1
-    rep = sorted({int(np.argmin(np.abs(S.t - tr))) for tr in S.report_times})
-    ev = events(N, S.update_steps, rep)
-    truth_sys = System.from_steps(S.Phi, S.Qd, ev)
+    if runs is None:
+        runs = impact_runs(S, names)[0]
     nodes = S.nodes
     rows = []
-    for name in names:
-        r = impact_run(S, name, rep, truth_system=truth_sys)
+    for name, r in zip(names, runs):
         rs = r.record_steps
         ms = [nav_metrics(r.P[b], nodes.lat[rs], nodes.h[rs], nodes.q_nb[rs]) for b in range(len(r.variants))]
         nstates = {b: sum(1 for s in S.truth.states if s.block == b) for _, b in r.variants if b}

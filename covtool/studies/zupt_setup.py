@@ -358,14 +358,15 @@ def order_memory(pure: bool, impact: bool = True):
     ZUPTs) is held throughout, one filter's at a time.  With the
     dropped-state impact table (``impact``) it also holds, per filter in
     turn, the truth transition under the filter's options and the
-    per-source noise series (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).
+    per-source noise series.
     """
-    from covtool.lincov.noise import COMPOSE_WORKSPACE
 
     def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0):
         n = truth.n
         hist = [min(n, 10)] * ((1 if pure else 0) + 2 * len(filters))
-        extra = COMPOSE_WORKSPACE + 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
+        # the per-source series runs on each source's reach set (covtool.lincov.noise), mostly the 10
+        # navigation states: its stacks stay far below COMPOSE_WORKSPACE, the two transition copies dominate
+        extra = 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
         # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more
         own = sorted(filters)[:len(filters) - shared] if shared else filters
         return memory_estimate(steps, n, filters=own, dynamics=dynamics, histories=hist,

@@ -16,9 +16,21 @@ from dataclasses import dataclass
 from fractions import Fraction
 from functools import lru_cache
 
-import pint
 
-ureg = pint.UnitRegistry()
+
+@lru_cache(maxsize=1)
+def registry():
+    """pint's unit registry, built on first use (importing pint and building it costs ~0.5 s)."""
+    import pint
+
+    return pint.UnitRegistry()
+
+
+def __getattr__(name):
+    if name == "ureg":                    # covtool.units.tables.ureg, as before: built when first asked for
+        return registry()
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 #: standard gravity [m/s^2]
 G0 = 9.80665
@@ -123,6 +135,51 @@ _AMBIGUOUS = {
 }
 
 
+#: the common unit names as pint resolves them (SI factor, base-unit exponents), so that a study
+#: written in them needs no registry; tests/test_units_pinned.py checks every entry against pint
+PINNED: dict[str, tuple[float, tuple]] = {
+    "s": (1.0, (("second", "1"),)),
+    "ms": (0.001, (("second", "1"),)),
+    "us": (1e-06, (("second", "1"),)),
+    "min": (60.0, (("second", "1"),)),
+    "h": (3600.0, (("second", "1"),)),
+    "hr": (3600.0, (("second", "1"),)),
+    "hour": (3600.0, (("second", "1"),)),
+    "day": (86400.0, (("second", "1"),)),
+    "Hz": (1.0, (("second", "-1"),)),
+    "kHz": (1000.0, (("second", "-1"),)),
+    "m": (1.0, (("meter", "1"),)),
+    "km": (1000.0, (("meter", "1"),)),
+    "mm": (0.001, (("meter", "1"),)),
+    "cm": (0.01, (("meter", "1"),)),
+    "ft": (0.30479999999999996, (("meter", "1"),)),
+    "nmi": (1852.0, (("meter", "1"),)),
+    "mi": (1609.344, (("meter", "1"),)),
+    "deg": (0.017453292519943295, (("radian", "1"),)),
+    "degree": (0.017453292519943295, (("radian", "1"),)),
+    "rad": (1.0, (("radian", "1"),)),
+    "radian": (1.0, (("radian", "1"),)),
+    "mrad": (0.001, (("radian", "1"),)),
+    "urad": (1e-06, (("radian", "1"),)),
+    "arcmin": (0.00029088820866572163, (("radian", "1"),)),
+    "arcsec": (4.84813681109536e-06, (("radian", "1"),)),
+    "ppm": (1e-06, ()),
+    "percent": (0.01, ()),
+    "mGal": (1e-05, (("meter", "1"), ("second", "-2"))),
+    "uGal": (1e-08, (("meter", "1"), ("second", "-2"))),
+    "Gal": (0.01, (("meter", "1"), ("second", "-2"))),
+    "bit": (1.0, (("bit", "1"),)),
+    "byte": (8.0, (("bit", "1"),)),
+    "B": (8.0, (("bit", "1"),)),
+    "kB": (8000.0, (("bit", "1"),)),
+    "MB": (8000000.0, (("bit", "1"),)),
+    "GB": (8000000000.0, (("bit", "1"),)),
+    "KiB": (8192.0, (("bit", "1"),)),
+    "MiB": (8388608.0, (("bit", "1"),)),
+    "GiB": (8589934592.0, (("bit", "1"),)),
+}
+
+
 @lru_cache(maxsize=1024)
 def _resolve(name: str) -> _Unit:
     """One unit name (with an SI prefix) as an SI factor and base units."""
@@ -141,6 +198,15 @@ def _resolve(name: str) -> _Unit:
             return _resolve(rest).power(Fraction(1, 2))
         except _Refusal:
             pass
+    if name in PINNED:
+        factor, dims = PINNED[name]
+        return _unit(factor, {k: Fraction(e) for k, e in dims})
+    return _resolve_pint(name)
+
+
+def _resolve_pint(name: str) -> _Unit:
+    """One unit name resolved by pint's registry."""
+    ureg = registry()
     try:
         unit = ureg.Unit(name)
         q1 = ureg.Quantity(1.0, unit).to_base_units()

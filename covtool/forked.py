@@ -1,0 +1,160 @@
+"""One function call in a forked child process, its result collected later.
+
+Used to overlap independent work on a multi-core machine without pickling
+the inputs: the child inherits the parent's memory (copy-on-write), runs
+the call and sends back only its (small) result through a pipe.  The
+figures of a study are drawn while its tables are written
+(:mod:`covtool.io.writers`); the flagship's dropped-state impact table is
+computed while its cases are propagated
+(:mod:`covtool.studies.zupt_filter_order`).  Without ``os.fork`` the call
+runs at once, in this process.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+import warnings
+
+
+def _tracing() -> bool:
+    import sys
+
+    return "tracemalloc" in sys.modules and sys.modules["tracemalloc"].is_tracing()
+
+
+class Forked:
+    """``fn(*args, **kwargs)`` running in a forked child.
+
+    Parameters
+    ----------
+    fn : callable
+        Its result must be picklable.
+    *args, **kwargs
+        Passed to ``fn`` as they are (inherited, never pickled).
+
+    Notes
+    -----
+    Warnings the call issues are recorded in the child and issued again
+    in the parent by :meth:`result`; an exception is re-raised there as
+    itself (or as a ``RuntimeError`` naming it if it cannot be pickled).
+    A child whose result is never collected is stopped when the object
+    is deleted (the caller failed first).  While :mod:`tracemalloc`
+    traces, the call runs in this process, so that a traced peak is that
+    of the whole computation.
+    """
+
+    def __init__(self, fn, *args, **kwargs):
+        self.pid = None
+        self._done = False
+        if not hasattr(os, "fork") or _tracing():
+            self._run_here(fn, args, kwargs)
+            return
+        r, w = os.pipe()
+        pid = os.fork()
+        if pid == 0:                                        # the child: run, report, leave without cleanup
+            code = 0
+            try:
+                os.close(r)
+                payload = _outcome(fn, args, kwargs)
+            except BaseException:                           # noqa: BLE001 - nothing may escape the child
+                code, payload = 1, b""
+            try:
+                view = memoryview(payload)
+                while view:
+                    view = view[os.write(w, view):]
+            finally:
+                os._exit(code)
+        os.close(w)
+        self.pid, self._fd = pid, r
+
+    def _run_here(self, fn, args, kwargs):
+        self._payload = _outcome(fn, args, kwargs)
+        self._status = 0
+        self._done = True
+
+    def result(self):
+        """Wait for the call; return its value or raise its exception.
+
+        Raises
+        ------
+        Exception
+            What the call raised.
+        RuntimeError
+            The child ended without a result (killed, out of memory).
+        """
+        if not self._done:
+            chunks = []
+            while True:
+                b = os.read(self._fd, 1 << 20)
+                if not b:
+                    break
+                chunks.append(b)
+            os.close(self._fd)
+            _, status = os.waitpid(self.pid, 0)
+            self._payload, self._status = b"".join(chunks), os.waitstatus_to_exitcode(status)
+            self._done = True
+        if not self._payload:
+            raise RuntimeError(f"a worker process ended with status {self._status} and no result")
+        if not hasattr(self, "_outcome"):
+            ok, value, caught = pickle.loads(self._payload)
+            if not ok:
+                value = _rebuild(*value)
+            self._outcome = ok, value
+            for w in caught:                                # issued once, at the first collection
+                warnings.warn_explicit(w[0], w[1], w[2], w[3])
+        ok, value = self._outcome
+        if not ok:
+            raise value
+        return value
+
+    def cancel(self) -> None:
+        """Stop the child (if still running) and reap it; its result is dropped."""
+        if self._done or self.pid is None:
+            return
+        import signal
+
+        try:
+            os.kill(self.pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+        os.close(self._fd)
+        os.waitpid(self.pid, 0)
+        self._payload, self._status, self._done = b"", -9, True
+
+
+    def __del__(self):
+        # a result never collected (the parent failed first): the child is stopped and reaped
+        try:
+            self.cancel()
+        except Exception:                                   # noqa: BLE001 - interpreter shutdown
+            pass
+
+
+def _outcome(fn, args, kwargs) -> bytes:
+    """Pickled ``(ok, value or (exception class, args, attributes), warnings)`` of one call.
+
+    An exception travels as its class, ``args`` and attributes, not pickled
+    itself: an exception whose ``__init__`` takes other arguments than its
+    ``args`` (``InputError(where, problem)``) does not unpickle.
+    """
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        try:
+            out = (True, fn(*args, **kwargs))
+        except BaseException as e:                          # noqa: BLE001 - re-raised by Forked.result
+            out = (False, (type(e), e.args, dict(getattr(e, "__dict__", {}))))
+    ws = [(w.message, w.category, w.filename, w.lineno) for w in caught]
+    try:
+        return pickle.dumps((*out, ws))
+    except Exception as e:                                  # noqa: BLE001 - an unpicklable result or error
+        what = f"{out[1][0].__name__}: {out[1][1]}" if not out[0] else f"{type(e).__name__}: {e}"
+        return pickle.dumps((False, (RuntimeError, (what,), {}), []))
+
+
+def _rebuild(cls, args, attrs) -> BaseException:
+    """The exception ``cls`` with ``args`` and attributes, without calling its ``__init__``."""
+    e = cls.__new__(cls)
+    BaseException.__init__(e, *args)
+    e.__dict__.update(attrs)
+    return e

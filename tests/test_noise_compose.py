@@ -1,0 +1,76 @@
+"""Per-source noise composition over event intervals (issue 13): reach sets and pairwise reduction.
+
+:func:`covtool.lincov.noise.compose_scan` reduces each interval pairwise
+instead of step by step, and :func:`covtool.lincov.noise.compose_noise`
+composes each source on the states it reaches only.  Both are exact
+rearrangements: checked against the step-by-step composition
+(:func:`covtool.lincov.batch.compose`) and against the same composition on
+the whole state space, at round-off tolerances.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from covtool.lincov.batch import compose
+from covtool.lincov.discretize import van_loan
+from covtool.lincov.dynamics import NoiseSource
+from covtool.lincov.noise import _compose_block, compose_noise, compose_scan, compose_transition, reached_states
+
+
+def _psd(rng, N, n):
+    A = rng.standard_normal((N, n, n))
+    return A @ np.swapaxes(A, 1, 2)
+
+
+@pytest.mark.parametrize("ev", [[0, 37], [0, 3, 4, 9, 37], [0, 1, 2, 36, 37]])
+@pytest.mark.parametrize("chunk", [None, 1, 5, 8])
+def test_pairwise_reduction_equals_the_step_by_step_composition(ev, chunk):
+    rng = np.random.default_rng(11)
+    N, n = 37, 5
+    Phi = np.eye(n) + 0.1 * rng.standard_normal((N, n, n))
+    Q = _psd(rng, N, n)
+    ev = np.array(ev)
+    P1, Q1 = compose(Phi, Q, ev)
+    P2, Q2 = compose_scan(Phi, Q, ev, chunk=chunk)
+    np.testing.assert_allclose(P2, P1, rtol=1e-13, atol=1e-13 * np.abs(P1).max())
+    np.testing.assert_allclose(Q2, Q1, rtol=1e-13, atol=1e-13 * np.abs(Q1).max())
+    np.testing.assert_array_equal(Q2, np.swapaxes(Q2, 1, 2))                  # symmetric
+    np.testing.assert_allclose(compose_transition(Phi, ev), P1, rtol=1e-13, atol=1e-13 * np.abs(P1).max())
+    Q3 = compose_scan(Phi, np.stack([Q, 2.0 * Q], axis=1), ev, chunk=chunk)[1]  # several sources at once
+    np.testing.assert_allclose(Q3[:, 1], 2.0 * Q3[:, 0], rtol=1e-15, atol=0)
+
+
+def test_reached_states_follow_the_couplings():
+    P = np.zeros((5, 5), bool)
+    P[0, 3] = P[1, 0] = P[2, 4] = True                  # 3 drives 0, 0 drives 1, 4 drives 2
+    assert reached_states(P, np.eye(5, dtype=bool)[3]).tolist() == [True, True, False, True, False]
+    assert reached_states(P, np.zeros(5, bool)).tolist() == [False] * 5
+
+
+def test_sources_composed_on_their_reach_sets_equal_the_whole_space_composition():
+    """A 3-state navigation-like block driven by two sensor states (a random constant and a Markov state)."""
+    rng = np.random.default_rng(5)
+    N, n = 40, 6
+    F = np.zeros((N, n, n))
+    F[:, :3, :3] = 0.02 * rng.standard_normal((N, 3, 3))
+    F[:, :3, 3] = rng.standard_normal((N, 3))             # sensor 3 (random constant) drives the nav block
+    F[:, :3, 4] = rng.standard_normal((N, 3))             # sensor 4 (Markov) too
+    F[:, 4, 4] = -1 / 50.0
+    F[:, 5, 5] = -1 / 20.0                                # state 5 drives nothing and is driven by nothing
+    dt = 1.0
+    Phi = van_loan(F, np.zeros_like(F), dt)[0]
+    e = np.eye(n)
+    factors = [NoiseSource("vrw", np.broadcast_to(e[:, :3], (N, n, 3)), np.full((N, 3), 1e-4)),
+               NoiseSource("markov 4", np.broadcast_to(e[:, 4:5], (N, n, 1)), np.full((N, 1), 2e-6)),
+               NoiseSource("markov 5", np.broadcast_to(e[:, 5:6], (N, n, 1)), np.full((N, 1), 3e-6)),
+               NoiseSource("zero", np.zeros((N, n, 1)), np.ones((N, 1)))]
+    ev = np.array([0, 10, 25, 40])
+    got = compose_noise(Phi, F, factors, dt, ev)
+    ref = _compose_block(Phi, F, factors, dt, ev, 1000)   # every source on the whole space
+    for j in range(len(factors)):
+        scale = max(np.abs(ref[j]).max(), 1e-300)
+        np.testing.assert_allclose(got[j], ref[j], rtol=1e-12, atol=1e-13 * scale, err_msg=factors[j].name)
+    assert not got[1][:, 5].any() and not got[2][:, :5].any() and not got[3].any()   # zero outside the reach
+    assert got[2][-1, 5, 5] > 0
