@@ -181,8 +181,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]},
                   "budget": {**decl.get("budget", {}), **opts}},
         provenance=provenance,
-        data={"t": t, "record_steps": rec, "runs": runs, "variances": var, "nominal": nominal,
-              "residuals": residuals, "sources": sources, "factors": factors, "trajectory": nodes, "truth": truth},
+        runs=runs, residuals=residuals, record_steps=rec,
         times=t[rec], length_unit=length_unit(decl, where), update_times=t[all_steps], stops=stops,
         variances=var, sources={c: [s.name for s in runs[c].sources] for c in cases},
         source_order=[s.name for s in sources], top=opts["top"])
