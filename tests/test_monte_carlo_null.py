@@ -118,3 +118,91 @@ def test_noise_factors_reproduce_a_rank_deficient_qd():
     assert [f.shape[1] for f in L] == [2, 2, 2]
     for f, Q in zip(L, Qd):
         np.testing.assert_allclose(f @ f.T, Q, atol=1e-12 * np.abs(Q).max())
+
+
+# --------------------------------------------------------------------------
+# the shipped setup: a wrong truth model is rejected, the right one accepted
+# --------------------------------------------------------------------------
+
+
+def _shipped_setup(duration="12 min"):
+    import tomllib
+    from pathlib import Path
+
+    from covtool.studies.zupt_setup import setup
+
+    p = Path(__file__).resolve().parents[1] / "studies" / "monte_carlo_validation.toml"
+    decl = tomllib.loads(p.read_text())
+    decl["study"]["duration"] = duration
+    decl["filters"]["cases"] = ["C"]
+    return decl, p, setup(decl, path=p, extra_sections=("monte_carlo",))
+
+
+def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng):
+    """Per cell: null_test of linear-MC data from x0_data against the prediction from the model's draws."""
+    from covtool.lincov.reduced import zupt_matrices
+    from covtool.lincov.reference import propagate, propagate_with_filter
+    from covtool.studies.monte_carlo import _linear, _sample_moment, QUANTITY_INDEX
+
+    S0 = _sample_moment(x0_model)
+    t = S.t
+    sig = {"pure_ins": _linear(propagate(S.Phi, S.Qd, S0), nodes)}
+    fm, Phi_f, Qd_f = S.filter_model("C")
+    res = propagate_with_filter(S.Phi, S.Qd, S0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                S.update_steps, Rf=S.filter_R("C"), form=S.specs["C"].update)
+    sig["C"] = _linear(res.P_truth, nodes)
+    null = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=replicas, rng=rng, x0=x0_model, H=S.H,
+                               R=S.R)
+    data = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=1, rng=rng + 1, x0=x0_data, H=S.H,
+                               R=S.R)
+    alpha = 0.05 / 6
+    out = {}
+    for c in null_cases:
+        for q, j in QUANTITY_INDEX.items():
+            dof = sig[c]["dof_h"] if q == "horizontal" else 1.0
+            lo, hi = rms_bounds(sig[c][q], N, dof, 0.95)
+            pts = (np.arange(t.size) >= 1) & (sig[c][q] > 0)
+            out[(c, q)] = null_test(data[c][0, :, j], null[c][:, :, j], sig[c][q], lo, hi, pts, alpha)
+    return out
+
+
+def test_shipped_setup_rejects_a_30_percent_gyro_bias_error(capsys):
+    """Pure INS and filter C on the shipped route (first 12 min), N = 200 runs as shipped.
+
+    "Data" are linear Monte Carlo ensembles (the nonlinear study's stand-in, exact for the
+    linear model).  Right model: the data start from the model's draws, and no cell is
+    rejected at the family-wise 5 % (Bonferroni over 6 cells).  Wrong model: the data's gyro
+    biases are 30 % larger than the model's (a truth IMU worse than its model; the prediction
+    still uses the model's draws), and the test rejects.
+    """
+    from covtool.studies.monte_carlo import _chunks, _initial_draws, _trajectory
+
+    decl, p, S = _shipped_setup()
+    N = 200
+    nodes = S.nodes
+    q0 = _trajectory(decl, str(p), p).sample([S.t[0]]).q_nb[0]
+    x0 = _initial_draws(S.truth, _chunks(N, 50), 1, q0)
+    C = output_rows(nodes.lat, nodes.h, nodes.q_nb)
+    from covtool.validation.feedback import FeedbackFilter
+
+    fm, Phi_f, Qd_f = S.filter_model("C")
+    ff = FeedbackFilter.design("C", fm.names, Phi_f, Qd_f, fm.P0, S.filter_R("C"), S.update_steps,
+                               form=S.specs["C"].update, times=S.t)
+    cases = {"pure_ins": None, "C": {int(k): fm.D @ K for k, K in ff.gains.items()}}
+    # C (16 states) estimates the gyro biases: the data's larger biases are what its gains meet
+    gyro = [S.truth.index[f"gyro_bias_{a}"] for a in "xyz"]
+    wrong = x0.copy()
+    wrong[:, gyro] *= 1.3
+    right = _verdict(S, x0, x0, cases, C, nodes, N, 60, 11)
+    bad = _verdict(S, wrong, x0, cases, C, nodes, N, 60, 11)
+    with capsys.disabled():
+        for (c, q), v in right.items():
+            w = bad[(c, q)]
+            print(f"\n[null] {c:8s} {q:10s} right: T {v['T']:.4f} (null std {v['T_null_std']:.4f}) p {v['p']:.3g} "
+                  f"inside {100 * v['inside']:.1f} % (null p5 {100 * v['inside_null_p5']:.1f} %) | gyro bias +30 %: "
+                  f"T {w['T']:.4f} p {w['p']:.3g} inside {100 * w['inside']:.1f} %", end="")
+    assert not any(v["reject"] for v in right.values())
+    assert any(v["reject"] for v in bad.values())
+    # the null of T is centred on 1: the conditional σ is the exact expectation of the mean square
+    for v in right.values():
+        assert abs(v["T_null_mean"] - 1.0) < 4 * v["T_null_std"] / np.sqrt(60)
