@@ -139,31 +139,33 @@ def _shipped_setup(duration="30 min"):
     return decl, p, setup(decl, path=p, extra_sections=("monte_carlo",))
 
 
-def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng):
-    """Per cell: null_test of linear-MC data from x0_data against the prediction from the model's draws."""
+def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng, data_replicas):
+    """Per data replica and cell: null_test of linear-MC data from x0_data against the model's prediction."""
     from covtool.lincov.reduced import zupt_matrices
     from covtool.lincov.reference import propagate_with_filter
     from covtool.studies.monte_carlo import _linear, _sample_moment, QUANTITY_INDEX
 
     S0 = _sample_moment(x0_model)
     t = S.t
-    sig = {}
     fm, Phi_f, Qd_f = S.filter_model("C")
     res = propagate_with_filter(S.Phi, S.Qd, S0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
                                 S.update_steps, Rf=S.filter_R("C"), form=S.specs["C"].update)
-    sig["C"] = _linear(res.P_truth, nodes)
+    sig = {"C": _linear(res.P_truth, nodes)}
     null = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=replicas, rng=rng, x0=x0_model, H=S.H,
                                R=S.R)
-    data = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=1, rng=rng + 1, x0=x0_data, H=S.H,
-                               R=S.R)
+    data = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=data_replicas, rng=rng + 1, x0=x0_data,
+                               H=S.H, R=S.R)
     alpha = 0.05 / 15                     # the shipped study's Bonferroni level: 5 cases x 3 quantities
-    out = {}
-    for c in null_cases:
-        for q, j in QUANTITY_INDEX.items():
-            dof = sig[c]["dof_h"] if q == "horizontal" else 1.0
-            lo, hi = rms_bounds(sig[c][q], N, dof, 0.95)
-            pts = (np.arange(t.size) >= 1) & (sig[c][q] > 0)
-            out[(c, q)] = null_test(data[c][0, :, j], null[c][:, :, j], sig[c][q], lo, hi, pts, alpha)
+    out = []
+    for r in range(data_replicas):
+        cells = {}
+        for c in null_cases:
+            for q, j in QUANTITY_INDEX.items():
+                dof = sig[c]["dof_h"] if q == "horizontal" else 1.0
+                lo, hi = rms_bounds(sig[c][q], N, dof, 0.95)
+                pts = (np.arange(t.size) >= 1) & (sig[c][q] > 0)
+                cells[(c, q)] = null_test(data[c][r, :, j], null[c][:, :, j], sig[c][q], lo, hi, pts, alpha)
+        out.append(cells)
     return out
 
 
@@ -171,12 +173,14 @@ def test_shipped_setup_rejects_a_30_percent_gyro_bias_error(capsys):
     """Filter C on the shipped study (30 min, N = 200 runs, seed 1, the study's cell level 0.05/15).
 
     "Data" are linear Monte Carlo ensembles (the nonlinear study's stand-in, exact for the
-    linear model).  Right model: the data start from the model's draws, and no cell is
-    rejected.  Wrong model: the data's gyro
-    biases are 30 % larger than the model's (a truth IMU worse than its model; the prediction
-    still uses the model's draws), and the test rejects.
+    linear model), judged against a null of 40 replicas.  Right model: 20 data ensembles start
+    from the model's draws; the rejection rate stays at its nominal size (≤ 3 × 0.0033 per
+    ensemble and cell: at most 2 of 20 ensembles rejected) and z is centred.  Wrong model:
+    the data's gyro biases are 30 % larger than the model's (a truth IMU worse than its
+    model; the prediction still uses the model's draws), and the test rejects.
     """
     from covtool.studies.monte_carlo import _chunks, _initial_draws, _trajectory
+    from covtool.validation.feedback import FeedbackFilter
 
     decl, p, S = _shipped_setup()
     N = 200
@@ -184,8 +188,6 @@ def test_shipped_setup_rejects_a_30_percent_gyro_bias_error(capsys):
     q0 = _trajectory(decl, str(p), p).sample([S.t[0]]).q_nb[0]
     x0 = _initial_draws(S.truth, _chunks(N, 50), 1, q0)
     C = output_rows(nodes.lat, nodes.h, nodes.q_nb)
-    from covtool.validation.feedback import FeedbackFilter
-
     fm, Phi_f, Qd_f = S.filter_model("C")
     ff = FeedbackFilter.design("C", fm.names, Phi_f, Qd_f, fm.P0, S.filter_R("C"), S.update_steps,
                                form=S.specs["C"].update, times=S.t)
@@ -194,16 +196,23 @@ def test_shipped_setup_rejects_a_30_percent_gyro_bias_error(capsys):
     gyro = [S.truth.index[f"gyro_bias_{a}"] for a in "xyz"]
     wrong = x0.copy()
     wrong[:, gyro] *= 1.3
-    right = _verdict(S, x0, x0, cases, C, nodes, N, 40, 11)
-    bad = _verdict(S, wrong, x0, cases, C, nodes, N, 40, 11)
+    right = _verdict(S, x0, x0, cases, C, nodes, N, 40, 11, 20)
+    bad = _verdict(S, wrong, x0, cases, C, nodes, N, 40, 11, 1)[0]
+    z = np.array([[v["z"] for v in cells.values()] for cells in right])
+    rejected = sum(any(v["reject"] for v in cells.values()) for cells in right)
     with capsys.disabled():
-        for (c, q), v in right.items():
-            w = bad[(c, q)]
-            print(f"\n[null] {c:8s} {q:10s} right: T {v['T']:.4f} (null std {v['T_null_std']:.4f}) p {v['p']:.3g} "
-                  f"inside {100 * v['inside']:.1f} % (null p5 {100 * v['inside_null_p5']:.1f} %) | gyro bias +30 %: "
-                  f"T {w['T']:.4f} p {w['p']:.3g} inside {100 * w['inside']:.1f} %", end="")
-    assert not any(v["reject"] for v in right.values())
+        print(f"\n[null] right model: {rejected} of 20 ensembles rejected; z mean per cell "
+              f"{np.round(z.mean(axis=0), 2)}, std {np.round(z.std(axis=0, ddof=1), 2)}")
+        for (c, q), w in bad.items():
+            v = right[0][(c, q)]
+            print(f"[null] {c} {q:10s} right: T {v['T']:.4f} (null std {v['T_null_std']:.4f}) p {v['p']:.3g} inside "
+                  f"{100 * v['inside']:.1f} % (null p5 {100 * v['inside_null_p5']:.1f} %) | gyro bias +30 %: "
+                  f"T {w['T']:.4f} p {w['p']:.3g} inside {100 * w['inside']:.1f} %")
+    assert rejected <= 2
+    # z of the right model: mean 0 and standard deviation 1 up to the sampling of 20 ensembles and of s
+    assert np.all(np.abs(z.mean(axis=0)) < 4 / np.sqrt(20)) and np.all(z.std(axis=0, ddof=1) < 1.6)
     assert any(v["reject"] for v in bad.values())
+    assert bad[("C", "horizontal")]["z"] > 4
     # the null of T is centred on 1: the conditional σ is the exact expectation of the mean square
-    for v in right.values():
+    for v in right[0].values():
         assert abs(v["T_null_mean"] - 1.0) < 4 * v["T_null_std"] / np.sqrt(40)
