@@ -610,7 +610,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                  "anchor": "B2", "target": "summary"}],
         data={"t": t, "sums": sums, "linear": lin, "linear_conditional": lin_c, "bands_conditional": band_c,
               "linear_driven": lin_d, "bands_conditional_exact": band_x,
-              "nees_conditional": nees_cond, "P0_conditional": P0_cond, "tests": tests, "null_mean_squares": null_ms, "claimed": claimed, "cases": cases,
+              "nees_conditional": nees_cond, "P0_conditional": P0_cond, "tests": tests, "null_mean_squares": null_ms,
+              "claimed": claimed, "cases": cases,
               "bands": band, "nees": nees_stats, "options": opt, "stats": stats, "filter_check": pf_check},
         times=t, cases=list(names), bands=band, nees=nees_stats, runs=N, confidence=conf,
         update_times=t[S.update_steps], stops=S.stops, length_unit=length_unit(decl, S.where))
