@@ -345,6 +345,14 @@ class MonteCarloResult(_Navigation, StudyResult):
         filter's covariance from the linear run's (SI).
     stats : dict
         Run statistics (backend, chunks computed and reused, seconds).
+    acceptance_tests : dict of (str, str) to dict
+        Per (case, quantity), the test against the linear-Monte-Carlo null
+        (:func:`covtool.analysis.consistency.null_test`: in-bounds share, its
+        null 5th percentile, T, its null spread, p-values, verdict).
+    null_mean_squares : dict of str to ndarray, optional
+        Per case, the linear Monte Carlo's mean squares, shape
+        (replicas, times, quantities) (:mod:`covtool.validation.linear_mc`);
+        None when ``null_replicas = 0``.
     """
 
     cases: list = field(default_factory=list)
@@ -359,6 +367,8 @@ class MonteCarloResult(_Navigation, StudyResult):
     bands_conditional: dict = field(default_factory=dict)
     filter_check: dict = field(default_factory=dict)
     stats: dict = field(default_factory=dict)
+    acceptance_tests: dict = field(default_factory=dict)
+    null_mean_squares: Any = None
     main_figure: ClassVar[str] = "mc_ratio"
 
 

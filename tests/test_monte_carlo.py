@@ -410,6 +410,8 @@ def test_validation_study_declares_the_acceptance_case():
     ({"monte_carlo": {"runs": 10, "sensor_noise": "yes"}}, "sensor_noise: 'yes' is not true or false"),
     ({"monte_carlo": {"runs": 10, "nees_every": "-1 s"}}, "nees_every: '-1 s' must be positive"),
     ({"monte_carlo": {"runs": 10, "process_dt": "3 m"}}, "process_dt"),
+    ({"monte_carlo": {"runs": 10, "null_replicas": 5}}, r"null_replicas: 5 replicas cannot give a null distribution"),
+    ({"monte_carlo": {"runs": 10, "null_replicas": -1}}, "null_replicas: -1 is not an integer"),
 ])
 def test_monte_carlo_table_errors(files, change, match):
     decl = small_decl(files)
@@ -596,3 +598,25 @@ def test_conditional_prediction_follows_the_drawn_constants(study, files, monkey
     assert {"conditional: inside [%]", "conditional, exact variance: inside [%]",
             "conditional: pass (>= 95 % inside)"} <= set(comp.columns)
     assert "inside bounds of conditional prediction [%]" in r.tables["nees"].columns
+
+
+def test_acceptance_test_is_reported_per_cell(study, files):
+    """Every cell has its null percentile, p-value and verdict; the family's level is Bonferroni."""
+    r = study
+    comp = r.tables["comparison"]
+    cells = len(comp)
+    assert cells == 4 * 3
+    assert set(comp["verdict"]) <= {"accept", "reject"}
+    assert np.allclose(comp["cell false-alarm rate"], 0.05 / cells)
+    assert ((comp["verdict"] == "reject") == (comp["p-value"] < 0.05 / cells)).all()
+    # the reported T is the time mean of RMS²/σ_cond² over t >= dt, recomputed here from the bands
+    for _, row in comp.iterrows():
+        x, sig_c, _, _ = r.bands_conditional[row["case"]][row["quantity"]]
+        assert row["T = time-mean RMS^2/sigma^2"] == pytest.approx(np.mean(x[1:] ** 2 / sig_c[1:] ** 2), rel=1e-12)
+        assert 0.0 <= row["null: inside 5th percentile [%]"] <= 100.0 and 0.0 < row["inside p-value (one-sided)"] <= 1
+    acc = r.tables["settings"].set_index("setting")["value"]["acceptance test"]
+    assert "Bonferroni over 12 cells" in acc and "verdict:" in acc
+    # null_replicas = 0: the per-point bands only, no verdict columns
+    off = covtool.run_study(small_decl(files, null_replicas=0, runs=20, runs_per_chunk=20), backend=SerialBackend())
+    assert "verdict" not in off.tables["comparison"].columns
+    assert "none (null_replicas = 0)" in off.tables["settings"].set_index("setting")["value"]["acceptance test"]

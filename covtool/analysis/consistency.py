@@ -33,7 +33,7 @@ from covtool.nav import attitude as quat
 
 __all__ = [
     "REDUCED_NAV", "Nees", "rms_bounds", "horizontal_dof", "nees_bounds", "nees_whitening",
-    "expected_nees", "reduction_matrix", "inside_fraction",
+    "expected_nees", "reduction_matrix", "inside_fraction", "normalised_mean_square", "null_test",
 ]
 
 
@@ -277,3 +277,94 @@ def inside_fraction(x, lo, hi, *, rtol: float = 1e-12) -> dict:
     n = max(x.size, 1)
     return {"inside": 1.0 - (above.sum() + below.sum()) / n, "above": above.sum() / n, "below": below.sum() / n,
             "points": int(x.size)}
+
+
+# --------------------------------------------------------------------------
+# the acceptance test of a Monte Carlo cell against its null distribution
+# --------------------------------------------------------------------------
+
+
+def normalised_mean_square(ms, sigma, points) -> np.ndarray:
+    """Time mean of the normalised ensemble mean square.
+
+    ``T = (1/K) Σ_t m(t)/σ²(t)`` over the ``K`` test points: 1 in
+    expectation when ``σ²`` is the expectation of the mean square ``m``
+    (docs/monte_carlo.md, "The acceptance test").
+
+    Parameters
+    ----------
+    ms : ndarray, shape (..., N+1)
+        Ensemble mean squares (``RMS²``).
+    sigma : ndarray, shape (N+1,)
+        Predicted σ.
+    points : ndarray of bool or int, shape (N+1,) or (K,)
+        The test points (zero-σ points must be excluded).
+
+    Returns
+    -------
+    ndarray, shape (...)
+    """
+    s2 = np.asarray(sigma, float)[points] ** 2
+    return np.mean(np.asarray(ms, float)[..., points] / s2, axis=-1)
+
+
+def null_test(ms, ms_null, sigma, lo, hi, points, alpha: float) -> dict:
+    """One Monte Carlo cell against the null distribution of its statistics.
+
+    Parameters
+    ----------
+    ms : ndarray, shape (N+1,)
+        Observed ensemble mean square of the cell (``RMS²``).
+    ms_null : ndarray, shape (R, N+1)
+        The same of ``R`` replicas of the linear Monte Carlo under the model
+        (:func:`covtool.validation.linear_mc.linear_mean_squares`).
+    sigma : ndarray, shape (N+1,)
+        Predicted σ (its square is the expected mean square).
+    lo, hi : ndarray, shape (N+1,)
+        Per-point RMS bounds (:func:`rms_bounds`).
+    points : ndarray of bool, shape (N+1,)
+        Test points.
+    alpha : float
+        False-alarm rate of this cell's test (the study's family rate
+        divided by the number of cells: Bonferroni).
+
+    Returns
+    -------
+    dict
+        ``inside``: observed share of points inside ``[lo, hi]``;
+        ``inside_null_p5``: its null 5th percentile; ``inside_p``: one-sided
+        p-value ``(1 + #{F_r ≤ F})/(R + 1)`` (too few points inside);
+        ``T``: :func:`normalised_mean_square`; ``T_null_mean``,
+        ``T_null_std``: its null mean and standard deviation over the
+        replicas; ``z = (T − 1)/T_null_std``; ``p``: two-sided p-value of
+        ``z`` (normal law: ``T`` is a mean over N independent runs);
+        ``T_p_empirical``: two-sided rank p-value among the replicas;
+        ``reject``: ``p < alpha``.
+
+    Raises
+    ------
+    ValueError
+        Fewer than 10 replicas (the null standard deviation would be
+        meaningless).
+    """
+    ms_null = np.asarray(ms_null, float)
+    R = ms_null.shape[0]
+    if R < 10:
+        raise ValueError(f"null_test: {R} replicas of the linear Monte Carlo; at least 10 are needed")
+    pts = np.asarray(points, bool)
+    x, lo, hi = np.sqrt(np.asarray(ms, float)), np.asarray(lo, float), np.asarray(hi, float)
+    F = inside_fraction(x[pts], lo[pts], hi[pts])["inside"]
+    xr = np.sqrt(ms_null[:, pts])
+    Fr = np.mean((xr >= lo[pts]) & (xr <= hi[pts]), axis=1)
+    T = float(normalised_mean_square(ms, sigma, pts))
+    Tr = normalised_mean_square(ms_null, sigma, pts)
+    s = float(np.std(Tr, ddof=1))
+    z = (T - 1.0) / s if s > 0 else (0.0 if T == 1.0 else np.inf)
+    p = float(2.0 * stats.norm.sf(abs(z)))
+    lower = (1 + np.sum(Tr <= T)) / (R + 1)
+    upper = (1 + np.sum(Tr >= T)) / (R + 1)
+    return {"inside": float(F), "inside_null_p5": float(np.percentile(Fr, 5)),
+            "inside_null_median": float(np.median(Fr)), "inside_p": float((1 + np.sum(Fr <= F)) / (R + 1)),
+            "T": T, "T_null_mean": float(np.mean(Tr)), "T_null_std": s, "z": float(z), "p": p,
+            "T_p_empirical": float(min(1.0, 2.0 * min(lower, upper))), "alpha": float(alpha),
+            "reject": bool(p < alpha), "replicas": int(R)}

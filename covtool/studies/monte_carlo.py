@@ -41,15 +41,21 @@ Study file (the ``zupt_filter_order`` sections plus ``[monte_carlo]``)::
     sensor_noise = true        # false: only the deterministic part (constants, Markov decay)
     measurement_noise = true
     process_dt = "0.1 s"       # grid of the sensor-error processes
+    null_replicas = 100        # linear Monte Carlo replicas of the acceptance test's null (0: bands only)
 
 Besides the linear σ from the model's P0 (unconditional), the study runs the
 linear analysis with the sample second moments of the initial states the N runs
 drew (:func:`_sample_moment`; driving noise, ZUPT noise and gains unchanged):
 the expectation of the ensemble mean square *given* the draws.  The acceptance
-(≥ 95 % of the time points inside the χ² bounds) applies to this conditional
-comparison; the bounds about it are conservative for the constants' part, and
-an exact-variance band (:func:`conditional_dof`) is reported beside it
-(``docs/monte_carlo.md``, "Statistics").
+test applies to this conditional comparison: per cell (case × quantity) the
+time mean T of RMS²/σ² is tested two-sided against its null distribution, sampled
+by a linear Monte Carlo of the same setup from the same initial draws
+(:func:`covtool.validation.linear_mc.linear_mean_squares`,
+:func:`covtool.analysis.consistency.null_test`), Bonferroni over the cells at the
+family-wise rate ``1 − confidence``; the in-bounds share of the χ² bands is
+reported with its null 5th percentile and p-value (``docs/monte_carlo.md``,
+"The acceptance test").  An exact-variance band (:func:`conditional_dof`) is
+reported beside it.
 
 Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
 (``covtool run --workers N`` or ``--scheduler``), else local processes, one
@@ -67,7 +73,7 @@ import numpy as np
 import pandas as pd
 
 from covtool.analysis.consistency import (expected_nees, horizontal_dof, inside_fraction, nees_bounds,
-                                          nees_whitening, REDUCED_NAV, rms_bounds)
+                                          nees_whitening, null_test, REDUCED_NAV, rms_bounds)
 from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text
 from covtool.errors import StudyFileError
 from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
@@ -84,6 +90,7 @@ from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN
 from covtool.validation.feedback import FeedbackFilter
+from covtool.validation.linear_mc import GROUPS, linear_mean_squares, output_rows
 from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, initial_states, simulate_chunk
 from covtool.version import __version__
 
@@ -93,9 +100,13 @@ __all__ = [
 
 
 MC_KEYS = ("runs", "runs_per_chunk", "seed", "imu_rate", "samples_per_step", "confidence", "nees_every",
-           "sensor_noise", "measurement_noise", "process_dt")
+           "sensor_noise", "measurement_noise", "process_dt", "null_replicas")
+#: spawn key of the linear Monte Carlo's random stream (the chunks use (0,), (1,), …)
+NULL_STREAM = 0x6E756C6C
 #: the compared quantities: label, unit of the tables, factor from SI
 COMPARED = (("horizontal", "m", 1.0), ("altitude", "m", 1.0), ("azimuth", "arcmin", ARCMIN))
+#: column of each compared quantity in the linear Monte Carlo's mean squares
+QUANTITY_INDEX = {q: i for i, q in enumerate(GROUPS)}
 
 
 def mc_options(decl: dict, where: str) -> dict:
@@ -130,7 +141,12 @@ def mc_options(decl: dict, where: str) -> dict:
         "measurement_noise": boolean(cfg.get("measurement_noise", True), f"{w} measurement_noise", StudyFileError),
         "process_dt": quantity(cfg.get("process_dt", "0.1 s"), "time", f"{w} process_dt", StudyFileError,
                                positive=True),
+        "null_replicas": integer(cfg.get("null_replicas", 100), f"{w} null_replicas", StudyFileError, lo=0,
+                                 hi=100000),
     }
+    if 0 < o["null_replicas"] < 10:
+        raise StudyFileError(f"{w} null_replicas", f"{o['null_replicas']} replicas cannot give a null distribution; "
+                             "use at least 10 (or 0: no acceptance test, the per-point bands only)")
     o["confidence"] = number(cfg.get("confidence", 0.95), f"{w} confidence", StudyFileError, lo=0.0, hi=1.0,
                              lo_open=True, hi_open=True)
     every = (decl.get("output") or {}).get("history_every", "10 s")
@@ -180,18 +196,21 @@ def _linear(P, nodes, case=None) -> dict:
             "first": case_validity(case, m, nodes.t, warn=case is not None)}
 
 
-def _sample_moment(truth, sizes, seed, q0) -> np.ndarray:
+def _initial_draws(truth, sizes, seed, q0) -> np.ndarray:
+    """The initial states of all N runs, chunk after chunk, shape (N, n).
+
+    Exactly the chunks' draws (:func:`covtool.validation.monte_carlo.initial_states`).
+    """
+    return np.concatenate([initial_states(truth, m, seed, i, q0) for i, m in enumerate(sizes)])
+
+
+def _sample_moment(x0) -> np.ndarray:
     """Second moment about zero of the initial states the N runs draw.
 
-    ``(1/N) Σ x0 x0ᵀ`` over the chunks' draws
-    (:func:`covtool.validation.monte_carlo.initial_states`): the P0 of the
+    ``(1/N) Σ x0 x0ᵀ`` over the draws (:func:`_initial_draws`): the P0 of the
     conditional linear prediction.
     """
-    S0 = np.zeros((truth.n, truth.n))
-    for i, m in enumerate(sizes):
-        x0 = initial_states(truth, m, seed, i, q0)
-        S0 += x0.T @ x0
-    P = S0 / float(sum(sizes))
+    P = x0.T @ x0 / float(x0.shape[0])
     return symmetrize(P)
 
 
@@ -287,7 +306,9 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     # driving noises, measurement noise and the filters' gains stay those of the model
     sizes = _chunks(opt["runs"], opt["runs_per_chunk"])
     traj = _trajectory(decl, where, path)
-    P0_cond = _sample_moment(truth, sizes, opt["seed"], traj.sample([t[0]]).q_nb[0])
+    x0_all = _initial_draws(truth, sizes, opt["seed"], traj.sample([t[0]]).q_nb[0])
+    P0_cond = _sample_moment(x0_all)
+    null_cases = {}                          # correction gains D K of each case, for the linear Monte Carlo
     lin_c, predicted_c, lin_d = {}, {}, {}
     Z0 = np.zeros_like(P0_cond)              # the driven part alone: its sampling is all that remains
     if pure:
@@ -296,6 +317,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         lin["pure_ins"] = _linear(P, nodes, "pure_ins")
         spec = nees_whitening(P, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)
         cases.append(EnsembleCase("pure_ins", None, {"truth": spec}))
+        null_cases["pure_ins"] = None
         states["pure_ins"] = truth.n
         P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names, times=t)
         lin_c["pure_ins"] = _linear(P, nodes)
@@ -338,6 +360,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         lin_d[c] = _linear(res.P_truth, nodes)
         cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
         states[c] = len(fm.names)
+        null_cases[c] = {int(k): fm.D @ K for k, K in ff.gains.items()}
         del res
     t_lin = time.perf_counter() - t_lin
 
@@ -368,6 +391,18 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             s = EnsembleSums.from_json(res["sums"][nm])
             sums[nm] = s if nm not in sums else sums[nm] + s
     N = opt["runs"]
+
+    # ---- the null distribution of the acceptance statistics: the linear Monte Carlo ----------------
+    # replicas of N runs of the linear error-state system (eq (15)-(16)) from the same initial draws:
+    # what the ensemble statistics would look like if the linear model were exact (docs/monte_carlo.md)
+    t_null = time.perf_counter()
+    null_ms = None
+    if opt["null_replicas"]:
+        null_ms = linear_mean_squares(
+            S.Phi, S.Qd, null_cases, output_rows(nodes.lat, nodes.h, nodes.q_nb), runs=N,
+            replicas=opt["null_replicas"], x0=x0_all, H=S.H, R=S.R,
+            rng=np.random.default_rng(np.random.SeedSequence(opt["seed"], spawn_key=(NULL_STREAM,))))
+    t_null = time.perf_counter() - t_null
     elapsed = time.perf_counter() - t_start
 
     # ---- statistics -------------------------------------------------------------------
@@ -377,6 +412,9 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     band = {}
     hsel = np.isclose(t / S.every, np.round(t / S.every), rtol=0, atol=1e-9) | (np.arange(t.size) == t.size - 1)
     band_c, nees_cond, band_x = {}, {}, {}
+    cells = len(names) * len(COMPARED)
+    alpha_cell = (1.0 - conf) / cells         # Bonferroni: family-wise false-alarm rate 1 - confidence
+    tests = {}
     for c in names:
         s, L, Lc = sums[c], lin[c], lin_c[c]
         row = {"case": c, "states": states[c], "runs": N}
@@ -395,6 +433,10 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             lo_x, hi_x = rms_bounds(Lc[q], N, conditional_dof(Lc, lin_d[c], q), conf)
             band_x.setdefault(c, {})[q] = (x, Lc[q], lo_x, hi_x)
             frx = inside_fraction(x[k1], lo_x[k1], hi_x[k1])
+            if null_ms is not None:
+                pts = (np.arange(t.size) >= 1) & (Lc[q] > 0)
+                tests[(c, q)] = nt = null_test(x**2, null_ms[c][:, :, QUANTITY_INDEX[q]], Lc[q], lo_c, hi_c, pts,
+                                              alpha_cell)
             with np.errstate(invalid="ignore", divide="ignore"):
                 ratio_c = x[k1] / np.where(Lc[q][k1] > 0, Lc[q][k1], np.nan)
             end = t.size - 1
@@ -419,6 +461,17 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                 "conditional, exact variance: inside [%]": 100 * frx["inside"],
                 "conditional, exact variance: above [%]": 100 * frx["above"],
                 "conditional, exact variance: below [%]": 100 * frx["below"]})
+            if null_ms is not None:
+                comp_rows[-1].update({
+                    "null: inside 5th percentile [%]": 100 * nt["inside_null_p5"],
+                    "null: inside median [%]": 100 * nt["inside_null_median"],
+                    "inside p-value (one-sided)": nt["inside_p"],
+                    "T = time-mean RMS^2/sigma^2": nt["T"], "T null std": nt["T_null_std"],
+                    "T null mean": nt["T_null_mean"], "z = (T-1)/std": nt["z"], "p-value": nt["p"],
+                    "p-value (rank among replicas)": nt["T_p_empirical"], "cell false-alarm rate": alpha_cell,
+                    "verdict": "reject" if nt["reject"] else "accept"})
+                row[f"{q} p-value"] = nt["p"]
+                row[f"{q} verdict"] = "reject" if nt["reject"] else "accept"
             row[f"{q} inside [%]"] = 100 * fr["inside"]
             row[f"{q} conditional inside [%]"] = 100 * frc["inside"]
             row[f"{q} conditional, exact variance, inside [%]"] = 100 * frx["inside"]
@@ -522,8 +575,17 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         {"setting": "conditional prediction", "value": "linear analysis with the truth P0 replaced by the second "
                                                        "moments of the N drawn initial states (initial errors and "
                                                        "random constants); driving and measurement noise and the "
-                                                       "filters' gains from the model; the acceptance (>= 95 % inside) "
+                                                       "filters' gains from the model; the acceptance test "
                                                        "applies to it (docs/monte_carlo.md)"},
+        {"setting": "acceptance test", "value": (
+            f"per cell (case x quantity) T = time mean of RMS^2/sigma_cond^2 over t >= dt, two-sided, against its "
+            f"null from {opt['null_replicas']} replicas of a linear Monte Carlo of N runs from the same initial "
+            f"draws; Bonferroni over {cells} cells: a cell is rejected when p < {alpha_cell:.3g} (family-wise "
+            f"false-alarm rate {1 - conf:.3g}); verdict: "
+            + ("pass" if not any(v["reject"] for v in tests.values()) else "FAIL: " + ", ".join(
+                f"{c} {q}" for (c, q), v in tests.items() if v["reject"])))
+         if null_ms is not None else "none (null_replicas = 0): the per-point bands only"},
+        {"setting": "linear Monte Carlo (null) [s]", "value": round(t_null, 2)},
         {"setting": "NEES steps every [s]", "value": every},
         {"setting": "sensor noise", "value": opt["sensor_noise"]},
         {"setting": "measurement noise", "value": opt["measurement_noise"]},
@@ -554,7 +616,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                  "title": "Horizontal RMS (Monte Carlo) and linear sigma, per case", "y_title": "horizontal [m]",
                  "anchor": "B2", "target": "summary"}],
         sums=sums, linear=lin, linear_conditional=lin_c, linear_driven=lin_d, bands_conditional=band_c,
-        filter_check=pf_check, stats=stats,
+        filter_check=pf_check, stats=stats, acceptance_tests=tests, null_mean_squares=null_ms,
         times=t, cases=list(names), bands=band, nees=nees_stats, runs=N, confidence=conf,
         update_times=t[S.update_steps], stops=S.stops, length_unit=length_unit(decl, S.where))
     result.figures = {f"mc_{c}": partial(case_figure, result, c) for c in names}

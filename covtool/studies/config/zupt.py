@@ -105,6 +105,8 @@ class MonteCarloSection(Section):
     measurement_noise: Bool = F(True, "Add the ZUPT noise to the measurements.")
     process_dt: Quantity("time", positive=True) = F("0.1 s", "Step of the sensor error processes (>= one IMU "
                                                              "sample).")
+    null_replicas: Integer(lo=0, hi=100000) = F(100, "Replicas of the linear Monte Carlo giving the null "
+                                                   "distribution of the acceptance test (0: bands only; else >= 10).")
 
 
 class SweepGroup(Section):

@@ -1,0 +1,237 @@
+"""Linear Monte Carlo: the null distribution of the ensemble statistics.
+
+The nonlinear Monte Carlo (:mod:`covtool.validation.monte_carlo`) is judged by
+statistics of its ensemble mean squares over time (the share of time points
+inside the χ² bounds, the time-mean normalised mean square).  Their null
+distribution under a correct model is not a textbook law: the time points are
+strongly correlated and the drawn constants persist.  This module samples it
+directly from the *linear* error-state system of the same setup, which is what
+the covariance analysis claims the errors obey:
+
+* between measurements ``x_{k+1} = Φ_k x_k + w_k``, ``w_k ~ N(0, Q_d,k)``
+  (seed 002, eq (15));
+* at a measurement of the filter ``x ← x − D K (H x + v)``, ``v ~ N(0, R)``,
+  with the filter's own gain ``K`` (eq (7)), the truth ``H`` and ``R``
+  (eq (16) is the covariance of exactly this recursion).
+
+Each replica is an ensemble of ``M`` runs, like the nonlinear study; the runs
+start either from given initial states (the draws of the nonlinear study, for
+the conditional comparison: only the driven part is resampled) or from fresh
+draws of ``P0``.  All replicas and runs are one matrix ``(n, R·M)``, and the
+cases share the driving and measurement noise (common random numbers, as in the
+nonlinear ensemble).  The sensor rows of a truth Φ are mostly diagonal
+(constants, Markov and random-walk states): the rows with off-diagonal entries
+are multiplied as a block, the others elementwise, which is exact.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from threadpoolctl import threadpool_limits
+
+from covtool.lincov.kalman import symmetrize
+from covtool.nav import attitude as quat, earth
+
+__all__ = ["output_rows", "noise_factors", "linear_mean_squares"]
+
+
+#: the compared quantities and the output rows they sum (rows of :func:`output_rows`)
+GROUPS = {"horizontal": (0, 1), "altitude": (2,), "azimuth": (3,)}
+
+
+def output_rows(lat, h, q_nb) -> np.ndarray:
+    """Rows mapping the navigation states to the compared errors.
+
+    Parameters
+    ----------
+    lat, h : ndarray, shape (N+1,)
+        Reference latitude [rad] and height [m].
+    q_nb : ndarray, shape (N+1, 4)
+        Reference attitude.
+
+    Returns
+    -------
+    ndarray, shape (N+1, 4, 10)
+        North, east, down position error [m] (``δN = (R_M+h) δL``,
+        ``δE = (R_N+h) cos L δl``, ``δD = −δh``) and azimuth error [rad]
+        (third row of ``φ = −2 R(q)ᵀ δq``) from the ten navigation states
+        of seed 002 eq (14).  ``C P Cᵀ`` gives the σ of
+        :func:`covtool.analysis.metrics.nav_metrics`.
+    """
+    lat, h = np.asarray(lat, float), np.asarray(h, float)
+    rm, rn = earth.radii(lat)
+    C = np.zeros((lat.size, 4, 10))
+    C[:, 0, 0] = rm + h
+    C[:, 1, 1] = (rn + h) * np.cos(lat)
+    C[:, 2, 2] = -1.0
+    C[:, 3, 6:10] = quat.attitude_error_matrix(np.asarray(q_nb, float))[:, 2, :]
+    return C
+
+
+def noise_factors(Qd, rtol: float = 1e-13) -> list:
+    """Square-root factors ``L_k`` with ``L_k L_kᵀ = Q_d,k``.
+
+    Parameters
+    ----------
+    Qd : ndarray, shape (N, n, n)
+
+    Returns
+    -------
+    list of ndarray, shape (n, r_k)
+        The eigenvector factor of each step, keeping the eigenvalues above
+        ``rtol`` of the largest (``Q_d`` of a truth model has the rank of its
+        driving noises, 19 of 58 for ``sdins58``).  Negative round-off
+        eigenvalues are dropped.
+    """
+    Qd = np.asarray(Qd, float)
+    w, V = np.linalg.eigh(0.5 * (Qd + np.swapaxes(Qd, 1, 2)))
+    out = []
+    for wk, Vk in zip(w, V):
+        keep = wk > rtol * max(float(wk[-1]), 0.0)
+        out.append(np.ascontiguousarray(Vk[:, keep] * np.sqrt(wk[keep])))
+    return out
+
+
+def _split(Phi):
+    """Rows of Φ with off-diagonal entries (at any step) and the diagonal of the rest."""
+    n = Phi.shape[1]
+    off = np.abs(Phi).max(axis=0) * (1.0 - np.eye(n)) > 0
+    dense = np.flatnonzero(off.any(axis=1))
+    diag = np.setdiff1d(np.arange(n), dense)
+    return dense, diag
+
+
+def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=None, P0=None, H=None, R=None,
+                        factors=None, block: int = 20000) -> dict:
+    """Ensemble mean squares of replicas of a linear Monte Carlo.
+
+    Parameters
+    ----------
+    Phi, Qd : ndarray, shape (N, n, n)
+        Truth transition and noise (seed 002, eq (15)).
+    cases : dict of str to dict of int to ndarray or None
+        For each case the correction gain at each update step ``k``:
+        ``G_k = D K_k`` (n × m; eq (10), (16)); ``None`` or ``{}``: pure INS.
+    C : ndarray, shape (N+1, 4, p)
+        :func:`output_rows` (``p = 10``): north, east, down, azimuth rows
+        acting on the first ``p`` states.
+    runs : int
+        Runs M per replica (the study's N).
+    replicas : int
+    rng : numpy.random.Generator or int
+    x0 : ndarray, shape (M, n), optional
+        The runs' initial states, the same in every replica (conditional
+        null: only the driven part is sampled).
+    P0 : ndarray, shape (n, n), optional
+        Draw the initial states of every run of every replica from
+        ``N(0, P0)`` instead (unconditional null).
+    H : ndarray, shape (m, n)
+        Truth measurement matrix (required with updates).
+    R : ndarray, shape (m, m)
+        True measurement noise.
+    factors : list of ndarray, optional
+        :func:`noise_factors` of ``Qd`` (computed if not given).
+    block : int
+        Columns (runs × replicas) propagated together (memory
+        ``8·n·block`` bytes per case).
+
+    Returns
+    -------
+    dict of str to ndarray, shape (replicas, N+1, 3)
+        Per case, the ensemble mean square ``(1/M) Σ_i y_i(t)²`` of the
+        horizontal (``δN² + δE²``) [m²], altitude [m²] and azimuth [rad²]
+        errors (:data:`GROUPS` order) of each replica.
+
+    Raises
+    ------
+    ValueError
+        Neither or both of ``x0`` and ``P0``; shapes that do not agree.
+    """
+    Phi = np.asarray(Phi, float)
+    N, n, _ = Phi.shape
+    if (x0 is None) == (P0 is None):
+        raise ValueError("linear_mean_squares: give exactly one of x0 (conditional) and P0 (unconditional)")
+    if x0 is not None:
+        x0 = np.asarray(x0, float)
+        if x0.shape != (runs, n):
+            raise ValueError(f"linear_mean_squares: x0 has shape {x0.shape}, expected ({runs}, {n})")
+    C = np.asarray(C, float)
+    if C.ndim != 3 or C.shape[:2] != (N + 1, 4) or C.shape[2] > n:
+        raise ValueError(f"linear_mean_squares: C has shape {C.shape}, expected ({N + 1}, 4, p ≤ {n})")
+    rng = np.random.default_rng(rng)
+    L = factors if factors is not None else noise_factors(Qd)
+    Lr = np.linalg.cholesky(np.asarray(R, float)) if R is not None else None
+    upd = sorted({int(k) for g in cases.values() if g for k in g})
+    if upd and (H is None or Lr is None):
+        raise ValueError("linear_mean_squares: H and R are required with updates")
+    updset = set(upd)
+    # states ordered dense rows first, so both parts are contiguous slices (exact: a permutation)
+    dense, diag = _split(Phi)
+    # then the diagonal rows that receive noise, so the noise is added to one leading block of rows
+    # (a state with a zero Q_d diagonal at every step gets no noise: its row of Q_d, and of L, is zero)
+    noisy = np.any(np.diagonal(np.asarray(Qd, float), axis1=1, axis2=2) > 0, axis=0)
+    diag = np.concatenate([diag[noisy[diag]], diag[~noisy[diag]]])
+    perm = np.concatenate([dense, diag])
+    nw = int(np.flatnonzero(noisy[perm])[-1]) + 1 if noisy.any() else 0
+    nd = dense.size
+    # single precision: the statistics need ~1e-3, float32 keeps 1e-7 per step and halves the cost
+    f4 = np.float32
+    Pd = np.ascontiguousarray(Phi[:, dense][:, :, perm], dtype=f4)          # (N, n_dense, n)
+    dd = np.ascontiguousarray(Phi[:, diag, diag], dtype=f4)                 # (N, n_diag)
+    Lp = [np.ascontiguousarray(f[perm][:nw], dtype=f4) for f in L]
+    G = {c: ({k: np.asarray(g, f4)[perm] for k, g in cases[c].items()} if cases[c] else {}) for c in cases}
+    Hp = np.asarray(H, f4)[:, perm] if H is not None else None
+    Lr = Lr.astype(f4) if Lr is not None else None
+    # output rows act on the ten navigation states; in the permuted order
+    Cp = np.zeros((N + 1, 4, n))
+    Cp[:, :, np.argsort(perm)[:C.shape[2]]] = C
+    used = np.flatnonzero(np.abs(Cp).max(axis=(0, 1)) > 0)
+    Cp = np.ascontiguousarray(Cp[:, :, used], dtype=f4)
+    used = slice(0, used.size) if np.array_equal(used, np.arange(used.size)) else used
+    if P0 is not None:
+        w, V = np.linalg.eigh(symmetrize(np.asarray(P0, float)))
+        L0 = (V * np.sqrt(np.clip(w, 0.0, None)))[perm]
+    names = list(cases)
+    with threadpool_limits(limits=1, user_api="blas"):
+        # small matrices: OpenBLAS's thread pool is many times slower than one thread on a loaded machine
+        return _sample(names, G, Hp, Lr, Lp, nw, Pd, dd, nd, Cp, used, updset, N, n, runs, replicas, rng,
+                       block, None if x0 is None else x0[:, perm], None if P0 is None else L0)
+
+
+def _sample(names, G, Hp, Lr, Lp, nw, Pd, dd, nd, Cp, used, updset, N, n, runs, replicas, rng, block, x0p, L0):
+    out = {c: np.empty((replicas, N + 1, len(GROUPS))) for c in names}
+    per = max(1, block // runs)                   # replicas per block
+    for r0 in range(0, replicas, per):
+        nr = min(per, replicas - r0)
+        B = nr * runs
+        if x0p is not None:
+            X0 = np.tile(x0p.T, (1, nr)).astype(np.float32)
+        else:
+            X0 = (L0 @ rng.standard_normal((n, B))).astype(np.float32)
+        X = {c: X0.copy() for c in names}
+        for k in range(N + 1):
+            if k in updset:
+                v = Lr @ rng.standard_normal((Lr.shape[0], B), dtype=np.float32)
+                for c in names:
+                    g = G[c].get(k)
+                    if g is not None:
+                        X[c] -= g @ (Hp @ X[c] + v)
+            for c in names:
+                Y = Cp[k] @ X[c][used]
+                Y *= Y
+                ms = Y.reshape(4, nr, runs).mean(axis=2, dtype=np.float64)
+                o = out[c][r0:r0 + nr, k]
+                o[:, 0] = ms[0] + ms[1]
+                o[:, 1] = ms[2]
+                o[:, 2] = ms[3]
+            if k == N:
+                break
+            W = Lp[k] @ rng.standard_normal((Lp[k].shape[1], B), dtype=np.float32) if Lp[k].shape[1] else None
+            for c in names:
+                x = X[c]
+                top = Pd[k] @ x
+                x[nd:] *= dd[k][:, None]
+                x[:nd] = top
+                if W is not None:
+                    x[:nw] += W
+    return out
