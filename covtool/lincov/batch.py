@@ -36,7 +36,8 @@ from covtool.errors import NumericalError
 from covtool.lincov.kalman import (check_covariance, check_finite, covariance_status, NEGATIVE_VARIANCE,
                                    NOT_PSD, scale_groups, symmetrize, time_text)
 # the rank-m Joseph / eq (16) update and the selection test live in the kernel (one home)
-from covtool.lincov.kalman import joseph_update as _joseph, selection as _selection
+from covtool.lincov.kalman import (gain_from_innovation, joseph_update as _joseph, selection as _selection,
+                                   standard_update)
 
 
 def sandwich(A: np.ndarray, P: np.ndarray, dynamic=None) -> np.ndarray:
@@ -543,15 +544,14 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                     HPf = Hf @ Pf                                             # (B, m, nf)
                     S = HPf @ Hf.T + Rf                                       # (B, m, m)
                     try:
-                        K = np.swapaxes(np.linalg.solve(S, HPf), 1, 2)        # eq (7), (B, nf, m)
+                        K = gain_from_innovation(S, HPf)                      # eq (7), (B, nf, m)
                     except np.linalg.LinAlgError:
                         raise NumericalError(f"{label}: innovation covariance H P_f Hᵀ + R_f is singular at "
                                              f"{when(k)}") from None
                     if form == "joseph":
                         Pf = _joseph(Pf, K, Hf, Rf, symmetrize=sym, HP=HPf)
                     else:
-                        Pf = Pf - K @ HPf                                     # eq (8)
-                        Pf = symmetrize(Pf) if sym else Pf
+                        Pf = standard_update(Pf, K, HPf, sym=sym)             # eq (8)
                 else:
                     K = gains[:, ui]
                 out_g[:, ui] = K
