@@ -21,7 +21,7 @@ import pytest
 
 from covtool.errors import StudyFileError
 from covtool.io.store import StoreError
-from covtool.studies.aided import trade_cases
+from covtool.studies.aided_trade import trade_cases
 from covtool.studies.trade_grid import run, TradePlan
 from covtool.studies.zupt_setup import setup
 

@@ -51,7 +51,6 @@ Study file::
 
 from __future__ import annotations
 
-import dataclasses
 import re
 import time
 
@@ -59,9 +58,8 @@ import numpy as np
 import pandas as pd
 
 from covtool.analysis.metrics import nav_metrics
-from covtool.errors import NumericalError, StudyFileError
-from covtool.analysis.sensitivity import scale_grid
-from covtool.io.config import (check_keys, choice, integer, LIMITS, names, number, quantity, quantity_list, require,
+from covtool.errors import StudyFileError
+from covtool.io.config import (check_keys, choice, names, number, quantity, quantity_list, require,
                                string, table)
 from covtool.io.filters import load_filters
 from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
@@ -71,6 +69,7 @@ from covtool.lincov.measurements.base import error_state
 from covtool.lincov.reduced import build_filter
 from covtool.lincov.reference import propagate
 from covtool.results import StudyResult
+from covtool.studies.aided_sweep import _sweep_figure, _sweep_table, parse_sweep, scaled_plan
 from covtool.studies.config import MEASUREMENT_NAME
 from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
@@ -370,100 +369,6 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     )
 
 
-SWEEP_KEYS = {"measurement", "what", "scales"}
-#: what a measurement sweep scales: the sensor's σ (truth R and the filters' R_f) or only the filters' R_f
-SWEEP_WHAT = ("sigma", "filter_sigma")
-
-
-def parse_sweep(cfg, measurements, where: str) -> dict:
-    """``[sweep]``: scale one declared measurement's σ (issue 15).
-
-    ``measurement`` names a ``[[measurement]]``; ``what = "sigma"`` scales
-    the sensor's white noise (the truth's R and the filters' R_f together:
-    a sensor-quality trade), ``"filter_sigma"`` only what the filters
-    assume (a tuning sensitivity, as seed 002 §3.2 scales R_f);
-    ``scales = {from, to, per_decade}`` (log grid through ×1) or a list of
-    positive factors.
-
-    Raises
-    ------
-    StudyFileError
-        Unknown key, unknown measurement, bad ``what``, bad scales.
-    """
-    w = f"{where}: [sweep]"
-    cfg = table(cfg, w, StudyFileError)
-    check_keys(cfg, SWEEP_KEYS, w, StudyFileError)
-    known = [m.name for m in measurements]
-    name = choice(require(cfg, "measurement", w, StudyFileError), known, f"{w} measurement", StudyFileError)
-    what = choice(cfg.get("what", "sigma"), SWEEP_WHAT, f"{w} what", StudyFileError)
-    bound = LIMITS["filter_scale"]
-    sc = cfg.get("scales", {"from": 0.1, "to": 10, "per_decade": 2})
-    if isinstance(sc, list):
-        if not sc:
-            raise StudyFileError(f"{w} scales", "expected at least one scale")
-        scales = np.array([number(x, f"{w} scales[{j}]", StudyFileError, lo=bound.lo, hi=bound.hi,
-                                  why=bound.reason) for j, x in enumerate(sc)])
-        scales = np.unique(np.r_[scales, 1.0])
-    else:
-        sc = table(sc, f"{w} scales", StudyFileError)
-        check_keys(sc, {"from", "to", "per_decade"}, f"{w} scales", StudyFileError)
-        lo, hi = (number(require(sc, k, f"{w} scales", StudyFileError), f"{w} scales {k}", StudyFileError,
-                         lo=bound.lo, hi=bound.hi, why=bound.reason) for k in ("from", "to"))
-        per = integer(require(sc, "per_decade", f"{w} scales", StudyFileError), f"{w} scales per_decade",
-                      StudyFileError, limit="per_decade")
-        try:
-            scales = scale_grid(lo, hi, per)
-        except ValueError as exc:
-            raise StudyFileError(f"{w} scales", str(exc)) from None
-    if scales.size > LIMITS["sweep_points"].hi:
-        raise StudyFileError(f"{w} scales", f"{scales.size} scales; at most {LIMITS['sweep_points'].hi:g}")
-    return {"measurement": name, "what": what, "scales": tuple(float(x) for x in scales)}
-
-
-def scaled_plan(pairs, sweep: dict, scale: float) -> list:
-    """The plan with the swept measurement's σ (or only its filter σ) times ``scale``."""
-    out = []
-    for m, st in pairs:
-        if m.name == sweep["measurement"] and scale != 1.0:
-            fs = m.sigma if m.filter_sigma is None else m.filter_sigma
-            m = dataclasses.replace(m, filter_sigma=np.asarray(fs, float) * scale,
-                                    **({"sigma": np.asarray(m.sigma, float) * scale} if sweep["what"] == "sigma"
-                                       else {}))
-        out.append((m, st))
-    return out
-
-
-def _sweep_table(swept, sweep, tr, rtimes):
-    rows = []
-    for (g, case, sc), (m, mt, mc) in swept.items():
-        for x in rtimes:
-            i = int(np.argmin(np.abs(tr - x)))
-            rows.append({"grade": g, "case": case, "measurement": sweep["measurement"], "scaled": sweep["what"],
-                         "scale": sc, "sigma [SI]": ", ".join(f"{v:g}" for v in m.sigma),
-                         "filter sigma [SI]": ", ".join(f"{v:g}" for v in np.diag(m.Rf()) ** 0.5),
-                         "t [min]": tr[i] / 60, "CEP [m]": mt["cep"][i], "sigma_N [m]": mt["sigma_north"][i],
-                         "sigma_E [m]": mt["sigma_east"][i], "sigma_D [m]": mt["sigma_down"][i],
-                         "azimuth [arcmin]": mt["sigma_azimuth"][i] / ARCMIN,
-                         "filter-claimed CEP [m]": mc["cep"][i]})
-    return pd.DataFrame(rows)
-
-
-def _sweep_figure(study, df, sweep):
-    def make():
-        import matplotlib.pyplot as plt
-        last = df[df["t [min]"] == df["t [min]"].max()]
-        fig, ax = plt.subplots(figsize=(7, 5))
-        for (g, case), d in last.groupby(["grade", "case"], sort=False):
-            ax.loglog(d["scale"], d["CEP [m]"], "o-", label=f"{g}: {case}" if g != "as declared" else case)
-        ax.set_xlabel(f"{sweep['measurement']} {sweep['what']} scale [-]")
-        ax.set_ylabel(f"CEP at {last['t [min]'].iloc[0]:g} min [m]")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-        fig.suptitle(f"{study}: {sweep['measurement']} {sweep['what']} sweep")
-        return fig
-    return make
-
-
 def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all, err, rec, *, form,
                label, all_gains=False):
     """The truth under one filter with the declared measurements (seed 002, eq (15)–(16)).
@@ -628,149 +533,3 @@ def _figure(study, grade, metrics, tr, outages):
         fig.suptitle(f"{study}: truth under each filter, grade {grade}" + (" (outages shaded)" if outages else ""))
         return fig
     return make
-
-
-# --------------------------------------------------------------------------
-# the trade grid's aiding axis (covtool.studies.trade_grid)
-# --------------------------------------------------------------------------
-
-def parse_aiding(decl: dict, axis, where: str) -> list:
-    """``[grid] aiding = [...]`` and the ``[[aiding]]`` tables -> one entry per axis value.
-
-    ``"none"`` is the ZUPT schedule alone; every other value names an
-    ``[[aiding]]`` table (``name`` and ``[[aiding.measurement]]`` tables,
-    declared as in the aided kind) whose measurements are added to the
-    ZUPTs of each interval.
-
-    Returns
-    -------
-    list of dict
-        ``{"name": str, "measurement": list of dict}`` (the declarations,
-        validated; the workers parse them again).
-
-    Raises
-    ------
-    StudyFileError
-        ``aiding`` not a non-empty list of names, a name without its table,
-        a table never used or declared twice, a bad measurement.
-    """
-    w = f"{where}: [grid] aiding"
-    if not isinstance(axis, list) or not axis or not all(isinstance(a, str) for a in axis):
-        raise StudyFileError(w, f"expected a non-empty list of names (\"none\" or an [[aiding]] name), got {axis!r}")
-    if len(set(axis)) != len(axis):
-        raise StudyFileError(w, f"{next(a for j, a in enumerate(axis) if a in axis[:j])!r} is listed twice")
-    tables_ = decl.get("aiding", [])
-    if not isinstance(tables_, list):
-        raise StudyFileError(f"{where}: [[aiding]]", "expected an array of tables ([[aiding]] name = ...)")
-    mixes = {}
-    for j, a in enumerate(tables_):
-        wa = f"{where}: [[aiding]] #{j + 1}"
-        a = table(a, wa, StudyFileError)
-        check_keys(a, {"name", "measurement"}, wa, StudyFileError)
-        nm = string(require(a, "name", wa, StudyFileError), f"{wa} name", StudyFileError, nonempty=True)
-        if nm == "none" or nm in mixes:
-            raise StudyFileError(f"{wa} name", f"{nm!r} is " + ("reserved (the ZUPTs alone)" if nm == "none"
-                                                                else "declared twice"))
-        meas = a.get("measurement")
-        if not isinstance(meas, list) or not meas:
-            raise StudyFileError(f"{where}: [[aiding]] {nm!r}", "needs at least one [[aiding.measurement]]")
-        parsed = [parse_measurement(m, i, f"{where}: [[aiding]] {nm!r}") for i, m in enumerate(meas)]
-        names_ = ["zupt"] + [m.name for m, _ in parsed]
-        dup = next((x for i, x in enumerate(names_) if x in names_[:i]), None)
-        if dup is not None:
-            raise StudyFileError(f"{where}: [[aiding]] {nm!r} [[measurement]] {dup!r}",
-                                 "the name is used twice (\"zupt\" is the grid's own ZUPT)")
-        mixes[nm] = list(meas)
-    unknown = [a for a in axis if a != "none" and a not in mixes]
-    if unknown:
-        raise StudyFileError(w, f"{unknown[0]!r} has no [[aiding]] table (declared: "
-                             f"{', '.join(sorted(mixes)) or 'none'})")
-    unused = [m for m in mixes if m not in axis]
-    if unused:
-        raise StudyFileError(f"{where}: [[aiding]] {unused[0]!r}", "is not in [grid] aiding")
-    return [{"name": a, "measurement": mixes.get(a, [])} for a in axis]
-
-
-def aiding_problem(aiding: dict, t, nodes, where: str) -> None:
-    """Check every schedule of an aiding mix against one trajectory (before any work is sent out)."""
-    for i, m in enumerate(aiding["measurement"]):
-        meas, sch = parse_measurement(m, i, f"{where}: [[aiding]] {aiding['name']!r}")
-        p = sch.problem(t, nodes)
-        if p is not None:
-            raise StudyFileError(f"{where}: [[aiding]] {aiding['name']!r} [[measurement]] {meas.name!r} schedule", p)
-
-
-def trade_cases(S, f: str, cases: list, aiding: dict, rec, label: str) -> list:
-    """The truth under filter ``f`` with the ZUPTs plus an aiding mix, one run per trade-grid case.
-
-    Parameters
-    ----------
-    S : covtool.studies.zupt_setup.ZuptSetup
-        The (grade, interval) system of the chunk.
-    f : str
-        Filter name.
-    cases : list of dict
-        ``_sigma`` (true ZUPT σ [m/s]), ``P0 scale``, ``Q scale``, ``R scale``.
-    aiding : dict
-        ``{"name", "measurement"}`` (:func:`parse_aiding`).
-    rec : sequence of int
-        Recorded grid indices.
-    label : str
-        For messages.
-
-    Returns
-    -------
-    list of (P_truth, P_filter, status)
-        Navigation blocks, shape (r, 10, 10) each, per case; a case whose
-        covariance fails the guard has NaN blocks and the guard's message
-        as status (the grid goes on), otherwise status ``"ok"``.
-
-    Notes
-    -----
-    The filter scales as the ZUPT trade grid's: ``P_f(0) × p0`` (its
-    kept measurement-error states too), ``Q_f × q`` (and their driving
-    noise), every measurement's ``R_f × r``; the ZUPT's filter σ is the
-    filter's declared ``zupt_sigma`` or the true one.  Eq (11)–(13) of the
-    dropped INS states is matched over the ZUPT intervals (the filter as
-    the ZUPT grid builds it).
-    """
-    from covtool.lincov.measurements import Zupt
-
-    where = S.where
-    plan = [parse_measurement(m, i, f"{where}: [[aiding]] {aiding['name']!r}")
-            for i, m in enumerate(aiding["measurement"])]
-    states = [s for m, _ in plan for s in m.states]
-    names_all = list(S.truth.names) + [s.name for s in states]
-    steps = [sch.steps(S.t, S.nodes) for _, sch in plan]
-    fm, Phi_f, Qd_f, _ = S.filter_system(f)
-    spec = S.specs[f]
-    dt = np.diff(S.t)
-    err = error_processes(states, dt)[:2]
-    P0a, Pf_e, D = augment(S.P0, fm.D, states, [s.name for s in states])
-    fnames = list(fm.names) + [s.name for s in states]
-    nf0 = fm.P0.shape[0]
-    out = []
-    for c in cases:
-        sig = float(c["_sigma"])
-        fsig = sig if spec.zupt_sigma is None else float(spec.zupt_sigma)
-        r = float(c["R scale"])
-        z = Zupt(name="zupt", sigma=np.full(3, sig), filter_sigma=np.full(3, fsig * np.sqrt(r)))
-        pairs = [(z, S.update_steps)] + [
-            (dataclasses.replace(m, filter_sigma=np.asarray(m.sigma if m.filter_sigma is None else m.filter_sigma,
-                                                            float) * np.sqrt(r)), st)
-            for (m, _), st in zip(plan, steps)]
-        Pf0 = np.zeros((len(fnames),) * 2)
-        Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0 * c["P0 scale"], Pf_e * c["P0 scale"]
-        q = float(c["Q scale"])
-        epochs = build_epochs(pairs, S.nodes, names_all, fnames)
-        try:
-            run_ = propagate_aided(S.Phi, S.Qd, P0a, Phi_f, Qd_f if q == 1.0 else Qd_f * q, Pf0, D, epochs, err=err,
-                                   err_f=(err[0], err[1] * q), record=rec, form=spec.update,
-                                   label=f"{label}: case {c['case']}", times=S.t, names=names_all,
-                                   filter_names=fnames, system_checked=True)
-        except NumericalError as exc:
-            nan = np.full((len(rec), 10, 10), np.nan)
-            out.append((nan, nan, str(exc)))
-            continue
-        out.append((run_.P_truth[:, :10, :10], run_.P_filter[:, :10, :10], "ok"))
-    return out

@@ -153,7 +153,7 @@ class TradePlan:
         self.grades = [{"name": g.name_, "scale": g.scale, "description": g.description, "override": g.override,
                         **{k: v for k, v in (("arw", g.arw), ("vrw", g.vrw)) if v is not None}} for g in cfg.grade]
         # the aiding mix axis (issue 15): measurements added to the ZUPTs; absent, the grid is ZUPT-only as before
-        from covtool.studies.aided import aiding_problem, parse_aiding
+        from covtool.studies.aided_trade import aiding_problem, parse_aiding
         self.aiding_axis = "aiding" in raw_grid
         if not self.aiding_axis and isinstance(decl, dict) and "aiding" in decl:
             raise StudyFileError(f"{where}: [[aiding]]", "declared but not used: list it in [grid] aiding")
@@ -411,8 +411,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
 
 def _aided_rows(S, f, cs, aiding, rec, task, rows) -> None:
-    """Summary rows of one filter's cases with an aiding mix (:func:`covtool.studies.aided.trade_cases`)."""
-    from covtool.studies.aided import trade_cases
+    """Summary rows of one filter's cases with an aiding mix (:func:`covtool.studies.aided_trade.trade_cases`)."""
+    from covtool.studies.aided_trade import trade_cases
 
     t, nodes = S.t, S.nodes
     res = trade_cases(S, f, cs, aiding, rec, f"trade grid: {task.get('key', 'chunk')}: filter {f}")

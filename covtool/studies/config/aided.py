@@ -149,7 +149,7 @@ class AidedGrade(Section):
 class MeasurementSweep(Section):
     name: ClassVar[str] = "sweep (aided)"
     doc: ClassVar[str] = ("Scale one declared measurement's white-noise σ and rerun every [filters] case "
-                          "(covtool.studies.aided.parse_sweep): the measurement_sweep table and figure.")
+                          "(covtool.studies.aided_sweep.parse_sweep): the measurement_sweep table and figure.")
     measurement: Text(nonempty=True) = F(..., "The [[measurement]] whose σ is scaled.", example="gnss")
     what: OneOf("sigma", "filter_sigma") = F("sigma", "'sigma': the sensor's σ (truth R and filter R_f together); "
                                                       "'filter_sigma': only the σ the filters assume.")
