@@ -227,6 +227,43 @@ def parse_grades(decl: dict, where: str) -> list:
 # run
 # --------------------------------------------------------------------------
 
+def measurement_steps(plan, t: np.ndarray, nodes, where: str) -> tuple[list, np.ndarray]:
+    """Each measurement's update steps on the grid, checked against the trajectory.
+
+    Parameters
+    ----------
+    plan : list of (Measurement, Schedule)
+    t : ndarray, shape (N+1,)
+        The grid. [s]
+    nodes : object
+        The trajectory at ``t``.
+    where : str
+        The study file, for messages.
+
+    Returns
+    -------
+    steps : list of ndarray of int
+        Per measurement, its update steps.
+    all_steps : ndarray of int
+        Every step with an update, sorted, unique.
+
+    Raises
+    ------
+    StudyFileError
+        A schedule outside the trajectory, or no update inside the study.
+    """
+    steps = []
+    for meas, sch in plan:
+        p = sch.problem(t, nodes)
+        if p is not None:
+            raise StudyFileError(f"{where}: [[measurement]] {meas.name!r} schedule", p)
+        steps.append(sch.steps(t, nodes))
+    all_steps = np.unique(np.concatenate(steps))
+    if all_steps.size == 0:
+        raise StudyFileError(f"{where}: [[measurement]]", "no update falls inside the study (check the outages)")
+    return steps, all_steps
+
+
 def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     """Run an aided-navigation study; see the module docstring."""
     t_start = time.perf_counter()
@@ -265,15 +302,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"], where)
     nodes = traj.sample(t)
-    steps = []
-    for meas, sch in plan:                 # every schedule against the trajectory, before any computation
-        p = sch.problem(t, nodes)
-        if p is not None:
-            raise StudyFileError(f"{where}: [[measurement]] {meas.name!r} schedule", p)
-        steps.append(sch.steps(t, nodes))
-    all_steps = np.unique(np.concatenate(steps))
-    if all_steps.size == 0:
-        raise StudyFileError(f"{where}: [[measurement]]", "no update falls inside the study (check the outages)")
+    steps, all_steps = measurement_steps(plan, t, nodes, where)   # every schedule, before any computation
     ewn_dt = (quantity(fcfg["ewn_interval"], "time", f"{where}: [filters] ewn_interval", StudyFileError,
                        positive=True) if "ewn_interval" in fcfg else float(t[-1]) / all_steps.size)
     windows = {}                           # one row per outage window, naming the measurements it silences

@@ -57,7 +57,8 @@ from covtool.lincov.aided import error_processes
 from covtool.lincov.reference import propagate
 from covtool.plotting.budget import budget_figure
 from covtool.results import ErrorBudgetResult
-from covtool.studies.aided import (_measurement_table, _memory, filter_run, filter_system, parse_measurement)
+from covtool.studies.aided import (_measurement_table, _memory, filter_run, filter_system, measurement_steps,
+                                   parse_measurement)
 from covtool.studies.error_budget import (_residuals, _source_table, _tables, budget_cases, budget_charts,
                                           budget_options, PURE, record_steps)
 from covtool.studies.grid import initial_covariance, time_grid, truth_system
@@ -115,15 +116,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"], where)
     nodes = traj.sample(t)
-    steps = []
-    for meas, sch in plan:                 # every schedule against the trajectory, before any computation
-        p = sch.problem(t, nodes)
-        if p is not None:
-            raise StudyFileError(f"{where}: [[measurement]] {meas.name!r} schedule", p)
-        steps.append(sch.steps(t, nodes))
-    all_steps = np.unique(np.concatenate(steps))
-    if all_steps.size == 0:
-        raise StudyFileError(f"{where}: [[measurement]]", "no update falls inside the study (check the outages)")
+    steps, all_steps = measurement_steps(plan, t, nodes, where)   # every schedule, before any computation
     ewn_dt = float(t[-1]) / all_steps.size
     rec = record_steps(t, every, rtimes)
     moving = t[-1] - sum(max(0.0, min(b, t[-1]) - max(a, 0.0)) for a, b in traj.stationary)
