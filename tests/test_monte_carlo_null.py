@@ -140,8 +140,12 @@ def _shipped_setup(duration="30 min"):
     return decl, p, setup(decl, path=p, extra_sections=("monte_carlo",))
 
 
-def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng, data_replicas):
-    """Per data replica and cell: null_test of linear-MC data from x0_data against the model's prediction."""
+def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng, data_replicas, null=None):
+    """Per data replica and cell: null_test of linear-MC data from x0_data against the model's prediction.
+
+    Returns the verdicts and the null (the model's linear-MC mean squares), which a second
+    call against the same model may pass back as ``null`` instead of sampling it again.
+    """
     from covtool.lincov.reduced import zupt_matrices
     from covtool.lincov.reference import propagate_with_filter
     from covtool.studies.monte_carlo import _linear, _sample_moment, QUANTITY_INDEX
@@ -152,8 +156,9 @@ def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng, data_
     res = propagate_with_filter(S.Phi, S.Qd, S0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
                                 S.update_steps, Rf=S.filter_R("C"), form=S.specs["C"].update)
     sig = {"C": _linear(res.P_truth, nodes)}
-    null = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=replicas, rng=rng, x0=x0_model, H=S.H,
-                               R=S.R)
+    if null is None:
+        null = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=replicas, rng=rng, x0=x0_model,
+                                   H=S.H, R=S.R)
     data = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=data_replicas, rng=rng + 1, x0=x0_data,
                                H=S.H, R=S.R)
     alpha = 0.05 / 15                     # the shipped study's Bonferroni level: 5 cases x 3 quantities
@@ -167,7 +172,7 @@ def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng, data_
                 pts = (np.arange(t.size) >= 1) & (sig[c][q] > 0)
                 cells[(c, q)] = null_test(data[c][r, :, j], null[c][:, :, j], sig[c][q], lo, hi, pts, alpha)
         out.append(cells)
-    return out
+    return out, null
 
 
 def test_shipped_setup_rejects_a_30_percent_accelerometer_bias_error(capsys):
@@ -199,8 +204,9 @@ def test_shipped_setup_rejects_a_30_percent_accelerometer_bias_error(capsys):
     acc = [S.truth.index[f"acc_bias_{a}"] for a in "xyz"]
     wrong = x0.copy()
     wrong[:, acc] *= 1.3
-    right = _verdict(S, x0, x0, cases, C, nodes, N, 40, 11, 20)
-    bad = _verdict(S, wrong, x0, cases, C, nodes, N, 40, 11, 1)[0]
+    right, null = _verdict(S, x0, x0, cases, C, nodes, N, 40, 11, 20)
+    # the same model, so the same null; the wrong-model data get their own stream
+    bad = _verdict(S, wrong, x0, cases, C, nodes, N, 40, 13, 1, null=null)[0][0]
     z = np.array([[v["z"] for v in cells.values()] for cells in right])
     rejected = sum(any(v["reject"] for v in cells.values()) for cells in right)
     with capsys.disabled():
