@@ -104,3 +104,10 @@ def test_shipped_study_declaration():
     assert d["study"]["kind"] == "monte_carlo" and "zupt" not in d
     assert {m["kind"] for m in d["measurement"]} == {"odometer", "nhc"}
     assert 30 <= d["monte_carlo"]["runs"] <= 60
+
+
+@pytest.mark.parametrize("opt", [{"resume": True}, {"backend": "serial"}])
+def test_workers_and_resume_are_refused(opt, tmp_path):
+    with pytest.raises(StudyFileError, match=r"<study>: \[\[measurement\]\]: a Monte Carlo with declared measurements "
+                                             r"runs in-process in one piece; it takes no --workers"):
+        covtool.run_study(short_decl(), store=tmp_path / "cases", **opt)

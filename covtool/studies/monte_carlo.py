@@ -288,6 +288,10 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
     if "measurement" in decl:              # declared measurements (issue 15): covtool.studies.aided_monte_carlo
         from covtool.studies.aided_monte_carlo import run as run_aided
+        if backend is not None or resume:              # in one piece: a worker pool or a resume would be ignored
+            raise StudyFileError(f"{path if path else '<study>'}: [[measurement]]", "a Monte Carlo with declared "
+                                 "measurements runs in-process in one piece; it takes no --workers, --scheduler "
+                                 "or --resume")
         return run_aided(decl, path=path, progress=progress)
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
