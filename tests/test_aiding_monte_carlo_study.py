@@ -111,3 +111,12 @@ def test_workers_and_resume_are_refused(opt, tmp_path):
     with pytest.raises(StudyFileError, match=r"<study>: \[\[measurement\]\]: a Monte Carlo with declared measurements "
                                              r"runs in-process in one piece; it takes no --workers"):
         covtool.run_study(short_decl(), store=tmp_path / "cases", **opt)
+
+
+def test_resolved_declaration_runs_again(result):
+    """The resolved study keeps the file's forms and the defaults: it is itself a valid declaration."""
+    mc = result.resolved["monte_carlo"]
+    assert mc == {"runs": 60, "seed": 1, "imu_rate": "100 Hz", "samples_per_step": 4, "confidence": 0.99,
+                  "sensor_noise": True, "measurement_noise": True}
+    from covtool.studies.monte_carlo import mc_options
+    assert mc_options(result.resolved, "<resolved>")["imu_rate"] == 100.0

@@ -84,6 +84,9 @@ from covtool.validation.sensor_errors import SensorErrors, sample_states
 
 #: [monte_carlo] keys this study uses (the ZUPT kind's chunking, NEES and null keys are refused)
 AIDED_MC_KEYS = {"runs", "seed", "imu_rate", "samples_per_step", "confidence", "sensor_noise", "measurement_noise"}
+#: the defaults of :func:`covtool.studies.monte_carlo.mc_options`, as a study file writes them (resolved study)
+MC_DEFAULTS = {"seed": 1, "imu_rate": "100 Hz", "samples_per_step": 4, "confidence": 0.95, "sensor_noise": True,
+               "measurement_noise": True}
 #: share of the times the RMS must lie inside its bounds (tests/test_aiding_monte_carlo.py)
 INSIDE_REQUIRED = 0.95
 #: compared quantities: (name, σ key of nav_metrics, unit label, display scale)
@@ -230,7 +233,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     return StudyResult(name=hdr["name"], kind="monte_carlo", tables=tables,
                        figures={"mc_aided_ratio": _figure(hdr["name"], cases, bands, t, M, opt["confidence"])},
                        resolved={**decl, "study": {**decl["study"], "name": hdr["name"]},
-                                 "monte_carlo": {**decl["monte_carlo"], **{k: opt[k] for k in AIDED_MC_KEYS}}},
+                                 "monte_carlo": {**MC_DEFAULTS, **decl["monte_carlo"]}},
                        provenance=provenance)
 
 
