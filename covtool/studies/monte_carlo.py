@@ -61,6 +61,9 @@ Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
 (``covtool run --workers N`` or ``--scheduler``), else local processes, one
 per CPU.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
 every finished chunk is stored and ``--resume`` reuses it.
+
+With ``[[measurement]]`` tables (the aided kind's declaration) instead of
+``[zupt]``, the study runs in :mod:`covtool.studies.aided_monte_carlo` (issue 15).
 """
 
 from __future__ import annotations
@@ -283,6 +286,13 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     from covtool.studies.inputs import trajectory_csv_sha256
     from covtool.studies.resources import store_checks
 
+    if "measurement" in decl:              # declared measurements (issue 15): covtool.studies.aided_monte_carlo
+        from covtool.studies.aided_monte_carlo import run as run_aided
+        if backend is not None or resume:              # in one piece: a worker pool or a resume would be ignored
+            raise StudyFileError(f"{path if path else '<study>'}: [[measurement]]", "a Monte Carlo with declared "
+                                 "measurements runs in-process in one piece; it takes no --workers, --scheduler "
+                                 "or --resume")
+        return run_aided(decl, path=path, progress=progress)
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     opt = mc_options(decl, where)

@@ -113,6 +113,10 @@ class MonteCarloConfig(ZuptStudyConfig):
     kind_doc: ClassVar[str] = ("Monte Carlo validation: sampled errors through a nonlinear strapdown and the "
                                "filters, compared with the linear covariance (RMS and NEES bands).")
     monte_carlo: MonteCarloSection
+    lists: ClassVar[dict] = {"measurement": MeasurementEntry}
+    measurement: tuple[MeasurementEntry, ...] | None = Field(None, min_length=1, description=(
+        "Declared measurements instead of [zupt] (issue 15, as in the aided kind): [[measurement]] tables, applied "
+        "by their nonlinear functions to the strapdown truth (covtool.studies.aided_monte_carlo)."))
 
     @model_validator(mode="wrap")
     @classmethod
