@@ -227,6 +227,39 @@ def parse_grades(decl: dict, where: str) -> list:
 # run
 # --------------------------------------------------------------------------
 
+def parse_measurements(mdecl, where: str, empty: str = "expected a non-empty list of [[measurement]] tables"):
+    """The ``[[measurement]]`` tables -> ``(plan, states)``, names unique.
+
+    Returns
+    -------
+    plan : list of (Measurement, Schedule)
+    states : list of State
+        Every measurement's own error states, in order.
+
+    Raises
+    ------
+    StudyFileError
+        Not a non-empty list (``empty`` says why), a bad table, a name used twice.
+    """
+    if not isinstance(mdecl, list) or not mdecl:
+        raise StudyFileError(f"{where}: [[measurement]]", empty)
+    plan = [parse_measurement(c, i, where) for i, c in enumerate(mdecl)]
+    mnames = [m.name for m, _ in plan]
+    dup = next((n for j, n in enumerate(mnames) if n in mnames[:j]), None)
+    if dup is not None:
+        raise StudyFileError(f"{where}: [[measurement]] {dup!r}", "the name is used twice")
+    return plan, [s for m, _ in plan for s in m.states]
+
+
+def check_error_state_names(plan, states, truth, where: str) -> None:
+    """Refuse a measurement-error state named like a truth-model state or block (StudyFileError)."""
+    clash = [s.name for s in states if s.name in truth.index or s.name in {x.block for x in truth.states}]
+    if clash:
+        meas = next(m.name for m, _ in plan if clash[0] in m.state_names)
+        raise StudyFileError(f"{where}: [[measurement]] {meas!r} name", f"its error state {clash[0]!r} has the name "
+                             f"of a truth-model state or block; rename the measurement")
+
+
 def measurement_steps(plan, t: np.ndarray, nodes, where: str) -> tuple[list, np.ndarray]:
     """Each measurement's update steps on the grid, checked against the trajectory.
 
@@ -273,15 +306,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                StudyFileError)
     hdr = study_header(decl, where)
     every, rtimes = output_options(decl, where, hdr["duration"])
-    mdecl = decl.get("measurement")
-    if not isinstance(mdecl, list) or not mdecl:
-        raise StudyFileError(f"{where}: [[measurement]]", "an aided study needs at least one measurement")
-    plan = [parse_measurement(c, i, where) for i, c in enumerate(mdecl)]
-    mnames = [m.name for m, _ in plan]
-    if len(set(mnames)) != len(mnames):
-        dup = next(n for n in mnames if mnames.count(n) > 1)
-        raise StudyFileError(f"{where}: [[measurement]] {dup!r}", "the name is used twice")
-    states = [s for m, _ in plan for s in m.states]
+    plan, states = parse_measurements(decl.get("measurement"), where, "an aided study needs at least one measurement")
     fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
     check_keys(fcfg, {"file", "cases", "pure_ins", "ewn_interval", "variant"}, f"{where}: [filters]", StudyFileError)
     grades = parse_grades(decl, where)
@@ -289,11 +314,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     ffile = filters_file(fcfg, where, base_dir)
     specs = load_filters(ffile, truth0)
     cases = filter_cases(fcfg, specs, ffile, where, nonempty=True)
-    clash = [s.name for s in states if s.name in truth0.index or s.name in {x.block for x in truth0.states}]
-    if clash:
-        meas = next(m.name for m, _ in plan if clash[0] in m.state_names)
-        raise StudyFileError(f"{where}: [[measurement]] {meas!r} name", f"its error state {clash[0]!r} has the name "
-                             f"of a truth-model state or block; rename the measurement")
+    check_error_state_names(plan, states, truth0, where)
     variants = parse_variants(fcfg, specs, states, where)
     sweep = parse_sweep(decl["sweep"], [m for m, _ in plan], where) if "sweep" in decl else None
     est = check_memory(_memory(hdr, truth0, specs, cases, variants, states, every, fcfg.get("pure_ins", True)),

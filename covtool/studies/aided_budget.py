@@ -57,8 +57,8 @@ from covtool.lincov.aided import error_processes
 from covtool.lincov.reference import propagate
 from covtool.plotting.budget import budget_figure
 from covtool.results import ErrorBudgetResult
-from covtool.studies.aided import (_measurement_table, _memory, filter_run, filter_system, measurement_steps,
-                                   parse_measurement)
+from covtool.studies.aided import (_measurement_table, _memory, check_error_state_names, filter_run,
+                                   filter_system, measurement_steps, parse_measurements)
 from covtool.studies.error_budget import (_residuals, _source_table, _tables, budget_cases, budget_charts,
                                           budget_options, PURE, record_steps)
 from covtool.studies.grid import initial_covariance, time_grid, truth_system
@@ -91,26 +91,15 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     fcases, want_pure = budget_cases(decl, where)
     hdr = study_header(decl, where)
     every, rtimes = output_options(decl, where, hdr["duration"])
-    mdecl = decl["measurement"]
-    if not isinstance(mdecl, list) or not mdecl:
-        raise StudyFileError(f"{where}: [[measurement]]", "expected a non-empty list of [[measurement]] tables")
-    plan = [parse_measurement(c, i, where) for i, c in enumerate(mdecl)]
+    plan, states = parse_measurements(decl["measurement"], where)
     mnames = [m.name for m, _ in plan]
-    dup = next((n for j, n in enumerate(mnames) if n in mnames[:j]), None)
-    if dup is not None:
-        raise StudyFileError(f"{where}: [[measurement]] {dup!r}", "the name is used twice")
-    states = [s for m, _ in plan for s in m.states]
     fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
     check_keys(fcfg, {"file", "cases"}, f"{where}: [filters]", StudyFileError)
     truth = load_truth(decl, where, base_dir)
     ffile = filters_file(fcfg, where, base_dir)
     specs = load_filters(ffile, truth)
     cases = filter_cases({**fcfg, "cases": fcases} if fcases is not None else fcfg, specs, ffile, where)
-    clash = [s.name for s in states if s.name in truth.index or s.name in {x.block for x in truth.states}]
-    if clash:
-        meas = next(m.name for m, _ in plan if clash[0] in m.state_names)
-        raise StudyFileError(f"{where}: [[measurement]] {meas!r} name", f"its error state {clash[0]!r} has the name "
-                             f"of a truth-model state or block; rename the measurement")
+    check_error_state_names(plan, states, truth, where)
     est = check_memory(_memory(hdr, truth, specs, cases, {}, states, every, want_pure), where, hdr["max_memory"],
                        "a larger [study] dt or history_every, a shorter duration or fewer [filters] cases")
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])

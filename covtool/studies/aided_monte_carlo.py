@@ -71,8 +71,8 @@ from covtool.io.filters import load_filters
 from covtool.lincov.aided import error_processes
 from covtool.nav.imu.simulator import ImuSimulator
 from covtool.results import StudyResult
-from covtool.studies.aided import (_measurement_table, _memory, filter_run, filter_system, measurement_steps,
-                                   parse_measurement)
+from covtool.studies.aided import (_measurement_table, _memory, check_error_state_names, filter_run,
+                                   filter_system, measurement_steps, parse_measurements)
 from covtool.studies.grid import initial_covariance, time_grid, truth_system
 from covtool.studies.inputs import load_trajectory, load_truth, study_header, study_inputs
 from covtool.studies.monte_carlo import mc_options
@@ -141,15 +141,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                                  f"one piece, no null distribution); keys: {', '.join(sorted(AIDED_MC_KEYS))}")
     opt = mc_options(decl, where)
     hdr = study_header(decl, where)
-    mdecl = decl["measurement"]
-    if not isinstance(mdecl, list) or not mdecl:
-        raise StudyFileError(f"{where}: [[measurement]]", "expected a non-empty list of [[measurement]] tables")
-    plan = [parse_measurement(c, i, where) for i, c in enumerate(mdecl)]
-    mnames = [m.name for m, _ in plan]
-    dup = next((n for j, n in enumerate(mnames) if n in mnames[:j]), None)
-    if dup is not None:
-        raise StudyFileError(f"{where}: [[measurement]] {dup!r}", "the name is used twice")
-    states = [s for m, _ in plan for s in m.states]
+    plan, states = parse_measurements(decl["measurement"], where)
     kept = [s.name for s in states]
     fcfg = table(decl.get("filters", {}), f"{where}: [filters]", StudyFileError)
     check_keys(fcfg, {"file", "cases"}, f"{where}: [filters]", StudyFileError)
@@ -157,11 +149,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     ffile = filters_file(fcfg, where, base_dir)
     specs = load_filters(ffile, truth)
     cases = filter_cases(fcfg, specs, ffile, where, nonempty=True)
-    clash = [s.name for s in states if s.name in truth.index or s.name in {x.block for x in truth.states}]
-    if clash:
-        meas = next(m.name for m, _ in plan if clash[0] in m.state_names)
-        raise StudyFileError(f"{where}: [[measurement]] {meas!r} name", f"its error state {clash[0]!r} has the name "
-                             f"of a truth-model state or block; rename the measurement")
+    check_error_state_names(plan, states, truth, where)
     est = check_memory(_memory(hdr, truth, specs, cases, {}, states, hdr["dt"], False), where, hdr["max_memory"],
                        "a larger [study] dt, a shorter duration or fewer [filters] cases")
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
