@@ -8,7 +8,7 @@ from one update to the next, and to measurements with their own error states
 * the truth state is ``[x_INS (n₀); e (n_e)]``: the INS truth model and the
   measurements' error states, each a scalar process independent of the INS
   (random constant, Gauss–Markov, random walk), propagated exactly
-  (:func:`covtool.lincov.measurements.transition`);
+  (:func:`covtool.lincov.discretize.scalar.transition`);
 * the filter state is ``[x_f (n_f0); e_f]``: a reduced filter keeps, by
   name, any subset of the measurement-error states, like any other state;
   ``D`` maps filter states onto truth states (eq (10));

@@ -35,6 +35,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from covtool.lincov.discretize.scalar import transition  # noqa: F401 - re-exported (measurements.transition)
 from covtool.lincov.model.spec import State
 from covtool.nav import attitude as quat, earth
 
@@ -136,20 +137,6 @@ def heading_jacobian(q) -> np.ndarray:
     dN = 2 * np.array([q3, q2, q1, q0])
     dD = 2 * np.array([q0, q1, -q2, -q3])
     return (D * dN - N * dD) / (N * N + D * D)
-
-
-def transition(state: State, dt: float) -> tuple[float, float]:
-    """Exact ``(φ, q_d)`` of a scalar measurement-error state over ``dt`` [s].
-
-    Random constant: ``(1, 0)``; first-order Gauss–Markov:
-    ``(e^{−dt/τ}, σ²(1 − e^{−2dt/τ}))``; random walk: ``(1, rw² dt)``.
-    """
-    if state.process == "markov":
-        a = np.exp(-dt / state.tau)
-        return float(a), float(state.sigma**2 * -np.expm1(-2.0 * dt / state.tau))
-    if state.process == "random_walk":
-        return 1.0, float(state.rw**2 * dt)
-    return 1.0, 0.0
 
 
 @dataclass(frozen=True, eq=False)
