@@ -120,8 +120,12 @@ def _initial_from_trajectory(traj) -> dict:
             "heading": float(quat.to_euler(s.q_nb)[0, 2])}
 
 
-def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
+def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None, truth_cache=None):
     """Simulated logs of both IMUs (M runs) with the declared gaps.
+
+    ``truth_cache`` (a dict shared by the batches of a study) holds the exact
+    increments of the flight, which are the same for every batch
+    (:class:`~covtool.nav.imu.simulator.ImuSimulator`).
 
     Returns
     -------
@@ -145,7 +149,7 @@ def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
             gs = (fault,)
         err = GSensitiveErrors(model, x0, rng, gsens=gs)
         sim = ImuSimulator(traj, g.rate, errors=err, quantization=g.quantization, saturation=g.range,
-                           mounting=cfg.mounting[key], nodes=quadrature_nodes(traj, g.rate))
+                           mounting=cfg.mounting[key], nodes=quadrature_nodes(traj, g.rate), truth_cache=truth_cache)
         rec = sim.record()
         t = rec.t
         keep = np.ones(t.size, bool)
@@ -204,13 +208,14 @@ def run(decl: dict, *, path=None, progress: bool = False) -> DualImuResult:
     gap_rows = []
     bar = progress_bar(cfg.runs + cfg.fault_runs, "flights", progress, unit="flight")   # closed below or by GC
     model = None
+    truth_cache = {}   # the flight's exact increments, sampled once for all batches
     for label, n_runs, ss, fault in (("fault_free", cfg.runs, ss_free, None),
                                      ("fault", cfg.fault_runs, ss_fault, cfg.fault)):
         batches = [min(cfg.batch, n_runs - a) for a in range(0, n_runs, cfg.batch)]
         res = []
         for b, seq in zip(batches, ss.spawn(len(batches))):
             rng = np.random.default_rng(seq)
-            logs, removed = simulate_logs(traj, cfg, b, rng, fault=fault)
+            logs, removed = simulate_logs(traj, cfg, b, rng, fault=fault, truth_cache=truth_cache)
             bridged = bridge(logs, cfg, where=f"{where}: simulated logs")
             psi = initial["heading"] + cfg.heading_sigma * rng.standard_normal(b)
             # one difference model for the study (linearised along the first batch's run 0), not one per batch

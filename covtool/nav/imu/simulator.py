@@ -198,6 +198,19 @@ class ImuSimulator:
         Samples per streamed record (1200 is a multiple of 1 … 6).
     rng : numpy.random.Generator or int, optional
         For the vibration phases (the errors carry their own generator).
+    truth_cache : dict, optional
+        Memo of the exact increments of each chunk, shared by simulators of
+        one motion that differ only in their errors (e.g. the batches of a
+        Monte Carlo study): the trajectory is then sampled once for all of
+        them.  Keyed by trajectory, rate, nodes, mounting and chunk; the
+        cached arrays are read-only.
+
+    Raises
+    ------
+    ValueError
+        A non-positive rate or chunk, a span outside the trajectory,
+        inconsistent numbers of runs, or ``truth_cache`` with a vibration
+        realisation (random per simulator, so not shareable).
 
     Notes
     -----
@@ -215,7 +228,7 @@ class ImuSimulator:
 
     def __init__(self, traj, rate: float, *, t0=None, duration=None, errors=None,
                  n_runs: int = 1, quantization=None, saturation=None, vibration=None, mounting=None,
-                 nodes: int | None = None, chunk: int = 1200, rng=None):
+                 nodes: int | None = None, chunk: int = 1200, rng=None, truth_cache: dict | None = None):
         self.traj = traj
         self.t0, self.dt, self.n_samples = _span(traj, rate, t0, duration)
         self.rate = 1.0 / self.dt
@@ -241,6 +254,9 @@ class ImuSimulator:
         if chunk < 1:
             raise ValueError(f"chunk must be a positive number of samples, got {chunk!r}")
         self.chunk = int(chunk)
+        if truth_cache is not None and vibration is not None:
+            raise ValueError("truth_cache cannot be shared with a vibration realisation (random per simulator)")
+        self.truth_cache = truth_cache
 
     # ---- truth -----------------------------------------------------------
     def truth(self, t):
@@ -308,6 +324,17 @@ class ImuSimulator:
     # ---- increments --------------------------------------------------------
     def _true_increments(self, t_start, k):
         """Exact increments of k samples, shape (Mv, k, 3)."""
+        if self.truth_cache is not None:
+            mounting = None if self.mounting is None else tuple(self.mounting.tolist())
+            key = (id(self.traj), self.dt, self.nodes, mounting, float(t_start), int(k))
+            if key not in self.truth_cache:
+                dth, dv = self._sample_increments(t_start, k)
+                dth.flags.writeable = dv.flags.writeable = False
+                self.truth_cache[key] = (dth, dv)
+            return self.truth_cache[key]
+        return self._sample_increments(t_start, k)
+
+    def _sample_increments(self, t_start, k):
         h = self.dt
         u, w = _gl_nodes(self.nodes)
         ts = (t_start + (np.arange(k)[:, None] + u[None, :]) * h).ravel()
