@@ -143,9 +143,10 @@ class Whitener:
     def _recorded(self, kind: str, j: int):
         """The recorded outcome of this step, or None (then compute it)."""
         rec = self._record
-        if self._replay and self._step < len(rec.steps) and rec.steps[self._step][:2] == (kind, j):
-            return rec.steps[self._step][2]
-        self._replay = False
+        if self._replay and self._step < len(rec.steps):
+            if rec.steps[self._step][:2] == (kind, j):
+                return rec.steps[self._step][2]
+            self._replay = False              # departs from the record: computes its own from here
         return None
 
     def _keep(self, kind: str, j: int, outcome) -> None:
