@@ -157,3 +157,15 @@ def test_forked_batches_equal_one_process(monkeypatch):
     assert s_a[keep].equals(s_b[keep])
     assert len(forked.fault_free) == 3 and len(forked.fault) == 1
     assert all(r.model is forked.fault_free[0].model for r in forked.fault_free + forked.fault)
+    # the window figure: one line collection per group, a segment per flight, the curves as computed
+    import matplotlib
+    matplotlib.use("Agg")
+    fig = forked.figures["window_test"]()
+    ax = fig.axes[0]
+    groups = {c.get_label(): c.get_segments() for c in ax.collections}
+    assert [len(groups[k]) for k in ("fault-free", "g-sensitivity injected")] == [9, 3]
+    r = forked.fault_free[2]
+    np.testing.assert_array_equal(groups["fault-free"][6][:, 1], r.window_stat[0])
+    assert ax.get_ylim()[1] >= max(s[:, 1].max() for s in groups["fault-free"])
+    import matplotlib.pyplot as plt
+    plt.close(fig)
