@@ -169,3 +169,20 @@ def test_forked_batches_equal_one_process(monkeypatch):
     assert ax.get_ylim()[1] >= max(s[:, 1].max() for s in groups["fault-free"])
     import matplotlib.pyplot as plt
     plt.close(fig)
+
+
+def test_compiled_quantisation_pulse_counts_half_to_even():
+    """c = r + Σx: 0.5, 1.0, 1.5, 2.0, 2.75 LSB → counts 0, 1, 2, 2, 3 (halves to even); remainder −0.25 LSB."""
+    from covtool.nav.imu.simulator import _quantize
+
+    lsb = 0.25
+    x = np.zeros((2, 5, 3))
+    x[0, :, 0] = np.array([0.5, 0.5, 0.5, 0.5, 0.75]) * lsb
+    x[1, :, 2] = np.array([-0.5, -1.0, 0.25, 3.0, 0.0]) * lsb                # c = −0.25, −1.25, −1, 2, 2
+    r = np.zeros((2, 3))
+    r[1, 2] = 0.25 * lsb
+    out, new = _quantize(np.broadcast_to(x, x.shape), lsb, r)               # a read-only view is accepted
+    np.testing.assert_array_equal(out[0, :, 0] / lsb, [0.0, 1.0, 1.0, 0.0, 1.0])
+    np.testing.assert_array_equal(out[1, :, 2] / lsb, [0.0, -1.0, 0.0, 3.0, 0.0])
+    np.testing.assert_array_equal(new / lsb, [[-0.25, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert not out[0, :, 1:].any() and not out[1, :, :2].any()

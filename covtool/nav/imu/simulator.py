@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
+import numba
 import numpy as np
 
 from covtool.nav import attitude as quat
@@ -417,8 +418,34 @@ class ImuSimulator:
 
 
 def _quantize(x, lsb, residual):
-    """Pulse-count quantisation with the remainder carried, (M, k, 3)."""
-    c = residual[:, None, :] + np.cumsum(x, axis=1)
-    qc = np.round(c / lsb) * lsb
-    out = np.diff(qc, axis=1, prepend=0.0)
-    return out, c[:, -1, :] - qc[:, -1, :]
+    """Pulse-count quantisation with the remainder carried, (M, k, 3).
+
+    With ``c_k = r + Σ_{i≤k} x_i`` (r the carried remainder) the output is
+    ``q_k − q_{k−1}``, ``q_k = round(c_k / lsb) lsb`` (half to even,
+    ``q_{−1} = 0``), and the new remainder ``c_K − q_K``.  Compiled
+    (:func:`_quantize_loop`; issue 13): the numpy form made four
+    (M, k, 3) temporaries per chunk.
+    """
+    x = np.require(x, dtype=float, requirements=["C", "W"])
+    out = np.empty_like(x)
+    new = np.empty((x.shape[0], x.shape[2]))
+    _quantize_loop(x, float(lsb), np.require(residual, dtype=float, requirements=["C", "W"]), out, new)
+    return out, new
+
+
+@numba.njit(cache=True, nogil=True)
+def _quantize_loop(x, lsb, residual, out, new):
+    M, K, C = x.shape
+    for m in range(M):
+        for i in range(C):
+            cs = 0.0
+            prev = 0.0
+            c = residual[m, i]
+            q = 0.0
+            for k in range(K):
+                cs = x[m, 0, i] if k == 0 else cs + x[m, k, i]      # the running sum, as np.cumsum adds
+                c = residual[m, i] + cs
+                q = np.rint(c / lsb) * lsb
+                out[m, k, i] = q - prev
+                prev = q
+            new[m, i] = c - q
