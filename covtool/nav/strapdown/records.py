@@ -229,8 +229,9 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
             out = np.empty((10, M, js.size))
             pth = np.array(np.broadcast_to(state.dtheta_prev, (M, 3)), dtype=float)
             pdv = np.array(np.broadcast_to(state.dv_prev, (M, 3)), dtype=float)
-            _strapdown_loop(xa, np.ascontiguousarray(dth.reshape(Mr, K, 3)), np.ascontiguousarray(dvv.reshape(Mr, K, 3)),
-                            pth, pdv, n, _weights(n), T, every, k, out)
+            # views of the record as they are (the kernel takes any strides): no copy of the increments
+            _strapdown_loop(xa, np.asarray(dth.reshape(Mr, K, 3), dtype=float),
+                            np.asarray(dvv.reshape(Mr, K, 3), dtype=float), pth, pdv, n, _weights(n), T, every, k, out)
             if js.size:
                 # the kept states in one block (S_kept, M, ·), not one NavState each
                 keep.append((t0 + (js + 1) * T, out[0].T, out[1].T, out[2].T,
