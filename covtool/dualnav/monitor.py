@@ -20,7 +20,8 @@ from dataclasses import dataclass, field
 import weakref
 
 import numpy as np
-from scipy.stats import chi2
+# the χ² inverse survival function itself (what scipy.stats.chi2.isf calls), without importing scipy.stats
+from scipy.special import chdtri
 
 from covtool.dualnav.difference import DifferenceModel
 from covtool.errors import NumericalError
@@ -316,7 +317,7 @@ def window_test(nis, dof: int, window: int, false_alarm: float):
     c = np.concatenate([np.zeros((nis.shape[0], 1)), np.cumsum(nis, axis=1)], axis=1)
     stat = c[:, window:] - c[:, :-window]
     Nw = stat.shape[1]
-    thr = float(chi2.isf(false_alarm / Nw, dof * window))
+    thr = float(chdtri(dof * window, false_alarm / Nw))
     return stat, thr, stat > thr
 
 
@@ -428,7 +429,7 @@ def gsens_estimates(inn: Innovations, candidates, false_alarm: float, *, strict:
         m = int(np.argwhere(~np.isfinite(glr))[0, 0])
         raise NumericalError(f"g-sensitivity test: the GLR statistic of run {m} is not finite (the navigation or "
                              "the filter diverged); no detection can be reported")
-    thr = float(chi2.isf(false_alarm / nc, 1))
+    thr = float(chdtri(1, false_alarm / nc))
     best = np.argmax(glr, axis=1)
     detected = glr[np.arange(glr.shape[0]), best] > thr
     return GsensEstimate(cands, est, sigma, glr, thr, detected, best, A)
