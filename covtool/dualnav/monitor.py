@@ -16,10 +16,12 @@ Automatic Control 21(1), 1976.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+import weakref
 
 import numpy as np
-from scipy.stats import chi2
+# the χ² inverse survival function itself (what scipy.stats.chi2.isf calls), without importing scipy.stats
+from scipy.special import chdtri
 
 from covtool.dualnav.difference import DifferenceModel
 from covtool.errors import NumericalError
@@ -79,6 +81,8 @@ class Whitener:
     Parameters
     ----------
     model : DifferenceModel
+        Treated as immutable: the covariance side of the filter is kept
+        with it (see Notes).
     n_runs : int
         Runs M whitened at once (they share the gains).
 
@@ -99,6 +103,14 @@ class Whitener:
     prediction (:func:`~covtool.lincov.kalman.check_covariance`), naming the
     epoch time and the joint state.
 
+    The covariance side (``P``, ``S``, ``K``, ``μ``, ``ρ`` and the
+    second-order attitude terms) does not depend on the data.  The first
+    Whitener of a model records it, epoch by epoch, and later Whiteners of
+    the same model that take the same steps (update 0, predict 0, update 1,
+    …) replay the record instead of recomputing it (issue 13: the batches of
+    a study share one model); the numbers are the same, computed once.  A
+    Whitener that departs from the recorded steps computes its own.
+
     Raises
     ------
     NumericalError
@@ -107,12 +119,19 @@ class Whitener:
 
     def __init__(self, model: DifferenceModel, n_runs: int):
         J1, m, nc = model.t.size, model.m, len(model.candidates)
-        what = "dual-IMU whitener"
-        check_covariance(model.P0, f"{what}: P0", names=model.names)
-        check_finite(model.Phi, f"{what}: Φ of the epoch interval", names=model.names, times=model.t)
-        check_covariance(model.Qd, f"{what}: Q_d of the epoch interval", names=model.names,
-                         times=model.t)
-        check_covariance(model.R, f"{what}: comparison noise R")
+        record = getattr(model, "_whitener_record", None)
+        if record is None:
+            what = "dual-IMU whitener"
+            check_covariance(model.P0, f"{what}: P0", names=model.names)
+            check_finite(model.Phi, f"{what}: Φ of the epoch interval", names=model.names, times=model.t)
+            check_covariance(model.Qd, f"{what}: Q_d of the epoch interval", names=model.names,
+                             times=model.t)
+            check_covariance(model.R, f"{what}: comparison noise R")
+            record = _CovarianceRecord(owner=weakref.ref(self))
+            model._whitener_record = record      # not a dataclass field: dataclasses.replace drops it
+        self._record = record
+        self._step = 0                            # steps taken (updates and predictions)
+        self._replay = True                       # still on the recorded path
         self.model = model
         self.P = model.P0.copy()
         self.x = np.zeros((int(n_runs), model.n))
@@ -122,41 +141,68 @@ class Whitener:
         self.nis = np.empty((int(n_runs), J1))
         self.rho = np.empty((J1, m, nc))
 
+    def _recorded(self, kind: str, j: int):
+        """The recorded outcome of this step, or None (then compute it)."""
+        rec = self._record
+        if self._replay and self._step < len(rec.steps):
+            if rec.steps[self._step][:2] == (kind, j):
+                return rec.steps[self._step][2]
+            self._replay = False              # departs from the record: computes its own from here
+        return None
+
+    def _keep(self, kind: str, j: int, outcome) -> None:
+        rec = self._record
+        if self._replay and rec.owner() is self and self._step == len(rec.steps):
+            rec.steps.append((kind, j, outcome))
+        else:
+            self._replay = False
+
     def update(self, j: int, z) -> np.ndarray:
         """Process epoch ``j``'s compared difference (M, m); return ν."""
         model = self.model
         H = model.H[j]
-        P = self.P
-        R = model.R.copy()
-        zhat = self.x @ H.T
         att = [i for i, c in enumerate(model.components) if c >= 6]
-        if att and model.Hphi is not None:
-            # z_att = φ_m − φ_k + ½ φ_m × φ_k: Gaussian second-order mean and covariance
+        second = bool(att) and model.Hphi is not None
+        outcome = self._recorded("update", j)
+        if outcome is None:
+            P = self.P
+            R = model.R.copy()
+            eps_pab = None
+            if second:
+                # z_att = φ_m − φ_k + ½ φ_m × φ_k: Gaussian second-order mean and covariance
+                ax = [model.components[i] - 6 for i in att]
+                Hm, Hk = model.Hphi[j, 0], model.Hphi[j, 1]
+                Pa, Pb, Pab = Hm @ P @ Hm.T, Hk @ P @ Hk.T, Hm @ P @ Hk.T
+                eps_pab = np.einsum("ijk,jk->i", _EPS, Pab)
+                cov = 0.25 * (np.einsum("ijk,lmn,jm,kn->il", _EPS, _EPS, Pa, Pb)
+                              + np.einsum("ijk,lmn,jn,mk->il", _EPS, _EPS, Pab, Pab))
+                R[np.ix_(att, att)] += cov[np.ix_(ax, ax)]
+            S = innovation_covariance(P, H, R)
+            K = kalman_gain(P, H, R, S=S)
+            P_new = filter_update(P, K, H, R, "joseph")
+            check_covariance(P_new, f"dual-IMU whitener: after the update at "
+                             f"{time_text(float(model.t[j]))}", names=model.names)
+            rho = H @ self.mu
+            mu_new = self.mu - K @ (H @ self.mu)                # (I − K H) μ
+            outcome = (S, K, eps_pab, P_new, mu_new, rho)
+            self._keep("update", j, outcome)
+        S, K, eps_pab, P_new, mu_new, rho = outcome
+        self._step += 1
+        zhat = self.x @ H.T
+        if second:
             ax = [model.components[i] - 6 for i in att]
-            Hm, Hk = model.Hphi[j, 0], model.Hphi[j, 1]
-            a, b = self.x @ Hm.T, self.x @ Hk.T
-            Pa, Pb, Pab = Hm @ P @ Hm.T, Hk @ P @ Hk.T, Hm @ P @ Hk.T
-            mean = 0.5 * (np.cross(a, b) + np.einsum("ijk,jk->i", _EPS, Pab))
-            cov = 0.25 * (np.einsum("ijk,lmn,jm,kn->il", _EPS, _EPS, Pa, Pb)
-                          + np.einsum("ijk,lmn,jn,mk->il", _EPS, _EPS, Pab, Pab))
+            a, b = self.x @ model.Hphi[j, 0].T, self.x @ model.Hphi[j, 1].T
+            mean = 0.5 * (np.cross(a, b) + eps_pab)
             zhat[:, att] += mean[:, ax]
-            R[np.ix_(att, att)] += cov[np.ix_(ax, ax)]
-        S = innovation_covariance(P, H, R)
-        K = kalman_gain(P, H, R, S=S)
         v = np.asarray(z, float) - zhat
         self.nu[:, j] = v
         self.S[j] = S
         self.nis[:, j] = np.einsum("mi,mi->m", v, np.linalg.solve(S, v.T).T)
-        self.rho[j] = H @ self.mu
+        self.rho[j] = rho
         self.x = self.x + v @ K.T
-        self.P = filter_update(P, K, H, R, "joseph")
-        self._check(j, "after the update")
-        self.mu = self.mu - K @ (H @ self.mu)                # (I − K H) μ
+        self.P = P_new
+        self.mu = mu_new
         return v
-
-    def _check(self, j: int, step: str) -> None:
-        check_covariance(self.P, f"dual-IMU whitener: {step} at "
-                         f"{time_text(float(self.model.t[j]))}", names=self.model.names)
 
     def take_navigation(self):
         """Hand over the navigation-error estimates (M, 10) each."""
@@ -171,14 +217,28 @@ class Whitener:
         """Propagate from epoch ``j`` to ``j + 1``."""
         model = self.model
         Phi = model.Phi[j]
+        outcome = self._recorded("predict", j)
+        if outcome is None:
+            P_new = predict(Phi, self.P, model.Qd[j])
+            check_covariance(P_new, f"dual-IMU whitener: after the prediction at "
+                             f"{time_text(float(model.t[j + 1]))}", names=model.names)
+            outcome = (P_new, Phi @ self.mu + model.Gamma[j])
+            self._keep("predict", j, outcome)
+        self._step += 1
         self.x = self.x @ Phi.T
-        self.P = predict(Phi, self.P, model.Qd[j])
-        self._check(j + 1, "after the prediction")
-        self.mu = Phi @ self.mu + model.Gamma[j]
+        self.P, self.mu = outcome
 
     def result(self) -> "Innovations":
         """The innovations processed so far."""
         return Innovations(self.nu, self.S, self.nis, self.rho)
+
+
+@dataclass
+class _CovarianceRecord:
+    """The data-independent steps of the first :class:`Whitener` of a model."""
+
+    owner: weakref.ref                             # the Whitener that records
+    steps: list = field(default_factory=list)     # (kind, epoch, outcome) in the order taken
 
 
 def innovations(model: DifferenceModel, z) -> Innovations:
@@ -257,7 +317,7 @@ def window_test(nis, dof: int, window: int, false_alarm: float):
     c = np.concatenate([np.zeros((nis.shape[0], 1)), np.cumsum(nis, axis=1)], axis=1)
     stat = c[:, window:] - c[:, :-window]
     Nw = stat.shape[1]
-    thr = float(chi2.isf(false_alarm / Nw, dof * window))
+    thr = float(chdtri(dof * window, false_alarm / Nw))
     return stat, thr, stat > thr
 
 
@@ -369,7 +429,7 @@ def gsens_estimates(inn: Innovations, candidates, false_alarm: float, *, strict:
         m = int(np.argwhere(~np.isfinite(glr))[0, 0])
         raise NumericalError(f"g-sensitivity test: the GLR statistic of run {m} is not finite (the navigation or "
                              "the filter diverged); no detection can be reported")
-    thr = float(chi2.isf(false_alarm / nc, 1))
+    thr = float(chdtri(1, false_alarm / nc))
     best = np.argmax(glr, axis=1)
     detected = glr[np.arange(glr.shape[0]), best] > thr
     return GsensEstimate(cands, est, sigma, glr, thr, detected, best, A)

@@ -270,8 +270,11 @@ def run_dual(main: BridgedLog, kimu: BridgedLog, setup: DualSetup, *, heading=No
     k_idx = np.flatnonzero(sel)[groups.ravel()]
     m_th = as_runs(main.dtheta)[:, e0:e1]
     m_dv = as_runs(main.dv)[:, e0:e1]
-    k_th = as_runs(kimu.dtheta)[:, k_idx]
-    k_dv = as_runs(kimu.dv)[:, k_idx]
+    # the KIMU samples in main-interval order: a view when they are one run of consecutive samples (always,
+    # after bridging), else a gathered copy
+    k_take = slice(int(k_idx[0]), int(k_idx[-1]) + 1) if np.all(np.diff(k_idx) == 1) else k_idx
+    k_th = as_runs(kimu.dtheta)[:, k_take]
+    k_dv = as_runs(kimu.dv)[:, k_take]
     Mr = max(m_th.shape[0], k_th.shape[0])
     t_start = float(edges[e0])
     n_align = int(round(setup.align_time / hm))

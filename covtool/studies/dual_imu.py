@@ -66,6 +66,8 @@ Study file (datasheet units)::
 
 from __future__ import annotations
 
+import dataclasses
+import os
 from pathlib import Path
 import time
 
@@ -120,8 +122,12 @@ def _initial_from_trajectory(traj) -> dict:
             "heading": float(quat.to_euler(s.q_nb)[0, 2])}
 
 
-def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
+def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None, truth_cache=None):
     """Simulated logs of both IMUs (M runs) with the declared gaps.
+
+    ``truth_cache`` (a dict shared by the batches of a study) holds the exact
+    increments of the flight, which are the same for every batch
+    (:class:`~covtool.nav.imu.simulator.ImuSimulator`).
 
     Returns
     -------
@@ -145,7 +151,7 @@ def simulate_logs(traj, cfg: DualConfig, n_runs: int, rng, *, fault=None):
             gs = (fault,)
         err = GSensitiveErrors(model, x0, rng, gsens=gs)
         sim = ImuSimulator(traj, g.rate, errors=err, quantization=g.quantization, saturation=g.range,
-                           mounting=cfg.mounting[key], nodes=quadrature_nodes(traj, g.rate))
+                           mounting=cfg.mounting[key], nodes=quadrature_nodes(traj, g.rate), truth_cache=truth_cache)
         rec = sim.record()
         t = rec.t
         keep = np.ones(t.size, bool)
@@ -200,32 +206,75 @@ def run(decl: dict, *, path=None, progress: bool = False) -> DualImuResult:
     setup = make_setup(cfg, initial, where)
     root = np.random.SeedSequence(cfg.seed)
     ss_free, ss_fault = root.spawn(2)
-    outcome = {}
-    gap_rows = []
-    bar = progress_bar(cfg.runs + cfg.fault_runs, "flights", progress, unit="flight")   # closed below or by GC
-    model = None
+    # every batch: (label, flights, its own seed sequence, fault); a batch's numbers depend only on
+    # its seed and the shared difference model, not on where or in which order it runs
+    jobs = []
     for label, n_runs, ss, fault in (("fault_free", cfg.runs, ss_free, None),
                                      ("fault", cfg.fault_runs, ss_fault, cfg.fault)):
         batches = [min(cfg.batch, n_runs - a) for a in range(0, n_runs, cfg.batch)]
-        res = []
-        for b, seq in zip(batches, ss.spawn(len(batches))):
-            rng = np.random.default_rng(seq)
-            logs, removed = simulate_logs(traj, cfg, b, rng, fault=fault)
-            bridged = bridge(logs, cfg, where=f"{where}: simulated logs")
-            psi = initial["heading"] + cfg.heading_sigma * rng.standard_normal(b)
-            # one difference model for the study (linearised along the first batch's run 0), not one per batch
-            r = run_dual(bridged["main"], bridged["kimu"], setup, heading=psi, model=model)
-            model = r.model
-            res.append(r)
-            if not gap_rows:
-                actual = _actual_gap_errors(bridged, removed)
-                for rep, (a_th, a_v) in zip(bridged["main"].gaps + bridged["kimu"].gaps, actual):
-                    gap_rows.append(_gap_row(rep, a_th, a_v))
-            bar.update(b)
-        outcome[label] = res
+        jobs += [(label, b, seq, fault) for b, seq in zip(batches, ss.spawn(len(batches)))]
+    bar = progress_bar(cfg.runs + cfg.fault_runs, "flights", progress, unit="flight")   # closed below or by GC
+    truth_cache = {}   # the flight's exact increments, sampled once for all batches
+    # the first batch linearises the one difference model of the study (along its run 0) and reports the gaps
+    first, gap_rows = _batch(traj, cfg, setup, initial, jobs[0], None, truth_cache, where, report_gaps=True)
+    model = first.model
+    bar.update(jobs[0][1])
+    done = [first]
+    rest = jobs[1:]
+    # the other batches in two processes when the machine has two cores: a forked child takes the
+    # second half (it inherits the model, its Whitener record and the exact increments)
+    child = None
+    if len(rest) >= 2 and (os.cpu_count() or 1) >= 2:
+        from covtool.forked import Forked
+
+        mine, theirs = rest[:(len(rest) + 1) // 2], rest[(len(rest) + 1) // 2:]
+        child = Forked(_batches_detached, traj, cfg, setup, initial, theirs, model, truth_cache, where)
+    else:
+        mine, theirs = rest, []
+    try:
+        for job in mine:
+            done.append(_batch(traj, cfg, setup, initial, job, model, truth_cache, where)[0])
+            bar.update(job[1])
+        if child is not None:
+            done += [dataclasses.replace(r, model=model) for r in child.result()]
+            bar.update(sum(job[1] for job in theirs))
+    finally:
+        if child is not None:
+            child.cancel()
     bar.close()
+    outcome = {"fault_free": [], "fault": []}
+    for job, r in zip(jobs, done):
+        outcome[job[0]].append(r)
     elapsed = time.perf_counter() - t0
     return _result(cfg, decl, traj, setup, outcome, gap_rows, elapsed)
+
+
+def _batch(traj, cfg: DualConfig, setup: DualSetup, initial: dict, job, model, truth_cache, where,
+           report_gaps: bool = False):
+    """One batch of simulated flights: simulate, bridge, navigate, compare.
+
+    Returns the :class:`~covtool.dualnav.run.DualRun` and, with
+    ``report_gaps``, the rows of the gap report (actual errors pooled over
+    the batch's flights).
+    """
+    _label, b, seq, fault = job
+    rng = np.random.default_rng(seq)
+    logs, removed = simulate_logs(traj, cfg, b, rng, fault=fault, truth_cache=truth_cache)
+    bridged = bridge(logs, cfg, where=f"{where}: simulated logs")
+    psi = initial["heading"] + cfg.heading_sigma * rng.standard_normal(b)
+    r = run_dual(bridged["main"], bridged["kimu"], setup, heading=psi, model=model)
+    rows = []
+    if report_gaps:
+        actual = _actual_gap_errors(bridged, removed)
+        for rep, (a_th, a_v) in zip(bridged["main"].gaps + bridged["kimu"].gaps, actual):
+            rows.append(_gap_row(rep, a_th, a_v))
+    return r, rows
+
+
+def _batches_detached(traj, cfg, setup, initial, jobs, model, truth_cache, where):
+    """:func:`_batch` over ``jobs`` (in a forked child); the shared model is left out of the results."""
+    return [dataclasses.replace(_batch(traj, cfg, setup, initial, job, model, truth_cache, where)[0], model=None)
+            for job in jobs]
 
 
 def _gap_row(rep: GapReport, actual_att=None, actual_vel=None) -> dict:

@@ -26,6 +26,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 import math
 
+import numba
 import numpy as np
 
 from covtool.nav import attitude as quat
@@ -198,6 +199,19 @@ class ImuSimulator:
         Samples per streamed record (1200 is a multiple of 1 … 6).
     rng : numpy.random.Generator or int, optional
         For the vibration phases (the errors carry their own generator).
+    truth_cache : dict, optional
+        Memo of the exact increments of each chunk, shared by simulators of
+        one motion that differ only in their errors (e.g. the batches of a
+        Monte Carlo study): the trajectory is then sampled once for all of
+        them.  Keyed by trajectory, rate, nodes, mounting and chunk; the
+        cached arrays are read-only.
+
+    Raises
+    ------
+    ValueError
+        A non-positive rate or chunk, a span outside the trajectory,
+        inconsistent numbers of runs, or ``truth_cache`` with a vibration
+        realisation (random per simulator, so not shareable).
 
     Notes
     -----
@@ -215,7 +229,7 @@ class ImuSimulator:
 
     def __init__(self, traj, rate: float, *, t0=None, duration=None, errors=None,
                  n_runs: int = 1, quantization=None, saturation=None, vibration=None, mounting=None,
-                 nodes: int | None = None, chunk: int = 1200, rng=None):
+                 nodes: int | None = None, chunk: int = 1200, rng=None, truth_cache: dict | None = None):
         self.traj = traj
         self.t0, self.dt, self.n_samples = _span(traj, rate, t0, duration)
         self.rate = 1.0 / self.dt
@@ -241,6 +255,9 @@ class ImuSimulator:
         if chunk < 1:
             raise ValueError(f"chunk must be a positive number of samples, got {chunk!r}")
         self.chunk = int(chunk)
+        if truth_cache is not None and vibration is not None:
+            raise ValueError("truth_cache cannot be shared with a vibration realisation (random per simulator)")
+        self.truth_cache = truth_cache
 
     # ---- truth -----------------------------------------------------------
     def truth(self, t):
@@ -308,6 +325,17 @@ class ImuSimulator:
     # ---- increments --------------------------------------------------------
     def _true_increments(self, t_start, k):
         """Exact increments of k samples, shape (Mv, k, 3)."""
+        if self.truth_cache is not None:
+            mounting = None if self.mounting is None else tuple(self.mounting.tolist())
+            key = (id(self.traj), self.dt, self.nodes, mounting, float(t_start), int(k))
+            if key not in self.truth_cache:
+                dth, dv = self._sample_increments(t_start, k)
+                dth.flags.writeable = dv.flags.writeable = False
+                self.truth_cache[key] = (dth, dv)
+            return self.truth_cache[key]
+        return self._sample_increments(t_start, k)
+
+    def _sample_increments(self, t_start, k):
         h = self.dt
         u, w = _gl_nodes(self.nodes)
         ts = (t_start + (np.arange(k)[:, None] + u[None, :]) * h).ravel()
@@ -390,8 +418,34 @@ class ImuSimulator:
 
 
 def _quantize(x, lsb, residual):
-    """Pulse-count quantisation with the remainder carried, (M, k, 3)."""
-    c = residual[:, None, :] + np.cumsum(x, axis=1)
-    qc = np.round(c / lsb) * lsb
-    out = np.diff(qc, axis=1, prepend=0.0)
-    return out, c[:, -1, :] - qc[:, -1, :]
+    """Pulse-count quantisation with the remainder carried, (M, k, 3).
+
+    With ``c_k = r + Σ_{i≤k} x_i`` (r the carried remainder) the output is
+    ``q_k − q_{k−1}``, ``q_k = round(c_k / lsb) lsb`` (half to even,
+    ``q_{−1} = 0``), and the new remainder ``c_K − q_K``.  Compiled
+    (:func:`_quantize_loop`; issue 13): the numpy form made four
+    (M, k, 3) temporaries per chunk.
+    """
+    x = np.require(x, dtype=float, requirements=["C", "W"])
+    out = np.empty_like(x)
+    new = np.empty((x.shape[0], x.shape[2]))
+    _quantize_loop(x, float(lsb), np.require(residual, dtype=float, requirements=["C", "W"]), out, new)
+    return out, new
+
+
+@numba.njit(cache=True, nogil=True)
+def _quantize_loop(x, lsb, residual, out, new):
+    M, K, C = x.shape
+    for m in range(M):
+        for i in range(C):
+            cs = 0.0
+            prev = 0.0
+            c = residual[m, i]
+            q = 0.0
+            for k in range(K):
+                cs = x[m, 0, i] if k == 0 else cs + x[m, k, i]      # the running sum, as np.cumsum adds
+                c = residual[m, i] + cs
+                q = np.rint(c / lsb) * lsb
+                out[m, k, i] = q - prev
+                prev = q
+            new[m, i] = c - q

@@ -136,7 +136,16 @@ def _nav_loop(x, qb, ub, rb, T, every, offset, out):
         _store_state(x[:, m], lat, lon, h, vn, ve, vd, q0, q1, q2, q3)
 
 
-@_njit
+_F8 = numba.float64
+_IN3 = numba.types.Array(_F8, 3, "A", readonly=True)       # increments: any strides, views, read-only
+_IN1 = numba.types.Array(_F8, 1, "A", readonly=True)
+#: the one compiled signature of _strapdown_loop: strided and read-only increments are taken as they are
+#: (no contiguous copy of a record or of each epoch's slice of it), and one specialisation is compiled
+_STRAPDOWN_SIG = numba.void(_F8[:, :], _IN3, _IN3, _F8[:, :], _F8[:, :], numba.int64, _IN1, _F8, numba.int64,
+                            numba.int64, _F8[:, :, :])
+
+
+@numba.njit([_STRAPDOWN_SIG], cache=True, nogil=True)
 def _strapdown_loop(x, dth, dv, prev_th, prev_dv, n, wc, T, every, offset, out):
     """The whole strapdown step (:func:`step`) over a record, compiled.
 

@@ -200,7 +200,8 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
         raise ValueError(f"every must be a positive integer, got {every!r}")
     records: Iterable = [imu] if hasattr(imu, "dtheta") else (imu.records() if hasattr(imu, "records") else imu)
     M = state.n_runs
-    keep = [state]
+    # kept states as blocks (t (S_i,), lat, lon, h (S_i, M), v_n (S_i, M, 3), q (S_i, M, 4)), joined at the end
+    keep = [_block(state)]
     k = 0
     last_kept = 0
     for rec in records:
@@ -228,12 +229,13 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
             out = np.empty((10, M, js.size))
             pth = np.array(np.broadcast_to(state.dtheta_prev, (M, 3)), dtype=float)
             pdv = np.array(np.broadcast_to(state.dv_prev, (M, 3)), dtype=float)
-            _strapdown_loop(xa, np.ascontiguousarray(dth.reshape(Mr, K, 3)), np.ascontiguousarray(dvv.reshape(Mr, K, 3)),
-                            pth, pdv, n, _weights(n), T, every, k, out)
-            for i, j in enumerate(js):
-                keep.append(_pack(t0 + (j + 1) * T, tuple(out[:, :, i]),
-                                  np.broadcast_to(dth[:, j, -1], (M, 3)).copy(),
-                                  np.broadcast_to(dvv[:, j, -1], (M, 3)).copy()))
+            # views of the record as they are (the kernel takes any strides): no copy of the increments
+            _strapdown_loop(xa, np.asarray(dth.reshape(Mr, K, 3), dtype=float),
+                            np.asarray(dvv.reshape(Mr, K, 3), dtype=float), pth, pdv, n, _weights(n), T, every, k, out)
+            if js.size:
+                # the kept states in one block (S_kept, M, ·), not one NavState each
+                keep.append((t0 + (js + 1) * T, out[0].T, out[1].T, out[2].T,
+                             np.transpose(out[3:6], (2, 1, 0)), np.transpose(out[6:10], (2, 1, 0))))
             if js.size:
                 last_kept = k + int(js[-1]) + 1
             k += S
@@ -260,12 +262,15 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
                 state = new
                 xa = np.array(_unpack(state), dtype=float)
             if k % every == 0:
-                keep.append(state)
+                keep.append(_block(state))
                 last_kept = k
     if last_kept != k:
-        keep.append(state)
-    return NavHistory(
-        t=np.array([s.t for s in keep]),
-        lat=np.stack([s.lat for s in keep]), lon=np.stack([s.lon for s in keep]),
-        h=np.stack([s.h for s in keep]), v_n=np.stack([s.v_n for s in keep]),
-        q=np.stack([s.q for s in keep]))
+        keep.append(_block(state))
+    t, lat, lon, h, v_n, q = (np.concatenate(part) for part in zip(*keep))
+    return NavHistory(t=t, lat=lat, lon=lon, h=h, v_n=v_n, q=q)
+
+
+def _block(state: NavState):
+    """One state as a block of kept states of :func:`run` (leading length 1)."""
+    return (np.array([state.t], dtype=float), np.asarray(state.lat)[None], np.asarray(state.lon)[None],
+            np.asarray(state.h)[None], np.asarray(state.v_n)[None], np.asarray(state.q)[None])
