@@ -279,7 +279,7 @@ def test_wrong_odometer_scale_factor_sigma_is_rejected(capsys):
     rejected, median horizontal z ≈ 15.  (A filter that keeps it estimates
     it within seconds on the move, and the errors hardly depend on its σ:
     T moves by +0.5 % at 1.3× and +3 % at 2×, where 6 of 10 ensembles are
-    rejected in the north cell only; docs/monte_carlo.md.)
+    rejected, median z of the north cell 2.9; docs/monte_carlo.md.)
     """
     S = aided_setup("odometer + NHC", ("odo_scale_factor",))
     sig, dof = conditional_sigma(S, S["X0"])
