@@ -134,7 +134,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         ``[zupt]`` next to ``[[measurement]]``, an unknown key (also a
         ``[monte_carlo]`` key of the ZUPT kind this study does not use), a bad
         measurement declaration, a schedule outside the trajectory, no
-        update inside the study.
+        update inside the study, ``null_replicas`` between 1 and 9.
     """
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
