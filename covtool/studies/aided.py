@@ -420,8 +420,12 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
 
 def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all, err, rec, *, form,
-               label, all_gains=False):
+               label, all_gains=False, P0_truth=None):
     """The truth under one filter with the declared measurements (seed 002, eq (15)–(16)).
+
+    ``P0_truth`` (n₀ + n_e square), if given, replaces the truth's initial
+    covariance over ``[x_INS; e]`` (the Monte Carlo's conditional
+    prediction); the filter and its gains do not depend on it.
 
     Returns
     -------
@@ -432,6 +436,7 @@ def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, na
     epochs : list of covtool.lincov.aided.Epoch
     """
     P0a, Pf_e, D = augment(P0, fm.D, states, kept)
+    P0a = P0a if P0_truth is None else P0_truth
     nf0 = fm.P0.shape[0]
     Pf0 = np.zeros((nf0 + len(kept),) * 2)
     Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0, Pf_e

@@ -59,7 +59,10 @@ reported beside it.
 
 Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
 (``covtool run --workers N`` or ``--scheduler``), else local processes, one
-per CPU.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
+per CPU.  The conditional and driven-part analyses and the linear Monte Carlo
+need only the draws and the gains, so a thread of the study's process
+computes them while the chunks run (both cores busy); their results do not
+depend on it.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
 every finished chunk is stored and ``--resume`` reuses it.
 
 With ``[[measurement]]`` tables (the aided kind's declaration) instead of
@@ -69,6 +72,7 @@ With ``[[measurement]]`` tables (the aided kind's declaration) instead of
 from __future__ import annotations
 
 import math
+import threading
 import time
 from functools import partial
 
@@ -318,6 +322,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     traj = _trajectory(decl, where, path)
     x0_all = _initial_draws(truth, sizes, opt["seed"], traj.sample([t[0]]).q_nb[0])
     P0_cond = _sample_moment(x0_all)
+    later = []                               # the conditional and driven-part analyses, run beside the ensemble
     null_cases = {}                          # correction gains D K of each case, for the linear Monte Carlo
     lin_c, predicted_c, lin_d = {}, {}, {}
     Z0 = np.zeros_like(P0_cond)              # the driven part alone: its sampling is all that remains
@@ -329,12 +334,16 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         cases.append(EnsembleCase("pure_ins", None, {"truth": spec}))
         null_cases["pure_ins"] = None
         states["pure_ins"] = truth.n
-        P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names, times=t)
-        lin_c["pure_ins"] = _linear(P, nodes)
-        predicted_c[("pure_ins", "truth")] = expected_nees(spec, P, truth.names, nodes.q_nb)
-        P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t)
-        lin_d["pure_ins"] = _linear(P, nodes)
         del P
+
+        def conditional_pure(spec=spec):
+            P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names,
+                          times=t)
+            lin_c["pure_ins"] = _linear(P, nodes)
+            predicted_c[("pure_ins", "truth")] = expected_nees(spec, P, truth.names, nodes.q_nb)
+            P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t)
+            lin_d["pure_ins"] = _linear(P, nodes)
+        later.append(conditional_pure)
     for c in S.cases:
         spec = S.specs[c]
         fm, Phi_f, Qd_f = S.filter_model(c)
@@ -355,24 +364,53 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         for key in ("filter", "filter_nav"):
             predicted[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
         del res
-        res = propagate_with_filter(S.Phi, S.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
-                                    S.R, S.update_steps, Rf=Rf, form=spec.update,
-                                    label=f"{where}: filter {c} (conditional)", times=t, names=truth.names,
-                                    filter_names=fm.names)
-        lin_c[c] = _linear(res.P_truth, nodes)
-        for key in nees:
-            predicted_c[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
-        del res
-        res = propagate_with_filter(S.Phi, S.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
-                                    S.R, S.update_steps, Rf=Rf, form=spec.update,
-                                    label=f"{where}: filter {c} (driven part)", times=t, names=truth.names,
-                                    filter_names=fm.names)
-        lin_d[c] = _linear(res.P_truth, nodes)
+
+        def conditional_case(c=c, fm=fm, Phi_f=Phi_f, Qd_f=Qd_f, Rf=Rf, spec=spec, nees=nees):
+            res = propagate_with_filter(S.Phi, S.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names),
+                                        fm.D, S.R, S.update_steps, Rf=Rf, form=spec.update,
+                                        label=f"{where}: filter {c} (conditional)", times=t, names=truth.names,
+                                        filter_names=fm.names)
+            lin_c[c] = _linear(res.P_truth, nodes)
+            for key in nees:
+                predicted_c[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
+            del res
+            res = propagate_with_filter(S.Phi, S.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
+                                        S.R, S.update_steps, Rf=Rf, form=spec.update,
+                                        label=f"{where}: filter {c} (driven part)", times=t, names=truth.names,
+                                        filter_names=fm.names)
+            lin_d[c] = _linear(res.P_truth, nodes)
+        later.append(conditional_case)
         cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
         states[c] = len(fm.names)
         null_cases[c] = {int(k): fm.D @ K for k, K in ff.gains.items()}
-        del res
     t_lin = time.perf_counter() - t_lin
+    N = opt["runs"]
+
+    # ---- beside the ensemble: the conditional and driven-part analyses, then the null ------------
+    # They need only the draws and the gains, not the runs, so a thread of this process computes them
+    # while the chunks run in the backend's workers (both cores busy); the results do not depend on it.
+    # The null: replicas of N runs of the linear error-state system (eq (15)-(16)) from the same initial
+    # draws: what the ensemble statistics would look like if the linear model were exact (docs/monte_carlo.md)
+    side = {"null": None, "seconds": 0.0, "null_seconds": 0.0, "error": None}
+
+    def beside():
+        try:
+            t0 = time.perf_counter()
+            for fn in later:
+                fn()
+            side["seconds"] = time.perf_counter() - t0
+            t0 = time.perf_counter()
+            if opt["null_replicas"]:
+                side["null"] = linear_mean_squares(
+                    S.Phi, S.Qd, null_cases, output_rows(nodes.lat, nodes.h, nodes.q_nb), runs=N,
+                    replicas=opt["null_replicas"], x0=x0_all, H=S.H, R=S.R,
+                    rng=np.random.default_rng(np.random.SeedSequence(opt["seed"], spawn_key=(NULL_STREAM,))))
+            side["null_seconds"] = time.perf_counter() - t0
+        except BaseException as exc:          # re-raised in the main thread
+            side["error"] = exc
+
+    worker = threading.Thread(target=beside, name="monte_carlo_null", daemon=True)
+    worker.start()
 
     # ---- the ensemble, in chunks of runs ------------------------------------------
     base = {"traj": traj, "model": truth, "t": t, "imu_rate": opt["imu_rate"],
@@ -400,19 +438,13 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         for nm in names:
             s = EnsembleSums.from_json(res["sums"][nm])
             sums[nm] = s if nm not in sums else sums[nm] + s
-    N = opt["runs"]
-
-    # ---- the null distribution of the acceptance statistics: the linear Monte Carlo ----------------
-    # replicas of N runs of the linear error-state system (eq (15)-(16)) from the same initial draws:
-    # what the ensemble statistics would look like if the linear model were exact (docs/monte_carlo.md)
-    t_null = time.perf_counter()
-    null_ms = None
-    if opt["null_replicas"]:
-        null_ms = linear_mean_squares(
-            S.Phi, S.Qd, null_cases, output_rows(nodes.lat, nodes.h, nodes.q_nb), runs=N,
-            replicas=opt["null_replicas"], x0=x0_all, H=S.H, R=S.R,
-            rng=np.random.default_rng(np.random.SeedSequence(opt["seed"], spawn_key=(NULL_STREAM,))))
-    t_null = time.perf_counter() - t_null
+    t_wait = time.perf_counter()
+    worker.join()
+    t_wait = time.perf_counter() - t_wait
+    if side["error"] is not None:
+        raise side["error"]
+    null_ms, t_null = side["null"], side["null_seconds"]
+    t_lin += side["seconds"]
     elapsed = time.perf_counter() - t_start
 
     # ---- statistics -------------------------------------------------------------------
@@ -596,6 +628,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                 f"{c} {q}" for (c, q), v in tests.items() if v["reject"])))
          if null_ms is not None else "none (null_replicas = 0): the per-point bands only"},
         {"setting": "linear Monte Carlo (null) [s]", "value": round(t_null, 2)},
+        {"setting": "wait for the null after the ensemble [s]", "value": round(t_wait, 2)},
         {"setting": "NEES steps every [s]", "value": every},
         {"setting": "sensor noise", "value": opt["sensor_noise"]},
         {"setting": "measurement noise", "value": opt["measurement_noise"]},

@@ -19,6 +19,9 @@ and sensor parts are fed back (eq (10)) exactly as in the ZUPT ensemble,
 state, so ``e − ê`` obeys the truth model's process and is the truth state of
 the linear analysis after eq (16).
 
+The ensemble loop is :func:`covtool.validation.monte_carlo.run_ensemble`
+(the ZUPT ensemble's): :class:`DeclaredMeasurements` is its measurement hook.
+
 Pure numeric core: arrays in, arrays out.
 """
 
@@ -27,10 +30,10 @@ from __future__ import annotations
 import numpy as np
 
 from covtool.lincov.measurements import nav_point
-from covtool.nav import attitude as quat, earth, strapdown as sd
-from covtool.validation.feedback import RecordContext, SensorFeedback
+from covtool.validation.feedback import FeedbackFilter
+from covtool.validation.monte_carlo import EnsembleCase, run_ensemble
 
-__all__ = ["run_aided_ensemble"]
+__all__ = ["DeclaredMeasurements", "run_aided_ensemble"]
 
 
 def _due(plan):
@@ -41,9 +44,99 @@ def _due(plan):
     return due
 
 
+class DeclaredMeasurements:
+    """Declared measurements as the hook of the ensemble loop (issue 15).
+
+    The measurement hook of :func:`covtool.validation.monte_carlo.run_ensemble`
+    (:class:`covtool.validation.monte_carlo.Zupt` lists its methods).  Every
+    run carries its own realisation ``e`` of the measurements' error states,
+    shared by the cases (common random numbers); each case keeps its
+    estimate ``ê`` of the error states its filter keeps.
+
+    Parameters
+    ----------
+    plan : sequence of (Measurement, ndarray of int)
+        The measurements and their update steps
+        (:func:`covtool.lincov.aided.build_epochs`).
+    epochs : list of covtool.lincov.aided.Epoch
+        The stacked updates (their ``Hf`` and true ``R``).
+    states : sequence of State
+        The measurement-error states of the truth.
+    nodes : Trajectory
+        The reference trajectory sampled on the grid (the true state).
+    e0 : ndarray, shape (M, n_e)
+        Initial values of the error states (``states`` order).
+    err : tuple of ndarray (phi, qd), each shape (N, n_e)
+        Their exact transitions (:func:`covtool.lincov.aided.error_processes`).
+    noise : bool
+        False: no measurement noise and no error-state driving noise.
+    """
+
+    def __init__(self, plan, epochs, states, nodes, e0, err, noise: bool = True):
+        self.due = _due(plan)
+        self.by_step = {ep.step: ep for ep in epochs}
+        self.snames = [s.name for s in states]
+        self.filter_states = tuple(self.snames)
+        self.nodes = nodes
+        self.e = np.array(e0, float).reshape(-1, len(states))
+        self.phi, self.qd = err
+        self.noise = bool(noise)
+
+    def start(self, cases, n_runs: int, steps, rng) -> None:
+        missing = [k for k in steps if k not in self.by_step]
+        if missing:
+            raise ValueError(f"a filter has a gain at grid step {missing[0]}, where no measurement is due")
+        self.rng = rng
+        self.e_cols, self.e_idx, self.e_hat = [], [], []
+        for c in cases:
+            fn = list(c.filter.names) if c.filter is not None else []
+            kept = [nm for nm in fn if nm in self.snames]
+            self.e_cols.append([fn.index(nm) for nm in kept])
+            self.e_idx.append([self.snames.index(nm) for nm in kept])
+            self.e_hat.append(np.zeros((n_runs, len(kept))))
+        self._v = {}
+
+    def residual(self, k: int, i: int, state, rows) -> np.ndarray:
+        """``ν = M (predict(x̂) − sensor(x, e)) − v − H_f,e ê`` of case ``i`` (M, m)."""
+        ep = self.by_step[k]
+        x, w = nav_point(self.nodes, k)
+        lat, lon, h, v_n, q = (a[rows] for a in (state.lat, state.lon, state.h, state.v_n, state.q))
+        M = lat.shape[0]
+        z = np.empty((M, ep.H.shape[0]))
+        for m in range(M):
+            xh = np.concatenate([[lat[m], lon[m], h[m]], v_n[m], q[m]])
+            parts = []
+            for meas in self.due[k]:
+                em = self.e[m, [self.snames.index(nm) for nm in meas.state_names]]
+                parts.append(meas.scale(x) @ (meas.predict(xh, w) - meas.sensor(x, w, em)))
+            z[m] = np.concatenate(parts)
+        if self.noise:
+            if k not in self._v:              # one draw per update, shared by the cases
+                self._v = {k: self.rng.standard_normal(z.shape) @ np.linalg.cholesky(ep.R).T}
+            z = z - self._v[k]
+        if self.e_cols[i]:
+            z = z - self.e_hat[i] @ ep.Hf[:, self.e_cols[i]].T
+        return z
+
+    def estimated(self, k: int, i: int, xh) -> None:
+        if self.e_cols[i]:
+            self.e_hat[i] = self.e_hat[i] + xh[:, self.e_cols[i]]
+
+    def advance(self, k0: int, k1: int) -> None:
+        # the error states' own processes, step by step; the filters' estimates follow their mean dynamics
+        for j in range(k0, k1):
+            noise = self.rng.standard_normal(self.e.shape) if self.noise else np.zeros(self.e.shape)
+            self.e = self.e * self.phi[j] + noise * np.sqrt(self.qd[j])
+            for i, idx in enumerate(self.e_idx):
+                self.e_hat[i] = self.e_hat[i] * self.phi[j, idx]
+
+
 def run_aided_ensemble(sim, x0, e0, t, *, samples_per_step: int, plan, epochs, gains, filter_names, states,
                        kept, model, err, rng=None, measurement_noise: bool = True) -> np.ndarray:
     """Run M nonlinear INS with an aided feedback filter; return their errors.
+
+    One case of :func:`covtool.validation.monte_carlo.run_ensemble` with
+    :class:`DeclaredMeasurements` as its measurement.
 
     Parameters
     ----------
@@ -86,88 +179,21 @@ def run_aided_ensemble(sim, x0, e0, t, *, samples_per_step: int, plan, epochs, g
         North, east, down position [m], NED velocity [m/s] and north tilt,
         east tilt, azimuth [rad] errors of every run at every grid time
         (posterior at update times).
+
+    Raises
+    ------
+    ValueError
+        ``kept`` differs from the error states among ``filter_names``; a
+        grid the strapdown steps do not divide.
     """
-    rng = np.random.default_rng(rng)
-    t = np.asarray(t, float)
-    dt = float(t[1] - t[0])
-    h = sim.dt
-    spr = int(round(dt / h))
-    if abs(dt / h - spr) > 1e-6 or spr % int(samples_per_step):
-        raise ValueError(f"a grid step of {dt:g} s is not a whole number of {samples_per_step}-sample strapdown steps")
-    M, N = sim.n_runs, t.size - 1
-    nodes = sim.traj.sample(t)
-    truth = sd.truth_state(sim.traj, t, mounting=sim.mounting)
-    rm, rn = earth.radii(truth.lat)
-    scale = np.stack([rm + truth.h, (rn + truth.h) * np.cos(truth.lat), -np.ones_like(truth.h)], -1)
-    A = quat.attitude_error_matrix(truth.q)
     fnames = list(filter_names)
-    nav_cols = [fnames.index(nm) if nm in fnames else -1 for nm in sd.NAV_STATES]
     snames = [s.name for s in states]
-    e_cols = [fnames.index(nm) for nm in kept]
-    e_idx = [snames.index(nm) for nm in kept]
-    fb = SensorFeedback(model, [nm for nm in fnames if nm not in kept], M)
-    s_cols = [fnames.index(nm) for nm in fb.names]
-    phi, qd = err
-    e = np.array(e0, float).reshape(M, len(states))
-    e_hat = np.zeros((M, len(kept)))
-    due = _due(plan)
-    by_step = {ep.step: ep for ep in epochs}
-    state = sim.initial_state(np.asarray(x0, float)[:, :10])
-    out = np.empty((N + 1, M, 9))
-
-    def update(k):
-        nonlocal e_hat
-        ep = by_step[k]
-        x, w = nav_point(nodes, k)
-        z = np.empty((M, ep.H.shape[0]))
-        for m in range(M):
-            xh = np.concatenate([[state.lat[m], state.lon[m], state.h[m]], state.v_n[m], state.q[m]])
-            parts = []
-            for meas in due[k]:
-                em = e[m, [snames.index(nm) for nm in meas.state_names]]
-                parts.append(meas.scale(x) @ (meas.predict(xh, w) - meas.sensor(x, w, em)))
-            z[m] = np.concatenate(parts)
-        if measurement_noise:
-            z = z - rng.standard_normal(z.shape) @ np.linalg.cholesky(ep.R).T
-        if e_cols:
-            z = z - e_hat @ ep.Hf[:, e_cols].T
-        xh_all = z @ gains[k].T                                   # x̂ = K ν, (M, n_f)
-        dx = np.zeros((M, 10))
-        for i, c in enumerate(nav_cols):
-            if c >= 0:
-                dx[:, i] = xh_all[:, c]
-        if fb.n:
-            fb.add(xh_all[:, s_cols])
-        if e_cols:
-            e_hat = e_hat + xh_all[:, e_cols]
-        return sd.correct(state, dx)
-
-    records = sim.records(chunk=spr * max(1, int(round(60.0 / dt))))
-    buf, pos = None, 0
-    for k in range(N + 1):
-        if k in by_step:
-            state = update(k)
-        E = sd.nav_errors(state, sd.NavState(float(t[k]), truth.lat[k:k + 1], truth.lon[k:k + 1], truth.h[k:k + 1],
-                                             truth.v_n[k:k + 1], truth.q[k:k + 1], np.zeros((1, 3)),
-                                             np.zeros((1, 3))))
-        out[k, :, :3] = E[:, :3] * scale[k]
-        out[k, :, 3:6] = E[:, 3:6]
-        out[k, :, 6:9] = E[:, 6:10] @ A[k].T
-        if k == N:
-            break
-        if buf is None or pos >= buf.dtheta.shape[-2]:
-            buf, pos = next(records), 0
-        rec = buf.slice(pos, pos + spr)
-        pos += spr
-        ctx = RecordContext.along(sim.traj, rec.t0, h, spr, sim.mounting) if fb.needs_context else None
-        raw_th = np.broadcast_to(rec.dtheta, (M, spr, 3))
-        raw_dv = np.broadcast_to(rec.dv, (M, spr, 3))
-        dth, dvv = fb.compensate(raw_th, raw_dv, h, ctx) if fb.n else (raw_th, raw_dv)
-        hist = sd.run(state, type(rec)(rec.t0, h, dth, dvv), int(samples_per_step), every=10**9)
-        state = hist.state(-1).replace(t=float(t[k + 1]), dtheta_prev=np.array(dth[:, -1, :]),
-                                       dv_prev=np.array(dvv[:, -1, :]))
-        # the error states' own processes; the filter's estimate follows their mean dynamics
-        noise = rng.standard_normal(e.shape) if measurement_noise else np.zeros(e.shape)
-        e = e * phi[k] + noise * np.sqrt(qd[k])
-        e_hat = e_hat * phi[k, e_idx]
-    return out
+    if [nm for nm in fnames if nm in snames] != list(kept):
+        raise ValueError(f"kept error states {list(kept)} differ from those of the filter's states "
+                         f"{[nm for nm in fnames if nm in snames]}")
+    t = np.asarray(t, float)
+    hook = DeclaredMeasurements(plan, epochs, states, sim.traj.sample(t), e0, err, noise=measurement_noise)
+    case = EnsembleCase("aided", FeedbackFilter("aided", tuple(fnames), dict(gains), np.empty((0, 0, 0))))
+    _, errs = run_ensemble(sim, x0, [case], t, samples_per_step=samples_per_step, rng=rng, model=model,
+                           record_errors="quantities", measurement=hook)
+    return errs["aided"]

@@ -12,7 +12,11 @@ the covariance analysis claims the errors obey:
   (seed 002, eq (15));
 * at a measurement of the filter ``x ← x − D K (H x + v)``, ``v ~ N(0, R)``,
   with the filter's own gain ``K`` (eq (7)), the truth ``H`` and ``R``
-  (eq (16) is the covariance of exactly this recursion).
+  (eq (16) is the covariance of exactly this recursion).  ``H`` and ``R``
+  may be one pair for every update (ZUPT) or one pair per update step
+  (declared measurements, issue 15: several kinds stacked, a time-varying
+  ``H`` with attitude and lever arms, columns on the measurements' own
+  error states appended to the truth).
 
 Each replica is an ensemble of ``M`` runs, like the nonlinear study; the runs
 start either from given initial states (the draws of the nonlinear study, for
@@ -101,8 +105,40 @@ def _split(Phi):
     return dense, diag
 
 
+def _per_step(H, R, upd, n):
+    """``{k: (H_k, chol R_k)}`` over the update steps, from one pair or per-step dicts.
+
+    One pair (arrays) serves every step with one Cholesky factor (the ZUPT
+    case, unchanged); dicts give each update step its own pair.
+    """
+    if not upd:
+        return {}
+    if H is None or R is None:
+        raise ValueError("linear_mean_squares: H and R are required with updates")
+    if isinstance(H, dict) != isinstance(R, dict):
+        raise ValueError("linear_mean_squares: give H and R both as arrays or both as dicts of update steps")
+    if not isinstance(H, dict):
+        H = np.asarray(H, float)
+        Lr = np.linalg.cholesky(np.asarray(R, float))
+        if H.ndim != 2 or H.shape[1] != n or Lr.shape[0] != H.shape[0]:
+            raise ValueError(f"linear_mean_squares: H has shape {H.shape} and R {Lr.shape}, expected (m, {n}) "
+                             "and (m, m)")
+        return {k: (H, Lr) for k in upd}
+    missing = [k for k in upd if k not in H or k not in R]
+    if missing:
+        raise ValueError(f"linear_mean_squares: no H or R at update step {missing[0]}")
+    out = {}
+    for k in upd:
+        Hk, Rk = np.asarray(H[k], float), np.asarray(R[k], float)
+        if Hk.ndim != 2 or Hk.shape[1] != n or Rk.shape != (Hk.shape[0],) * 2:
+            raise ValueError(f"linear_mean_squares: at update step {k} H has shape {Hk.shape} and R {Rk.shape}, "
+                             f"expected (m, {n}) and (m, m)")
+        out[k] = (Hk, np.linalg.cholesky(Rk))
+    return out
+
+
 def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=None, P0=None, H=None, R=None,
-                        factors=None, block: int = 20000) -> dict:
+                        factors=None, block: int = 20000, groups=None) -> dict:
     """Ensemble mean squares of replicas of a linear Monte Carlo.
 
     Parameters
@@ -125,27 +161,36 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
     P0 : ndarray, shape (n, n), optional
         Draw the initial states of every run of every replica from
         ``N(0, P0)`` instead (unconditional null).
-    H : ndarray, shape (m, n)
-        Truth measurement matrix (required with updates).
-    R : ndarray, shape (m, m)
-        True measurement noise.
+    H : ndarray, shape (m, n), or dict of int to ndarray, shape (m_k, n)
+        Truth measurement matrix (required with updates): one for every
+        update, or one per update step (declared measurements: the truth
+        ``H`` of the stacked epoch, error-state columns included).
+    R : ndarray, shape (m, m), or dict of int to ndarray, shape (m_k, m_k)
+        True measurement noise, as ``H``.
     factors : list of ndarray, optional
         :func:`noise_factors` of ``Qd`` (computed if not given).
     block : int
         Columns (runs × replicas) propagated together (memory
         ``8·n·block`` bytes per case).
+    groups : dict of str to tuple of int, optional
+        The compared quantities and the rows of ``C`` whose mean squares
+        they sum (0 north, 1 east, 2 down, 3 azimuth); default
+        :data:`GROUPS`.
 
     Returns
     -------
-    dict of str to ndarray, shape (replicas, N+1, 3)
-        Per case, the ensemble mean square ``(1/M) Σ_i y_i(t)²`` of the
-        horizontal (``δN² + δE²``) [m²], altitude [m²] and azimuth [rad²]
-        errors (:data:`GROUPS` order) of each replica.
+    dict of str to ndarray, shape (replicas, N+1, n_groups)
+        Per case, the ensemble mean square ``(1/M) Σ_i y_i(t)²`` of each
+        group of each replica; by default the horizontal (``δN² + δE²``)
+        [m²], altitude [m²] and azimuth [rad²] errors (:data:`GROUPS`
+        order).
 
     Raises
     ------
     ValueError
-        Neither or both of ``x0`` and ``P0``; shapes that do not agree.
+        Neither or both of ``x0`` and ``P0``; shapes that do not agree;
+        updates without ``H`` and ``R`` (or without them at one of the
+        update steps).
     """
     Phi = np.asarray(Phi, float)
     N, n, _ = Phi.shape
@@ -159,12 +204,12 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
     if C.ndim != 3 or C.shape[:2] != (N + 1, 4) or C.shape[2] > n:
         raise ValueError(f"linear_mean_squares: C has shape {C.shape}, expected ({N + 1}, 4, p ≤ {n})")
     rng = np.random.default_rng(rng)
-    L = factors if factors is not None else noise_factors(Qd)
-    Lr = np.linalg.cholesky(np.asarray(R, float)) if R is not None else None
     upd = sorted({int(k) for g in cases.values() if g for k in g})
-    if upd and (H is None or Lr is None):
-        raise ValueError("linear_mean_squares: H and R are required with updates")
-    updset = set(upd)
+    meas = _per_step(H, R, upd, n)
+    groups = dict(GROUPS if groups is None else groups)
+    if not groups or any(not rows or any(int(i) not in range(4) for i in rows) for rows in groups.values()):
+        raise ValueError(f"linear_mean_squares: groups {groups} must name rows 0..3 of C")
+    L = factors if factors is not None else noise_factors(Qd)
     # states ordered dense rows first, so both parts are contiguous slices (exact: a permutation)
     dense, diag = _split(Phi)
     # then the diagonal rows that receive noise, so the noise is added to one leading block of rows
@@ -178,10 +223,19 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
     f4 = np.float32
     Pd = np.ascontiguousarray(Phi[:, dense][:, :, perm], dtype=f4)          # (N, n_dense, n)
     dd = np.ascontiguousarray(Phi[:, diag, diag], dtype=f4)                 # (N, n_diag)
+    # the trailing diagonal rows with φ = 1 at every step (random constants, 36 of 58 for sdins58) are
+    # left alone: multiplying by 1 is exact, and skipping it saves most of the elementwise traffic
+    moving = np.flatnonzero(np.any(dd != 1, axis=0))
+    ne = nd + (int(moving[-1]) + 1 if moving.size else 0)
+    dd = np.ascontiguousarray(dd[:, :ne - nd])
     Lp = [np.ascontiguousarray(f[perm][:nw], dtype=f4) for f in L]
     G = {c: ({k: np.asarray(g, f4)[perm] for k, g in cases[c].items()} if cases[c] else {}) for c in cases}
-    Hp = np.asarray(H, f4)[:, perm] if H is not None else None
-    Lr = Lr.astype(f4) if Lr is not None else None
+    # one converted pair per distinct (H, R) object: the ZUPT case converts its single pair once
+    conv = {}
+    for k, (Hk, Lk) in meas.items():
+        if id(Hk) not in conv:
+            conv[id(Hk)] = (np.ascontiguousarray(Hk[:, perm], dtype=f4), Lk.astype(f4))
+    meas = {k: conv[id(Hk)] for k, (Hk, _) in meas.items()}
     # output rows act on the ten navigation states; in the permuted order
     Cp = np.zeros((N + 1, 4, n))
     Cp[:, :, np.argsort(perm)[:C.shape[2]]] = C
@@ -194,12 +248,13 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
     names = list(cases)
     with threadpool_limits(limits=1, user_api="blas"):
         # small matrices: OpenBLAS's thread pool is many times slower than one thread on a loaded machine
-        return _sample(names, G, Hp, Lr, Lp, nw, Pd, dd, nd, Cp, used, updset, N, n, runs, replicas, rng,
-                       block, None if x0 is None else x0[:, perm], None if P0 is None else L0)
+        return _sample(names, G, meas, Lp, nw, Pd, dd, nd, ne, Cp, used, N, n, runs, replicas, rng,
+                       block, None if x0 is None else x0[:, perm], None if P0 is None else L0,
+                       [tuple(int(i) for i in rows) for rows in groups.values()])
 
 
-def _sample(names, G, Hp, Lr, Lp, nw, Pd, dd, nd, Cp, used, updset, N, n, runs, replicas, rng, block, x0p, L0):
-    out = {c: np.empty((replicas, N + 1, len(GROUPS))) for c in names}
+def _sample(names, G, meas, Lp, nw, Pd, dd, nd, ne, Cp, used, N, n, runs, replicas, rng, block, x0p, L0, rows):
+    out = {c: np.empty((replicas, N + 1, len(rows))) for c in names}
     per = max(1, block // runs)                   # replicas per block
     for r0 in range(0, replicas, per):
         nr = min(per, replicas - r0)
@@ -210,7 +265,8 @@ def _sample(names, G, Hp, Lr, Lp, nw, Pd, dd, nd, Cp, used, updset, N, n, runs, 
             X0 = (L0 @ rng.standard_normal((n, B))).astype(np.float32)
         X = {c: X0.copy() for c in names}
         for k in range(N + 1):
-            if k in updset:
+            if k in meas:
+                Hp, Lr = meas[k]
                 v = Lr @ rng.standard_normal((Lr.shape[0], B), dtype=np.float32)
                 for c in names:
                     g = G[c].get(k)
@@ -221,16 +277,15 @@ def _sample(names, G, Hp, Lr, Lp, nw, Pd, dd, nd, Cp, used, updset, N, n, runs, 
                 Y *= Y
                 ms = Y.reshape(4, nr, runs).mean(axis=2, dtype=np.float64)
                 o = out[c][r0:r0 + nr, k]
-                o[:, 0] = ms[0] + ms[1]
-                o[:, 1] = ms[2]
-                o[:, 2] = ms[3]
+                for j, rs in enumerate(rows):
+                    o[:, j] = ms[rs[0]] if len(rs) == 1 else ms[list(rs)].sum(axis=0)
             if k == N:
                 break
             W = Lp[k] @ rng.standard_normal((Lp[k].shape[1], B), dtype=np.float32) if Lp[k].shape[1] else None
             for c in names:
                 x = X[c]
                 top = Pd[k] @ x
-                x[nd:] *= dd[k][:, None]
+                x[nd:ne] *= dd[k][:, None]
                 x[:nd] = top
                 if W is not None:
                     x[:nw] += W

@@ -25,7 +25,7 @@ from covtool.nav import attitude as quat, earth, strapdown as sd
 from covtool.validation.feedback import FeedbackFilter, RecordContext, SensorFeedback
 
 __all__ = [
-    "QUANTITIES", "EnsembleCase", "EnsembleSums", "run_ensemble", "simulate_chunk", "initial_states",
+    "QUANTITIES", "EnsembleCase", "EnsembleSums", "Zupt", "run_ensemble", "simulate_chunk", "initial_states",
 ]
 
 
@@ -109,15 +109,67 @@ class EnsembleSums:
         return self.s1[:, QUANTITIES.index(quantity)] / self.n_runs
 
 
+class Zupt:
+    """The ZUPT as a measurement of the ensemble loop (seed 002, eq (9)).
+
+    The measurement hook of :func:`run_ensemble`: while the vehicle stands
+    still the true velocity is zero, so the residual of a run is its own
+    velocity ``z = v̂ⁿ + v`` [m/s], ``v ~ N(0, R)`` one draw per update shared
+    by the cases (common random numbers).  A hook has:
+
+    * ``filter_states``: filter states that belong to the measurement (its
+      own error states), not fed back into the INS or the IMU compensation;
+    * ``start(cases, n_runs, steps, rng)``: before the first step;
+    * ``residual(k, i, state, rows) -> ndarray, shape (M, m)``: the residual
+      of case ``i`` at update step ``k`` from its runs' navigation state;
+    * ``estimated(k, i, xh)``: the case's estimate ``x̂ = K z`` (n_f columns);
+    * ``advance(k0, k1)``: the grid steps ``k0 … k1 − 1`` were integrated.
+
+    Parameters
+    ----------
+    R : ndarray, shape (3, 3)
+        True ZUPT noise. [m²/s²]
+    noise : bool
+        False: noise-free ZUPTs.
+    """
+
+    filter_states: tuple = ()
+
+    def __init__(self, R, noise: bool = True):
+        self.R = np.asarray(R, float)
+        self.noise = bool(noise)
+        self._v: dict = {}
+
+    def start(self, cases, n_runs: int, steps, rng) -> None:
+        # every update's noise drawn at once, in step order (the stream of the chunk's ZUPT noise)
+        if self.noise:
+            Lr = np.linalg.cholesky(self.R)
+            self._v = {k: rng.standard_normal((n_runs, 3)) @ Lr.T for k in steps}
+
+    def residual(self, k: int, i: int, state, rows) -> np.ndarray:
+        z = state.v_n[rows] - 0.0                           # ZUPT: the true velocity is zero
+        return z + self._v[k] if self.noise else z
+
+    def estimated(self, k: int, i: int, xh) -> None:
+        pass
+
+    def advance(self, k0: int, k1: int) -> None:
+        pass
+
+
 def _truth_frames(traj, t, mounting=None):
     tr = sd.truth_state(traj, t, mounting=mounting)
     rm, rn = earth.radii(tr.lat)
     return tr, rm + tr.h, (rn + tr.h) * np.cos(tr.lat), quat.attitude_error_matrix(tr.q)
 
 
-def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measurement_noise: bool = True,
-                 model=None, record_errors: bool = False):
+def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, measurement_noise: bool = True,
+                 model=None, record_errors: bool | str = False, measurement=None):
     """Run every case of an ensemble in lock step on shared IMU data.
+
+    The one ensemble loop of the Monte Carlo: ZUPT filters (``R``) and
+    filters with declared measurements (``measurement``,
+    :class:`covtool.validation.aided.DeclaredMeasurements`) run through it.
 
     Parameters
     ----------
@@ -134,25 +186,41 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
         these times. [s]
     samples_per_step : int
         IMU samples per navigation step n (``dt·rate`` must be a multiple).
-    R : ndarray, shape (3, 3)
-        True ZUPT measurement noise. [m²/s²]
+    R : ndarray, shape (3, 3), optional
+        True ZUPT measurement noise [m²/s²] (the measurement is then
+        :class:`Zupt`).
     rng : numpy.random.Generator or int, optional
-        Measurement noise (one draw per update, shared by the cases).
+        Measurement noise (one draw per update, shared by the cases) and
+        whatever else the measurement hook draws.
     measurement_noise : bool
         False: noise-free ZUPTs (deterministic checks).
+    measurement : object, optional
+        The measurement hook (:class:`Zupt` describes its methods) instead
+        of ``R``.
     model : covtool.lincov.model.spec.Model
         The truth model (required when a filter feeds back sensor states or
         NEES involves them).
-    record_errors : bool
-        Also return the navigation errors of every run at every grid time
-        (memory ``(N+1)·M·10`` per case; for tests).
+    record_errors : bool or "quantities"
+        Also return the errors of every run at every grid time: True the
+        ten navigation errors (memory ``(N+1)·M·10`` per case; for tests),
+        ``"quantities"`` the nine :data:`QUANTITIES` (NED metres, m/s, rad).
 
     Returns
     -------
     sums : dict of str to EnsembleSums
-    errors : dict of str to ndarray, shape (N+1, M, 10)
+    errors : dict of str to ndarray, shape (N+1, M, 10) or (N+1, M, 9)
         Only if ``record_errors``.
+
+    Raises
+    ------
+    ValueError
+        A grid that is not uniform or not a whole number of navigation
+        steps, an IMU simulator that does not cover it, neither or both of
+        ``R`` and ``measurement``.
     """
+    if (R is None) == (measurement is None):
+        raise ValueError("run_ensemble: give exactly one of R (ZUPT) and measurement")
+    meas = Zupt(R, measurement_noise) if measurement is None else measurement
     rng = np.random.default_rng(rng)
     t = np.asarray(t, float)
     dt = float(t[1] - t[0])
@@ -172,24 +240,26 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
     x0 = np.asarray(x0, float)
     N = t.size - 1
     tr, rmh, rnhc, Aq = _truth_frames(sim.traj, t, sim.mounting)
-    Lr = np.linalg.cholesky(np.asarray(R, float)) if measurement_noise else None
     # all cases in one navigation state: case i holds rows i·M … (i+1)·M − 1, so one strapdown
     # step advances every run of every case (the step cost is mostly per call, not per run)
     s0 = sim.initial_state(x0[:, :10])
     state = sd.NavState(s0.t, *(np.concatenate([a] * C) for a in (s0.lat, s0.lon, s0.h, s0.v_n, s0.q,
                                                                    s0.dtheta_prev, s0.dv_prev)))
     run = []
+    own = set(meas.filter_states)           # the measurement's own error states: estimated by the hook
     for i, c in enumerate(cases):
         f = c.filter
-        fb = SensorFeedback(model, f.names, M) if f is not None and any(nm not in _NAV for nm in f.names) else None
+        sens = [nm for nm in f.names if nm not in own] if f is not None else []
+        fb = SensorFeedback(model, sens, M) if any(nm not in _NAV for nm in sens) else None
         run.append({"case": c, "rows": slice(i * M, (i + 1) * M), "fb": fb,
                     "nav_cols": [f.names.index(nm) if nm in f.names else -1 for nm in _NAV] if f else None,
                     "sens_cols": [f.names.index(nm) for nm in fb.names] if fb is not None else [],
                     "sums": EnsembleSums.zeros(N + 1, c.nees),
                     "nees_pos": {key: {int(st): j for j, st in enumerate(v.steps)} for key, v in c.nees.items()},
-                    "errors": np.empty((N + 1, M, 10)) if record_errors else None})
+                    "errors": np.empty((N + 1, M, 9 if record_errors == "quantities" else 10))
+                    if record_errors else None})
     upd_steps = sorted({k for c in cases if c.filter is not None for k in c.filter.gains})
-    noise = {k: rng.standard_normal((M, 3)) @ Lr.T for k in upd_steps} if Lr is not None else {}
+    meas.start(cases, M, upd_steps, rng)
     need_ctx = any(r["fb"] is not None and r["fb"].needs_context for r in run)
     truth_idx = model.index if model is not None else {}
 
@@ -209,7 +279,7 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
         for r in run:
             e, phi, X = E[:, r["rows"]], PHI[:, r["rows"]], X_all[:, r["rows"]]
             if r["errors"] is not None:
-                r["errors"][ks] = e
+                r["errors"][ks] = X if record_errors == "quantities" else e
             s = r["sums"]
             s.s1[ks] += X.sum(axis=1)
             s.s2[ks] += (X * X).sum(axis=1)
@@ -236,13 +306,11 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
 
     def update(k):
         dx = None
-        for r in run:
+        for ci, r in enumerate(run):
             f = r["case"].filter
             if f is None or k not in f.gains:
                 continue
-            z = state.v_n[r["rows"]] - 0.0                              # ZUPT: the true velocity is zero
-            if Lr is not None:
-                z = z + noise[k]
+            z = meas.residual(k, ci, state, r["rows"])
             xh = z @ f.gains[k].T                                       # x̂ = K z, (M, n_f)
             if dx is None:
                 dx = np.zeros((C * M, 10))
@@ -251,6 +319,7 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
                     dx[r["rows"], i] = xh[:, col]
             if r["fb"] is not None:
                 r["fb"].add(xh[:, r["sens_cols"]])
+            meas.estimated(k, ci, xh)
         return state if dx is None else sd.correct(state, dx)
 
     # The run advances in spans of grid steps with no update inside: the feedback estimates then
@@ -288,6 +357,7 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R, rng=None, measu
             observe(np.arange(k + 1, b), inner)
         state = hist.state(-1).replace(t=float(t[b]), dtheta_prev=dth[:, -1, :].copy(),
                                        dv_prev=dvv[:, -1, :].copy())
+        meas.advance(k, b)
         k = b
     for r in run:
         r["sums"].n_runs = M
