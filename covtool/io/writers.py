@@ -111,17 +111,26 @@ FIGURE_PROCESSES = 4
 def draw_figures(items) -> None:
     """Draw and save ``(name, make, path)`` figures with the Agg backend.
 
-    A layout is computed with each figure (never ``bbox_inches="tight"``,
-    which draws every figure twice).
+    A figure without a layout gets the constrained layout (never
+    ``bbox_inches="tight"``, which draws every figure twice).  A figure
+    whose layout is done (:func:`covtool.plotting.style.fixed_margins`,
+    ``tight_layout``) holds a placeholder layout engine; it is removed
+    before saving, because ``savefig`` draws a figure that has any layout
+    engine twice (once without rendering, for the layout) -- the same
+    pixels at twice the cost.
     """
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.layout_engine import PlaceHolderLayoutEngine
 
     for _name, make, path in items:
         fig = make()
-        if fig.get_layout_engine() is None:
+        engine = fig.get_layout_engine()
+        if engine is None:
             fig.set_layout_engine("constrained")
+        elif isinstance(engine, PlaceHolderLayoutEngine):
+            fig.set_layout_engine(None)
         fig.savefig(path, dpi=120)
         plt.close(fig)
 
