@@ -20,7 +20,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 #: libraries a command imports only when it uses them
-HEAVY = ("numba", "scipy", "matplotlib", "openpyxl", "pint")
+HEAVY = ("numba", "scipy", "matplotlib", "openpyxl", "pint", "pandas")
 
 _PROBE = """
 import contextlib, io, json, sys
@@ -46,7 +46,9 @@ def _probe(argv, cwd=ROOT) -> dict:
 def test_library_commands_import_no_heavy_library(argv):
     got = _probe(argv)
     assert got["status"] == 0 and got["chars"] > 100          # the command printed its listing
-    assert got["modules"] == []
+    # a table (models) and a filter's FilterSpec (lincov.reduced) still bring pandas
+    allowed = ["pandas"] if argv in (["models"], ["show", "B1"]) else []
+    assert got["modules"] == allowed
 
 
 def test_run_draws_figures_without_importing_matplotlib_or_numba_in_the_cli_process(tmp_path):
