@@ -85,15 +85,17 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
         check_file_stem(name, f"table {name!r}", strict=False)
     written = []
     with staging_dir(out_dir) as stage:
-        for name, df in result.tables.items():
-            write_csv(df, _inside(stage, f"{name}.csv"))
+        tables = [(df, _inside(stage, f"{name}.csv")) for name, df in result.tables.items()]
+        book = _inside(stage, f"{result.name}.xlsx")
         items = [(name, make, _inside(stage, f"{name}.png")) for name, make in result.figures.items()] \
             if figures and result.figures else []
-        # the figures are drawn in forked processes while this one writes the tables and the workbook
+        # the figures are drawn in forked processes (started first: their matplotlib import is the
+        # longest wait) while this one writes the tables and the workbook
         children = _start_figures(items)
         try:
-            build_workbook(result.tables, provenance_rows(result), result.charts,
-                           path=_inside(stage, f"{result.name}.xlsx"))
+            for df, path in tables:
+                write_csv(df, path)
+            build_workbook(result.tables, provenance_rows(result), result.charts, path=book)
             (stage / "resolved_study.toml").write_text(
                 f"# resolved by covtool {__version__}, source {source_revision()}\n" + tomli_w.dumps(_toml_safe(result.resolved)), encoding="utf-8")
         except BaseException:
