@@ -9,6 +9,8 @@ were compressed at zlib level 6.
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -96,3 +98,48 @@ def test_a_figure_without_layout_gets_the_constrained_layout(tmp_path):
     writers.draw_figures([("c", make, tmp_path / "c.png")])
     assert type(seen[0].get_layout_engine()).__name__ == "ConstrainedLayoutEngine"
     assert _pixels(tmp_path / "c.png").shape == (360, 480, 4)
+
+
+def _state(pid: int) -> str:
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            return next(line.split()[1] for line in fh if line.startswith("State:"))
+    except (FileNotFoundError, ProcessLookupError, StopIteration):
+        return "gone"
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux /proc")
+def test_a_failed_write_stops_the_drawing_children(tmp_path, monkeypatch):
+    """The writer fails while a figure is being drawn: its process ends and writes nothing."""
+    import time
+
+    pidfile = tmp_path / "pid"
+
+    def slow():
+        pidfile.write_text(str(os.getpid()))
+        time.sleep(60)
+        raise AssertionError("not stopped")
+
+    def boom(*args, **kwargs):
+        for _ in range(600):                                   # the figure process has started drawing
+            if pidfile.exists() and pidfile.read_text():
+                break
+            time.sleep(0.05)
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(writers, "build_workbook", boom)
+    from covtool.results import StudyResult
+
+    res = StudyResult(name="s", kind="test", tables={"summary": pd.DataFrame({"x [m]": [1.0]})},
+                      resolved={"study": {"kind": "test", "name": "s"}}, provenance={})
+    res.figures = {"slow": slow}
+    out = tmp_path / "out"
+    with pytest.raises(OSError, match="No space left"):
+        writers.write_outputs(res, out)
+    pid = int(pidfile.read_text())
+    for _ in range(200):                                       # SIGKILL from its parent's death
+        if _state(pid) in ("gone", "Z"):
+            break
+        time.sleep(0.05)
+    assert _state(pid) in ("gone", "Z")
+    assert not out.exists() or not [p for p in out.rglob("*") if p.is_file()]
