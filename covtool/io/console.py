@@ -12,8 +12,6 @@ import re
 import shutil
 import textwrap
 
-import pandas as pd
-
 __all__ = ["WIDTH", "KEY_COLUMNS", "console_width", "format_number", "console_table"]
 
 #: default width of console tables [characters]
@@ -74,6 +72,8 @@ def format_number(x) -> str:
 
 def _cells(col: pd.Series, max_text: int = MAX_TEXT) -> tuple[list[str], bool]:
     """Formatted cells of one column and whether it is right-aligned (numeric)."""
+    import pandas as pd          # here: `covtool show` and `new` print without pandas
+
     numeric = pd.api.types.is_numeric_dtype(col) and not pd.api.types.is_bool_dtype(col)
     out = []
     for v in col.tolist():

@@ -7,8 +7,6 @@ import importlib.resources
 import os
 from pathlib import Path
 
-import pandas as pd
-
 from covtool.errors import InputError, ModelFileError
 from covtool.io.config import is_library_name, resolve_input
 from covtool.io.model_file import load_model
@@ -202,6 +200,8 @@ def list_models(directory=None) -> pd.DataFrame:
             row("IMU grade", g.name, g.to_model().n, "", g.description, p)
         except InputError as exc:
             row("IMU grade", p.stem, 0, "", f"INVALID: {exc}", p)
+    import pandas as pd          # here: `covtool show` reads the library without pandas
+
     return pd.DataFrame(rows, columns=["kind", "name", "states", "base", "truth", "description", "file"])
 
 

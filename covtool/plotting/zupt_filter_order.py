@@ -21,21 +21,25 @@ def impact_figure(result):
     import matplotlib.pyplot as plt
     tab = table[np.isclose(table["t [min]"], t_report / 60.0)]
     names = list(dict.fromkeys(tab["filter"]))
+    cols = ("CEP [ft]", "alt PE [ft]")
+    # one pass over the table: (filter, block, variant) -> the two values (the first row of each, as .iloc[0])
+    value = {}
+    for key, v in zip(zip(tab["filter"], tab["block"], tab["variant"]), zip(*(tab[c] for c in cols))):
+        value.setdefault(key, v)
     fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.2 + 2.6 * len(names)), squeeze=False)
     for r, name in enumerate(names):
-        g = tab[tab["filter"] == name]
-        nom = g[g["variant"] == "nominal"].iloc[0]
-        none = g[g["variant"] == "no equivalent noise"].iloc[0]
-        blocks = list(dict.fromkeys(g.loc[g["block"] != "", "block"]))
+        blocks = list(dict.fromkeys(b for (f, b, _v) in value if f == name and b != ""))
+        nom = next(v for (f, _b, var), v in value.items() if f == name and var == "nominal")
+        none = next(v for (f, _b, var), v in value.items() if f == name and var == "no equivalent noise")
         y = np.arange(len(blocks))
-        for c, col in enumerate(("CEP [ft]", "alt PE [ft]")):
+        for c, col in enumerate(cols):
             ax = axes[r, c]
-            only = [g[(g["block"] == b) & (g["variant"] == "noise from block only")][col].iloc[0] for b in blocks]
-            back = [g[(g["block"] == b) & (g["variant"] == "block put back")][col].iloc[0] for b in blocks]
+            only = [value[(name, b, "noise from block only")][c] for b in blocks]
+            back = [value[(name, b, "block put back")][c] for b in blocks]
             ax.barh(y - 0.2, only, 0.4, label="(a) eq (11)-(13) noise of this block only")
             ax.barh(y + 0.2, back, 0.4, label="(b) this block put back into the filter")
-            ax.axvline(nom[col], color="k", lw=1.2, label="nominal (all dropped blocks as noise)")
-            ax.axvline(none[col], color="0.5", lw=1.0, ls="--", label="no equivalent noise")
+            ax.axvline(nom[c], color="k", lw=1.2, label="nominal (all dropped blocks as noise)")
+            ax.axvline(none[c], color="0.5", lw=1.0, ls="--", label="no equivalent noise")
             ax.set_yticks(y)
             ax.set_yticklabels(blocks, fontsize=8)
             ax.invert_yaxis()

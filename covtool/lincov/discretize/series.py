@@ -11,7 +11,6 @@ why.
 from __future__ import annotations
 
 import numpy as np
-from scipy.linalg import matrix_balance
 
 from covtool.errors import NumericalError
 from covtool.lincov.discretize.steps import StepInfo, _check_result, _step_where
@@ -35,6 +34,8 @@ def balancing(F: np.ndarray) -> np.ndarray:
     E = np.max(np.abs(F), axis=0)
     if not np.any(E):
         return np.ones(F.shape[1])
+    from scipy.linalg import matrix_balance        # imported when used: `covtool models` reaches this module
+
     _, (d, _) = matrix_balance(E, permute=False, separate=True)
     return np.asarray(d, float)
 

@@ -12,7 +12,6 @@ from fractions import Fraction
 from dataclasses import dataclass, field
 
 import numpy as np
-import pandas as pd
 
 from covtool.lincov.model.blocks import BLOCK_KINDS
 from covtool.nav.strapdown import NAV_STATES
@@ -246,6 +245,8 @@ class Model:
                 "random walk SI unit": si_unit(s.unit, seconds=Fraction(-1, 2)),
                 "source": s.source,
             })
+        import pandas as pd          # here: reading a model (covtool show) needs no pandas
+
         return pd.DataFrame(rows)
 
 

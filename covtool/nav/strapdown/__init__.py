@@ -73,9 +73,18 @@ Layout
 """
 
 from covtool.nav.strapdown.state import NAV_STATES, NavState, _pack, _unpack, correct, nav_errors, truth_state
-from covtool.nav.strapdown.kernels import _nav_loop, _strapdown_loop
 from covtool.nav.strapdown.mechanization import _check_increments, _nav_core, _rotvec_quat, step
 from covtool.nav.strapdown.records import NavHistory, group_samples, iter_intervals, run
+
+
+def __getattr__(name):
+    # the compiled kernels import numba (0.3-0.5 s): only when a record runs, never at CLI start
+    if name in ("_nav_loop", "_strapdown_loop"):
+        from covtool.nav.strapdown import kernels
+
+        return getattr(kernels, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "NAV_STATES", "NavState", "NavHistory", "step", "run", "iter_intervals", "correct",

@@ -12,7 +12,6 @@ from typing import Callable, Iterable
 import numpy as np
 
 from covtool.nav.coning import _weights, body_increments, body_position_increment, MAX_SAMPLES
-from covtool.nav.strapdown.kernels import _nav_loop, _strapdown_loop
 from covtool.nav.strapdown.mechanization import _rotvec_quat
 from covtool.nav.strapdown.state import NavState, _pack, _unpack, nav_errors, truth_state
 
@@ -199,6 +198,8 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
     if every < 1:
         raise ValueError(f"every must be a positive integer, got {every!r}")
     records: Iterable = [imu] if hasattr(imu, "dtheta") else (imu.records() if hasattr(imu, "records") else imu)
+    from covtool.nav.strapdown.kernels import _nav_loop, _strapdown_loop   # numba, imported when a record runs
+
     M = state.n_runs
     # kept states as blocks (t (S_i,), lat, lon, h (S_i, M), v_n (S_i, M, 3), q (S_i, M, 4)), joined at the end
     keep = [_block(state)]

@@ -1,0 +1,68 @@
+"""Start-up cost: what each command imports (issue 13, acceptance 1 and 3).
+
+Before: every CLI start imported numba (the strapdown kernels, 0.3-0.5 s)
+and scipy (through the filter files' FilterSpec), also for ``covtool
+models``; the writer imported matplotlib in each of two figure processes.
+Each check runs in a fresh interpreter, so that another test's imports
+cannot hide one.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+import subprocess
+import sys
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+#: libraries a command imports only when it uses them
+HEAVY = ("numba", "scipy", "matplotlib", "openpyxl", "pint", "pandas")
+
+_PROBE = """
+import contextlib, io, json, sys
+from covtool.cli import main
+out = io.StringIO()
+with contextlib.redirect_stdout(out):
+    status = main({argv!r})
+print(json.dumps({{"status": status, "modules": sorted(m for m in {heavy!r} if m in sys.modules),
+                   "chars": len(out.getvalue())}}))
+"""
+
+
+def _probe(argv, cwd=ROOT) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(ROOT), MPLBACKEND="Agg")
+    proc = subprocess.run([sys.executable, "-c", _PROBE.format(argv=list(argv), heavy=HEAVY)], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("argv", [["models"], ["show", "sdins58"], ["show", "B1"], ["show", "kimu"],
+                                  ["new", "zupt_filter_order"]])
+def test_library_commands_import_no_heavy_library(argv):
+    got = _probe(argv)
+    assert got["status"] == 0 and got["chars"] > 100          # the command printed its listing
+    # a table (models) and a filter's FilterSpec (lincov.reduced) still bring pandas
+    allowed = ["pandas"] if argv in (["models"], ["show", "B1"]) else []
+    assert got["modules"] == allowed
+
+
+def test_run_draws_figures_without_importing_matplotlib_or_numba_in_the_cli_process(tmp_path):
+    import tomllib
+
+    import tomli_w
+
+    decl = tomllib.loads((ROOT / "studies" / "pure_ins_land_vehicle.toml").read_text())
+    decl["study"]["duration"] = "5 min"
+    decl["output"]["report_times"] = ["5 min"]
+    study = tmp_path / "short.toml"
+    study.write_text(tomli_w.dumps(decl))
+    out = tmp_path / "out"
+    got = _probe(["run", str(study), "--out", str(out), "--quiet"], cwd=tmp_path)
+    assert got["status"] == 0
+    assert sorted(p.name for p in out.glob("*.png")) == ["pure_ins_errors.png"]     # drawn, in child processes
+    assert "matplotlib" not in got["modules"] and "numba" not in got["modules"]
