@@ -140,11 +140,13 @@ def _shipped_setup(duration="30 min"):
     return decl, p, setup(decl, path=p, extra_sections=("monte_carlo",))
 
 
-def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng, data_replicas, null=None):
+def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng, data_replicas, null=None, factors=None):
     """Per data replica and cell: null_test of linear-MC data from x0_data against the model's prediction.
 
     Returns the verdicts and the null (the model's linear-MC mean squares), which a second
     call against the same model may pass back as ``null`` instead of sampling it again.
+    ``factors``: :func:`noise_factors` of ``S.Qd``, computed once by the caller for every call
+    (1800 eigendecompositions of 58 × 58; the same factors ``linear_mean_squares`` would compute).
     """
     from covtool.lincov.reduced import zupt_matrices
     from covtool.lincov.reference import propagate_with_filter
@@ -158,9 +160,9 @@ def _verdict(S, x0_data, x0_model, null_cases, C, nodes, N, replicas, rng, data_
     sig = {"C": _linear(res.P_truth, nodes)}
     if null is None:
         null = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=replicas, rng=rng, x0=x0_model,
-                                   H=S.H, R=S.R)
+                                   H=S.H, R=S.R, factors=factors)
     data = linear_mean_squares(S.Phi, S.Qd, null_cases, C, runs=N, replicas=data_replicas, rng=rng + 1, x0=x0_data,
-                               H=S.H, R=S.R)
+                               H=S.H, R=S.R, factors=factors)
     alpha = 0.05 / 15                     # the shipped study's Bonferroni level: 5 cases x 3 quantities
     out = []
     for r in range(data_replicas):
@@ -204,9 +206,10 @@ def test_shipped_setup_rejects_a_30_percent_accelerometer_bias_error(capsys):
     acc = [S.truth.index[f"acc_bias_{a}"] for a in "xyz"]
     wrong = x0.copy()
     wrong[:, acc] *= 1.3
-    right, null = _verdict(S, x0, x0, cases, C, nodes, N, 40, 11, 20)
+    L = noise_factors(S.Qd)
+    right, null = _verdict(S, x0, x0, cases, C, nodes, N, 40, 11, 20, factors=L)
     # the same model, so the same null; the wrong-model data get their own stream
-    bad = _verdict(S, wrong, x0, cases, C, nodes, N, 40, 13, 1, null=null)[0][0]
+    bad = _verdict(S, wrong, x0, cases, C, nodes, N, 40, 13, 1, null=null, factors=L)[0][0]
     z = np.array([[v["z"] for v in cells.values()] for cells in right])
     rejected = sum(any(v["reject"] for v in cells.values()) for cells in right)
     with capsys.disabled():
