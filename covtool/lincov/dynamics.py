@@ -259,12 +259,19 @@ class DynamicsStream:
         return error_dynamics(self.model, self.ctx.slice(a, b), self.options)
 
     def columns(self, rows, cols) -> np.ndarray:
-        """``F[:, rows][:, :, cols]`` over the whole span, shape ``(N, len(rows), len(cols))``."""
+        """``F[rows, cols]`` over the whole span, column-major: shape ``(len(cols), len(rows), N)``.
+
+        ``out[c].T`` is ``F[:, rows, cols[c]]`` (shape ``(N, len(rows))``)
+        with the memory layout of that fancy index of a whole-grid ``F``
+        (time fastest), and ``out[c0:c1].transpose(2, 1, 0)`` is
+        ``F[:, rows][:, :, cols[c0:c1]]``, as laid out by numpy: views, no
+        copies, and the same round-off in what consumes them.
+        """
         rows, cols = np.asarray(rows, int), np.asarray(cols, int)
-        out = np.empty((self.ctx.n, rows.size, cols.size))
+        out = np.empty((cols.size, rows.size, self.ctx.n))
         for a, b in self.bounds():
             F = self.chunk(a, b).F
-            out[a:b] = F[:, rows[:, None], cols[None, :]]
+            out[:, :, a:b] = F[:, rows[:, None], cols[None, :]].transpose(2, 1, 0)
         return out
 
 

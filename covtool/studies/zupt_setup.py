@@ -29,7 +29,8 @@ from covtool.lincov.reduced import build_filter, zupt_matrices
 from covtool.studies.grid import (check_step_motion, discretize_chunked, initial_covariance, midpoint_context,
                                   time_grid)
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_config, study_header
-from covtool.studies.resources import check_memory, memory_estimate, noise_columns, steps_of
+from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, steps_of,
+                                       stream_memory_estimate)
 
 
 def zupt_options(cfg, where: str, dt: float, duration: float) -> dict:
@@ -280,6 +281,12 @@ class ZuptSetup:
             return fm, reused
         if name not in self._streams:
             spec = self.specs[name]
+            # a filter that differs from one already built only in what it assumes at the update (R_f, the
+            # update form) has the same F_f, Q_c,f, P_f(0) and D: that system is shared, not built again
+            twin = next((v for v in self._streams.values() if system_key(v[0].spec) == system_key(spec)), None)
+            if twin is not None:
+                self._streams[name] = (dataclasses.replace(twin[0], spec=spec), twin[1])
+                return self._streams[name]
             ftruth = self.filter_truth if self.filter_truth is not None else self.truth
             fm = build_filter(spec, ftruth, self.ctx, zupt_interval=self.zupt_interval, q0=self.nodes.q_nb[0],
                               truth_dynamics=self.dynamics_stream(spec.options), mean_speed=self.mean_speed,
@@ -357,11 +364,16 @@ class ZuptSetup:
                 Phi, Qd = self._discretise_truth(dyn_of(None), a, b)
             tsys = System(cev, *compose(Phi, Qd, cev - a))
             del Phi, Qd
-            fsys = {}
+            fsys, shared = {}, []
             for c in cases:
                 fm, reused = self.filter_stream(c)
                 if reused:
                     fsys[c] = tsys
+                    continue
+                key = system_key(fm.spec)
+                twin = next((v for k, v in shared if k == key), None)
+                if twin is not None and (c, None) not in self._filters:
+                    fsys[c] = twin                           # the same F_f, Q_c,f (filter_stream)
                     continue
                 if (c, None) in self._filters:
                     _, Phi_f, Qd_f, _ = self._filters[(c, None)]
@@ -369,6 +381,7 @@ class ZuptSetup:
                 else:
                     Phi_f, Qd_f = self._discretise_filter(c, dyn_of(fm.spec.options), a, b)
                 fsys[c] = System(cev, *compose(Phi_f, Qd_f, cev - a))
+                shared.append((key, fsys[c]))
             yield tsys, fsys
 
     def _discretise_filter(self, name: str, dyn, a: int, b: int):
@@ -496,6 +509,11 @@ def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=
             kw = dict(zip(("records", "intervals"), history_records(
                 steps, hdr["dt"], every, rtimes, zupt_update_count(zo, hdr["duration"]))))
             kw["shared"] = sum(1 for c in cases if truth_copy(specs[c], truth, ftruth))
+            keys = []
+            for c in cases:
+                if not truth_copy(specs[c], truth, ftruth) and system_key(specs[c]) not in keys:
+                    keys.append(system_key(specs[c]))
+            kw["distinct"] = [k.n for k in keys]            # streamed: one system per distinct key
         est = check_memory(memory(steps, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases), **kw),
                            where, hdr["max_memory"], shrink)
     traj = load_trajectory(cfg, where, base_dir, hdr["dt"], hdr["duration"])
@@ -556,6 +574,10 @@ class StreamedTransitions:
 def order_memory(pure: bool, impact: bool = True):
     """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter).
 
+    Without the dropped-state impact table the study streams in time
+    (:meth:`ZuptSetup.stream`, :func:`~covtool.studies.resources.stream_memory_estimate`);
+    with it the whole-grid systems are held, as below.
+
     The histories are navigation blocks (10 × 10) at the record steps
     (``records``: the history spacing and the report times); the truth's
     system composed on the event grid (``intervals``: the records and the
@@ -565,20 +587,33 @@ def order_memory(pure: bool, impact: bool = True):
     per-source noise series.
     """
 
-    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0):
+    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0, distinct=None):
         n = truth.n
         hist = [min(n, 10)] * ((1 if pure else 0) + 2 * len(filters))
+        own = sorted(filters)[:len(filters) - shared] if shared else filters
+        if not (impact and any(nf < n for nf in filters)):
+            # streamed in time (ZuptSetup.stream): one chunk of every distinct system (filters that differ
+            # only in R_f or the update form share one), the equivalent-noise sources and the histories;
+            # a filter of m states drops n - m truth states
+            own = own if distinct is None else distinct
+            return stream_memory_estimate(steps, n, filters=own, dropped=[n - m for m in own], dynamics=dynamics,
+                                          histories=hist, noise=noise_columns(truth), records=records,
+                                          intervals=intervals)
         # the per-source series runs on each source's reach set (covtool.lincov.noise), mostly the 10
         # navigation states: its stacks stay far below COMPOSE_WORKSPACE, the two transition copies dominate
         extra = 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
         # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more
-        own = sorted(filters)[:len(filters) - shared] if shared else filters
         return memory_estimate(steps, n, filters=own, dynamics=dynamics, histories=hist,
                                noise=noise_columns(truth), extra=extra, records=records,
                                composed=[n] + ([max(filters)] if filters else []), intervals=intervals,
                                extra_late=True)
     memory.records = True           # setup() passes the record and interval counts
     return memory
+
+
+def system_key(spec: FilterSpec) -> FilterSpec:
+    """``spec`` without what only the update uses (name, R_f, update form, texts): equal keys, equal F_f, Q_c,f, P_f(0)."""
+    return dataclasses.replace(spec, name="", zupt_sigma=None, update="joseph", description="", path="", decl={})
 
 
 def truth_copy(spec: FilterSpec, truth: Model, ftruth: Model | None = None) -> bool:
