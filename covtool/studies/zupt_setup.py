@@ -2,9 +2,21 @@
 
 :func:`setup` validates the ``[study]``, ``[trajectory]``, ``[truth]``,
 ``[filters]`` and ``[zupt]`` tables once and builds a :class:`ZuptSetup`
-(the truth's Φ and Q_d on the grid, the ZUPT update steps, the filters'
+(the grid and the trajectory on it, the ZUPT update steps, the filters'
 models), used by the filter-order, sensitivity, budget, Monte Carlo,
 trade-grid and magnitude-sweep runners.
+
+Two ways to get the systems (seed 002, eq (6b)–(6d)):
+
+* whole grid: :attr:`ZuptSetup.Phi`, :attr:`ZuptSetup.Qd` and
+  :meth:`ZuptSetup.filter_system` build ``(N, n, n)`` stacks on first use
+  (the studies that index them over the whole time);
+* streamed in time: :meth:`ZuptSetup.stream` yields the truth's and the
+  filters' systems composed on the event grid, chunk by chunk of
+  :data:`~covtool.lincov.dynamics.STREAM_CHUNK` steps, so that memory is set
+  by the cases and the history spacing, not by duration × n²
+  (:class:`~covtool.lincov.batch.BatchRun` carries every case's P and P_f
+  across the chunks).  The filter-order study streams.
 """
 
 from __future__ import annotations
@@ -176,8 +188,10 @@ class ZuptSetup:
 
     Built by :func:`setup`; used by the filter-order, sensitivity, budget and
     trade-grid studies.  Filter models and their discretisation are built on
-    demand and cached (:meth:`filter_model`).  Shapes: N grid steps, n truth
-    states; times in s.
+    demand and cached (:meth:`filter_model`); the truth's whole-grid
+    :attr:`dyn`, :attr:`Phi` and :attr:`Qd` too.  :meth:`stream` builds
+    them chunk by chunk instead; :meth:`release` frees the caches.
+    Shapes: N grid steps, n truth states; times in s.
     """
 
     #: ``[study]`` as validated (:func:`covtool.studies.inputs.study_header`)
