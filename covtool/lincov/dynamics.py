@@ -141,7 +141,7 @@ class NoiseSource:
         return (self.G * self.psd[:, None, :]) @ np.swapaxes(self.G, 1, 2)
 
     def add_qc(self, Qc: np.ndarray, a: int = 0, b: int | None = None) -> None:
-        """Add the contribution to ``Q_c`` of the steps ``a … b−1`` to ``Qc`` (shape ``(b−a, n, n)``), in place."""
+        """Add the steps ``a … b−1``'s contribution to ``Qc`` (shape ``(b−a, n, n)``), in place."""
         G = self.G[a:b]
         Qc += (G * self.psd[a:b, None, :]) @ np.swapaxes(G, 1, 2)
 

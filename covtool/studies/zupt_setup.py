@@ -38,6 +38,7 @@ from covtool.lincov.reduced import FilterSpec
 from covtool.nav.trajectory.core import Trajectory
 from covtool.lincov.kalman import check_system
 from covtool.lincov.reduced import build_filter, zupt_matrices
+from covtool.studies import grid as _grid
 from covtool.studies.grid import (check_step_motion, discretize_chunked, initial_covariance, midpoint_context,
                                   time_grid)
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_config, study_header
@@ -267,7 +268,8 @@ class ZuptSetup:
     def _discretise_truth(self, dyn, a: int, b: int):
         """Truth Φ, Q_d of the steps ``a … b−1`` from their dynamics ``dyn``, guarded (:func:`truth_system`)."""
         what = f"{self.where}: truth model {self.truth.name!r}"
-        Phi, Qd = discretize_chunked(dyn.F, dyn.Qc, np.diff(self.t[a:b + 1]), self.method, what=what,
+        # through the module, as truth_system does (one place to instrument the truth's discretisation)
+        Phi, Qd = _grid.discretize_chunked(dyn.F, dyn.Qc, np.diff(self.t[a:b + 1]), self.method, what=what,
                                      times=self.t[a:b])
         # guarded once here; the runs that share them are told so (system_checked)
         check_system(what, Phi, Qd, names=self.truth.names, times=self.t[a:b + 1])
@@ -626,7 +628,10 @@ def order_memory(pure: bool, impact: bool = True):
 
 
 def system_key(spec: FilterSpec) -> FilterSpec:
-    """``spec`` without what only the update uses (name, R_f, update form, texts): equal keys, equal F_f, Q_c,f, P_f(0)."""
+    """``spec`` without what only the update uses (name, R_f, update form, texts).
+
+    Equal keys: equal F_f, Q_c,f, P_f(0) and D (one system serves both).
+    """
     return dataclasses.replace(spec, name="", zupt_sigma=None, update="joseph", description="", path="", decl={})
 
 
