@@ -470,56 +470,47 @@ def rel_diff(a, b) -> float:
 # --long: the 6-h x 6-case flagship variant and a 24-h x 20-case study
 # --------------------------------------------------------------------------
 
-#: the 14 extra filters of the 20-case study: each of B1 .. D assuming another ZUPT σ, and A with the standard
-#: update form (eq (8))
-_EXTRA_FILTERS = [(f"{b}_{tag}", b, {"zupt_sigma": s}) for b in ("B1", "B2", "B3", "C", "D")
-                  for tag, s in (("s003", "0.003 ft/s"), ("s03", "0.03 ft/s"))] + \
-                 [("A_std", "A", {"update": "standard"}), ("B1_std", "B1", {"update": "standard"}),
-                  ("C_std", "C", {"update": "standard"}), ("D_std", "D", {"update": "standard"})]
+#: the long variants, declared as study files (benchmarks/long/): 6 h x 6 cases and 24 h x 20 cases
+LONG = [ROOT / "benchmarks" / "long" / f"zupt_filter_order_{h}.toml" for h in ("6h", "24h")]
 
 
-def long_variants(tmp: Path) -> dict:
-    """Study files of the long variants in ``tmp``: name -> (path, hours, cases)."""
+def memory_estimate_of(tree: Path, study: Path) -> str:
+    """The memory check's estimate of ``study`` in ``tree``: its refusal under a 1-kB limit, before any computation."""
+    import subprocess
+
+    env = {**os.environ, "PYTHONPATH": str(tree), "COVTOOL_MAX_MEMORY": "1000"}
+    r = subprocess.run([sys.executable, "-m", "covtool", "run", str(study), "--out", "/nonexistent/never-written"],
+                       cwd=tree, env=env, capture_output=True, text=True, timeout=600)
+    text = r.stderr.strip().splitlines()[-1] if r.stderr.strip() else ""
+    if "needs about" not in text:
+        return f"n/a ({text[-200:]})"
+    return text.split("needs about", 1)[1].split(" of memory", 1)[0].strip()
+
+
+def long_report(trees: dict, run_baseline: bool = False) -> None:
+    """Wall time and peak RSS of the long variants (CLI, one run each); the baseline's estimate, or its run."""
+    import tempfile
     import tomllib
 
-    import tomli_w
-
-    base = tomllib.loads(FLAGSHIP.read_text())
-    lib = ROOT / "models" / "filters" / "zupt_filters.toml"
-    filt = tomllib.loads(lib.read_text())
-    for name, b, extra in _EXTRA_FILTERS:
-        filt["filter"].append({"name": name, "base": b, "description": f"{b}, {extra}", **extra})
-    (tmp / "filters20.toml").write_text(tomli_w.dumps(filt))
-    out = {}
-    for name, hours, cases, ffile in (("flagship_6h_6cases", 6, base["filters"]["cases"], str(lib)),
-                                      ("study_24h_20cases", 24, [f["name"] for f in filt["filter"]],
-                                       str(tmp / "filters20.toml"))):
-        d = tomllib.loads(FLAGSHIP.read_text())
-        d["study"].update(name=name, duration=f"{hours} h")
-        d["trajectory"] = {"builtin": "land_vehicle", "cycles": 12 * hours}     # 5-min cycles
-        d["filters"].update(file=ffile, cases=list(cases))
-        d["output"]["report_times"] = [f"{hours} h"]
-        path = tmp / f"{name}.toml"
-        path.write_text(tomli_w.dumps(d))
-        out[name] = (path, hours, len(cases))
-    return out
-
-
-def long_report(trees: dict) -> None:
-    """Wall time and peak RSS of the long variants (CLI, one run each), or the memory check's refusal."""
-    import tempfile
-
-    print("\n[L] long studies: CLI 'covtool run', one run per tree; peak RSS of the child")
+    print(f"\n[L] long studies (benchmarks/long/): CLI 'covtool run', one run each; peak RSS of the child; "
+          f"load avg {loadavg()}")
     with tempfile.TemporaryDirectory() as tmp:
-        for name, (path, hours, ncases) in long_variants(Path(tmp)).items():
+        for path in LONG:
+            d = tomllib.loads(path.read_text())
+            what = f"{d['study']['duration']}, {len(d['filters']['cases'])} cases"
             for label, tree in trees.items():
+                est = memory_estimate_of(tree, path)
+                if label != "this tree" and not run_baseline:
+                    print(f"    {path.stem:24s} {label:10s}: not run (--baseline-run runs it); memory check's "
+                          f"estimate {est} ({what})")
+                    continue
                 try:
                     wall, rss, cpu = cli_run(tree, path, Path(tmp) / "out")
-                    print(f"    {name:20s} {label:10s}: {wall:8.1f} s wall, {cpu:8.1f} s CPU, peak RSS {rss:8.0f} MB "
-                          f"({hours} h, {ncases} cases)")
+                    print(f"    {path.stem:24s} {label:10s}: {wall:8.1f} s wall, {cpu:8.1f} s CPU, peak RSS "
+                          f"{rss:8.0f} MB; estimate {est} ({what}; load avg {loadavg()})")
                 except RuntimeError as exc:
                     line = [x for x in str(exc).splitlines() if x.startswith("covtool: error")]
-                    print(f"    {name:20s} {label:10s}: refused: {(line or [str(exc)[-300:]])[0]}")
+                    print(f"    {path.stem:24s} {label:10s}: refused: {(line or [str(exc)[-300:]])[0]}")
 
 
 def main(argv=None) -> int:
@@ -531,12 +522,14 @@ def main(argv=None) -> int:
     ap.add_argument("--studies", nargs="*", default=CLI_STUDIES, help="studies of [0] (names in studies/)")
     ap.add_argument("--long", action="store_true",
                     help="only [L]: the 6-h x 6-case flagship variant and a 24-h x 20-case study (wall, peak RSS)")
+    ap.add_argument("--baseline-run", action="store_true",
+                    help="with --long: run the long studies in the --baseline checkout too (else its estimate)")
     args = ap.parse_args(argv)
     if args.long:
         trees = {"this tree": ROOT}
         if args.baseline is not None:
             trees["baseline"] = args.baseline.resolve()
-        long_report(trees)
+        long_report(trees, args.baseline_run)
         return 0
     from threadpoolctl import threadpool_info, threadpool_limits
 

@@ -384,10 +384,106 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
         A bad input, or (``on_invalid = "raise"``) the first covariance that
         is not finite, symmetric and PSD, naming the case, time and state.
     """
+    run = BatchRun(truth.ev, truth.n, P0, H, R, D, update_steps, record_steps, running=filt is not None, Pf0=Pf0,
+                   Hf=Hf, Rf=Rf, q_scale=q_scale, gains=gains, form=form, keep=keep, check=check,
+                   on_invalid=on_invalid, label=label, cases=cases, names=names, filter_names=filter_names,
+                   times=times, psd_cases=psd_cases, scale_case=scale_case)
+    if len(truth.ev) > 1:
+        run.advance(truth, filt, truth_Q=truth_Q, filter_Q=filter_Q)
+    return run.finish()
+
+
+class BatchRun:
+    """:func:`run_batch` advanced chunk by chunk (streaming in time).
+
+    The cases' full truth covariance P (and the filters' P_f) is carried
+    across the chunks, so only one chunk's composed systems are held at a
+    time: memory does not grow with the duration.  The updates, the guard
+    and the records are those of :func:`run_batch` (which is this class fed
+    one chunk), so a streamed run equals the whole-grid run up to the
+    round-off of composing Φ and Q_d over intervals split at the chunk
+    boundaries.
+
+    Parameters
+    ----------
+    ev : ndarray of int, shape (K+1,)
+        The whole event grid (every update and record step, the first and
+        the last step).
+    n : int
+        Truth states.
+    P0, H, R, D, update_steps, record_steps
+        As :func:`run_batch`.
+    running : bool
+        The filters run alongside (``Pf0``, ``Hf``, ``Rf``); otherwise
+        fixed ``gains`` are given.
+    **kw
+        The other keywords of :func:`run_batch` (``Pf0``, ``Hf``, ``Rf``,
+        ``q_scale``, ``gains``, ``form``, ``keep``, ``check``,
+        ``on_invalid``, ``label``, ``cases``, ``names``, ``filter_names``,
+        ``times``, ``psd_cases``, ``scale_case``).
+
+    Raises
+    ------
+    ValueError
+        (:meth:`advance`) a chunk that does not start where the previous one
+        ended or whose events are not on ``ev``; (:meth:`finish`) a run
+        finished before the end of ``ev``.
+    NumericalError
+        As :func:`run_batch`.
+    """
+
+    _DEFAULTS = dict(Pf0=None, Hf=None, Rf=None, q_scale=None, gains=None, form="joseph", keep=slice(0, 10),
+                     check=True, on_invalid="raise", label="batch", cases=None, names=None, filter_names=None,
+                     times=None, psd_cases=None, scale_case=None)
+
+    def __init__(self, ev, n: int, P0, H, R, D, update_steps, record_steps, *, running: bool, **kw):
+        unknown = set(kw) - set(self._DEFAULTS)
+        if unknown:
+            raise TypeError(f"BatchRun: unknown keywords {sorted(unknown)}")
+        self._gen = _engine(ev, int(n), bool(running), P0, H, R, D, update_steps, record_steps,
+                            **{**self._DEFAULTS, **kw})
+        next(self._gen)                       # the inputs are checked here, before any chunk
+        self._result = None
+
+    def advance(self, truth: System, filt: System | None = None, *, truth_Q=None, filter_Q=None) -> None:
+        """Propagate and update every case across one chunk of the event grid.
+
+        Parameters
+        ----------
+        truth : System
+            The truth's composed Φ and Q on the chunk's events
+            (``truth.ev[0]`` is where the previous chunk ended).
+        filt : System, optional
+            The filters' (unscaled), on the same events (running filters).
+        truth_Q, filter_Q : optional
+            Per-case noise of the chunk's intervals (as :func:`run_batch`).
+        """
+        if self._result is not None:
+            raise ValueError("the batch is finished")
+        self._gen.send((truth, filt, truth_Q, filter_Q))
+
+    def finish(self) -> BatchResult:
+        """The last event (update, record) and the histories (:class:`BatchResult`)."""
+        if self._result is None:
+            try:
+                self._gen.send(None)
+            except StopIteration as stop:
+                self._result = stop.value
+        return self._result
+
+
+def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf, Rf, q_scale, gains, form, keep,
+            check, on_invalid, label, cases, names, filter_names, times, psd_cases, scale_case):
+    """The state of :func:`run_batch` across chunks: a generator fed ``(truth, filt, truth_Q, filter_Q)``.
+
+    Primed with ``next``; each chunk sent advances every case over the
+    chunk's intervals (updates and records at its events but its last);
+    ``None`` ends the run (the last event of ``ev``) and returns the
+    :class:`BatchResult` (``StopIteration.value``).
+    """
     if on_invalid not in ("raise", "flag"):
         raise ValueError(f"on_invalid must be 'raise' or 'flag', got {on_invalid!r}")
-    ev = truth.ev
-    n = truth.n
+    ev = np.asarray(ev, int)
     upd = [int(k) for k in update_steps]
     rec = [int(k) for k in record_steps]
     upd_set = set(upd)
@@ -407,10 +503,11 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
         b = int(index[0]) if len(index) else 0
         return f"(case {cases[b]})" if cases is not None else (f"(case {b})" if B > 1 else "")
 
-    def interval_at(index):
-        return f"from {when(int(ev[index[0]]))}"
+    chunk_ev = [ev]                                     # the event grid of the chunk being advanced
 
-    running = filt is not None
+    def interval_at(index):
+        return f"from {when(int(chunk_ev[0][index[0]]))}"
+
     if check:
         if P0.ndim == 3:
             st = covariance_status(P0, groups=scale_groups(names, n))
@@ -422,17 +519,9 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
         else:
             check_covariance(P0, f"{label}: truth P0", names=names)
         check_covariance(R, f"{label}: true R", at=case_at if np.ndim(R) == 3 else None)
-        check_finite(truth.Phi, f"{label}: truth Φ of the interval", names=names,
-                     times=[times[k] for k in ev] if times is not None else None)
-        if truth_Q is None:
-            check_covariance(truth.Q, f"{label}: truth Q_d of the interval", names=names,
-                             at=interval_at)
         if running:
             check_covariance(Pf0, f"{label}: filter P_f(0)", names=filter_names, at=case_at)
             check_covariance(Rf, f"{label}: filter R_f", at=case_at)
-            check_finite(filt.Phi, f"{label}: filter Φ_f of the interval", names=filter_names)
-            check_covariance(filt.Q, f"{label}: filter Q_f of the interval", names=filter_names,
-                             at=interval_at)
             if q_scale is not None and not np.all(np.isfinite(q_scale) & (np.asarray(q_scale) >= 0)):
                 raise NumericalError(f"{label}: Q_f scale {q_scale!r} is not finite and non-negative")
         elif gains is not None:
@@ -444,8 +533,6 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
         nf = Pf.shape[1]
         Rf = np.broadcast_to(np.asarray(Rf, float), (B,) + R.shape[1:]).copy()
         qs = np.ones(B) if q_scale is None else np.asarray(q_scale, float)
-        if not np.array_equal(filt.ev, ev):
-            raise ValueError("truth and filter event grids differ")
     else:
         nf = D.shape[1]
         gains = np.broadcast_to(gains, (B,) + gains.shape[1:])
@@ -529,59 +616,89 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
             checked[0] = steps[j]
         pending.clear()
 
-    # random-constant states (identity Φ rows): only the dynamic blocks are propagated (exact)
-    tdyn = truth.dynamic
-    fdyn = filt.dynamic if running else None
     ui = ri = 0
+
+    def event(k):
+        """The update (eq (7), (8)/Joseph, (16)) and the record at event step ``k``."""
+        nonlocal P, Pf, ui, ri
+        if k in upd_set:
+            # symmetrised (and then guarded) every SYMMETRIZE_EVERY updates, at the last one and at a record
+            # step: the guard tests symmetry relative to σ_i σ_j, which a ZUPT shrinks by orders of magnitude,
+            # so the round-off asymmetry of the unsymmetrised steps would fail it in between
+            sym = ui % SYMMETRIZE_EVERY == SYMMETRIZE_EVERY - 1 or ui == len(upd) - 1 or k in rec_set
+            if running:
+                HPf = Hf @ Pf                                             # (B, m, nf)
+                S = HPf @ Hf.T + Rf                                       # (B, m, m)
+                try:
+                    K = gain_from_innovation(S, HPf)                      # eq (7), (B, nf, m)
+                except np.linalg.LinAlgError:
+                    raise NumericalError(f"{label}: innovation covariance H P_f Hᵀ + R_f is singular at "
+                                         f"{when(k)}") from None
+                if form == "joseph":
+                    Pf = _joseph(Pf, K, Hf, Rf, symmetrize=sym, HP=HPf)
+                else:
+                    Pf = standard_update(Pf, K, HPf, sym=sym)             # eq (8)
+            else:
+                K = gains[:, ui]
+            out_g[:, ui] = K
+            HP = H @ P
+            if sel is not None:
+                P = _joseph(P, K, H, R, sel, symmetrize=sym, HP=HP)         # eq (16), D a selection
+            else:
+                P = _joseph(P, D @ K, H, R, symmetrize=sym, HP=HP)          # eq (16)
+            if check and sym:
+                flush()
+                guard(P, "truth after the eq (16) update", k, names, psd_mask, scaled=True)
+                if running:
+                    guard(Pf, f"filter after the {form} update", k, filter_names)
+                checked[0] = k
+            ui += 1
+        elif check and k in rec_set:
+            P = symmetrize(P)                   # round-off asymmetry of the sandwiches (see above)
+            if running:
+                Pf = symmetrize(Pf)
+            pending.append((ri, k, P, Pf if running else None))     # guarded by flush()
+            if len(pending) >= RECORD_CHECKS:
+                flush()
+        if k in rec_set:
+            out_t[:, ri] = symmetrize(P[:, idx[:, None], idx[None, :]])
+            out_t[dead, ri] = np.nan
+            if running:
+                out_f[:, ri] = symmetrize(Pf[:, fidx[:, None], fidx[None, :]])
+                out_f[dead, ri] = np.nan
+            ri += 1
+
+    if not running:
+        Pf = None
+    done = int(ev[0])                                   # the step the propagation has reached
     with np.errstate(over="ignore", invalid="ignore"):      # blow-ups are reported by the guard
-        for i, k in enumerate(ev):
-            if k in upd_set:
-                # symmetrised (and then guarded) every SYMMETRIZE_EVERY updates, at the last one and at a record
-                # step: the guard tests symmetry relative to σ_i σ_j, which a ZUPT shrinks by orders of magnitude,
-                # so the round-off asymmetry of the unsymmetrised steps would fail it in between
-                sym = ui % SYMMETRIZE_EVERY == SYMMETRIZE_EVERY - 1 or ui == len(upd) - 1 or k in rec_set
+        while True:
+            item = yield
+            if item is None:
+                break
+            truth, filt, truth_Q, filter_Q = item
+            cev = np.asarray(truth.ev, int)
+            chunk_ev[0] = cev
+            if cev.size < 2 or int(cev[0]) != done or cev[-1] > ev[-1] or not np.all(np.isin(cev, ev)):
+                raise ValueError(f"chunk from step {int(cev[0]) if cev.size else '?'} does not continue the event "
+                                 f"grid at step {done}")
+            if running and not np.array_equal(filt.ev, cev):
+                raise ValueError("truth and filter event grids differ")
+            if check:
+                check_finite(truth.Phi, f"{label}: truth Φ of the interval", names=names,
+                             times=[times[k] for k in cev] if times is not None else None)
+                if truth_Q is None:
+                    check_covariance(truth.Q, f"{label}: truth Q_d of the interval", names=names,
+                                     at=interval_at)
                 if running:
-                    HPf = Hf @ Pf                                             # (B, m, nf)
-                    S = HPf @ Hf.T + Rf                                       # (B, m, m)
-                    try:
-                        K = gain_from_innovation(S, HPf)                      # eq (7), (B, nf, m)
-                    except np.linalg.LinAlgError:
-                        raise NumericalError(f"{label}: innovation covariance H P_f Hᵀ + R_f is singular at "
-                                             f"{when(k)}") from None
-                    if form == "joseph":
-                        Pf = _joseph(Pf, K, Hf, Rf, symmetrize=sym, HP=HPf)
-                    else:
-                        Pf = standard_update(Pf, K, HPf, sym=sym)             # eq (8)
-                else:
-                    K = gains[:, ui]
-                out_g[:, ui] = K
-                HP = H @ P
-                if sel is not None:
-                    P = _joseph(P, K, H, R, sel, symmetrize=sym, HP=HP)         # eq (16), D a selection
-                else:
-                    P = _joseph(P, D @ K, H, R, symmetrize=sym, HP=HP)          # eq (16)
-                if check and sym:
-                    flush()
-                    guard(P, "truth after the eq (16) update", k, names, psd_mask, scaled=True)
-                    if running:
-                        guard(Pf, f"filter after the {form} update", k, filter_names)
-                    checked[0] = k
-                ui += 1
-            elif check and k in rec_set:
-                P = symmetrize(P)                   # round-off asymmetry of the sandwiches (see above)
-                if running:
-                    Pf = symmetrize(Pf)
-                pending.append((ri, k, P, Pf if running else None))     # guarded by flush()
-                if len(pending) >= RECORD_CHECKS:
-                    flush()
-            if k in rec_set:
-                out_t[:, ri] = symmetrize(P[:, idx[:, None], idx[None, :]])
-                out_t[dead, ri] = np.nan
-                if running:
-                    out_f[:, ri] = symmetrize(Pf[:, fidx[:, None], fidx[None, :]])
-                    out_f[dead, ri] = np.nan
-                ri += 1
-            if i < len(ev) - 1:
+                    check_finite(filt.Phi, f"{label}: filter Φ_f of the interval", names=filter_names)
+                    check_covariance(filt.Q, f"{label}: filter Q_f of the interval", names=filter_names,
+                                     at=interval_at)
+            # random-constant states (identity Φ rows): only the dynamic blocks are propagated (exact)
+            tdyn = truth.dynamic
+            fdyn = filt.dynamic if running else None
+            for i, k in enumerate(cev[:-1]):
+                event(int(k))
                 # eq (15) and (6a); symmetry is restored every SYMMETRIZE_EVERY updates and when recorded
                 P = sandwich(truth.Phi[i], P, tdyn)
                 if truth_Q is None:
@@ -595,12 +712,17 @@ def run_batch(truth: System, P0: np.ndarray, H: np.ndarray, R: np.ndarray, D: np
                         st = covariance_status(Qi, scale=scale, groups=scale_groups(names, n))
                         if not st.ok.all():
                             b = int(np.flatnonzero(~st.ok)[0])
-                            raise NumericalError(f"{label} {case_at((b,))}: truth Q_d of the interval from {when(int(k))}: "
-                                                 f"{st.problem(b, names)}")
+                            raise NumericalError(f"{label} {case_at((b,))}: truth Q_d of the interval from "
+                                                 f"{when(int(k))}: {st.problem(b, names)}")
                     P += Qi
                 if running:
                     Pf = sandwich(filt.Phi[i], Pf, fdyn)
                     Pf += qs[:, None, None] * (filt.Q[i] if filter_Q is None else filter_Q[:, i])
+            done = int(cev[-1])
+        if done != int(ev[-1]):
+            raise ValueError(f"the batch was finished at step {done}, before the end of its event grid "
+                             f"(step {int(ev[-1])})")
+        event(int(ev[-1]))
     if check:
         flush()
     out_g[dead] = np.nan

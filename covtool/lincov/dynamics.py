@@ -113,6 +113,13 @@ class Context:
     def n(self) -> int:
         return self.lat.shape[0]
 
+    def slice(self, a: int, b: int) -> "Context":
+        """The samples ``a … b−1`` (views, the derived fields sliced too: equal to a full build)."""
+        out = object.__new__(Context)
+        for name in ("lat", "h", "v_n", "q", "f_b", "w_ib_b", "C", "speed", "g"):
+            setattr(out, name, getattr(self, name)[a:b])
+        return out
+
 
 @dataclass
 class NoiseSource:
@@ -132,6 +139,59 @@ class NoiseSource:
     def qc(self) -> np.ndarray:
         """Contribution to ``Q_c``, shape ``(N, n, n)``."""
         return (self.G * self.psd[:, None, :]) @ np.swapaxes(self.G, 1, 2)
+
+    def add_qc(self, Qc: np.ndarray, a: int = 0, b: int | None = None) -> None:
+        """Add the steps ``a … b−1``'s contribution to ``Qc`` (shape ``(b−a, n, n)``), in place."""
+        G = self.G[a:b]
+        Qc += (G * self.psd[a:b, None, :]) @ np.swapaxes(G, 1, 2)
+
+    def compact(self) -> "NoiseSource":
+        """The same source holding only the rows of ``G`` that are not zero (:class:`CompactNoiseSource`)."""
+        rows = np.flatnonzero(np.any(np.asarray(self.G) != 0, axis=(0, 2)))
+        return CompactNoiseSource(self.name, np.ascontiguousarray(self.G[:, rows, :]), self.psd, rows,
+                                  self.G.shape[1])
+
+
+class CompactNoiseSource(NoiseSource):
+    """A :class:`NoiseSource` whose ``G`` is stored by its non-zero rows only.
+
+    An equivalent-noise source of eq (11)–(13) drives the 3 or 4 states its
+    dropped state couples into (a velocity or attitude block), so its
+    ``(N, n, k)`` matrix is mostly zeros; over a long study this storage is
+    ``n/rows`` times smaller.  ``G`` expands on access (same values).
+
+    Parameters
+    ----------
+    name : str
+    G_rows : ndarray, shape (N, r, k)
+        The rows ``rows`` of ``G``.
+    psd : ndarray, shape (N, k)
+    rows : ndarray of int, shape (r,)
+    n : int
+        Rows of the full ``G``.
+    """
+
+    def __init__(self, name, G_rows, psd, rows, n):
+        self.name, self.G_rows, self.psd, self.rows, self.n = name, G_rows, psd, np.asarray(rows, int), int(n)
+
+    @property
+    def G(self) -> np.ndarray:
+        """The full ``G``, shape ``(N, n, k)`` (built on access)."""
+        return self._expand(0, None)
+
+    def _expand(self, a, b):
+        Gr = self.G_rows[a:b]
+        out = np.zeros((Gr.shape[0], self.n, Gr.shape[2]))
+        out[:, self.rows, :] = Gr
+        return out
+
+    def add_qc(self, Qc: np.ndarray, a: int = 0, b: int | None = None) -> None:
+        # the full rows of the chunk, multiplied as NoiseSource does: the same sums, to the last bit
+        G = self._expand(a, b)
+        Qc += (G * self.psd[a:b, None, :]) @ np.swapaxes(G, 1, 2)
+
+    def compact(self) -> "CompactNoiseSource":
+        return self
 
 
 @dataclass
@@ -155,6 +215,64 @@ class ErrorDynamics:
                 out[:, nz[:, None], nz[None, :]] += (G * src.psd[:, None, :]) @ np.swapaxes(G, 1, 2)
             self._qc = out
         return self._qc
+
+
+#: steps of F, Q_c, Φ and Q_d generated at once when a study streams in time (a multiple of
+#: covtool.studies.resources.DISCRETIZE_CHUNK, so that each step is discretised in the same batch as when
+#: the whole grid is held)
+STREAM_CHUNK = 600
+
+
+class DynamicsStream:
+    """F(t) and Q_c(t) of a model along a trajectory, generated chunk by chunk in time.
+
+    Nothing of size ``N × n²`` is held: :meth:`chunk` builds the
+    :class:`ErrorDynamics` of the steps ``a … b−1`` (the same values as the
+    rows of :func:`error_dynamics` over the whole context), and
+    :meth:`columns` gathers a few columns of F over the whole span.
+
+    Parameters
+    ----------
+    model : Model
+    ctx : Context
+        Trajectory at the propagation mid-points, shape (N, ...).
+    options : NavOptions
+    chunk : int
+        Steps per chunk.
+    """
+
+    def __init__(self, model: Model, ctx: Context, options: "NavOptions" = None, chunk: int = STREAM_CHUNK):
+        self.model, self.ctx, self.options, self.chunk_steps = model, ctx, options or NavOptions(), int(chunk)
+        self.names = model.names
+
+    @property
+    def n_steps(self) -> int:
+        return self.ctx.n
+
+    def bounds(self):
+        """``(a, b)`` of every chunk, in order."""
+        N = self.ctx.n
+        return [(a, min(N, a + self.chunk_steps)) for a in range(0, N, self.chunk_steps)]
+
+    def chunk(self, a: int, b: int) -> "ErrorDynamics":
+        """F, Q_c and the noise sources of the steps ``a … b−1``."""
+        return error_dynamics(self.model, self.ctx.slice(a, b), self.options)
+
+    def columns(self, rows, cols) -> np.ndarray:
+        """``F[rows, cols]`` over the whole span, column-major: shape ``(len(cols), len(rows), N)``.
+
+        ``out[c].T`` is ``F[:, rows, cols[c]]`` (shape ``(N, len(rows))``)
+        with the memory layout of that fancy index of a whole-grid ``F``
+        (time fastest), and ``out[c0:c1].transpose(2, 1, 0)`` is
+        ``F[:, rows][:, :, cols[c0:c1]]``, as laid out by numpy: views, no
+        copies, and the same round-off in what consumes them.
+        """
+        rows, cols = np.asarray(rows, int), np.asarray(cols, int)
+        out = np.empty((cols.size, rows.size, self.ctx.n))
+        for a, b in self.bounds():
+            F = self.chunk(a, b).F
+            out[:, :, a:b] = F[:, rows[:, None], cols[None, :]].transpose(2, 1, 0)
+        return out
 
 
 def transport_rate_partials(lat, h, v_n):

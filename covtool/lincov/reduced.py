@@ -19,7 +19,8 @@ import numpy as np
 import pandas as pd
 
 from covtool.lincov.discretize import discretize
-from covtool.lincov.dynamics import Context, error_dynamics, ErrorDynamics, nav_error_matrix, NavOptions
+from covtool.lincov.dynamics import (Context, DynamicsStream, error_dynamics, ErrorDynamics, nav_error_matrix,
+                                     NavOptions)
 from covtool.lincov.equivalent_noise import (absorbed_coupling, equivalent_noise_source,
                                              equivalent_white_noise, pointwise_overstatement,
                                              uses_constant_rule, zupt_intervals)
@@ -133,6 +134,21 @@ class FilterModel:
         """Φ_f and Q_f by the filter's declared method (eq (6b)–(6d) by default)."""
         return discretize(self.F, self.Qc, dt, self.spec.discretization, self.spec.taylor_order)
 
+    def chunk(self, dyn: ErrorDynamics, a: int, b: int) -> tuple[np.ndarray, np.ndarray]:
+        """``(F_f, Q_c,f)`` of the steps ``a … b−1`` from the truth dynamics of those steps.
+
+        ``dyn`` is the chunk's truth :class:`ErrorDynamics` under the
+        filter's options (:meth:`covtool.lincov.dynamics.DynamicsStream.chunk`);
+        the equivalent noise of eq (11)–(13) is added as in
+        :func:`build_filter` (same values as its whole-span ``F``, ``Qc``).
+        """
+        kidx = np.argmax(self.D, axis=0)
+        F = dyn.F[:, kidx][:, :, kidx]
+        Qc = dyn.Qc[:, kidx][:, :, kidx].copy()
+        for src in self.ewn_noise:
+            src.add_qc(Qc, a, b)
+        return F, Qc
+
 
 def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval: float, q0=None,
                  truth_dynamics: ErrorDynamics | None = None, mean_speed: float | None = None,
@@ -187,18 +203,28 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
     kidx = truth.idx(spec.kept)
     kset = set(kidx.tolist())
     dropped = [i for i in range(truth.n) if i not in kset]
-    F = dyn.F[:, kidx][:, :, kidx]
-    Qc_kept = dyn.Qc[:, kidx][:, :, kidx].copy()
-    Qc = Qc_kept.copy()
+    mode = spec.equivalent_noise
+    sens = [k for k, i in enumerate(kidx) if i >= 10]              # kept sensor/environment states
+    if isinstance(dyn, DynamicsStream):
+        # streamed in time: F_f and Q_c,f are built per chunk (FilterModel.chunk); only the couplings
+        # eq (11)-(13) needs are gathered over the span
+        F = Qc_kept = Qc = None
+        Fx = dyn.columns(kidx, dropped + [int(kidx[k]) for k in sens]) if mode else None
+        # views laid out as the whole-grid slices below (time fastest): the same round-off downstream
+        cols = {j: Fx[c].T for c, j in enumerate(dropped)} if mode else {}
+        B = Fx[len(dropped):].transpose(2, 1, 0) if mode else None
+    else:
+        F = dyn.F[:, kidx][:, :, kidx]
+        Qc_kept = dyn.Qc[:, kidx][:, :, kidx].copy()
+        Qc = Qc_kept.copy()
+        B = F[:, :, sens] if mode else None                       # (N, n_f, n_s) their couplings
+        cols = {j: dyn.F[:, kidx, j] for j in dropped} if mode else {}     # F_kept,dropped
     rows, sources, absorb_by = [], [], {}
     absorb = np.zeros((len(kidx), len(kidx)))
-    mode = spec.equivalent_noise
     if mode:
-        sens = [k for k, i in enumerate(kidx) if i >= 10]          # kept sensor/environment states
-        B = F[:, :, sens]                                         # (N, n_f, n_s) their couplings
         for j in dropped:
             st = truth.states[j]
-            col = dyn.F[:, kidx, j]                                   # F_kept,dropped
+            col = cols[j]                                             # F_kept,dropped
             over, worst = pointwise_overstatement(col, dt_steps, bounds, zupt_interval) \
                 if uses_constant_rule(st, zupt_interval, mean_speed) else (np.nan, np.nan)
             alpha = np.zeros(len(sens))
@@ -215,8 +241,9 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
                 absorb += st.sigma**2 * np.outer(a, a)
                 absorb_by[st.name] = a
             if np.any(src.psd > 0) and np.any(src.G != 0):
-                Qc += src.qc()
-                sources.append(src)
+                if Qc is not None:
+                    Qc += src.qc()
+                sources.append(src.compact() if F is None else src)
             rows.append({"filter": spec.name, "dropped state": st.name, "block": st.block, "process": st.process,
                          "rule": rule, "mode": mode, "P0, SI value": st.sigma**2,
                          "P0 SI unit": si_unit(st.unit, 2), "q_eq, SI value": q_eq,

@@ -137,6 +137,96 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
     return {"bytes": float(total), "steps": N, "parts": parts, "parallel": int(parallel)}
 
 
+#: steps per chunk of a study that streams in time (covtool.lincov.dynamics.STREAM_CHUNK, restated here so
+#: that the estimate is made before the numeric core is imported; test_memory checks they agree)
+STREAM_CHUNK = 600
+#: float64 per step and per equivalent-noise source held by a streamed filter: the 3 or 4 rows its
+#: dropped state drives, times up to 2 columns (interval-matched), and its PSD (CompactNoiseSource)
+_EWN_FLOATS = 10
+
+
+def stream_memory_estimate(steps: int, n: int, *, filters=(), dropped=(), dynamics: int = 1, histories=(),
+                           noise: int | None = None, records: int | None = None, intervals: int | None = None,
+                           chunk: int = STREAM_CHUNK) -> dict:
+    """Peak memory of a study that streams in time (an upper estimate).
+
+    The counterpart of :func:`memory_estimate` for
+    :meth:`covtool.studies.zupt_setup.ZuptSetup.stream`: F, Q_c, Φ, Q_d and
+    their composition exist for one chunk of ``chunk`` steps at a time;
+    over the grid only the trajectory, the filters' equivalent-noise
+    sources and the histories are held.
+
+    Parameters
+    ----------
+    steps : int
+        Propagation steps N.
+    n : int
+        Truth states.
+    filters : sequence of int
+        States of every filter with its own system (not sharing the truth's).
+    dropped : sequence of int
+        Truth states each of those filters drops (an equivalent-noise source each).
+    dynamics : int
+        Truth error dynamics built per chunk (one per distinct set of navigation options).
+    histories : sequence of int
+        State counts of the ``records·m²`` histories held at once.
+    noise : int, optional
+        Noise-source columns of the truth model (default ``n``).
+    records, intervals : int, optional
+        Points of each history and intervals of the event grid (default N + 1 and N).
+    chunk : int
+        Steps per chunk.
+
+    Returns
+    -------
+    dict
+        ``bytes`` (total), ``steps`` and ``parts`` (label -> bytes), as
+        :func:`memory_estimate`.
+
+    Notes
+    -----
+    Per chunk, in doubles: every truth dynamics F, Q_c, G (``2n² + n·c``),
+    the truth Φ, Q_d (``2n²``) and each filter's F_f, Q_c,f, Φ_f, Q_d,f
+    (``4 n_f²``) per step; the composed systems, Φ and Q per interval of
+    the chunk (``2 K_c m²``, ``K_c`` at most ``chunk``) and the
+    composition's gathers; the discretisation workspace (as
+    :func:`memory_estimate`).  Over the grid: the trajectory
+    (:data:`_GRID_FLOATS` per step), :data:`_EWN_FLOATS` per step and
+    equivalent-noise source, the histories, and the transient of building
+    the largest reduced filter (eq (11)–(13) gathers the couplings
+    ``F_kept,·`` over the grid: ``N n_f n``, and a few ``(N, n_f)``
+    temporaries) or of its navigation-effect table (``2 N n_dropped
+    (n_f + 1)``: the stacked noise columns and their PSD).
+    """
+    N = int(steps)
+    c = n if noise is None else int(noise)
+    L = min(int(chunk), max(N, 1))
+    K = N if intervals is None else int(intervals)
+    Kc = min(L, int(math.ceil(K * L / max(N, 1))) + 2)        # intervals in one chunk (events spread evenly)
+    comp = [n] + list(filters)
+    parts = {
+        "trajectory and grid": _GRID_FLOATS * (N + 1) * _F8,
+        "one chunk of F, Q_c, G, Phi, Q_d": (dynamics * (2 * n * n + n * c) + 2 * n * n
+                                             + sum(4 * m * m for m in filters)) * L * _F8,
+        "one chunk of composed systems": (sum(2 * Kc * m * m for m in comp) + 2 * Kc * max(comp) ** 2) * _F8,
+        # the series of eq (6b)-(6d) on DISCRETIZE_CHUNK steps: about ten n x n stacks (sums, terms, the
+        # balanced F and Q_c, temporaries); no 2n x 2n Van Loan matrix is formed
+        "discretisation workspace": 10 * DISCRETIZE_CHUNK * n * n * _F8,
+    }
+    if len(dropped):
+        parts["equivalent-noise sources"] = _EWN_FLOATS * N * sum(dropped) * _F8
+    red = [(m, d) for m, d in zip(filters, dropped) if d]
+    if red:
+        # the couplings gathered over the grid (N m n) and a few (N, m) temporaries of the eq (11)-(13) rules;
+        # the navigation-effect table stacks every source's 2 columns (N m 2d) and their PSD (N 2d)
+        parts["filter build (largest)"] = max(max(N * m * (n + 4), 2 * N * d * (m + 1)) for m, d in red) * _F8
+    rec = N + 1 if records is None else int(records)
+    if len(histories):
+        parts["covariance histories"] = sum(rec * m * m * _F8 for m in histories)
+    total = sum(parts.values())
+    return {"bytes": float(total), "steps": N, "parts": parts, "parallel": 1}
+
+
 def parse_bytes(value, where: str, error=StudyFileError) -> float:
     """A memory size in bytes: ``"6 GB"``, ``"512 MiB"`` or a bare number of bytes.
 

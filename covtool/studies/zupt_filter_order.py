@@ -42,7 +42,7 @@ from covtool.forked import Forked
 from covtool.io.config import check_keys
 from covtool.lincov.kalman import running_scale
 from covtool.lincov.reduced import ewn_navigation_effect, zupt_matrices
-from covtool.lincov.batch import events, run_batch, System
+from covtool.lincov.batch import BatchRun, events
 from covtool.plotting.zupt_filter_order import impact_figure
 from covtool.lincov.history import CovarianceHistory
 from covtool.plotting.navigation import error_history_figure
@@ -63,7 +63,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
               memory=order_memory(pure is not False, not (isinstance(imp, dict) and imp.get("filters") == [])))
     imp_filters = impact_filters(decl, S)
     hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth
-    Phi, Qd, P0, H, R, upd = S.Phi, S.Qd, S.P0, S.H, S.R, S.update_steps
+    P0, H, R, upd = S.P0, S.H, S.R, S.update_steps
     cases, every, rtimes, ffile = S.cases, S.every, S.report_times, S.filter_files
     dt_s, zsig, mean_speed = S.zupt_interval, S.zupt_sigma, S.mean_speed
     fcfg = decl.get("filters", {})
@@ -76,38 +76,49 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
     pos = np.searchsorted(rec, rsteps)                   # report steps in the record grid
     tr_ = t[rec]
     nav = (nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec], nodes.distance[rec])
-    ev = events(t.size - 1, upd, rec)
-    truth_sys = System.from_steps(Phi, Qd, ev)
+    # the event grid with the streaming chunks' boundaries (multiples of STREAM_CHUNK steps: numbers unchanged)
+    ev = S.stream_grid(events(t.size - 1, upd, rec))
     where = S.where
     # the dropped-state impact (independent of the cases' runs) is computed in a forked process while
-    # this one propagates the cases (the filters' systems are built first, for both)
+    # this one propagates the cases; it needs the whole-grid systems, built first (the stream then slices them)
     imp_job = None
     if imp_filters:
         for c in cases:
             S.filter_model(c)
         imp_job = Forked(impact_runs, S, imp_filters)
-    P_pure = None
+    # every case (and the pure INS) advances chunk by chunk in time, carrying its full P and P_f across
+    # the chunks: F, Q_c, Φ, Q_d and their composition exist for one chunk at a time (ZuptSetup.stream)
+    pure_run = None
     if fcfg.get("pure_ins", True):
-        pure_run = run_batch(truth_sys, P0[None], H, R, np.zeros((truth.n, 0)), [], rec,
-                             gains=np.zeros((1, 0, 0, H.shape[0])), label=f"{where}: pure INS", names=truth.names,
-                             times=t)
+        pure_run = BatchRun(ev, truth.n, P0[None], H, R, np.zeros((truth.n, 0)), [], rec, running=False,
+                            gains=np.zeros((1, 0, 0, H.shape[0])), label=f"{where}: pure INS", names=truth.names,
+                            times=t)
+    batches = {}
+    for c in cases:
+        fm, _ = S.filter_stream(c)
+        batches[c] = BatchRun(ev, truth.n, P0[None], H, R, fm.D, upd, rec, running=True, Pf0=fm.P0[None],
+                              Hf=zupt_matrices(fm.names), Rf=S.filter_R(c)[None], form=S.specs[c].update,
+                              label=f"{where}: filter {c}", names=truth.names, filter_names=fm.names, times=t)
+        fmodels[c] = fm
+    N = t.size - 1
+    with progress_bar(N, "propagation", progress) as bar:
+        for tsys, fsys in S.stream(ev, cases):
+            if pure_run is not None:
+                pure_run.advance(tsys)
+            for c in cases:
+                batches[c].advance(tsys, fsys[c])
+            bar.update(int(tsys.ev[-1] - tsys.ev[0]))
+    P_pure = None
+    if pure_run is not None:
+        pure_run = pure_run.finish()
         P_pure = pure_run.P_truth[0]
         metrics["pure_ins"] = nav_metrics(P_pure, *nav)
-    with progress_bar(len(cases), "filters", progress) as bar:
-        for c in cases:
-            spec = S.specs[c]
-            fm, Phi_f, Qd_f, reused = S.filter_system(c)
-            Hf = zupt_matrices(fm.names)
-            fsys = truth_sys if reused else System.from_steps(Phi_f, Qd_f, ev)
-            run_ = run_batch(truth_sys, P0[None], H, R, fm.D, upd, rec, filt=fsys, Pf0=fm.P0[None], Hf=Hf,
-                             Rf=S.filter_R(c)[None], form=spec.update, label=f"{where}: filter {c}",
-                             names=truth.names, filter_names=fm.names, times=t)
-            runs[c], fmodels[c] = run_, fm
-            metrics[c] = nav_metrics(run_.P_truth[0], *nav)
-            Pf = run_.P_filter[0]
-            claimed_hist[c] = CovarianceHistory(tr_, run_.filter_names, Pf, t[upd], label="filter-claimed")
-            claimed[c] = nav_metrics(Pf[pos], *(x[pos] for x in nav), scale=running_scale(Pf)[pos])
-            bar.update(1)
+    for c in cases:
+        run_ = runs[c] = batches[c].finish()
+        metrics[c] = nav_metrics(run_.P_truth[0], *nav)
+        Pf = run_.P_filter[0]
+        claimed_hist[c] = CovarianceHistory(tr_, run_.filter_names, Pf, t[upd], label="filter-claimed")
+        claimed[c] = nav_metrics(Pf[pos], *(x[pos] for x in nav), scale=running_scale(Pf)[pos])
     elapsed = time.perf_counter() - t_start
 
     rows = []
@@ -220,7 +231,7 @@ def equivalent_noise_table(S: ZuptSetup, fmodels: dict) -> pd.DataFrame:
     for c, fm in fmodels.items():
         if not len(fm.ewn_table):
             continue
-        _, Phi_f, _ = S.filter_model(c)
+        Phi_f = S.filter_transitions(c)            # streamed by chunks unless the whole grid is built
         eff = ewn_navigation_effect(fm, Phi_f, S.t, S.nodes.lat, S.nodes.h, S.nodes.q_nb)
         tab = fm.ewn_table
         if len(eff):

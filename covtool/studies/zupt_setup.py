@@ -2,9 +2,21 @@
 
 :func:`setup` validates the ``[study]``, ``[trajectory]``, ``[truth]``,
 ``[filters]`` and ``[zupt]`` tables once and builds a :class:`ZuptSetup`
-(the truth's Φ and Q_d on the grid, the ZUPT update steps, the filters'
+(the grid and the trajectory on it, the ZUPT update steps, the filters'
 models), used by the filter-order, sensitivity, budget, Monte Carlo,
 trade-grid and magnitude-sweep runners.
+
+Two ways to get the systems (seed 002, eq (6b)–(6d)):
+
+* whole grid: :attr:`ZuptSetup.Phi`, :attr:`ZuptSetup.Qd` and
+  :meth:`ZuptSetup.filter_system` build ``(N, n, n)`` stacks on first use
+  (the studies that index them over the whole time);
+* streamed in time: :meth:`ZuptSetup.stream` yields the truth's and the
+  filters' systems composed on the event grid, chunk by chunk of
+  :data:`~covtool.lincov.dynamics.STREAM_CHUNK` steps, so that memory is set
+  by the cases and the history spacing, not by duration × n²
+  (:class:`~covtool.lincov.batch.BatchRun` carries every case's P and P_f
+  across the chunks).  The filter-order study streams.
 """
 
 from __future__ import annotations
@@ -18,15 +30,20 @@ import numpy as np
 from covtool.errors import StudyFileError
 from covtool.io.config import is_library_name, names, resolve_input
 from covtool.io.filters import default_filter_file, load_filters
-from covtool.lincov.dynamics import Context, dyn_key, error_dynamics, ErrorDynamics
+from covtool.lincov.batch import compose, System
+from covtool.lincov.dynamics import Context, DynamicsStream, dyn_key, error_dynamics, ErrorDynamics, NavOptions, \
+    STREAM_CHUNK
 from covtool.lincov.model.spec import Model
 from covtool.lincov.reduced import FilterSpec
 from covtool.nav.trajectory.core import Trajectory
 from covtool.lincov.kalman import check_system
 from covtool.lincov.reduced import build_filter, zupt_matrices
-from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
+from covtool.studies import grid as _grid
+from covtool.studies.grid import (check_step_motion, discretize_chunked, initial_covariance, midpoint_context,
+                                  time_grid)
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_config, study_header
-from covtool.studies.resources import check_memory, memory_estimate, noise_columns, steps_of
+from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, steps_of,
+                                       stream_memory_estimate)
 
 
 def zupt_options(cfg, where: str, dt: float, duration: float) -> dict:
@@ -172,8 +189,10 @@ class ZuptSetup:
 
     Built by :func:`setup`; used by the filter-order, sensitivity, budget and
     trade-grid studies.  Filter models and their discretisation are built on
-    demand and cached (:meth:`filter_model`).  Shapes: N grid steps, n truth
-    states; times in s.
+    demand and cached (:meth:`filter_model`); the truth's whole-grid
+    :attr:`dyn`, :attr:`Phi` and :attr:`Qd` too.  :meth:`stream` builds
+    them chunk by chunk instead; :meth:`release` frees the caches.
+    Shapes: N grid steps, n truth states; times in s.
     """
 
     #: ``[study]`` as validated (:func:`covtool.studies.inputs.study_header`)
@@ -187,11 +206,6 @@ class ZuptSetup:
     truth: Model
     #: the trajectory at the propagation mid-points
     ctx: Context
-    #: the truth's F and Q_c along the grid
-    dyn: ErrorDynamics
-    #: the truth's transition and process noise, shape (N, n, n)
-    Phi: np.ndarray
-    Qd: np.ndarray
     #: the truth's initial covariance, shape (n, n)
     P0: np.ndarray
     #: ZUPT measurement matrix, shape (3, n), and its true noise, shape (3, 3)
@@ -218,8 +232,189 @@ class ZuptSetup:
     filter_truth: Model | None = None
     #: the trajectory's stationary intervals holding a ZUPT, ``((start, end), ...)`` [s] (figures shade them)
     stops: tuple = ()
+    #: the truth's discretisation method (``[study] discretization``)
+    method: str = "van_loan"
     _dyn_cache: dict = field(default_factory=dict)
     _filters: dict = field(default_factory=dict)
+    _dyn: ErrorDynamics | None = None
+    _Phi: np.ndarray | None = None
+    _Qd: np.ndarray | None = None
+    _streams: dict = field(default_factory=dict)
+
+    # -- the whole grid, built on first use (studies that hold it); the flagship streams instead (stream)
+    @property
+    def dyn(self) -> ErrorDynamics:
+        """The truth's F and Q_c along the whole grid, shape (N, n, n) (built on first use)."""
+        if self._dyn is None:
+            self._dyn = error_dynamics(self.truth, self.ctx)
+        return self._dyn
+
+    @property
+    def Phi(self) -> np.ndarray:
+        """The truth's transition of every step, shape (N, n, n) (built on first use)."""
+        self._whole_truth()
+        return self._Phi
+
+    @property
+    def Qd(self) -> np.ndarray:
+        """The truth's process noise of every step, shape (N, n, n) (built on first use)."""
+        self._whole_truth()
+        return self._Qd
+
+    def _whole_truth(self) -> None:
+        if self._Phi is None:
+            self._Phi, self._Qd = self._discretise_truth(self.dyn, 0, self.t.size - 1)
+
+    def _discretise_truth(self, dyn, a: int, b: int):
+        """Truth Φ, Q_d of the steps ``a … b−1`` from their dynamics ``dyn``, guarded (:func:`truth_system`)."""
+        what = f"{self.where}: truth model {self.truth.name!r}"
+        # through the module, as truth_system does (one place to instrument the truth's discretisation)
+        Phi, Qd = _grid.discretize_chunked(dyn.F, dyn.Qc, np.diff(self.t[a:b + 1]), self.method, what=what,
+                                     times=self.t[a:b])
+        # guarded once here; the runs that share them are told so (system_checked)
+        check_system(what, Phi, Qd, names=self.truth.names, times=self.t[a:b + 1])
+        return Phi, Qd
+
+    def release(self) -> None:
+        """Free the whole-grid arrays and the filters' systems (rebuilt on demand)."""
+        self._dyn = self._Phi = self._Qd = None
+        self._dyn_cache.clear()
+        self._filters.clear()
+        self._streams.clear()
+
+    # -- streaming in time: nothing of size N × n² is held
+    def filter_stream(self, name: str):
+        """``(FilterModel, reused)`` of a declared filter for :meth:`stream`, cached.
+
+        The model holds no ``F``, ``Q_c`` over the grid (``fm.F is None``)
+        unless the whole-grid system is already built (:meth:`filter_system`);
+        ``reused``: the filter's Φ_f, Q_f are the truth's (all the truth's
+        states in its order, its options, no equivalent noise, an exact
+        discretisation: :func:`truth_copy`).
+        """
+        if (name, None) in self._filters:
+            fm, _, _, reused = self._filters[(name, None)]
+            return fm, reused
+        if name not in self._streams:
+            spec = self.specs[name]
+            # a filter that differs from one already built only in what it assumes at the update (R_f, the
+            # update form) has the same F_f, Q_c,f, P_f(0) and D: that system is shared, not built again
+            twin = next((v for v in self._streams.values() if system_key(v[0].spec) == system_key(spec)), None)
+            if twin is not None:
+                self._streams[name] = (dataclasses.replace(twin[0], spec=spec), twin[1])
+                return self._streams[name]
+            ftruth = self.filter_truth if self.filter_truth is not None else self.truth
+            fm = build_filter(spec, ftruth, self.ctx, zupt_interval=self.zupt_interval, q0=self.nodes.q_nb[0],
+                              truth_dynamics=self.dynamics_stream(spec.options), mean_speed=self.mean_speed,
+                              dt_steps=np.diff(self.t), update_steps=self.update_steps)
+            reused = (truth_copy(spec, self.truth, self.filter_truth) and not fm.ewn_noise
+                      and np.array_equal(self.truth.idx(spec.kept), np.arange(self.truth.n)))
+            self._streams[name] = (fm, reused)
+        return self._streams[name]
+
+    def dynamics_stream(self, options=None) -> DynamicsStream:
+        """The truth's F, Q_c under ``options`` (None: its own), chunk by chunk (:class:`DynamicsStream`)."""
+        key = self._stream_key(options)
+        if key not in self._dyn_cache:
+            model = self.truth if key[1] == "truth" else self.filter_truth
+            self._dyn_cache[key] = DynamicsStream(model, self.ctx, options or NavOptions())
+        return self._dyn_cache[key]
+
+    def _stream_key(self, options):
+        """Cache key of a dynamics stream: the truth's own, or a filter's (the filters' model and options)."""
+        if options is None or (self.filter_truth is None and dyn_key(options) == dyn_key(None)):
+            return ("stream", "truth")
+        return ("stream", "filter" if self.filter_truth is not None else "truth") + dyn_key(options)
+
+    def stream_grid(self, ev, chunk: int = STREAM_CHUNK) -> np.ndarray:
+        """The event grid ``ev`` with the chunk boundaries of :meth:`stream` added (multiples of ``chunk``)."""
+        N = self.t.size - 1
+        return np.union1d(np.asarray(ev, int), np.r_[np.arange(0, N, int(chunk)), N])
+
+    def stream(self, ev, cases, *, chunk: int = STREAM_CHUNK):
+        """The truth's and the filters' systems composed on ``ev``, chunk by chunk in time.
+
+        Parameters
+        ----------
+        ev : ndarray of int
+            Event grid holding the chunk boundaries (:meth:`stream_grid`).
+        cases : sequence of str
+            Declared filters.
+        chunk : int
+            Steps per chunk (a multiple of
+            :data:`~covtool.studies.resources.DISCRETIZE_CHUNK`: every step is
+            discretised in the same batch as on the whole grid).
+
+        Yields
+        ------
+        truth : covtool.lincov.batch.System
+            Composed on the chunk's events (global step indices).
+        filters : dict of str to System
+            Per case, on the same events (the truth's for a reused filter).
+
+        Notes
+        -----
+        F, Q_c (:class:`~covtool.lincov.dynamics.DynamicsStream`), Φ, Q_d and
+        their composition exist for one chunk at a time, so the memory does
+        not grow with the duration.  Where the whole-grid arrays are already
+        built (a study that also needs them) they are sliced instead.
+        """
+        ev = np.asarray(ev, int)
+        N = self.t.size - 1
+        for a in range(0, N, int(chunk)):
+            b = min(N, a + int(chunk))
+            cev = ev[(ev >= a) & (ev <= b)]
+            if cev[0] != a or cev[-1] != b:
+                raise ValueError(f"the event grid lacks the chunk boundaries {a}, {b} (use stream_grid)")
+            dyns = {}
+
+            def dyn_of(options):
+                key = self._stream_key(options)
+                if key not in dyns:
+                    dyns[key] = self.dynamics_stream(options).chunk(a, b)
+                return dyns[key]
+
+            if self._Phi is not None:
+                Phi, Qd = self._Phi[a:b], self._Qd[a:b]
+            else:
+                Phi, Qd = self._discretise_truth(dyn_of(None), a, b)
+            tsys = System(cev, *compose(Phi, Qd, cev - a))
+            del Phi, Qd
+            fsys, shared = {}, []
+            for c in cases:
+                fm, reused = self.filter_stream(c)
+                if reused:
+                    fsys[c] = tsys
+                    continue
+                key = system_key(fm.spec)
+                twin = next((v for k, v in shared if k == key), None)
+                if twin is not None and (c, None) not in self._filters:
+                    fsys[c] = twin                           # the same F_f, Q_c,f (filter_stream)
+                    continue
+                if (c, None) in self._filters:
+                    _, Phi_f, Qd_f, _ = self._filters[(c, None)]
+                    Phi_f, Qd_f = Phi_f[a:b], Qd_f[a:b]
+                else:
+                    Phi_f, Qd_f = self._discretise_filter(c, dyn_of(fm.spec.options), a, b)
+                fsys[c] = System(cev, *compose(Phi_f, Qd_f, cev - a))
+                shared.append((key, fsys[c]))
+            yield tsys, fsys
+
+    def _discretise_filter(self, name: str, dyn, a: int, b: int):
+        """Φ_f, Q_f of filter ``name`` over the steps ``a … b−1`` from the chunk's truth dynamics, guarded."""
+        fm, _ = self.filter_stream(name)
+        spec = fm.spec
+        F_f, Qc_f = fm.chunk(dyn, a, b)
+        Phi_f, Qd_f = discretize_chunked(F_f, Qc_f, np.diff(self.t[a:b + 1]), spec.discretization, spec.taylor_order,
+                                         what=f"{spec.path}: filter {name!r}", times=self.t[a:b])
+        check_system(f"{self.where}: filter {name}", Phi_f, Qd_f, names=fm.names, times=self.t[a:b + 1])
+        return Phi_f, Qd_f
+
+    def filter_transitions(self, name: str):
+        """Φ_f of every step of filter ``name``: the whole-grid stack if built, else :class:`StreamedTransitions`."""
+        if (name, None) in self._filters:
+            return self._filters[(name, None)][1]
+        return StreamedTransitions(self, name)
 
     @property
     def filter_file(self) -> Path:
@@ -330,12 +525,18 @@ def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=
             kw = dict(zip(("records", "intervals"), history_records(
                 steps, hdr["dt"], every, rtimes, zupt_update_count(zo, hdr["duration"]))))
             kw["shared"] = sum(1 for c in cases if truth_copy(specs[c], truth, ftruth))
+            keys = []
+            for c in cases:
+                if not truth_copy(specs[c], truth, ftruth) and system_key(specs[c]) not in keys:
+                    keys.append(system_key(specs[c]))
+            kw["distinct"] = [k.n for k in keys]            # streamed: one system per distinct key
         est = check_memory(memory(steps, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases), **kw),
                            where, hdr["max_memory"], shrink)
     traj = load_trajectory(cfg, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"], where)
     upd, dt_s, zsig = zupt_schedule(cfg.zupt, where, t, traj)
-    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
+    check_step_motion(traj, t, where)
+    ctx = midpoint_context(traj, t)
     nodes = traj.sample(t)
     P0 = initial_covariance(truth, nodes, where)
     moving = t[-1] - t[0] - sum(max(0.0, min(b, t[-1]) - max(a, t[0])) for a, b in traj.stationary)
@@ -345,12 +546,53 @@ def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=
     tu = t[upd]
     stops = tuple((max(a, t[0]), min(b, t[-1])) for a, b in traj.stationary
                   if np.any((tu >= a - 1e-9) & (tu <= b + 1e-9)))
-    return ZuptSetup(hdr, where, t, nodes, truth, ctx, dyn, Phi, Qd, P0, H, R, upd, dt_s, zsig, specs, cases,
-                     mean_speed, ffile, every, rtimes, est, None if ftruth is truth else ftruth, stops=stops)
+    return ZuptSetup(hdr, where, t, nodes, truth, ctx, P0, H, R, upd, dt_s, zsig, specs, cases,
+                     mean_speed, ffile, every, rtimes, est, None if ftruth is truth else ftruth, stops=stops,
+                     method=hdr["discretization"])
+
+
+class StreamedTransitions:
+    """Φ_f[k] of a filter computed on demand by chunks of :data:`STREAM_CHUNK` steps (the last two kept).
+
+    Stands for the ``(N, n_f, n_f)`` stack where a consumer reads the steps
+    in runs (:func:`covtool.lincov.reduced.ewn_navigation_effect` walks each
+    ZUPT interval backwards); values equal the whole-grid stack's.
+    """
+
+    def __init__(self, S: ZuptSetup, name: str, chunk: int = STREAM_CHUNK):
+        fm, reused = S.filter_stream(name)
+        self.S, self.name, self.chunk, self.reused = S, name, int(chunk), reused
+        self.shape = (S.t.size - 1, len(fm.names), len(fm.names))
+        self._cache: dict = {}
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, k):
+        k = int(k)
+        if k < 0:
+            k += self.shape[0]
+        m = k // self.chunk
+        if m not in self._cache:
+            a, b = m * self.chunk, min(self.shape[0], (m + 1) * self.chunk)
+            S = self.S
+            if self.reused:
+                self._cache[m] = S._discretise_truth(S.dynamics_stream(None).chunk(a, b), a, b)[0]
+            else:
+                fm, _ = S.filter_stream(self.name)
+                self._cache[m] = S._discretise_filter(self.name, S.dynamics_stream(fm.spec.options).chunk(a, b), a,
+                                                      b)[0]
+            while len(self._cache) > 2:
+                self._cache.pop(next(iter(self._cache)))
+        return self._cache[m][k - m * self.chunk]
 
 
 def order_memory(pure: bool, impact: bool = True):
     """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter).
+
+    Without the dropped-state impact table the study streams in time
+    (:meth:`ZuptSetup.stream`, :func:`~covtool.studies.resources.stream_memory_estimate`);
+    with it the whole-grid systems are held, as below.
 
     The histories are navigation blocks (10 × 10) at the record steps
     (``records``: the history spacing and the report times); the truth's
@@ -361,20 +603,36 @@ def order_memory(pure: bool, impact: bool = True):
     per-source noise series.
     """
 
-    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0):
+    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0, distinct=None):
         n = truth.n
         hist = [min(n, 10)] * ((1 if pure else 0) + 2 * len(filters))
+        own = sorted(filters)[:len(filters) - shared] if shared else filters
+        if not (impact and any(nf < n for nf in filters)):
+            # streamed in time (ZuptSetup.stream): one chunk of every distinct system (filters that differ
+            # only in R_f or the update form share one), the equivalent-noise sources and the histories;
+            # a filter of m states drops n - m truth states
+            own = own if distinct is None else distinct
+            return stream_memory_estimate(steps, n, filters=own, dropped=[n - m for m in own], dynamics=dynamics,
+                                          histories=hist, noise=noise_columns(truth), records=records,
+                                          intervals=intervals)
         # the per-source series runs on each source's reach set (covtool.lincov.noise), mostly the 10
         # navigation states: its stacks stay far below COMPOSE_WORKSPACE, the two transition copies dominate
         extra = 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
         # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more
-        own = sorted(filters)[:len(filters) - shared] if shared else filters
         return memory_estimate(steps, n, filters=own, dynamics=dynamics, histories=hist,
                                noise=noise_columns(truth), extra=extra, records=records,
                                composed=[n] + ([max(filters)] if filters else []), intervals=intervals,
                                extra_late=True)
     memory.records = True           # setup() passes the record and interval counts
     return memory
+
+
+def system_key(spec: FilterSpec) -> FilterSpec:
+    """``spec`` without what only the update uses (name, R_f, update form, texts).
+
+    Equal keys: equal F_f, Q_c,f, P_f(0) and D (one system serves both).
+    """
+    return dataclasses.replace(spec, name="", zupt_sigma=None, update="joseph", description="", path="", decl={})
 
 
 def truth_copy(spec: FilterSpec, truth: Model, ftruth: Model | None = None) -> bool:
