@@ -33,7 +33,8 @@ import numpy as np
 
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.discretize import van_loan
-from covtool.lincov.noise import CombinedNoise, compose_noise, compose_scan, compose_transition, restricted_noise
+from covtool.lincov.noise import (CombinedNoise, ComposedCache, compose_noise, compose_scan, compose_transition,
+                                  restricted_noise)
 
 
 #: steps discretised at once by :func:`_transition` (bounds its workspace)
@@ -115,14 +116,18 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     if truth_system is None:
         truth_system = System.from_steps(S.Phi, S.Qd, ev)
     dyn = S._dyn_cache.get(dyn_key(spec.options), S.dyn)
+    tkey = ("impact transition", dyn_key(spec.options))
     if dyn_key(spec.options) == dyn_key(None) and S.hdr["discretization"] == "van_loan":
         Phi_pad = S.Phi                                   # the truth's own e^{FΔt}
     else:
         # filters that share navigation options share this transition: computed once per study
-        tkey = ("impact transition", dyn_key(spec.options))
         if tkey not in S._dyn_cache:
             S._dyn_cache[tkey] = _transition(dyn.F, dt)
         Phi_pad = S._dyn_cache[tkey]
+    # so do the sources' composed noises: a source composed on the states it reaches is the same in
+    # every filter of these options that holds them (the kept navigation states, a dropped block's own)
+    cache = S._dyn_cache.setdefault(("impact noise",), ComposedCache())
+    shared = dict(cache=cache, system=(tkey, Phi_pad is S.Phi, ev.tobytes()))
     kidx = truth.idx(fm.names)
     kset = set(kidx.tolist())
     blocks = dropped_blocks(truth, fm.names)
@@ -141,7 +146,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
                  for b in blocks}
     noisy = [b for b in blocks if own_noise[b]]
     factors += [restricted_noise(f"noise {b} on kept", own_noise[b], kidx) for b in noisy]
-    QX = compose_noise(PhiX, FX, factors, dt, ev)
+    QX = compose_noise(PhiX, FX, factors, dt, ev, rows=kidx, **shared)
     components = [(QX[c], kidx) for c in range(len(factors))]
     ci_kept, ci_ewn = 0, {b: 1 + k for k, b in enumerate(ewn_blocks)}
     ci_own_kept = {b: 1 + len(ewn_blocks) + k for k, b in enumerate(noisy)}
@@ -156,7 +161,8 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
         urows = np.array(sorted(kset.union(*(block_states[b] for b in group))))
         Qu = compose_noise(Phi_pad[:, urows][:, :, urows], dyn.F[:, urows][:, :, urows],
-                           [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev)
+                           [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev,
+                           rows=urows, **shared)
         for j, b in enumerate(group):
             rows = np.array(sorted(kset | set(block_states[b])))
             sub = np.searchsorted(urows, rows)
