@@ -218,7 +218,11 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
             P[np.ix_(bi, kidx)] = P0t[np.ix_(bi, kidx)]
             P[np.ix_(kidx, bi)] = P0t[np.ix_(kidx, bi)]
         member(BACK, b, P, back)
-    Phi_c = compose_transition(Phi_pad, ev)
+    # the embedded filters of one transition share its composition over the event grid
+    ckey = ("impact composed transition", shared["system"])
+    if ckey not in S._dyn_cache:
+        S._dyn_cache[ckey] = compose_transition(Phi_pad, ev)
+    Phi_c = S._dyn_cache[ckey]
     filt = System(ev, Phi_c, np.zeros((len(ev) - 1, 0, 0)))
     fQ = CombinedNoise(components, np.array(coefs), n)
     res = run_batch(truth_system, P0t, S.H, S.R, np.eye(n), S.update_steps, rec, filt=filt,
