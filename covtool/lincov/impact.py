@@ -20,7 +20,10 @@ covariance and zero gain, and the kept block of the transition is exactly the
 reduced filter's own: the embedding changes nothing but the bookkeeping.  The
 members differ only in P_f(0) and in the filter noise, which is linear in its
 sources and therefore composed once per source (:func:`covtool.lincov.noise.compose_noise`)
-and summed per member.
+and summed per member.  Filters with the same navigation options share the
+truth transition, its composition over the event grid, and every source
+composed on the states it reaches (:class:`covtool.lincov.noise.ComposedCache`,
+kept on the study setup): filters C and D take most of theirs from B3's run.
 
 Pure numeric core: a :class:`~covtool.studies.zupt_setup.ZuptSetup` in, arrays out.
 """
