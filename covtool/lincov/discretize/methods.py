@@ -3,9 +3,7 @@
 :func:`van_loan` and the adaptive :func:`taylor` (seed 002, eq (6b)–(6d))
 are exact for any step; ``taylor(order=N_t)`` is the paper's fixed-order
 series; :func:`taylor_terms` reports the terms used; :func:`discretize`
-dispatches by name.  The exact methods fold the random constants out first
-(:func:`_exact_constants`: a constant's column of ``Φ`` is ``Γ F_dc``, it has
-no ``Q_d``), so the 58-state truth is summed as a 29-state system.
+dispatches by name.
 """
 from __future__ import annotations
 
