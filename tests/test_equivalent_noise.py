@@ -141,3 +141,42 @@ def test_markov_source_short_tau_stays_pointwise():
     long = _state("markov", sigma=2.0, tau=3600.0)
     src2, rule2 = equivalent_noise_source(long, c, DT, bounds, dt_s=T_S)
     assert "interval-matched" in rule2 and "tau = 3600 s > dt_s/2" in rule2
+
+
+def test_interval_mean_sums_each_interval_with_or_without_a_strict_schedule():
+    """c̄_i = (1/Δt_i) ∫_i c dt by an explicit loop; a bounds list with a repeated entry (an empty interval) too."""
+    from covtool.lincov.equivalent_noise import interval_mean
+
+    rng = np.random.default_rng(4)
+    c = rng.standard_normal((N, 3))
+    dt = 0.5 + rng.random(N)
+    for bounds in (zupt_intervals(ONE_PER_STOP, T, T_S), np.array([0, 250, 250, 700, N])):
+        cbar, dti = interval_mean(c, dt, bounds)
+        for a, b in zip(bounds[:-1], bounds[1:]):
+            if b == a:
+                continue
+            L = dt[a:b].sum()
+            np.testing.assert_allclose(cbar[a:b], np.tile((c[a:b] * dt[a:b, None]).sum(0) / L, (b - a, 1)),
+                                       rtol=1e-12, atol=1e-15)
+            np.testing.assert_allclose(dti[a:b], L, rtol=1e-13)
+
+
+def test_equivalent_noise_qc_is_the_sum_of_the_sources_own_qc():
+    """Formed on each source's rows, the sum equals Σ G diag(psd) Gᵀ of the full products, element by element."""
+    from covtool.lincov.dynamics import NoiseSource
+    from covtool.lincov.reduced import equivalent_noise_qc
+
+    rng = np.random.default_rng(9)
+    n, M = 7, 50
+    srcs = []
+    for rows_, k in (([3, 4, 5], 1), ([0, 1, 2, 3], 2), ([6], 1)):
+        G = np.zeros((M, n, k))
+        G[:, rows_, :] = rng.standard_normal((M, len(rows_), k))
+        srcs.append(NoiseSource("s", G, rng.random((M, k))))
+    base = rng.standard_normal((M, n, n))
+    ref = base.copy()
+    for s in srcs:
+        ref += s.qc()
+    got = equivalent_noise_qc(srcs, (M, n, n), out=base.copy())
+    np.testing.assert_array_equal(got, ref)
+    np.testing.assert_array_equal(equivalent_noise_qc([], (M, n, n)), np.zeros((M, n, n)))

@@ -165,3 +165,30 @@ def test_forked_call_runs_in_process_while_tracemalloc_traces():
     finally:
         tracemalloc.stop()
     assert Forked(os.getpid).result() != os.getpid()
+
+
+def _blas_threads():
+    from threadpoolctl import threadpool_info
+
+    return [p["num_threads"] for p in threadpool_info() if p["user_api"] == "blas"]
+
+
+def test_forked_children_and_their_parent_use_one_blas_thread_until_the_last_is_collected():
+    """Two processes × the default BLAS pool on a 2-core machine doubled the impact child's time (issue 13)."""
+    from threadpoolctl import threadpool_limits
+
+    from covtool.forked import Forked
+
+    assert _blas_threads()                                    # numpy's OpenBLAS, seen by threadpoolctl
+    with threadpool_limits(limits=2, user_api="blas"):
+        before = _blas_threads()
+        a = Forked(_blas_threads)
+        b = Forked(_blas_threads)
+        assert set(_blas_threads()) == {1}                   # the parent, while children run
+        assert set(a.result()) == {1}                         # the child
+        assert set(_blas_threads()) == {1}                    # b still runs
+        assert set(b.result()) == {1}
+        assert _blas_threads() == before                      # the pool given back
+        c = Forked(_blas_threads)
+        c.cancel()
+        assert _blas_threads() == before

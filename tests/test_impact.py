@@ -171,3 +171,23 @@ def test_member_covariances_are_checked():
     P[0, 0, 3, 3] = np.nan
     with pytest.raises(NumericalError, match=r"impact: filter X: nominal: t = 60 s: covariance has a non-finite entry"):
         check_members(P, np.array([[1.0, 0, 0, 0]]), np.array([60.0]), ["impact: filter X: nominal"])
+
+
+def test_filters_of_one_option_set_share_compositions_without_changing_the_table(S):
+    """C and D share B3's navigation options: D's run after C's takes C's compositions (cache hits) and
+    equals D's run on its own (issue 13: the truth transition and noise composition shared between filters)."""
+    from covtool.lincov.noise import ComposedCache
+
+    N = S.t.size - 1
+    key = ("impact noise",)
+    S._dyn_cache.pop(key, None)
+    alone = impact_run(S, "D", [N])
+    S._dyn_cache[key] = ComposedCache()
+    impact_run(S, "C", [N])
+    cache = S._dyn_cache[key]
+    hits = cache.hits
+    shared = impact_run(S, "D", [N])
+    assert cache.hits > hits                                   # D's kept-state sources come from C's run
+    assert shared.variants == alone.variants
+    np.testing.assert_allclose(shared.P, alone.P, rtol=1e-12, atol=1e-14 * np.abs(alone.P).max())
+    assert shared.noise_check < 1e-10

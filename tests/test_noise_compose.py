@@ -74,3 +74,46 @@ def test_sources_composed_on_their_reach_sets_equal_the_whole_space_composition(
         np.testing.assert_allclose(got[j], ref[j], rtol=1e-12, atol=1e-13 * scale, err_msg=factors[j].name)
     assert not got[1][:, 5].any() and not got[2][:, :5].any() and not got[3].any()   # zero outside the reach
     assert got[2][-1, 5, 5] > 0
+
+
+def test_shared_compositions_are_reused_only_for_the_same_source_system_and_states():
+    """A subspace that holds a source's reach set takes its composition from the cache (issue 13).
+
+    The oracle is the same composition computed afresh on the subspace; a
+    changed PSD or another system must be computed, not reused.
+    """
+    from covtool.lincov.noise import ComposedCache
+
+    rng = np.random.default_rng(8)
+    N, n = 30, 6
+    F = np.zeros((N, n, n))
+    F[:, :3, :3] = 0.02 * rng.standard_normal((N, 3, 3))
+    F[:, :3, 3] = rng.standard_normal((N, 3))
+    F[:, :3, 4] = rng.standard_normal((N, 3))
+    F[:, 4, 4] = -1 / 50.0
+    F[:, 5, 5] = -1 / 20.0
+    dt = 1.0
+    Phi = van_loan(F, np.zeros_like(F), dt)[0]
+    e = np.eye(n)
+    factors = [NoiseSource("vrw", np.broadcast_to(e[:, :3], (N, n, 3)), np.full((N, 3), 1e-4)),
+               NoiseSource("markov 4", np.broadcast_to(e[:, 4:5], (N, n, 1)), np.full((N, 1), 2e-6)),
+               NoiseSource("markov 5", np.broadcast_to(e[:, 5:6], (N, n, 1)), np.full((N, 1), 3e-6))]
+    ev = np.array([0, 7, 30])
+    cache = ComposedCache()
+    full = compose_noise(Phi, F, factors, dt, ev, cache=cache, system="truth")
+    assert cache.hits == 0 and len(cache.store) == 3
+    rows = np.array([0, 1, 2, 4])                                  # a "filter" without states 3 and 5
+    sub = [NoiseSource(f.name, f.G[:, rows], f.psd) for f in factors[:2]]
+    P_s, F_s = Phi[:, rows][:, :, rows], F[:, rows][:, :, rows]
+    got = compose_noise(P_s, F_s, sub, dt, ev, cache=cache, system="truth", rows=rows)
+    assert cache.hits == 2                                         # both reach sets lie in the subspace
+    ref = compose_noise(P_s, F_s, sub, dt, ev)                     # computed afresh
+    for j in range(2):
+        np.testing.assert_allclose(got[j], ref[j], rtol=1e-14, atol=1e-14 * np.abs(ref[j]).max())
+        np.testing.assert_array_equal(got[j], full[j][:, rows[:, None], rows[None, :]])
+    # another PSD, or another system: computed, not taken
+    other = [NoiseSource("vrw", sub[0].G, 2.0 * sub[0].psd)]
+    q2 = compose_noise(P_s, F_s, other, dt, ev, cache=cache, system="truth", rows=rows)
+    np.testing.assert_allclose(q2[0], 2.0 * ref[0], rtol=1e-13, atol=1e-14 * np.abs(ref[0]).max())
+    compose_noise(P_s, F_s, sub[:1], dt, ev, cache=cache, system="filter options", rows=rows)
+    assert cache.hits == 2

@@ -183,11 +183,30 @@ def interval_mean(col: np.ndarray, dt_steps: np.ndarray, bounds: np.ndarray) -> 
     """
     N = col.shape[0]
     k = _interval_index(bounds, N)
-    integ = np.zeros((len(bounds) - 1, col.shape[1]))
-    np.add.at(integ, k, col * dt_steps[:, None])
-    length = np.bincount(k, weights=dt_steps, minlength=len(bounds) - 1)
+    integ, length = _interval_sums(col * dt_steps[:, None], dt_steps, bounds)
     safe = np.where(length > 0, length, 1.0)
     return (integ / safe[:, None])[k], length[k]
+
+
+def _interval_sums(x: np.ndarray, dt_steps: np.ndarray, bounds: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Sums of the rows of ``x`` over each interval of ``bounds``, and the intervals' lengths.
+
+    Each interval's rows are added in step order, as ``np.add.at`` adds them
+    (the same bits), by one reduction per interval instead of one Python
+    level addition per step.
+    """
+    b = np.asarray(bounds, int)
+    dt_steps = np.asarray(dt_steps, float)
+    N = x.shape[0]
+    k = _interval_index(b, N)
+    length = np.bincount(k, weights=dt_steps, minlength=b.size - 1)
+    if x.ndim == 1:
+        return np.bincount(k, weights=x, minlength=b.size - 1), length
+    out = np.zeros((b.size - 1,) + x.shape[1:])
+    for i, (lo, hi) in enumerate(zip(b[:-1], b[1:])):
+        if hi > lo:
+            out[i] = x[lo:hi].sum(axis=0)          # along the outer axis: added row after row
+    return out, length
 
 
 def tail_integral(col: np.ndarray, dt_steps: np.ndarray, bounds: np.ndarray) -> np.ndarray:
@@ -220,12 +239,8 @@ def pointwise_overstatement(col: np.ndarray, dt_steps: np.ndarray, bounds: np.nd
     worst : float
         Largest ratio of one interval with a non-zero coupling.
     """
-    N = col.shape[0]
-    k = _interval_index(bounds, N)
-    K = len(bounds) - 1
-    integ = np.zeros((K, col.shape[1]))
-    np.add.at(integ, k, col * dt_steps[:, None])
-    sq = np.bincount(k, weights=np.sum(col**2, axis=1) * dt_steps, minlength=K)
+    integ = _interval_sums(col * dt_steps[:, None], dt_steps, bounds)[0]
+    sq = _interval_sums(np.sum(col**2, axis=1) * dt_steps, dt_steps, bounds)[0]
     num = dt_s * sq
     den = np.sum(integ**2, axis=1)
     tot = float(num.sum() / den.sum()) if den.sum() > 0 else (np.inf if num.sum() > 0 else 1.0)

@@ -20,7 +20,10 @@ covariance and zero gain, and the kept block of the transition is exactly the
 reduced filter's own: the embedding changes nothing but the bookkeeping.  The
 members differ only in P_f(0) and in the filter noise, which is linear in its
 sources and therefore composed once per source (:func:`covtool.lincov.noise.compose_noise`)
-and summed per member.
+and summed per member.  Filters with the same navigation options share the
+truth transition, its composition over the event grid, and every source
+composed on the states it reaches (:class:`covtool.lincov.noise.ComposedCache`,
+kept on the study setup): filters C and D take most of theirs from B3's run.
 
 Pure numeric core: a :class:`~covtool.studies.zupt_setup.ZuptSetup` in, arrays out.
 """
@@ -33,7 +36,8 @@ import numpy as np
 
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.discretize import van_loan
-from covtool.lincov.noise import CombinedNoise, compose_noise, compose_scan, compose_transition, restricted_noise
+from covtool.lincov.noise import (CombinedNoise, ComposedCache, compose_noise, compose_scan, compose_transition,
+                                  restricted_noise)
 
 
 #: steps discretised at once by :func:`_transition` (bounds its workspace)
@@ -115,14 +119,18 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     if truth_system is None:
         truth_system = System.from_steps(S.Phi, S.Qd, ev)
     dyn = S._dyn_cache.get(dyn_key(spec.options), S.dyn)
+    tkey = ("impact transition", dyn_key(spec.options))
     if dyn_key(spec.options) == dyn_key(None) and S.hdr["discretization"] == "van_loan":
         Phi_pad = S.Phi                                   # the truth's own e^{FΔt}
     else:
         # filters that share navigation options share this transition: computed once per study
-        tkey = ("impact transition", dyn_key(spec.options))
         if tkey not in S._dyn_cache:
             S._dyn_cache[tkey] = _transition(dyn.F, dt)
         Phi_pad = S._dyn_cache[tkey]
+    # so do the sources' composed noises: a source composed on the states it reaches is the same in
+    # every filter of these options that holds them (the kept navigation states, a dropped block's own)
+    cache = S._dyn_cache.setdefault(("impact noise",), ComposedCache())
+    shared = dict(cache=cache, system=(tkey, Phi_pad is S.Phi, ev.tobytes()))
     kidx = truth.idx(fm.names)
     kset = set(kidx.tolist())
     blocks = dropped_blocks(truth, fm.names)
@@ -141,7 +149,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
                  for b in blocks}
     noisy = [b for b in blocks if own_noise[b]]
     factors += [restricted_noise(f"noise {b} on kept", own_noise[b], kidx) for b in noisy]
-    QX = compose_noise(PhiX, FX, factors, dt, ev)
+    QX = compose_noise(PhiX, FX, factors, dt, ev, rows=kidx, **shared)
     components = [(QX[c], kidx) for c in range(len(factors))]
     ci_kept, ci_ewn = 0, {b: 1 + k for k, b in enumerate(ewn_blocks)}
     ci_own_kept = {b: 1 + len(ewn_blocks) + k for k, b in enumerate(noisy)}
@@ -156,7 +164,8 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
         urows = np.array(sorted(kset.union(*(block_states[b] for b in group))))
         Qu = compose_noise(Phi_pad[:, urows][:, :, urows], dyn.F[:, urows][:, :, urows],
-                           [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev)
+                           [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev,
+                           rows=urows, **shared)
         for j, b in enumerate(group):
             rows = np.array(sorted(kset | set(block_states[b])))
             sub = np.searchsorted(urows, rows)
@@ -212,7 +221,11 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
             P[np.ix_(bi, kidx)] = P0t[np.ix_(bi, kidx)]
             P[np.ix_(kidx, bi)] = P0t[np.ix_(kidx, bi)]
         member(BACK, b, P, back)
-    Phi_c = compose_transition(Phi_pad, ev)
+    # the embedded filters of one transition share its composition over the event grid
+    ckey = ("impact composed transition", shared["system"])
+    if ckey not in S._dyn_cache:
+        S._dyn_cache[ckey] = compose_transition(Phi_pad, ev)
+    Phi_c = S._dyn_cache[ckey]
     filt = System(ev, Phi_c, np.zeros((len(ev) - 1, 0, 0)))
     fQ = CombinedNoise(components, np.array(coefs), n)
     res = run_batch(truth_system, P0t, S.H, S.R, np.eye(n), S.update_steps, rec, filt=filt,

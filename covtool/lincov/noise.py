@@ -23,7 +23,8 @@ from covtool.lincov.kalman import symmetrize
 # discretisation and composition of the per-source noise
 
 
-def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 1000) -> np.ndarray:
+def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chunk: int = 1000,
+                  cache: "ComposedCache | None" = None, system=None, rows=None) -> np.ndarray:
     """Per-source noise composed over the event intervals.
 
     Parameters
@@ -36,6 +37,17 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         Event grid (:func:`covtool.lincov.batch.events`).
     chunk : int
         Steps discretised at once (bounds the memory).
+    cache : ComposedCache, optional
+        Compositions shared between calls (the dropped-state impact of
+        several filters): a factor already composed on the same states of
+        the same system is taken from it, not computed again.
+    system : hashable, optional
+        Names the full system ``Phi``, ``F`` are rows of (with ``cache``);
+        calls with equal ``system`` must pass restrictions of the same
+        arrays on the same grid ``dt``, ``ev``.
+    rows : array_like of int, shape (n,), optional
+        The full system's states that ``Phi``'s rows are (with ``cache``;
+        default ``0 … n−1``).
 
     Returns
     -------
@@ -44,7 +56,39 @@ def compose_noise(Phi: np.ndarray, F: np.ndarray, factors: list, dt, ev, *, chun
         interval ``[ev_i, ev_{i+1})``, as :func:`covtool.lincov.batch.compose`
         computes it for the total.
     """
-    return _compose_noise(Phi, F, factors, dt, ev, chunk)
+    shared = None
+    if cache is not None:
+        rows = np.arange(np.shape(Phi)[1]) if rows is None else np.asarray(rows, int)
+        shared = (cache, system, rows)
+    return _compose_noise(Phi, F, factors, dt, ev, chunk, shared)
+
+
+class ComposedCache:
+    """Composed per-source noise kept between :func:`compose_noise` calls.
+
+    A source's composed noise lives on the states it reaches, ``R``, and
+    depends only on ``Φ``, ``F`` restricted to ``R``, its ``G`` rows on ``R``
+    and its PSD (module notes of :func:`_compose_noise`): the key is the
+    system, ``R`` in the full system's numbering and a digest of ``G`` and
+    the PSD, so a reduced filter's space and a larger one that holds the
+    same ``R`` share the result.
+    """
+
+    def __init__(self):
+        self.store: dict = {}
+        self.hits = 0
+
+    @staticmethod
+    def key(system, states: np.ndarray, G: np.ndarray, psd: np.ndarray, ev, dt) -> tuple:
+        """Key of one source composed on ``states`` (full-system indices) over the grid ``ev``, ``dt``."""
+        import hashlib
+
+        h = hashlib.blake2b(digest_size=20)
+        for X in (np.asarray(G, float), np.asarray(psd, float), np.asarray(ev, int), np.asarray(dt, float)):
+            X = np.ascontiguousarray(X)
+            h.update(repr(X.shape).encode())
+            h.update(X.tobytes())
+        return system, tuple(int(i) for i in states), h.hexdigest()
 
 
 #: bytes the per-source series of :func:`compose_noise` may hold at once
@@ -77,7 +121,7 @@ def reached_states(pattern: np.ndarray, seed: np.ndarray) -> np.ndarray:
         R = Rn
 
 
-def _compose_noise(Phi, F, factors, dt, ev, chunk):
+def _compose_noise(Phi, F, factors, dt, ev, chunk, shared=None):
     """Per-source noise composed on the states each source reaches.
 
     A source whose ``G`` has non-zero rows ``S`` drives only the states
@@ -101,9 +145,18 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk):
         return _compose_block(Phi, F, factors, dt, ev, chunk)          # its checks name the step
     pattern = (F != 0).any(axis=0) | (Phi != 0).any(axis=0)
     sets: dict = {}
+    keys = {}
     for j, f in enumerate(factors):
         seed = (np.asarray(f.G) != 0).any(axis=(0, 2)) if np.size(f.G) else np.zeros(n, bool)
         R = reached_states(pattern, seed)
+        if shared is not None and R.any():
+            cache, system, rows = shared
+            idx = np.flatnonzero(R)
+            keys[j] = cache.key(system, rows[idx], np.asarray(f.G)[:, idx, :], f.psd, ev, dt)
+            if keys[j] in cache.store:
+                out[j][:, idx[:, None], idx[None, :]] = cache.store[keys[j]]
+                cache.hits += 1
+                continue
         sets.setdefault(R.tobytes(), (R, []))[1].append(j)
     for R, js in sets.values():
         idx = np.flatnonzero(R)
@@ -111,11 +164,14 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk):
             continue                                   # a source with a zero G: zero noise
         if idx.size == n:
             out[js] = _compose_block(Phi, F, [factors[j] for j in js], dt, ev, chunk)
-            continue
-        sub = [NoiseSource(factors[j].name, np.asarray(factors[j].G)[:, idx, :], factors[j].psd) for j in js]
-        Qs = _compose_block(Phi[:, idx][:, :, idx], F[:, idx][:, :, idx], sub, dt, ev, chunk)
-        for q, j in enumerate(js):
-            out[j][:, idx[:, None], idx[None, :]] = Qs[q]
+        else:
+            sub = [NoiseSource(factors[j].name, np.asarray(factors[j].G)[:, idx, :], factors[j].psd) for j in js]
+            Qs = _compose_block(Phi[:, idx][:, :, idx], F[:, idx][:, :, idx], sub, dt, ev, chunk)
+            for q, j in enumerate(js):
+                out[j][:, idx[:, None], idx[None, :]] = Qs[q]
+        if shared is not None:
+            for j in js:
+                shared[0].store[keys[j]] = out[j][:, idx[:, None], idx[None, :]].copy()
     return out
 
 

@@ -221,6 +221,14 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         cols = {j: dyn.F[:, kidx, j] for j in dropped} if mode else {}     # F_kept,dropped
     rows, sources, absorb_by = [], [], {}
     absorb = np.zeros((len(kidx), len(kidx)))
+    units: dict = {}
+
+    def unit(u, *a, **k):
+        key = (u, a, tuple(k.items()))
+        if key not in units:
+            units[key] = si_unit(u, *a, **k)
+        return units[key]
+
     if mode:
         for j in dropped:
             st = truth.states[j]
@@ -241,17 +249,17 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
                 absorb += st.sigma**2 * np.outer(a, a)
                 absorb_by[st.name] = a
             if np.any(src.psd > 0) and np.any(src.G != 0):
-                if Qc is not None:
-                    Qc += src.qc()
                 sources.append(src.compact() if F is None else src)
             rows.append({"filter": spec.name, "dropped state": st.name, "block": st.block, "process": st.process,
                          "rule": rule, "mode": mode, "P0, SI value": st.sigma**2,
-                         "P0 SI unit": si_unit(st.unit, 2), "q_eq, SI value": q_eq,
-                         "q_eq SI unit": si_unit(st.unit, 2, seconds=1),
+                         "P0 SI unit": unit(st.unit, 2), "q_eq, SI value": q_eq,
+                         "q_eq SI unit": unit(st.unit, 2, seconds=1),
                          "pointwise / interval-matched (eq (12) states) [-]": over,
                          "pointwise / interval-matched, worst interval [-]": worst,
                          "absorbed by": ", ".join(f"{spec.kept[sens[k]]} ({alpha[k]:+.3g})"
                                                   for k in np.argsort(-np.abs(alpha))[:3] if abs(alpha[k]) > 0)})
+        if Qc is not None:                                            # whole grid (streamed: per chunk)
+            equivalent_noise_qc(sources, Qc.shape, out=Qc)
     D = np.zeros((truth.n, len(kidx)))
     D[kidx, np.arange(len(kidx))] = 1.0
     P0t = truth.initial_covariance(q0)
@@ -269,6 +277,35 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
                  "q_eq, SI value", "q_eq SI unit"])
     return FilterModel(spec, list(spec.kept), D, F, Qc, P0, table, Qc_kept=Qc_kept, ewn_noise=sources,
                        ewn_absorb=absorb_by, bounds=bounds)
+
+
+def equivalent_noise_qc(sources: list, shape: tuple, out: np.ndarray | None = None) -> np.ndarray:
+    """``Σ_j G_j diag(psd_j) G_jᵀ`` of the equivalent noises, on their rows.
+
+    Parameters
+    ----------
+    sources : list of covtool.lincov.dynamics.NoiseSource
+        ``G`` of shape ``(N, n_f, k_j)``, ``psd`` of shape ``(N, k_j)``.
+    shape : tuple
+        ``(N, n_f, n_f)``.
+    out : ndarray, shape (N, n_f, n_f), optional
+        Added into (source after source), and returned.
+
+    Returns
+    -------
+    ndarray, shape (N, n_f, n_f)
+        Their contribution to ``Q_c`` (seed 002, eq (11)–(13)): the sum of
+        each source's :meth:`~covtool.lincov.dynamics.NoiseSource.qc`, each
+        formed on the rows it drives only (the velocity or quaternion rows
+        a dropped sensor state couples into).
+    """
+    out = np.zeros(shape) if out is None else out
+    for src in sources:
+        # each source on its own non-zero rows, added in turn: the same sums as src.qc(), element by element
+        nz = np.flatnonzero((src.G != 0).any(axis=(0, 2)))
+        Gz = src.G[:, nz, :]
+        out[:, nz[:, None], nz[None, :]] += (Gz * src.psd[:, None, :]) @ np.swapaxes(Gz, 1, 2)
+    return out
 
 
 def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat, h, q) -> pd.DataFrame:
