@@ -74,7 +74,8 @@ class Forked:
     A child whose result is never collected is stopped when the object
     is deleted (the caller failed first).  While a child runs, this
     process and the child use one BLAS thread each (:func:`_one_blas_thread`);
-    the last child collected gives the pool back.  While :mod:`tracemalloc`
+    the last child collected gives the pool back.  A child dies with this
+    process, even when it is killed (:func:`_watch_parent`).  While :mod:`tracemalloc`
     traces, the call runs in this process, so that a traced peak is that
     of the whole computation.
     """
@@ -86,18 +87,21 @@ class Forked:
             self._run_here(fn, args, kwargs)
             return
         r, w = os.pipe()
+        life_r, life_w = os.pipe()                          # the lifeline: only this process writes (never)
         _one_blas_thread()                                  # this process and the child: one BLAS thread each
         try:
             pid = os.fork()
         except OSError:
             _release_blas()
-            os.close(r)
-            os.close(w)
+            for fd in (r, w, life_r, life_w):
+                os.close(fd)
             raise
         if pid == 0:                                        # the child: run, report, leave without cleanup
             code = 0
             try:
                 os.close(r)
+                os.close(life_w)
+                _watch_parent(life_r)
                 payload = _outcome(fn, args, kwargs)
             except BaseException:                           # noqa: BLE001 - nothing may escape the child
                 code, payload = 1, b""
@@ -108,7 +112,8 @@ class Forked:
             finally:
                 os._exit(code)
         os.close(w)
-        self.pid, self._fd = pid, r
+        os.close(life_r)
+        self.pid, self._fd, self._life = pid, r, life_w
 
     def _run_here(self, fn, args, kwargs):
         self._payload = _outcome(fn, args, kwargs)
@@ -133,6 +138,7 @@ class Forked:
                     break
                 chunks.append(b)
             os.close(self._fd)
+            os.close(self._life)
             _, status = os.waitpid(self.pid, 0)
             self._payload, self._status = b"".join(chunks), os.waitstatus_to_exitcode(status)
             self._done = True
@@ -162,6 +168,7 @@ class Forked:
         except ProcessLookupError:
             pass
         os.close(self._fd)
+        os.close(self._life)
         os.waitpid(self.pid, 0)
         self._payload, self._status, self._done = b"", -9, True
         _release_blas()
@@ -173,6 +180,33 @@ class Forked:
             self.cancel()
         except Exception:                                   # noqa: BLE001 - interpreter shutdown
             pass
+
+
+#: exit status of a forked child whose parent died (nobody waits for it)
+ORPHAN_EXIT = 75
+
+
+def _watch_parent(fd: int) -> None:
+    """In a forked child: exit at once when the parent dies (even by SIGKILL).
+
+    ``fd`` is the read end of a pipe whose write end only the parent keeps
+    open (the *lifeline*, the same design as
+    :class:`covtool.parallel.ProcessBackend`'s workers); the kernel closes
+    it when the parent exits, the read returns EOF and the child leaves, so
+    it never writes on into a staging directory being removed.  A sibling
+    forked later inherits the write end too; it dies first on its own
+    lifeline, so the children go in turn, newest first.
+    """
+    import threading
+
+    def watch():
+        try:
+            os.read(fd, 1)
+        except OSError:
+            pass
+        os._exit(ORPHAN_EXIT)
+
+    threading.Thread(target=watch, name="covtool-parent-watchdog", daemon=True).start()
 
 
 def _outcome(fn, args, kwargs) -> bytes:

@@ -25,7 +25,6 @@ Checked here:
 
 from __future__ import annotations
 
-import math
 from functools import lru_cache
 
 import numpy as np
@@ -34,14 +33,14 @@ import pytest
 from covtool.analysis.consistency import null_test, rms_bounds
 from covtool.analysis.metrics import nav_metrics
 from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
-from covtool.lincov.measurements import GnssPosition, GnssVelocity, NonHolonomic, Odometer, Schedule
-from covtool.lincov.measurements.base import error_state
 from covtool.nav.trajectory.profiles import land_vehicle
 from covtool.studies.aided_monte_carlo import augmented_system, GROUPS, QUANTITIES
 from covtool.studies.grid import initial_covariance, time_grid, truth_system
 from covtool.studies.inputs import load_truth
 from covtool.validation.linear_mc import GROUPS as ZUPT_GROUPS, linear_mean_squares, output_rows
 from covtool.validation.sensor_errors import sample_states
+
+from aided_cases import gnss_outage, odometer_nhc
 
 M = 60                      # runs of the shipped aided study
 DURATION = 300.0
@@ -142,25 +141,6 @@ def test_per_step_h_and_r_are_refused_when_inconsistent():
 # --------------------------------------------------------------------------
 # size and power on the aided setups
 # --------------------------------------------------------------------------
-
-
-def odometer_nhc():
-    odo = Odometer(name="odo", sigma=np.array([0.02]), lever_arm=np.array([-1.2, 0.75, 0.9]),
-                   states=(error_state("odo", "odometer", "scale_factor", 2e-3),
-                           error_state("odo", "odometer", "boresight_yaw", math.radians(0.5))))
-    nhc = NonHolonomic(name="nhc", sigma=np.array([0.05, 0.05]))
-    sch = Schedule(period=1.0, start=1.0)
-    return [(odo, sch), (nhc, sch)]
-
-
-def gnss_outage():
-    lever = np.array([0.5, 0.0, -1.5])
-    pos = GnssPosition(name="gps", sigma=np.array([1.0, 1.0, 2.0]), lever_arm=lever,
-                       states=tuple(error_state("gps", "gnss_position", a, s, "markov", tau=600.0)
-                                    for a, s in zip("NED", (1.5, 1.5, 3.0))))
-    vel = GnssVelocity(name="gpsv", sigma=np.full(3, 0.05), lever_arm=lever)
-    sch = Schedule(period=1.0, start=1.0, outages=((150.0, 270.0),))
-    return [(pos, sch), (vel, sch)]
 
 
 @lru_cache(maxsize=None)

@@ -13,15 +13,12 @@ prediction ``x ← (I − D K H) x``, ``x ← Φ x``.
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
 
 from covtool.analysis import consistency as mc
 from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
-from covtool.lincov.measurements import GnssPosition, GnssVelocity, NonHolonomic, Odometer, Schedule
-from covtool.lincov.measurements.base import error_state
 from covtool.nav.imu.simulator import ImuSimulator
 from covtool.nav.trajectory.profiles import land_vehicle
 from covtool.studies.grid import initial_covariance, time_grid, truth_system
@@ -29,27 +26,10 @@ from covtool.studies.inputs import load_truth
 from covtool.validation.aided import run_aided_ensemble
 from covtool.validation.sensor_errors import SensorErrors, sample_states
 
+from aided_cases import gnss_outage, odometer_nhc
+
 M = 60
 DURATION = 300.0
-
-
-def odometer_nhc():
-    odo = Odometer(name="odo", sigma=np.array([0.02]), lever_arm=np.array([-1.2, 0.75, 0.9]),
-                   states=(error_state("odo", "odometer", "scale_factor", 2e-3),
-                           error_state("odo", "odometer", "boresight_yaw", math.radians(0.5))))
-    nhc = NonHolonomic(name="nhc", sigma=np.array([0.05, 0.05]))
-    sch = Schedule(period=1.0, start=1.0)
-    return [(odo, sch), (nhc, sch)]
-
-
-def gnss_outage():
-    lever = np.array([0.5, 0.0, -1.5])
-    pos = GnssPosition(name="gps", sigma=np.array([1.0, 1.0, 2.0]), lever_arm=lever,
-                       states=tuple(error_state("gps", "gnss_position", a, s, "markov", tau=600.0)
-                                    for a, s in zip("NED", (1.5, 1.5, 3.0))))
-    vel = GnssVelocity(name="gpsv", sigma=np.full(3, 0.05), lever_arm=lever)
-    sch = Schedule(period=1.0, start=1.0, outages=((150.0, 270.0),))
-    return [(pos, sch), (vel, sch)]
 
 
 def linear_and_ensemble(decls, seed, *, noise=True, runs=M, x0=None, e0=None):

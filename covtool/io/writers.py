@@ -11,7 +11,6 @@ workbook's name is checked to be one plain file-name component first.
 from __future__ import annotations
 
 import datetime as _dt
-import os
 import platform
 from pathlib import Path
 
@@ -157,26 +156,7 @@ def _draw_in_processes(items) -> None:
     import matplotlib.pyplot  # noqa: F401 - imported once here, inherited by every child
 
     n = min(len(items), FIGURE_PROCESSES)
-    _finish_figures([Forked(_draw_child, os.getpid(), items[w::n]) for w in range(n)])
-
-
-def _draw_child(parent: int, items) -> None:
-    """:func:`draw_figures` in a child that dies with its parent.
-
-    The parent (:func:`_draw_in_processes`) is stopped with SIGKILL when
-    the writer fails; its children must not go on writing into the
-    staging directory being removed (Linux ``PR_SET_PDEATHSIG``).
-    """
-    import ctypes
-    import signal
-
-    try:
-        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)       # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):                                   # not Linux: the children finish
-        pass
-    if os.getppid() != parent:                                          # the parent died before prctl
-        os._exit(1)
-    draw_figures(items)
+    _finish_figures([Forked(draw_figures, items[w::n]) for w in range(n)])   # each dies with this process
 
 
 def _start_figures(items) -> list:
