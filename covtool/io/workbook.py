@@ -219,8 +219,13 @@ def write_dataframe(book: Book, title: str, df: pd.DataFrame, *, index: bool = F
     for j in range(df.shape[1]):
         col = df.iloc[:, j]
         formatted = pd.api.types.is_float_dtype(col) or col.dtype == object
+        kind = col.dtype.kind
+        if kind in "fiub":                       # numbers and Booleans: no per-value dispatch
+            columns.append(_numeric_cells(book, ws, col.tolist(), kind))
+            _set_width(ws, j, df.columns[j], col, n)
+            continue
         cells = []
-        for v in col.tolist() if col.dtype.kind in "fiub" else col.array:
+        for v in col.array:
             kind, value = _cell_value(v)
             if kind is None or (kind == "s" and not value[0]):       # no value, or an empty text: no cell
                 cells.append(None)
@@ -233,14 +238,41 @@ def write_dataframe(book: Book, title: str, df: pd.DataFrame, *, index: bool = F
             else:
                 cells.append((writers[kind], value, None))
         columns.append(cells)
-        width = max(len(str(df.columns[j])), *(len(_fmt_str(v)) for v in col.iloc[:200])) if n else len(str(df.columns[j]))
-        ws.set_column(j, j, min(max(10, width + 2), 60))
+        _set_width(ws, j, df.columns[j], col, n)
     for i, row in enumerate(zip(*columns), start=1):
         for j, cell in enumerate(row):
             if cell is not None:
                 cell[0](i, j, cell[1], cell[2])
     ws.freeze_panes(1, 0)
     return ws
+
+
+def _numeric_cells(book: Book, ws, values: list, kind: str) -> list:
+    """Cells of a float (``f``), integer (``i``, ``u``) or Boolean (``b``) column, as :func:`_cell_value`."""
+    if kind == "b":
+        return [(ws.write_boolean, v, None) for v in values]
+    if kind != "f":
+        return [(ws.write_number, v, None) for v in values]
+    number, string = ws.write_number, ws.write_string
+    formats: dict[str, object] = {}
+    cells = []
+    for v in values:
+        if v - v == 0.0:                         # finite (NaN and inf give NaN)
+            nf = number_format(v)
+            f = formats.get(nf)
+            if f is None:
+                f = formats[nf] = book.cell_format(nf)
+            cells.append((number, v, f))
+        else:
+            text, quote = _text(nonfinite_text(v))
+            cells.append((string, text, book.cell_format(quote=quote)))
+    return cells
+
+
+def _set_width(ws, j: int, header, col: pd.Series, n: int) -> None:
+    """Column ``j`` as wide as its header and first 200 values (10 to 60 characters)."""
+    width = max(len(str(header)), *(len(_fmt_str(v)) for v in col.iloc[:200])) if n else len(str(header))
+    ws.set_column(j, j, min(max(10, width + 2), 60))
 
 
 def _fmt_str(v) -> str:
