@@ -25,7 +25,7 @@ from covtool.io.names import check_file_stem
 
 
 def build_workbook(*args, **kwargs):
-    """:func:`covtool.io.workbook.build_workbook`, imported on first use (openpyxl is slow to import)."""
+    """:func:`covtool.io.workbook.build_workbook`, imported on first use (pandas-free start)."""
     from covtool.io.workbook import build_workbook as build
 
     return build(*args, **kwargs)
