@@ -214,11 +214,21 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         cols = {j: Fx[c].T for c, j in enumerate(dropped)} if mode else {}
         B = Fx[len(dropped):].transpose(2, 1, 0) if mode else None
     else:
-        F = dyn.F[:, kidx][:, :, kidx]
-        Qc_kept = dyn.Qc[:, kidx][:, :, kidx].copy()
-        Qc = Qc_kept.copy()
+        # a filter keeping every state in truth order has the truth's F and Q_c themselves (neither is
+        # written to: Q_c is copied below if equivalent noise is added); the others keep the layouts
+        # of the gathers they always had (time fastest for F, C order for Q_c: the same round-off)
+        whole = np.array_equal(kidx, np.arange(truth.n))
+        F = dyn.F if whole else dyn.F[:, kidx][:, :, kidx]
+        Qc_kept = dyn.Qc if whole else np.ascontiguousarray(dyn.Qc[:, kidx[:, None], kidx[None, :]])
+        Qc = Qc_kept
         B = F[:, :, sens] if mode else None                       # (N, n_f, n_s) their couplings
-        cols = {j: dyn.F[:, kidx, j] for j in dropped} if mode else {}     # F_kept,dropped
+        if mode and dropped:
+            # F_kept,dropped of every dropped state in one gather; each (N, n_f), time fastest as the
+            # per-state slices dyn.F[:, kidx, j] and the streamed columns are
+            Fd = np.ascontiguousarray(dyn.F[:, kidx[:, None], np.asarray(dropped)[None, :]].transpose(2, 1, 0))
+            cols = {j: Fd[c].T for c, j in enumerate(dropped)}
+        else:
+            cols = {}
     rows, sources, absorb_by = [], [], {}
     absorb = np.zeros((len(kidx), len(kidx)))
     units: dict = {}
@@ -258,8 +268,8 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
                          "pointwise / interval-matched, worst interval [-]": worst,
                          "absorbed by": ", ".join(f"{spec.kept[sens[k]]} ({alpha[k]:+.3g})"
                                                   for k in np.argsort(-np.abs(alpha))[:3] if abs(alpha[k]) > 0)})
-        if Qc is not None:                                            # whole grid (streamed: per chunk)
-            equivalent_noise_qc(sources, Qc.shape, out=Qc)
+        if Qc is not None and sources:                                # whole grid (streamed: per chunk)
+            Qc = equivalent_noise_qc(sources, Qc.shape, out=Qc_kept.copy())
     D = np.zeros((truth.n, len(kidx)))
     D[kidx, np.arange(len(kidx))] = 1.0
     P0t = truth.initial_covariance(q0)
@@ -360,21 +370,36 @@ def ewn_navigation_effect(fm: FilterModel, Phi_f: np.ndarray, t: np.ndarray, lat
     J = len(fm.ewn_noise)
     b = fm.bounds
     K = len(b) - 1
-    var = np.zeros((K, J, 9))
     lat, h = np.asarray(lat), np.asarray(h)
-    for i in range(K):
-        end = b[i + 1]
-        T = np.zeros((9, nf))
-        T[:, :10] = nav_error_matrix(q[end], lat[end], h[end])
-        M = T
-        acc = np.zeros((9, G.shape[2]))
-        for k in range(end - 1, b[i] - 1, -1):
-            Gk = G[k]
-            Y = M @ (0.5 * (Gk + Phi_f[k] @ Gk))                 # (9, J')
-            acc += Y**2 * (psd[k] * dt[k])[None, :]
-            M = M @ Phi_f[k]
-        for jj in range(J):
-            var[i, jj] = acc[:, owner == jj].sum(axis=1)
+    ends = np.asarray(b[1:], int)
+    T = np.zeros((K, 9, nf))
+    for i, end in enumerate(ends):
+        T[i, :, :10] = nav_error_matrix(q[end], lat[end], h[end])
+    w = psd * dt[:, None]                                       # (N, J') PSD × step
+    acc = np.zeros((K, 9, G.shape[2]))
+    if isinstance(Phi_f, np.ndarray):
+        # every interval walked back from its end at once: step j of each interval in one batched product
+        M = T.copy()
+        length = ends - np.asarray(b[:-1], int)
+        for j in range(int(length.max(initial=0))):
+            act = np.flatnonzero(length > j)
+            k = ends[act] - 1 - j
+            Gk, Pk = G[k], Phi_f[k]
+            Y = M[act] @ (0.5 * (Gk + Pk @ Gk))                 # (act, 9, J')
+            acc[act] += Y**2 * w[k][:, None, :]
+            M[act] = M[act] @ Pk
+    else:
+        # a streamed Φ_f (covtool.studies.zupt_setup.StreamedTransitions) is read in runs, interval by interval
+        for i in range(K):
+            M = T[i]
+            for k in range(ends[i] - 1, b[i] - 1, -1):
+                Gk = G[k]
+                Y = M @ (0.5 * (Gk + Phi_f[k] @ Gk))             # (9, J')
+                acc[i] += Y**2 * w[k][None, :]
+                M = M @ Phi_f[k]
+    var = np.zeros((K, J, 9))
+    for jj in range(J):
+        var[:, jj] = acc[:, :, owner == jj].sum(axis=2)
     ms = var.mean(axis=0)                                       # (J, 9) mean variance per interval
     tot = ms.sum(axis=0)
 
