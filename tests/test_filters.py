@@ -203,7 +203,7 @@ def test_absorbed_coupling_recovers_an_exact_combination():
     assert np.max(np.abs(resid)) < 1e-10
 
 
-def test_equivalent_noise_moves_claimed_variance_toward_true():
+def test_equivalent_noise_moves_claimed_variance_toward_true(tmp_path):
     """Acceptance 4: with eq (11)-(13) the reduced filter's claimed/true variance ratio moves toward 1.
 
     Measured on the altitude channel of filters D (10 states) and B1 (22), at 30 min (seed 002's reporting time).  The figure of
@@ -222,12 +222,9 @@ name = "D_none"
 base = "D"
 equivalent_noise = false
 '''
-    tmp = ROOT / "tests" / "_tmp_filters_ewn.toml"
-    try:
-        tmp.write_text(text)
-        r = covtool.run_study(short_study(["B1", "B1_none", "D", "D_none"], duration="30 min", filters_file=tmp))
-    finally:
-        tmp.unlink(missing_ok=True)
+    tmp = tmp_path / "filters_ewn.toml"   # never into the source tree
+    tmp.write_text(text)
+    r = covtool.run_study(short_study(["B1", "B1_none", "D", "D_none"], duration="30 min", filters_file=tmp))
     m, c = r.metrics, r.claimed_metrics
 
     def miss(case, key):
