@@ -98,7 +98,8 @@ from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN
 from covtool.validation.feedback import FeedbackFilter
 from covtool.validation.linear_mc import GROUPS, linear_mean_squares, output_rows
-from covtool.validation.monte_carlo import EnsembleCase, EnsembleSums, initial_states, simulate_chunk
+from covtool.validation.monte_carlo import (EnsembleCase, EnsembleSums, initial_states, reference_along,
+                                             simulate_chunk)
 from covtool.version import __version__
 
 __all__ = [
@@ -417,6 +418,10 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             "samples_per_step": opt["samples_per_step"], "R": S.R, "cases": cases, "seed": opt["seed"],
             "sensor_noise": opt["sensor_noise"], "measurement_noise": opt["measurement_noise"],
             "process_dt": opt["process_dt"]}
+    # the trajectory as every chunk samples it (increments, attitude, gravity, span contexts), sampled once
+    base["reference"] = reference_along(traj, t, cases, imu_rate=opt["imu_rate"],
+                                        samples_per_step=opt["samples_per_step"], model=truth,
+                                        process_dt=opt["process_dt"])
     tasks = [{**base, "chunk": i, "runs": m} for i, m in enumerate(sizes)]
     keys = [f"runs-{i:04d}" for i in range(len(sizes))]
     first = np.cumsum([0] + sizes)

@@ -88,7 +88,9 @@ def noise_factors(Qd, rtol: float = 1e-13) -> list:
         eigenvalues are dropped.
     """
     Qd = np.asarray(Qd, float)
-    w, V = np.linalg.eigh(0.5 * (Qd + np.swapaxes(Qd, 1, 2)))
+    # 1800 small eigenproblems: OpenBLAS's thread pool only adds contention (20x slower on a loaded machine)
+    with threadpool_limits(limits=1, user_api="blas"):
+        w, V = np.linalg.eigh(0.5 * (Qd + np.swapaxes(Qd, 1, 2)))
     out = []
     for wk, Vk in zip(w, V):
         keep = wk > rtol * max(float(wk[-1]), 0.0)

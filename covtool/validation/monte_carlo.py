@@ -26,6 +26,7 @@ from covtool.validation.feedback import FeedbackFilter, RecordContext, SensorFee
 
 __all__ = [
     "QUANTITIES", "EnsembleCase", "EnsembleSums", "Zupt", "run_ensemble", "simulate_chunk", "initial_states",
+    "reference_along",
 ]
 
 
@@ -163,8 +164,77 @@ def _truth_frames(traj, t, mounting=None):
     return tr, rm + tr.h, (rn + tr.h) * np.cos(tr.lat), quat.attitude_error_matrix(tr.q)
 
 
+def _spans(N: int, dt: float, upd_steps) -> tuple:
+    """Record length (grid steps) and the spans ``(k, b)`` of :func:`run_ensemble`.
+
+    A span runs from grid step ``k`` to ``b`` with no update strictly inside
+    and within one 60-s IMU record.
+    """
+    chunk_steps = max(1, int(round(60.0 / dt)))
+    upd_after = np.array(sorted(upd_steps) + [N], int)
+    spans, k = [], 0
+    while k < N:
+        b = min(int(upd_after[np.searchsorted(upd_after, k, side="right")]), (k // chunk_steps + 1) * chunk_steps, N)
+        spans.append((k, b))
+        k = b
+    return chunk_steps, spans
+
+
+def reference_along(traj, t, cases, *, imu_rate: float, samples_per_step: int, model=None,
+                    process_dt: float = 0.1, mounting=None) -> dict:
+    """What every chunk of runs samples from the trajectory, sampled once.
+
+    The exact IMU increments, the reference attitude, gravity and speed the
+    sensor errors need (the simulator's ``truth_cache``), and the
+    :class:`RecordContext` of every span of the feedback compensation: they
+    depend on the trajectory, the grid and the update steps, never on the
+    runs, so a study computes them once and hands them to every chunk
+    (:func:`simulate_chunk`, ``task["reference"]``).  The very calls a chunk
+    would make are made here, so the values are the same bit for bit.
+
+    Parameters
+    ----------
+    traj, t, cases, imu_rate, samples_per_step, model, process_dt, mounting
+        As for :func:`simulate_chunk` and :func:`run_ensemble`.
+
+    Returns
+    -------
+    dict
+        ``truth``: the filled ``truth_cache``; ``contexts``: ``(k, b)`` →
+        :class:`RecordContext` of each span (only when a filter feeds back
+        gravity-disturbance or Markov-in-distance states).
+    """
+    from covtool.nav.imu.simulator import ImuSimulator
+    from covtool.validation.sensor_errors import SensorErrors
+
+    t = np.asarray(t, float)
+    dt = float(t[1] - t[0])
+    cache = {}
+    errors = SensorErrors(model, np.zeros((1, model.n)), None, noise=False, process_dt=process_dt) \
+        if model is not None else None
+    sim = ImuSimulator(traj, imu_rate, t0=float(t[0]), duration=float(t[-1] - t[0]), errors=errors,
+                       mounting=mounting, truth_cache=cache)
+    sim.initial_state()
+    N = t.size - 1
+    upd_steps = sorted({k for c in cases if c.filter is not None for k in c.filter.gains})
+    chunk_steps, spans = _spans(N, dt, upd_steps)
+    spr = int(round(dt / sim.dt))
+    for _ in sim.records(chunk=spr * chunk_steps):    # fills the cache: the calls of a chunk's pass
+        pass
+    contexts = None
+    need = [SensorFeedback(model, c.filter.names, 1) for c in cases if c.filter is not None] if model else []
+    if any(f.n and f.needs_context for f in need):
+        contexts = {}
+        for k, b in spans:
+            buf_k0 = (k // chunk_steps) * chunk_steps
+            buf_t0 = sim.t0 + (buf_k0 * spr) * sim.dt         # ImuSimulator.records, then ImuRecord.slice
+            rec_t0 = buf_t0 + ((k - buf_k0) * spr) * sim.dt
+            contexts[(k, b)] = RecordContext.along(traj, rec_t0, sim.dt, (b - k) * spr, sim.mounting)
+    return {"truth": cache, "contexts": contexts}
+
+
 def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, measurement_noise: bool = True,
-                 model=None, record_errors: bool | str = False, measurement=None):
+                 model=None, record_errors: bool | str = False, measurement=None, contexts: dict | None = None):
     """Run every case of an ensemble in lock step on shared IMU data.
 
     The one ensemble loop of the Monte Carlo: ZUPT filters (``R``) and
@@ -204,6 +274,9 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, 
         Also return the errors of every run at every grid time: True the
         ten navigation errors (memory ``(N+1)·M·10`` per case; for tests),
         ``"quantities"`` the nine :data:`QUANTITIES` (NED metres, m/s, rad).
+    contexts : dict, optional
+        The :class:`RecordContext` of each span, ``reference_along(...)["contexts"]``
+        (computed here when not given).
 
     Returns
     -------
@@ -326,22 +399,24 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, 
     # follow their mean dynamics, so a whole span is compensated, turned into body increments and
     # integrated (compiled strapdown kernel) at once, and its grid states are observed together.
     # The IMU records keep their 60-s chunking (the random draws do not depend on the spans).
-    chunk_steps = max(1, int(round(60.0 / dt)))
+    chunk_steps, spans = _spans(N, dt, upd_steps)
     records = sim.records(chunk=spr * chunk_steps)
-    upd_after = np.array(upd_steps + [N], int)
     buf, buf_k0 = None, 0
     k = 0
-    while True:
+    for k, b in spans + [(N, N)]:
         state = update(k)
         observe([k], state)
         if k == N:
             break
         if buf is None or k >= buf_k0 + chunk_steps:
             buf, buf_k0 = next(records), (k // chunk_steps) * chunk_steps
-        b = min(int(upd_after[np.searchsorted(upd_after, k, side="right")]), buf_k0 + chunk_steps, N)
         rec = buf.slice((k - buf_k0) * spr, (b - buf_k0) * spr)
         K = (b - k) * spr
-        ctx = RecordContext.along(sim.traj, rec.t0, h, K, sim.mounting) if need_ctx else None
+        ctx = None
+        if need_ctx:
+            ctx = contexts.get((k, b)) if contexts is not None else None
+            if ctx is None:
+                ctx = RecordContext.along(sim.traj, rec.t0, h, K, sim.mounting)
         raw_th = np.broadcast_to(rec.dtheta, (M, K, 3))
         raw_dv = np.broadcast_to(rec.dv, (M, K, 3))
         parts = [r["fb"].compensate(raw_th, raw_dv, h, ctx) if r["fb"] is not None else (raw_th, raw_dv)
@@ -358,7 +433,6 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, 
         state = hist.state(-1).replace(t=float(t[b]), dtheta_prev=dth[:, -1, :].copy(),
                                        dv_prev=dvv[:, -1, :].copy())
         meas.advance(k, b)
-        k = b
     for r in run:
         r["sums"].n_runs = M
     sums = {r["case"].name: r["sums"] for r in run}
@@ -377,7 +451,8 @@ def simulate_chunk(task: dict) -> dict:
         (a :class:`numpy.random.SeedSequence` entropy/spawn key pair),
         ``imu_rate``, ``samples_per_step``, ``R``, ``cases`` (list of
         :class:`EnsembleCase`), ``sensor_noise``, ``measurement_noise``,
-        ``process_dt``.
+        ``process_dt``; optionally ``reference`` (:func:`reference_along`:
+        the trajectory sampled once for all chunks).
 
     Returns
     -------
@@ -403,9 +478,13 @@ def simulate_chunk(task: dict) -> dict:
     x0 = initial_states(model, M, task["seed"], task["chunk"], traj.sample([t[0]]).q_nb[0])
     errors = SensorErrors(model, x0, r_sensor, noise=task.get("sensor_noise", True),
                           process_dt=task.get("process_dt", 0.1))
-    sim = ImuSimulator(traj, task["imu_rate"], t0=float(t[0]), duration=float(t[-1] - t[0]), errors=errors)
+    ref = task.get("reference")
+    cache = ImuSimulator.adopt_cache(ref["truth"], traj) if ref is not None else None
+    sim = ImuSimulator(traj, task["imu_rate"], t0=float(t[0]), duration=float(t[-1] - t[0]), errors=errors,
+                       truth_cache=cache)
     sums = run_ensemble(sim, x0, task["cases"], t, samples_per_step=task["samples_per_step"], R=task["R"],
-                        rng=r_meas, measurement_noise=task.get("measurement_noise", True), model=model)
+                        rng=r_meas, measurement_noise=task.get("measurement_noise", True), model=model,
+                        contexts=ref["contexts"] if ref is not None else None)
     return {"sums": {k: v.to_json() for k, v in sums.items()}, "seconds": time.perf_counter() - t0}
 
 

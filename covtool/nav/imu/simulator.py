@@ -204,7 +204,8 @@ class ImuSimulator:
         one motion that differ only in their errors (e.g. the batches of a
         Monte Carlo study): the trajectory is then sampled once for all of
         them.  Keyed by trajectory, rate, nodes, mounting and chunk; the
-        cached arrays are read-only.
+        cached arrays are read-only.  The reference attitude, gravity and
+        speed the errors need (:meth:`_context`) are memoised there too.
 
     Raises
     ------
@@ -323,11 +324,24 @@ class ImuSimulator:
         return NavState(self.t0, lat + x[:, 0], lon + x[:, 1], h + x[:, 2], v + x[:, 3:6], q, dth_p, dv_p)
 
     # ---- increments --------------------------------------------------------
+    def _cache_key(self, *what):
+        mounting = None if self.mounting is None else tuple(self.mounting.tolist())
+        return (id(self.traj), self.dt, self.nodes, mounting) + what
+
+    @staticmethod
+    def adopt_cache(cache: dict, traj) -> dict:
+        """A ``truth_cache`` filled along a copy of ``traj``, keyed for ``traj``.
+
+        The cache keys start with the identity of the trajectory object; a
+        cache filled in another process (e.g. the parent of Monte Carlo
+        workers, along the same motion) is re-keyed for the worker's copy.
+        """
+        return {(id(traj),) + key[1:]: v for key, v in cache.items()}
+
     def _true_increments(self, t_start, k):
         """Exact increments of k samples, shape (Mv, k, 3)."""
         if self.truth_cache is not None:
-            mounting = None if self.mounting is None else tuple(self.mounting.tolist())
-            key = (id(self.traj), self.dt, self.nodes, mounting, float(t_start), int(k))
+            key = self._cache_key(float(t_start), int(k))
             if key not in self.truth_cache:
                 dth, dv = self._sample_increments(t_start, k)
                 dth.flags.writeable = dv.flags.writeable = False
@@ -364,16 +378,32 @@ class ImuSimulator:
         kw = {}
         if self.errors is None:
             return kw
+        cache = self.truth_cache
         if self.errors.needs_speed:
             traj = self.traj
-            kw["speed_fn"] = lambda t: np.linalg.norm(
-                traj.sample(np.clip(np.atleast_1d(t), traj.t[0], traj.t[-1])).v_n[:, :2], axis=-1)
+
+            def speed(t):
+                t = np.atleast_1d(np.asarray(t, float))
+                key = None if cache is None else self._cache_key("speed", t.tobytes())
+                if key is not None and key in cache:
+                    return cache[key]
+                v = np.linalg.norm(traj.sample(np.clip(t, traj.t[0], traj.t[-1])).v_n[:, :2], axis=-1)
+                if key is not None:
+                    cache[key] = v
+                return v
+            kw["speed_fn"] = speed
         if self.errors.needs_attitude:
-            tm = t_start + (np.arange(k) + 0.5) * self.dt
-            s = self.traj.sample(tm)
-            q = s.q_nb if self.mounting is None else quat.mul(s.q_nb, self.mounting)
-            kw["attitude"] = q
-            kw["gravity"] = earth.gravity(s.lat, s.h)
+            key = None if cache is None else self._cache_key("attitude", float(t_start), int(k))
+            if key is None or key not in cache:
+                tm = t_start + (np.arange(k) + 0.5) * self.dt
+                s = self.traj.sample(tm)
+                q = s.q_nb if self.mounting is None else quat.mul(s.q_nb, self.mounting)
+                value = (q, earth.gravity(s.lat, s.h))
+                if key is None:
+                    kw["attitude"], kw["gravity"] = value
+                    return kw
+                cache[key] = value
+            kw["attitude"], kw["gravity"] = cache[key]
         return kw
 
     def records(self, chunk: int | None = None):
