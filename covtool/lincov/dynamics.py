@@ -413,6 +413,37 @@ def error_dynamics(model: Model, ctx: Context, options: NavOptions = NavOptions(
     return ErrorDynamics(model.names, F, noise)
 
 
+def with_nav_options(dyn: ErrorDynamics, ctx: Context, options: NavOptions) -> ErrorDynamics:
+    """The dynamics ``dyn`` of a model under other navigation options.
+
+    Parameters
+    ----------
+    dyn : ErrorDynamics
+        :func:`error_dynamics` of a model along ``ctx`` with the default
+        :class:`NavOptions`.
+    ctx : Context
+        The trajectory ``dyn`` was built on.
+    options : NavOptions
+
+    Returns
+    -------
+    ErrorDynamics
+        Equal to ``error_dynamics(model, ctx, options)``: the options change
+        only the 10×10 navigation block of F (:func:`nav_matrix`; seed 002
+        eq (1), (4) without the Coriolis terms or the vertical coupling),
+        never the sensor columns or the noise, so F is a copy of ``dyn.F``
+        with that block replaced, and the noise sources and Q_c are
+        ``dyn``'s own (shared, not copied).
+    """
+    if dyn_key(options) == dyn_key(None):
+        return dyn
+    F = dyn.F.copy()
+    F[:, :10, :10] = nav_matrix(ctx, options)
+    out = ErrorDynamics(dyn.names, F, dyn.noise)
+    out._qc = dyn.Qc
+    return out
+
+
 def attitude_errors(P_qq: np.ndarray, q: np.ndarray) -> np.ndarray:
     """Covariance of the NED attitude error φ from that of δq.
 

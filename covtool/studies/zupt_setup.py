@@ -32,7 +32,7 @@ from covtool.io.config import is_library_name, names, resolve_input
 from covtool.io.filters import default_filter_file, load_filters
 from covtool.lincov.batch import compose, System
 from covtool.lincov.dynamics import Context, DynamicsStream, dyn_key, error_dynamics, ErrorDynamics, NavOptions, \
-    STREAM_CHUNK
+    STREAM_CHUNK, with_nav_options
 from covtool.lincov.model.spec import Model
 from covtool.lincov.reduced import FilterSpec
 from covtool.nav.trajectory.core import Trajectory
@@ -446,8 +446,11 @@ class ZuptSetup:
             key = dyn_key(spec.options)
             ftruth = self.filter_truth if self.filter_truth is not None else self.truth
             if key not in self._dyn_cache:
-                self._dyn_cache[key] = self.dyn if key == dyn_key(None) and ftruth is self.truth else \
-                    error_dynamics(ftruth, self.ctx, spec.options)
+                # the options change only F's navigation block: derived from the model's own dynamics
+                if ftruth is not self.truth and ("filter truth",) not in self._dyn_cache:
+                    self._dyn_cache[("filter truth",)] = error_dynamics(ftruth, self.ctx)
+                base = self.dyn if ftruth is self.truth else self._dyn_cache[("filter truth",)]
+                self._dyn_cache[key] = with_nav_options(base, self.ctx, spec.options)
             fm = build_filter(spec, ftruth, self.ctx, zupt_interval=self.zupt_interval,
                               q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
                               mean_speed=self.mean_speed, dt_steps=np.diff(self.t),

@@ -15,6 +15,7 @@ from covtool.lincov.discretize.series import (
     sensor_states)
 from covtool.lincov.discretize.steps import _dedup, _expand_phi_qd, _prepare
 from covtool.lincov.discretize.limits import BLOCK_FRACTION
+from covtool.lincov.stacks import gather
 
 
 def _exact(F, Qc, dt, what, times):
@@ -24,9 +25,12 @@ def _exact(F, Qc, dt, what, times):
     if 1 <= k and sens.sum() >= BLOCK_FRACTION * F.shape[1]:
         # the same converged series by blocks (O(k² m) per term instead of O(n³)); exact
         p = np.r_[np.flatnonzero(~sens), np.flatnonzero(sens)]
+        if np.array_equal(p, np.arange(p.size)):
+            # the sensor states already follow the others (every model of the library): no gathers
+            return _block_triangular(F, Qc, dt, k, what, times)
         ip = np.argsort(p)
-        Phi, Qd, inf = _block_triangular(F[:, p][:, :, p], Qc[:, p][:, :, p], dt, k, what, times)
-        return Phi[:, ip][:, :, ip], Qd[:, ip][:, :, ip], inf
+        Phi, Qd, inf = _block_triangular(gather(F, p), gather(Qc, p), dt, k, what, times)
+        return gather(Phi, ip), gather(Qd, ip), inf
     d = balancing(F)
     B, Qb, nu = _balanced(F, Qc, d)
     s, h = scaling(nu, dt)
