@@ -9,8 +9,14 @@ Every study in ``studies/`` is run through :func:`covtool.run_study` and
 every numeric cell of every table it returns (the summary and the other
 sheets) is dumped, column by column, to a JSON file.  ``--compare`` reruns
 the studies and prints, per study, the largest relative difference
-``|a - b| / max(|a|, |b|)`` over its cells (0 when both are 0; a NaN must
-stay a NaN at the same place), the cell where it occurs, and whether the
+``|a - b| / max(|a|, |b|, 1e-15 · c / rtol)`` over its cells, ``c`` the
+largest magnitude in the cell's table among the columns of its unit: a cell
+must agree to ``rtol`` of itself or to ``1e-15`` (a few units in the last
+place) of that scale, whichever is larger, because a cell far below its
+scale (an error-budget contribution at a zero crossing, beside the total) is
+formed by sums at that scale; a budget's 1σ-equivalent, the square root
+of a variance contribution, is compared as that variance (0 when both are 0; a NaN must stay a NaN at
+the same place; the figure without that floor is printed too), the cell where it occurs, and whether the
 study stays within ``--rtol`` (default 1e-9).  Round-off check figures
 (``ROUNDOFF``: relative residuals of order 1e-15 .. 1e-11, which any change
 of operation order changes wholesale) must stay below 1e-10 before and after.  The exit status is 1 when a
@@ -89,6 +95,19 @@ ROUNDOFF = ("filter noise vs its own Q_f (max rel.)", "sum-to-total residual (sa
 ROUNDOFF_LEVEL = 1e-10
 
 
+#: absolute round-off allowed of every cell, relative to the largest magnitude of its unit in its table (a few
+#: units in the last place of that scale: a cell formed by sums at that scale carries at least this much)
+SCALE_ROUNDOFF = 1e-15
+#: columns that are the square root of a variance contribution (a budget's 1σ-equivalent): compared squared
+SQUARE_ROOTS = ("1sigma-equivalent",)
+
+
+def unit_of(column: str) -> str:
+    """The bracketed unit at the end of a column name (``"total [ft^2]"`` → ``"ft^2"``), else the name."""
+    head, sep, tail = column.rpartition("[")
+    return tail.rstrip("]") if sep and column.endswith("]") else column
+
+
 def measured(column: str) -> bool:
     return any(m in column for m in MEASURED)
 
@@ -150,12 +169,28 @@ def compare(before: dict, after: dict, rtol: float) -> bool:
             continue
         worst, where, n, shape = 0.0, "", 0, []
         worst_abs, where_abs = 0.0, ""
+        strict, where_strict = 0.0, ""
+        scales = {}
+        for rec in (a, b):
+            for t, cols in rec.items():
+                for c, vals in cols.items():
+                    m = max((abs(z) for z in vals if z is not None), default=0.0)
+                    scales[(t, unit_of(c))] = max(scales.get((t, unit_of(c)), 0.0), m)
         for t in sorted(set(a) | set(b)):
             for c in sorted(c for c in set(a.get(t, {})) | set(b.get(t, {})) if not measured(c)):
                 x, y = a.get(t, {}).get(c), b.get(t, {}).get(c)
                 if x is None or y is None or len(x) != len(y):
                     shape.append(f"{t}:{c}")
                     continue
+                # a cell far below the largest value of its unit in its table (an error-budget contribution at
+                # a zero crossing, next to the total) is formed by sums at that scale: it is compared to rtol of
+                # itself or to SCALE_ROUNDOFF of that scale, whichever is larger
+                floor = SCALE_ROUNDOFF / rtol * scales.get((t, unit_of(c)), 0.0)
+                if any(r in c for r in SQUARE_ROOTS):
+                    # √ of a variance contribution: compared as that variance, on its squared scale
+                    x = [None if z is None else z * abs(z) for z in x]
+                    y = [None if z is None else z * abs(z) for z in y]
+                    floor = SCALE_ROUNDOFF / rtol * scales.get((t, unit_of(c)), 0.0) ** 2
                 for i, (u, v) in enumerate(zip(x, y)):
                     n += 1
                     if u is None or v is None:
@@ -166,13 +201,18 @@ def compare(before: dict, after: dict, rtol: float) -> bool:
                         continue
                     else:
                         m = max(abs(u), abs(v))
-                        d = 0.0 if m == 0 else abs(u - v) / m
+                        d = 0.0 if m == 0 else abs(u - v) / max(m, floor)
+                        if m and abs(u - v) / m > strict:
+                            strict, where_strict = abs(u - v) / m, f"{t}[{c!r}][{i}]"
+
                     if d > worst:
                         worst, where = d, f"{t}[{c!r}][{i}]"
         good = worst <= rtol and worst_abs < ROUNDOFF_LEVEL and not shape
         ok &= good
         print(f"{name:36s} {n:7d} {worst:14.3e}  {where or '-'}{'' if good else '  DEPARTS'}"
               + (f"  cells differ: {shape[:5]}" if shape else "")
+              + (f"\n{'':36s} {'':7s} {strict:14.3e}  without the column floor: {where_strict}"
+                 if strict > worst else "")
               + (f"\n{'':36s} {'':7s} {worst_abs:14.3e}  largest round-off check figure, before or after: "
                  f"{where_abs}" if where_abs else ""))
     return ok

@@ -38,6 +38,7 @@ from scipy.linalg import expm
 
 from covtool.lincov.discretize import (THETA, block_triangular, discretize, per_source, taylor, taylor_terms,
                                        van_loan)
+from covtool.lincov.discretize import methods as dz_methods
 from covtool.lincov.dynamics import Context, error_dynamics
 from covtool.errors import InputError, NumericalError
 from covtool.io.model_file import load_model
@@ -486,3 +487,48 @@ def test_per_source_groups_equal_the_summed_columns(dyn):
             assert np.max(np.abs(Qg[:, j] - Qp[:, a:b].sum(axis=1)) / d[:, :, None] / d[:, None, :]) <= 1e-13
         _, Qv = van_loan(F, G * psd[:, None, :] @ np.swapaxes(G, 1, 2), dt)
         assert _q_error(Qg.sum(axis=1), Qv) <= 1e-12
+
+
+def test_random_constants_folded_out_closed_form():
+    """A Markov state driven by a random constant: Φ_dc = b (1 − e^{−aΔt})/a, the constant's Φ = 1, no Q_d.
+
+    x' = −a x + b c + w (PSD q), c' = 0: the folded path (:func:`_exact_constants`) against the closed form,
+    for steps short and long against 1/a.
+    """
+    a, b, q = 0.05, 3.0, 2e-4
+    for dt in (0.5, 1.0, 60.0):
+        N = 3
+        F = np.zeros((N, 4, 4))
+        F[:, 0, 0] = -a
+        F[:, 0, 1] = b                            # state 1 and 3: random constants; 1 drives 0
+        F[:, 0, 3] = -2.0 * b
+        F[:, 2, 2] = -2.0 * a                     # state 2: an undriven Markov state (no constant)
+        Qc = np.zeros_like(F)
+        Qc[:, 0, 0] = q
+        Qc[:, 2, 2] = q
+        assert dz_methods.random_constants(F, Qc).tolist() == [False, True, False, True]
+        Phi, Qd = van_loan(F, Qc, dt)
+        e = np.exp(-a * dt)
+        np.testing.assert_allclose(Phi[:, 0, 0], e, rtol=1e-15)
+        np.testing.assert_allclose(Phi[:, 0, 1], b * (1 - e) / a, rtol=1e-14)
+        np.testing.assert_allclose(Phi[:, 0, 3], -2.0 * b * (1 - e) / a, rtol=1e-14)
+        np.testing.assert_array_equal(Phi[:, [1, 3]][:, :, [1, 3]], np.broadcast_to(np.eye(2), (N, 2, 2)))
+        np.testing.assert_allclose(Qd[:, 0, 0], q * (1 - e**2) / (2 * a), rtol=1e-14)
+        np.testing.assert_allclose(Qd[:, 2, 2], q * (1 - np.exp(-4 * a * dt)) / (4 * a), rtol=1e-14)
+        assert not Qd[:, [1, 3]].any() and not Qd[:, :, [1, 3]].any()
+
+
+def test_random_constants_folded_out_equal_the_whole_system(dyn):
+    """The 58-state model's 36 random constants folded out: the same Φ and Q_d as the whole system (1 s, 30 s)."""
+    from covtool.lincov.discretize.structured import _exact
+
+    F, Qc = dyn
+    assert dz_methods.random_constants(F, Qc).sum() == 36
+    for dt in (1.0, 30.0):
+        Pf, Qf = van_loan(F, Qc, dt)
+        Pw, Qw, _ = _exact(F, Qc, np.full(F.shape[0], dt), "", None)
+        assert _phi_column_error(Pf, Pw) <= 1e-14
+        assert _q_error(Qf, Qw) <= 1e-14
+        Pt, Qt = taylor(F, Qc, dt)                               # the adaptive eq (6b)-(6d): the same series
+        np.testing.assert_array_equal(Pt, Pf)
+        np.testing.assert_array_equal(Qt, Qf)

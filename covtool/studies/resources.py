@@ -26,6 +26,10 @@ def progress_bar(total: int, desc: str, enabled: bool, unit: str = "step"):
 #: steps discretised at once by :func:`covtool.studies.grid.discretize_chunked` (bounds its workspace)
 DISCRETIZE_CHUNK = 150
 
+#: steps the covariance guard tests at once (covtool.lincov.guard._CHUNK, restated so that the estimate is made
+#: before the numeric core is imported; tests/test_memory_streaming.py checks they agree)
+GUARD_CHUNK = 512
+
 _F8 = 8                 # bytes of one float64
 #: float64 per grid step outside the matrices: trajectory samples, mid-point context, metrics, history table
 _GRID_FLOATS = 800
@@ -98,12 +102,14 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
     -----
     Per step, in doubles: the truth keeps F, Q_c, Φ, Q_d (4 n²) and the
     noise-source matrices G (n × columns); every other truth dynamics
-    another F, Q_c, G; every filter F_f, Q_c,f, Φ_f, Q_d,f (4 n_f²) and,
+    another F (its Q_c and G are the truth's); every filter F_f, Q_c,f, Φ_f, Q_d,f (4 n_f²) and,
     while it is built, the (N, n_f, n) slice of F it is cut from; every
     history (N+1) m² (or ``records`` m²), every composed system 2 K m².
-    Van Loan works on :data:`DISCRETIZE_CHUNK` steps of 2n × 2n at a time (about five such stacks inside ``expm``), freed
+    The discretisation works on :data:`DISCRETIZE_CHUNK` steps at a time
+    (about five n × n stacks, the random constants folded out), freed
     before the histories are allocated, so only the larger of the two
-    counts.  Against ``tracemalloc`` peaks of the shipped studies the
+    counts; the guard works on :data:`GUARD_CHUNK` steps (two n × n
+    stacks), on Q_d and later on the histories, so it counts throughout.  Against ``tracemalloc`` peaks of the shipped studies the
     estimate is high by 5-15 % (``tests/test_input_validation.py`` keeps it
     an upper bound within 30 %).
     """
@@ -111,11 +117,16 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
     c = n if noise is None else int(noise)
     parts = {
         "truth F, Q_c, G, Phi, Q_d": (4 * n * n + n * c) * N * _F8,
-        "discretisation workspace": 5 * DISCRETIZE_CHUNK * (2 * n) ** 2 * _F8,
+        # the exact discretisation folds out the random constants (covtool.lincov.discretize.methods): about
+        # five n x n stacks of one chunk
+        "discretisation workspace": 5 * DISCRETIZE_CHUNK * n * n * _F8,
+        # the guard tests Q_d, and later the covariance histories, by GUARD_CHUNK steps: two n x n stacks each
+        "guard workspace": 2 * min(N, GUARD_CHUNK) * n * n * _F8,
         "trajectory and grid": _GRID_FLOATS * (N + 1) * _F8,
     }
     if dynamics > 1:
-        parts["other truth dynamics"] = (dynamics - 1) * (2 * n * n + n * c) * N * _F8
+        # another F only: the options change its navigation block, Q_c and G are shared (with_nav_options)
+        parts["other truth dynamics"] = (dynamics - 1) * n * n * N * _F8
     if len(filters):
         parts["filter F, Q_c, Phi, Q_d"] = sum(4 * N * m * m * _F8 for m in filters) + N * max(filters) * n * _F8
     rec = N + 1 if records is None else int(records)

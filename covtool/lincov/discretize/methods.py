@@ -13,6 +13,7 @@ from covtool.errors import InputError
 from covtool.lincov.discretize.series import MAX_ORDER, _balanced, _series, _unbalance, balancing
 from covtool.lincov.discretize.steps import StepInfo, _check_result, _dedup, _expand_phi_qd, _prepare
 from covtool.lincov.discretize.structured import _exact
+from covtool.lincov.stacks import gather
 
 
 # ---------------------------------------------------------------------------
@@ -55,7 +56,8 @@ def van_loan(F: np.ndarray, Qc: np.ndarray, dt, *, what: str = "", times=None, i
     computed by balancing, scaling, the converged series and squaring
     (module notes); the same numbers as ``taylor(order=None)``.
     """
-    Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _exact(F_, Q_, dt_, what, t_), F, [(Qc, 2)], dt, times,
+    exact = _exact_info if info else _exact_constants
+    Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: exact(F_, Q_, dt_, what, t_), F, [(Qc, 2)], dt, times,
                           _expand_phi_qd)
     return (Phi, Qd, inf) if info else (Phi, Qd)
 
@@ -109,7 +111,8 @@ def taylor(F: np.ndarray, Qc: np.ndarray, dt, order: int | None = None, *, what:
     below ``2⁻⁵³`` and doubles ``s`` times.
     """
     if order is None:
-        Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _exact(F_, Q_, dt_, what, t_), F, [(Qc, 2)], dt, times,
+        exact = _exact_info if info else _exact_constants
+        Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: exact(F_, Q_, dt_, what, t_), F, [(Qc, 2)], dt, times,
                               _expand_phi_qd)
         return (Phi, Qd, inf) if info else (Phi, Qd)
     if isinstance(order, bool) or not isinstance(order, (int, np.integer)) or not 1 <= order <= MAX_ORDER:
@@ -118,6 +121,80 @@ def taylor(F: np.ndarray, Qc: np.ndarray, dt, order: int | None = None, *, what:
     Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _taylor_fixed(F_, Q_, dt_, order, what, t_), F, [(Qc, 2)], dt,
                           times, _expand_phi_qd)
     return (Phi, Qd, inf) if info else (Phi, Qd)
+
+
+def random_constants(F: np.ndarray, Qc: np.ndarray) -> np.ndarray:
+    """States with a zero ``F`` row and no noise at every step: random constants.
+
+    Parameters
+    ----------
+    F, Qc : ndarray, shape (N, n, n)
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    return ~((np.asarray(F) != 0).any(axis=(0, 2)) | (np.asarray(Qc) != 0).any(axis=(0, 2))
+             | (np.asarray(Qc) != 0).any(axis=(0, 1)))
+
+
+def _exact_constants(F, Qc, dt, what, times):
+    """:func:`_exact` with the random constants folded out (exact).
+
+    A random constant ``c`` (zero ``F`` row, no noise) keeps ``Φ_cc = 1``
+    and no ``Q_d``; the others, ``d``, see it through ``F_dc``, constant over
+    the step, so ``Φ_dc = ∫₀^Δt e^{F_dd s} ds · F_dc = Γ F_dc``.  ``Γ`` is
+    needed only on the rows ``u`` some constant drives (for an INS model
+    the velocity and quaternion rows), and it is the ``Φ`` block of ``u``
+    unit constants: the system ``[[F_dd, E_u], [0, 0]]`` (``E_u`` the unit
+    columns of the rows ``u``).  So ``Φ`` and ``Q_d`` are those of a system
+    of ``n_d + |u|`` states instead of ``n`` (29 instead of 58 for the
+    58-state truth, whose 36 constants drive 7 rows), the same converged
+    series of seed 002 eq (6b)–(6d), and ``Φ_dc = Φ_du F_uc``.
+    """
+    F = np.asarray(F, float)
+    try:
+        fits = F.ndim == 3 and F.shape[1] == F.shape[2] and np.broadcast_shapes(np.shape(Qc), F.shape) == F.shape
+    except ValueError:
+        fits = False
+    if not fits:
+        return _exact(F, Qc, dt, what, times)               # its checks name the problem
+    Qc = np.broadcast_to(np.asarray(Qc, float), F.shape)
+    rc = random_constants(F, Qc)
+    dyn = np.flatnonzero(~rc)
+    cst = np.flatnonzero(rc)
+    N, n, _ = F.shape
+    if cst.size == 0 or dyn.size == 0 or not (np.isfinite(F).all() and np.isfinite(Qc).all()):
+        return _exact(F, Qc, dt, what, times)               # nothing to fold (or the checks name a bad step)
+    Fdc = gather(F, dyn, cst)                               # (N, n_d, n_c)
+    used = np.flatnonzero((Fdc != 0).any(axis=(0, 2)))      # the rows the constants drive
+    if used.size >= cst.size:
+        return _exact(F, Qc, dt, what, times)
+    nd, nu = dyn.size, used.size
+    Fr = np.zeros((N, nd + nu, nd + nu))
+    Fr[:, :nd, :nd] = gather(F, dyn)
+    Fr[:, used, nd + np.arange(nu)] = 1.0
+    Qr = np.zeros_like(Fr)
+    Qr[:, :nd, :nd] = gather(Qc, dyn)
+    Pr, Qdr, inf = _exact(Fr, Qr, dt, what, times)
+    Phi = np.zeros((N, n, n))
+    Qd = np.zeros((N, n, n))
+    Phi[:, dyn[:, None], dyn[None, :]] = Pr[:, :nd, :nd]
+    Phi[:, dyn[:, None], cst[None, :]] = Pr[:, :nd, nd:] @ gather(Fdc, used, np.arange(cst.size))
+    Phi[:, cst, cst] = 1.0
+    Qd[:, dyn[:, None], dyn[None, :]] = Qdr[:, :nd, :nd]
+    return Phi, Qd, inf
+
+
+def _exact_info(F, Qc, dt, what, times):
+    """:func:`_exact_constants`' ``Φ``, ``Q_d`` with the whole system's :class:`StepInfo`.
+
+    The terms and squarings are those the series of the whole system takes
+    (what an on-board filter computing it would do,
+    :func:`taylor_terms`), not those of the folded one.
+    """
+    Phi, Qd, _ = _exact_constants(F, Qc, dt, what, times)
+    return Phi, Qd, _exact(F, Qc, dt, what, times)[2]
 
 
 def _taylor_fixed(F, Qc, dt, order, what, times):
@@ -156,7 +233,8 @@ def taylor_terms(F: np.ndarray, Qc: np.ndarray, dt) -> StepInfo:
     -------
     StepInfo
     """
-    return taylor(F, Qc, dt, info=True)[2]
+    return _dedup(lambda F_, Q_, dt_, t_: _exact(F_, Q_, dt_, "", t_), F, [(Qc, 2)], dt, None,
+                  _expand_phi_qd)[2]
 
 
 def discretize(F, Qc, dt, method: str = "van_loan", order: int | None = None, *, what: str = "", times=None):
