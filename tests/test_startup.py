@@ -66,3 +66,44 @@ def test_run_draws_figures_without_importing_matplotlib_or_numba_in_the_cli_proc
     assert got["status"] == 0
     assert sorted(p.name for p in out.glob("*.png")) == ["pure_ins_errors.png"]     # drawn, in child processes
     assert "matplotlib" not in got["modules"] and "numba" not in got["modules"]
+
+
+_PAGES = """
+import json, os, sys
+from covtool.cli import main
+status = main(["models"])
+import numpy
+from numpy._core.multiarray import _set_madvise_hugepage
+print(json.dumps({"status": status, "env": os.environ.get("NUMPY_MADVISE_HUGEPAGE"),
+                  "advised": bool(_set_madvise_hugepage(True))}))
+"""
+
+
+@pytest.mark.parametrize("user, env, advised", [(None, "0", False), ("1", "1", True), ("0", "0", False)])
+def test_the_command_line_keeps_numpy_from_advising_huge_pages(user, env, advised):
+    """Off unless the user set ``NUMPY_MADVISE_HUGEPAGE`` (first touches of large arrays stall on compaction)."""
+    e = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    e["PYTHONPATH"] = str(ROOT)
+    if user is not None:
+        e["NUMPY_MADVISE_HUGEPAGE"] = user
+    proc = subprocess.run([sys.executable, "-c", _PAGES], cwd=ROOT, env=e, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert got == {"status": 0, "env": env, "advised": advised}
+
+
+def test_a_library_user_keeps_numpys_page_advice():
+    """Imported after numpy (a library user's process), the command line leaves numpy's setting alone."""
+    code = ("import json, os, numpy; from numpy._core.multiarray import _set_madvise_hugepage as s; "
+            "from covtool.cli import _ordinary_pages; _ordinary_pages(); "
+            "print(json.dumps({'env': os.environ.get('NUMPY_MADVISE_HUGEPAGE'), 'advised': bool(s(True))}))")
+    e = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    e["PYTHONPATH"] = str(ROOT)
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=e, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    import numpy
+    from numpy._core.multiarray import _set_madvise_hugepage
+    default = bool(_set_madvise_hugepage(True))
+    _set_madvise_hugepage(default)
+    assert json.loads(proc.stdout.strip().splitlines()[-1]) == {"env": None, "advised": default}
