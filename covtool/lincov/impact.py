@@ -36,6 +36,7 @@ import numpy as np
 
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.discretize import van_loan
+from covtool.lincov.stacks import gather
 from covtool.lincov.noise import (CombinedNoise, ComposedCache, compose_noise, compose_scan, compose_transition,
                                   restricted_noise)
 
@@ -137,8 +138,8 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     block_states = {b: [i for i, s in enumerate(truth.states) if s.block == b] for b in blocks}
     state_block = {s.name: s.block for s in truth.states}
     # --- filter-noise components in the filter's own space
-    PhiX = Phi_pad[:, kidx][:, :, kidx]
-    FX = dyn.F[:, kidx][:, :, kidx]
+    PhiX = gather(Phi_pad, kidx)
+    FX = gather(dyn.F, kidx)
     factors = [restricted_noise("kept", dyn.noise, kidx)]
     ewn_of = {b: [src for src in fm.ewn_noise if state_block[src.name] == b] for b in blocks}
     ewn_blocks = [b for b in blocks if ewn_of[b]]
@@ -158,12 +159,12 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     # when no noisy block drives another (no kept state drives a dropped one, F_dropped,kept = 0), for
     # then each source's composed noise on the union is its noise on (kept ∪ its block) bordered by
     # zeros; else one pass per block
-    apart = all(not np.any(dyn.F[:, block_states[c]][:, :, block_states[b]])
-                and not np.any(Phi_pad[:, block_states[c]][:, :, block_states[b]])
+    apart = all(not np.any(gather(dyn.F, block_states[c], block_states[b]))
+                and not np.any(gather(Phi_pad, block_states[c], block_states[b]))
                 for b in noisy for c in noisy if c != b)
     for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
         urows = np.array(sorted(kset.union(*(block_states[b] for b in group))))
-        Qu = compose_noise(Phi_pad[:, urows][:, :, urows], dyn.F[:, urows][:, :, urows],
+        Qu = compose_noise(gather(Phi_pad, urows), gather(dyn.F, urows),
                            [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev,
                            rows=urows, **shared)
         for j, b in enumerate(group):

@@ -17,6 +17,7 @@ import numpy as np
 from covtool.lincov.discretize import per_source
 from covtool.lincov.dynamics import NoiseSource
 from covtool.lincov.kalman import symmetrize
+from covtool.lincov.stacks import gather
 
 
 # ---------------------------------------------------------------------------
@@ -166,7 +167,7 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk, shared=None):
             out[js] = _compose_block(Phi, F, [factors[j] for j in js], dt, ev, chunk)
         else:
             sub = [NoiseSource(factors[j].name, np.asarray(factors[j].G)[:, idx, :], factors[j].psd) for j in js]
-            Qs = _compose_block(Phi[:, idx][:, :, idx], F[:, idx][:, :, idx], sub, dt, ev, chunk)
+            Qs = _compose_block(gather(Phi, idx), gather(F, idx), sub, dt, ev, chunk)
             for q, j in enumerate(js):
                 out[j][:, idx[:, None], idx[None, :]] = Qs[q]
         if shared is not None:
@@ -335,7 +336,7 @@ def _reduce(Phi, Q, seg):
         nxt = np.r_[seg[1:] == seg[:-1], False]            # a later step of the same segment follows
         left = np.flatnonzero(even & nxt)
         keep = np.flatnonzero(even)
-        paired = np.isin(keep, left)
+        paired = nxt[keep]                                  # the kept steps that have a partner (left ⊂ keep)
         A = Phi[left + 1]                                   # the later step acts on the earlier one
         Phi = Phi[keep]
         Phi[paired] = A @ Phi[paired]
@@ -366,7 +367,8 @@ class _Fold:
             Q = None if Q is None else Q[ok]
         if not seg.size:
             return
-        P, Qr, seg = _reduce(np.array(Phi, float), None if Q is None else np.array(Q, float), seg)
+        # _reduce never writes into its inputs (each level works on the gathered copies)
+        P, Qr, seg = _reduce(np.asarray(Phi, float), None if Q is None else np.asarray(Q, float), seg)
         # each segment's piece follows what earlier chunks composed of it (identity and zero if nothing)
         old = self.Pc[seg]
         self.Pc[seg] = P @ old
