@@ -25,6 +25,7 @@ from covtool.lincov.equivalent_noise import (absorbed_coupling, equivalent_noise
                                              equivalent_white_noise, pointwise_overstatement,
                                              uses_constant_rule, zupt_intervals)
 from covtool.lincov.model.spec import Model
+from covtool.lincov.stacks import gather
 from covtool.nav.strapdown import NAV_STATES
 from covtool.units import ARCSEC, FT, si_unit
 
@@ -143,8 +144,8 @@ class FilterModel:
         :func:`build_filter` (same values as its whole-span ``F``, ``Qc``).
         """
         kidx = np.argmax(self.D, axis=0)
-        F = dyn.F[:, kidx][:, :, kidx]
-        Qc = dyn.Qc[:, kidx][:, :, kidx].copy()
+        F = gather(dyn.F, kidx)
+        Qc = gather(dyn.Qc, kidx)
         for src in self.ewn_noise:
             src.add_qc(Qc, a, b)
         return F, Qc
@@ -215,13 +216,16 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         B = Fx[len(dropped):].transpose(2, 1, 0) if mode else None
     else:
         # a filter keeping every state in truth order has the truth's F and Q_c themselves (neither is
-        # written to: Q_c is copied below if equivalent noise is added); the others keep the layouts
-        # of the gathers they always had (time fastest for F, C order for Q_c: the same round-off)
+        # written to: Q_c is copied below if equivalent noise is added); the others are gathered
+        # C-contiguous (as FilterModel.chunk does), the couplings laid out time fastest as the streamed
+        # columns are (DynamicsStream.columns): the same round-off either way
         whole = np.array_equal(kidx, np.arange(truth.n))
-        F = dyn.F if whole else dyn.F[:, kidx][:, :, kidx]
-        Qc_kept = dyn.Qc if whole else np.ascontiguousarray(dyn.Qc[:, kidx[:, None], kidx[None, :]])
+        F = dyn.F if whole else gather(dyn.F, kidx)
+        Qc_kept = dyn.Qc if whole else gather(dyn.Qc, kidx)
         Qc = Qc_kept
-        B = F[:, :, sens] if mode else None                       # (N, n_f, n_s) their couplings
+        # (N, n_f, n_s) their couplings
+        B = np.ascontiguousarray(gather(dyn.F, kidx, kidx[sens]).transpose(2, 1, 0)).transpose(2, 1, 0) \
+            if mode else None
         if mode and dropped:
             # F_kept,dropped of every dropped state in one gather; each (N, n_f), time fastest as the
             # per-state slices dyn.F[:, kidx, j] and the streamed columns are
