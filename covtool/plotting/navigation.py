@@ -74,7 +74,11 @@ def error_history_figure(result, quantity: str = "horizontal"):
         note = "; ".join(", ".join(g) + " coincide (within 1 %)" for g in same)
         fig.text(0.01, 0.01, f"Note: {note}. Their markers are staggered so that each shows.", fontsize=8,
                  ha="left", va="bottom")
-    fig.tight_layout(rect=(0, 0.04 if same else 0, 1, 1))
+    from covtool.plotting.style import fixed_margins
+
+    # known contents: log tick labels and the axis label on the left, the legend beside the axes (its longest
+    # entry "stop with ZUPT"), the title on top, the note (if any) below the x label
+    fixed_margins(fig, left=0.8, right=1.75, bottom=0.85 if same else 0.65, top=0.4)
     return fig
 
 

@@ -61,5 +61,9 @@ def fig8_figure(result, metric: str = "horizontal"):
     num = 1 if metric == "horizontal" else 2
     fig.suptitle(f"Fig 8.{num}: sensitivity of the {label.split()[0]} error to the filter's "
                  "P_f(0), Q_f, R_f (points: covariance analysis, lines: least-squares fit)")
-    fig.tight_layout(rect=(0, 0.05 if same else 0, 1, 1))
+    from covtool.plotting.style import fixed_margins
+
+    # known contents: log tick labels and an axis label on the left, the legend of short filter names on the
+    # right, the suptitle and panel titles on top, the note (if any) below the x labels
+    fixed_margins(fig, left=0.95, right=0.8, bottom=0.85 if same else 0.6, top=0.75, wspace=0.06)
     return fig
