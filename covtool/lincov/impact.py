@@ -225,7 +225,9 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     # the embedded filters of one transition share its composition over the event grid
     ckey = ("impact composed transition", shared["system"])
     if ckey not in S._dyn_cache:
-        S._dyn_cache[ckey] = compose_transition(Phi_pad, ev)
+        # under the truth's own options that is the truth's composed transition, already at hand
+        same = Phi_pad is S.Phi and np.array_equal(truth_system.ev, ev)
+        S._dyn_cache[ckey] = truth_system.Phi if same else compose_transition(Phi_pad, ev)
     Phi_c = S._dyn_cache[ckey]
     filt = System(ev, Phi_c, np.zeros((len(ev) - 1, 0, 0)))
     fQ = CombinedNoise(components, np.array(coefs), n)
