@@ -191,3 +191,37 @@ def test_filters_of_one_option_set_share_compositions_without_changing_the_table
     assert shared.variants == alone.variants
     np.testing.assert_allclose(shared.P, alone.P, rtol=1e-12, atol=1e-14 * np.abs(alone.P).max())
     assert shared.noise_check < 1e-10
+
+
+def test_impact_shares_keep_option_groups_together_and_fork_at_least_half():
+    """B1 | B2 | B3, C, D (three navigation-option sets): the forked process takes B1 and B2, this one the rest."""
+    from covtool.studies.zupt_filter_order import impact_shares
+    from covtool.studies.zupt_setup import setup
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "6 min"
+    d["output"]["report_times"] = ["6 min"]
+    S6 = setup(d, path=FLAGSHIP)
+    assert impact_shares(S6, ["B1", "B2", "B3", "C", "D"]) == (["B1", "B2"], ["B3", "C", "D"])
+    assert impact_shares(S6, ["B3", "C", "D"]) == (["B3", "C", "D"], [])          # one group: not split
+    assert impact_shares(S6, ["C", "B1"]) == (["C"], ["B1"])
+    assert impact_shares(S6, []) == ([], [])
+
+
+def test_impact_split_between_processes_equals_one_process(tmp_path):
+    """The table assembled from the forked and the own share equals the one computed in one process."""
+    import covtool.forked as forked
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "6 min"
+    d["output"]["report_times"] = ["6 min"]
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    split = covtool.run_study(d).tables["impact"]
+    old = forked._tracing
+    forked._tracing = lambda: True                            # every Forked call runs in this process
+    try:
+        one = covtool.run_study(d).tables["impact"]
+    finally:
+        forked._tracing = old
+    assert list(split["filter"].unique()) == ["B1", "B2", "B3", "C", "D"]
+    assert split[["filter", "variant", "block"]].equals(one[["filter", "variant", "block"]])
+    num = split.select_dtypes("number").columns
+    np.testing.assert_allclose(split[num].to_numpy(float), one[num].to_numpy(float), rtol=1e-12)
