@@ -490,3 +490,32 @@ def test_compiled_path_kernels_equal_numpy_interpolation():
     out = np.zeros((M, K, 3))
     _path_difference_add(single, np.zeros(K + 1, np.int64), np.zeros(K + 1), cols, out)
     assert not out.any()
+
+
+def test_compiled_noise_kernels_equal_numpy_draws():
+    """_add_white and _process_steps draw the stream numpy would and give its numbers, bit for bit."""
+    from covtool.validation.sensor_errors import _add_white, _process_steps
+
+    M, K, J, nd = 4, 301, 7, 5
+    base = np.random.default_rng(1).normal(size=(M, K, 3))
+    a, b = np.random.default_rng(9), np.random.default_rng(9)
+    got = base.copy()
+    _add_white(got, 3e-7, a)
+    assert np.array_equal(got, base + 3e-7 * b.standard_normal((M, K, 3)))
+    x = np.random.default_rng(2).normal(size=(M, nd))
+    ca, cb = np.random.default_rng(3).uniform(0.5, 1.0, (J, nd)), np.random.default_rng(4).uniform(0, 1e-3, (J, nd))
+    out = np.empty((M, J, nd))
+    _process_steps(x, ca, cb, a, True, out)
+    w = b.standard_normal((J, M, nd))
+    ref, cur = np.empty_like(out), x
+    for j in range(J):
+        cur = ca[j] * cur + cb[j] * w[j]
+        ref[:, j] = cur
+    assert np.array_equal(out, ref)
+    assert a.bit_generator.state == b.bit_generator.state       # the same draws, no more
+    _process_steps(x, ca, cb, a, False, out)                     # no noise: the mean decay, nothing drawn
+    cur = x
+    for j in range(J):
+        cur = ca[j] * cur
+    assert np.array_equal(out[:, -1], cur)
+    assert a.bit_generator.state == b.bit_generator.state
