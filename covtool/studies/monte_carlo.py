@@ -387,19 +387,25 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     t_lin = time.perf_counter() - t_lin
     N = opt["runs"]
 
-    # ---- beside the ensemble: the conditional and driven-part analyses, then the null ------------
-    # They need only the draws and the gains, not the runs, so a thread of this process computes them
+    # ---- beside the ensemble: the conditional and driven-part analyses, and the null -------------
+    # They need only the draws and the gains, not the runs, so threads of this process compute them
     # while the chunks run in the backend's workers (both cores busy); the results do not depend on it.
     # The null: replicas of N runs of the linear error-state system (eq (15)-(16)) from the same initial
-    # draws: what the ensemble statistics would look like if the linear model were exact (docs/monte_carlo.md)
-    side = {"null": None, "seconds": 0.0, "null_seconds": 0.0, "error": None}
+    # draws: what the ensemble statistics would look like if the linear model were exact (docs/monte_carlo.md).
+    # The null is the longest of these; in a thread of its own it is not held up by the analyses.
+    side = {"null": None, "seconds": 0.0, "null_seconds": 0.0, "errors": []}
 
-    def beside():
+    def analyses():
         try:
             t0 = time.perf_counter()
             for fn in later:
                 fn()
             side["seconds"] = time.perf_counter() - t0
+        except BaseException as exc:          # re-raised in the main thread
+            side["errors"].append(exc)
+
+    def null():
+        try:
             t0 = time.perf_counter()
             if opt["null_replicas"]:
                 side["null"] = linear_mean_squares(
@@ -407,11 +413,13 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                     replicas=opt["null_replicas"], x0=x0_all, H=S.H, R=S.R,
                     rng=np.random.default_rng(np.random.SeedSequence(opt["seed"], spawn_key=(NULL_STREAM,))))
             side["null_seconds"] = time.perf_counter() - t0
-        except BaseException as exc:          # re-raised in the main thread
-            side["error"] = exc
+        except BaseException as exc:
+            side["errors"].append(exc)
 
-    worker = threading.Thread(target=beside, name="monte_carlo_null", daemon=True)
-    worker.start()
+    workers = [threading.Thread(target=null, name="monte_carlo_null", daemon=True),
+               threading.Thread(target=analyses, name="monte_carlo_conditional", daemon=True)]
+    for w in workers:
+        w.start()
 
     # ---- the ensemble, in chunks of runs ------------------------------------------
     base = {"traj": traj, "model": truth, "t": t, "imu_rate": opt["imu_rate"],
@@ -444,10 +452,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             s = EnsembleSums.from_json(res["sums"][nm])
             sums[nm] = s if nm not in sums else sums[nm] + s
     t_wait = time.perf_counter()
-    worker.join()
+    for w in workers:
+        w.join()
     t_wait = time.perf_counter() - t_wait
-    if side["error"] is not None:
-        raise side["error"]
+    if side["errors"]:
+        raise side["errors"][0]
     null_ms, t_null = side["null"], side["null_seconds"]
     t_lin += side["seconds"]
     elapsed = time.perf_counter() - t_start

@@ -58,7 +58,6 @@ from covtool.errors import NumericalError
 from covtool.lincov.kalman import (check_covariance, check_system, filter_update, kalman_gain, symmetrize,
                                    time_text)
 from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
-from covtool.lincov.reduced import zupt_matrices
 from covtool.nav import attitude as quat, earth
 from covtool.nav.strapdown import NAV_STATES
 
@@ -132,6 +131,8 @@ class FeedbackFilter:
         :func:`covtool.lincov.reference.propagate_with_filter`, in the same order,
         so ``P`` and ``gains`` equal its ``P_filter`` and ``gains`` bit for bit.
         """
+        from covtool.lincov.reduced import zupt_matrices     # with pandas: not at a chunk worker's import
+
         names = tuple(names)
         Hf = zupt_matrices(names)
         N, nf, _ = Phi_f.shape
