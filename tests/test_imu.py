@@ -519,3 +519,32 @@ def test_compiled_noise_kernels_equal_numpy_draws():
         cur = ca[j] * cur
     assert np.array_equal(out[:, -1], cur)
     assert a.bit_generator.state == b.bit_generator.state
+
+
+def test_fill_cache_samples_what_a_pass_of_records_samples():
+    """fill_cache fills truth_cache as a pass of records() does (keys and values), injecting nothing
+    (noise-free errors draw nothing); a simulator with errors on the filled cache gives the records
+    of one without it, bit for bit."""
+    truth = load_model_by_name("sdins58")
+    traj = land_vehicle()
+    x0 = sample_states(truth, 3, 1, q0=traj.sample([0.0]).q_nb[0])
+
+    def sim(rng, cache, noise=True):
+        return ImuSimulator(traj, 100.0, t0=0.0, duration=24.0, truth_cache=cache,
+                            errors=SensorErrors(truth, x0, rng, noise=noise, process_dt=0.1))
+
+    by_pass, filled = {}, {}
+    for _ in sim(5, by_pass).records(chunk=600):
+        pass
+    rng = np.random.default_rng(5)
+    state = rng.bit_generator.state
+    sim(rng, filled, noise=False).fill_cache(chunk=600)
+    assert rng.bit_generator.state == state
+    assert set(filled) == set(by_pass) and len(filled) > 8       # increments, attitude and speed look-ups
+    for key, v in by_pass.items():
+        w = filled[key]
+        assert all(np.array_equal(a, b) for a, b in zip(v, w)) if isinstance(v, tuple) else np.array_equal(v, w)
+    for a, b in zip(sim(7, filled).records(chunk=600), sim(7, None).records(chunk=600)):
+        assert np.array_equal(a.dtheta, b.dtheta) and np.array_equal(a.dv, b.dv)
+    with pytest.raises(ValueError, match="fill_cache needs a truth_cache"):
+        sim(7, None).fill_cache()

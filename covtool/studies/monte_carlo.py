@@ -339,10 +339,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
         def conditional_pure(spec=spec):
             P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names,
-                          times=t)
+                          times=t, system_checked=True)
             lin_c["pure_ins"] = _linear(P, nodes)
             predicted_c[("pure_ins", "truth")] = expected_nees(spec, P, truth.names, nodes.q_nb)
-            P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t)
+            P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t,
+                          system_checked=True)
             lin_d["pure_ins"] = _linear(P, nodes)
         later.append(conditional_pure)
     for c in S.cases:
@@ -370,7 +371,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             res = propagate_with_filter(S.Phi, S.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names),
                                         fm.D, S.R, S.update_steps, Rf=Rf, form=spec.update,
                                         label=f"{where}: filter {c} (conditional)", times=t, names=truth.names,
-                                        filter_names=fm.names)
+                                        filter_names=fm.names, system_checked=True)
             lin_c[c] = _linear(res.P_truth, nodes)
             for key in nees:
                 predicted_c[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
@@ -378,7 +379,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             res = propagate_with_filter(S.Phi, S.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
                                         S.R, S.update_steps, Rf=Rf, form=spec.update,
                                         label=f"{where}: filter {c} (driven part)", times=t, names=truth.names,
-                                        filter_names=fm.names)
+                                        filter_names=fm.names, system_checked=True)
             lin_d[c] = _linear(res.P_truth, nodes)
         later.append(conditional_case)
         cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))

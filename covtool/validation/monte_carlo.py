@@ -218,8 +218,7 @@ def reference_along(traj, t, cases, *, imu_rate: float, samples_per_step: int, m
     upd_steps = sorted({k for c in cases if c.filter is not None for k in c.filter.gains})
     chunk_steps, spans = _spans(N, dt, upd_steps)
     spr = int(round(dt / sim.dt))
-    for _ in sim.records(chunk=spr * chunk_steps):    # fills the cache: the calls of a chunk's pass
-        pass
+    sim.fill_cache(chunk=spr * chunk_steps)           # the calls of a chunk's pass, without its errors
     contexts = None
     need = [SensorFeedback(model, c.filter.names, 1) for c in cases if c.filter is not None] if model else []
     if any(f.n and f.needs_context for f in need):

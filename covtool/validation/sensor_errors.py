@@ -224,6 +224,15 @@ class SensorErrors:
         u = u[None, :, None]
         return nx[:, j] + u * (nx[:, j + 1] - nx[:, j])
 
+    def advance(self, t0, h, k: int, *, speed_fn=None, **context) -> None:
+        """Advance the processes over ``k`` samples from ``t0`` without injecting errors.
+
+        What :meth:`increment_errors` does first (the same process nodes and
+        speed look-ups); the attitude and gravity of ``context`` are not
+        needed.
+        """
+        self._dynamic_path(t0 + h * np.arange(k + 1), speed_fn, nodes=True)
+
     # ---- injection ---------------------------------------------------------
     def increment_errors(self, t0, h, dtheta, dv, *, speed_fn=None, attitude=None, gravity=None):
         """Errors of one chunk of samples (advances the processes).
