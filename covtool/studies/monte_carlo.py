@@ -60,9 +60,9 @@ reported beside it.
 Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
 (``covtool run --workers N`` or ``--scheduler``), else local processes, one
 per CPU.  The conditional and driven-part analyses and the linear Monte Carlo
-need only the draws and the gains, so a thread of the study's process
-computes them while the chunks run (both cores busy); their results do not
-depend on it.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
+need only the draws and the gains, so threads of the study's process compute
+them while the chunks run (both cores busy; the linear Monte Carlo draws its
+random numbers in a thread of its own); their results do not depend on it.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
 every finished chunk is stored and ``--resume`` reuses it.
 
 With ``[[measurement]]`` tables (the aided kind's declaration) instead of
