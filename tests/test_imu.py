@@ -490,3 +490,61 @@ def test_compiled_path_kernels_equal_numpy_interpolation():
     out = np.zeros((M, K, 3))
     _path_difference_add(single, np.zeros(K + 1, np.int64), np.zeros(K + 1), cols, out)
     assert not out.any()
+
+
+def test_compiled_noise_kernels_equal_numpy_draws():
+    """_add_white and _process_steps draw the stream numpy would and give its numbers, bit for bit."""
+    from covtool.validation.sensor_errors import _add_white, _process_steps
+
+    M, K, J, nd = 4, 301, 7, 5
+    base = np.random.default_rng(1).normal(size=(M, K, 3))
+    a, b = np.random.default_rng(9), np.random.default_rng(9)
+    got = base.copy()
+    _add_white(got, 3e-7, a)
+    assert np.array_equal(got, base + 3e-7 * b.standard_normal((M, K, 3)))
+    x = np.random.default_rng(2).normal(size=(M, nd))
+    ca, cb = np.random.default_rng(3).uniform(0.5, 1.0, (J, nd)), np.random.default_rng(4).uniform(0, 1e-3, (J, nd))
+    out = np.empty((M, J, nd))
+    _process_steps(x, ca, cb, a, True, out)
+    w = b.standard_normal((J, M, nd))
+    ref, cur = np.empty_like(out), x
+    for j in range(J):
+        cur = ca[j] * cur + cb[j] * w[j]
+        ref[:, j] = cur
+    assert np.array_equal(out, ref)
+    assert a.bit_generator.state == b.bit_generator.state       # the same draws, no more
+    _process_steps(x, ca, cb, a, False, out)                     # no noise: the mean decay, nothing drawn
+    cur = x
+    for j in range(J):
+        cur = ca[j] * cur
+    assert np.array_equal(out[:, -1], cur)
+    assert a.bit_generator.state == b.bit_generator.state
+
+
+def test_fill_cache_samples_what_a_pass_of_records_samples():
+    """fill_cache fills truth_cache as a pass of records() does (keys and values), injecting nothing
+    (noise-free errors draw nothing); a simulator with errors on the filled cache gives the records
+    of one without it, bit for bit."""
+    truth = load_model_by_name("sdins58")
+    traj = land_vehicle()
+    x0 = sample_states(truth, 3, 1, q0=traj.sample([0.0]).q_nb[0])
+
+    def sim(rng, cache, noise=True):
+        return ImuSimulator(traj, 100.0, t0=0.0, duration=24.0, truth_cache=cache,
+                            errors=SensorErrors(truth, x0, rng, noise=noise, process_dt=0.1))
+
+    by_pass, filled = {}, {}
+    for _ in sim(5, by_pass).records(chunk=600):
+        pass
+    rng = np.random.default_rng(5)
+    state = rng.bit_generator.state
+    sim(rng, filled, noise=False).fill_cache(chunk=600)
+    assert rng.bit_generator.state == state
+    assert set(filled) == set(by_pass) and len(filled) > 8       # increments, attitude and speed look-ups
+    for key, v in by_pass.items():
+        w = filled[key]
+        assert all(np.array_equal(a, b) for a, b in zip(v, w)) if isinstance(v, tuple) else np.array_equal(v, w)
+    for a, b in zip(sim(7, filled).records(chunk=600), sim(7, None).records(chunk=600)):
+        assert np.array_equal(a.dtheta, b.dtheta) and np.array_equal(a.dv, b.dv)
+    with pytest.raises(ValueError, match="fill_cache needs a truth_cache"):
+        sim(7, None).fill_cache()

@@ -516,6 +516,42 @@ def test_compiled_compensation_equals_reference(files, small, model_name, keep):
     np.testing.assert_allclose(a.c, b.c, rtol=1e-14, atol=0)
 
 
+
+def test_cases_compensated_together_equal_each_alone(files, small):
+    """compensate_cases: several feedbacks on one record give each one's own increments and ĉ, bit for bit.
+
+    Three filters (every sdins58 state, Markov, gravity and AD reset included;
+    accelerometer scale factors and gyro biases; gyro misalignments) written
+    into one strided buffer, as the ensemble loop does.
+    """
+    from covtool.io.library import load_model_by_name
+
+    decl, _ = small
+    truth = load_model_by_name("sdins58")
+    traj = load_trajectory(decl, "<test>", None, 1.0)
+    M, k, h = 3, 200, 0.01
+    rng = np.random.default_rng(5)
+    x0 = sample_states(truth, M, rng, q0=traj.sample([40.0]).q_nb[0]) * 100.0
+    sim = ImuSimulator(traj, 100.0, t0=40.0, duration=k * h, errors=SensorErrors(truth, x0, 6, process_dt=0.1))
+    rec = sim.record()
+    ctx = feedback.RecordContext.along(traj, rec.t0, h, k)
+    keep = [truth.names, truth.names[:10] + [n for n in truth.names if n.startswith(("acc_sf", "gyro_bias"))],
+            truth.names[:10] + [n for n in truth.names if n.startswith("gyro_mis")]]
+    together = [feedback.SensorFeedback(truth, names, M) for names in keep]
+    alone = [feedback.SensorFeedback(truth, names, M) for names in keep]
+    for a, b in zip(together, alone):
+        est = x0[:, [truth.index[n] for n in a.names]] * rng.uniform(0.5, 1.5)
+        a.add(est)
+        b.add(est)
+    buf = np.full((2, 4 * M, k + 7, 3), np.nan)
+    out = (buf[0, M:, 3:k + 3], buf[1, M:, 3:k + 3])
+    feedback.compensate_cases(together, rec.dtheta, rec.dv, h, ctx, out=out)
+    for i, b in enumerate(alone):
+        th, dv = b.compensate(rec.dtheta, rec.dv, h, ctx)
+        assert np.array_equal(out[0][i * M:(i + 1) * M], th) and np.array_equal(out[1][i * M:(i + 1) * M], dv)
+        assert np.array_equal(together[i].c, b.c)
+    assert np.isnan(buf[:, :M]).all() and np.isnan(buf[:, :, :3]).all()       # nothing written outside
+
 # --------------------------------------------------------------------------
 # the conditional prediction (docs/monte_carlo.md, "Statistics")
 # --------------------------------------------------------------------------

@@ -285,6 +285,26 @@ def test_group_samples_refuses_gaps():
         sd.group_samples(ts, edges[:1])
 
 
+
+def test_rows_let_runs_share_record_rows(lv):
+    """run(rows=) reads each run's row in place: the same numbers as the record with the rows copied out."""
+    rec = ideal_increments(lv, 100.0, t0=20.0, duration=6.0)
+    rng = np.random.default_rng(4)
+    src = ImuRecord(rec.t0, rec.dt, rec.dtheta[None] * (1 + 1e-4 * rng.normal(size=(3, 1, 3))),
+                    rec.dv[None] * (1 + 1e-4 * rng.normal(size=(3, 1, 3))))
+    rows = np.array([2, 0, 0, 1, 2])
+    s0 = sd.NavState.from_trajectory(lv, 20.0, errors=rng.normal(size=(5, 10)) * 1e-6)
+    got = sd.run(s0, src, 4, every=5, rows=rows)
+    ref = sd.run(s0, ImuRecord(src.t0, src.dt, src.dtheta[rows], src.dv[rows]), 4, every=5)
+    for key in ("t", "lat", "lon", "h", "v_n", "q"):
+        assert np.array_equal(getattr(got, key), getattr(ref, key)), key
+    with pytest.raises(ValueError, match="rows must have shape"):
+        sd.run(s0, src, 4, rows=rows[:4])
+    with pytest.raises(ValueError, match="the record has 3"):
+        sd.run(s0, src, 4, rows=rows + 1)
+    with pytest.raises(ValueError, match="rows cannot be combined with a callback"):
+        sd.run(s0, src, 4, rows=rows, callback=lambda st: None)
+
 def test_ensemble_runs_are_independent_copies(lv, capsys):
     """M runs with identical inputs give identical results; M=200 timing."""
     rec = ideal_increments(lv, 100.0, duration=120.0)

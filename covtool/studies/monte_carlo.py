@@ -60,9 +60,9 @@ reported beside it.
 Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
 (``covtool run --workers N`` or ``--scheduler``), else local processes, one
 per CPU.  The conditional and driven-part analyses and the linear Monte Carlo
-need only the draws and the gains, so a thread of the study's process
-computes them while the chunks run (both cores busy); their results do not
-depend on it.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
+need only the draws and the gains, so threads of the study's process compute
+them while the chunks run (both cores busy; the linear Monte Carlo draws its
+random numbers in a thread of its own); their results do not depend on it.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
 every finished chunk is stored and ``--resume`` reuses it.
 
 With ``[[measurement]]`` tables (the aided kind's declaration) instead of
@@ -339,10 +339,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
 
         def conditional_pure(spec=spec):
             P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names,
-                          times=t)
+                          times=t, system_checked=True)
             lin_c["pure_ins"] = _linear(P, nodes)
             predicted_c[("pure_ins", "truth")] = expected_nees(spec, P, truth.names, nodes.q_nb)
-            P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t)
+            P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t,
+                          system_checked=True)
             lin_d["pure_ins"] = _linear(P, nodes)
         later.append(conditional_pure)
     for c in S.cases:
@@ -370,7 +371,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             res = propagate_with_filter(S.Phi, S.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names),
                                         fm.D, S.R, S.update_steps, Rf=Rf, form=spec.update,
                                         label=f"{where}: filter {c} (conditional)", times=t, names=truth.names,
-                                        filter_names=fm.names)
+                                        filter_names=fm.names, system_checked=True)
             lin_c[c] = _linear(res.P_truth, nodes)
             for key in nees:
                 predicted_c[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
@@ -378,7 +379,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             res = propagate_with_filter(S.Phi, S.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
                                         S.R, S.update_steps, Rf=Rf, form=spec.update,
                                         label=f"{where}: filter {c} (driven part)", times=t, names=truth.names,
-                                        filter_names=fm.names)
+                                        filter_names=fm.names, system_checked=True)
             lin_d[c] = _linear(res.P_truth, nodes)
         later.append(conditional_case)
         cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
@@ -387,19 +388,25 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     t_lin = time.perf_counter() - t_lin
     N = opt["runs"]
 
-    # ---- beside the ensemble: the conditional and driven-part analyses, then the null ------------
-    # They need only the draws and the gains, not the runs, so a thread of this process computes them
+    # ---- beside the ensemble: the conditional and driven-part analyses, and the null -------------
+    # They need only the draws and the gains, not the runs, so threads of this process compute them
     # while the chunks run in the backend's workers (both cores busy); the results do not depend on it.
     # The null: replicas of N runs of the linear error-state system (eq (15)-(16)) from the same initial
-    # draws: what the ensemble statistics would look like if the linear model were exact (docs/monte_carlo.md)
-    side = {"null": None, "seconds": 0.0, "null_seconds": 0.0, "error": None}
+    # draws: what the ensemble statistics would look like if the linear model were exact (docs/monte_carlo.md).
+    # The null is the longest of these; in a thread of its own it is not held up by the analyses.
+    side = {"null": None, "seconds": 0.0, "null_seconds": 0.0, "errors": []}
 
-    def beside():
+    def analyses():
         try:
             t0 = time.perf_counter()
             for fn in later:
                 fn()
             side["seconds"] = time.perf_counter() - t0
+        except BaseException as exc:          # re-raised in the main thread
+            side["errors"].append(exc)
+
+    def null():
+        try:
             t0 = time.perf_counter()
             if opt["null_replicas"]:
                 side["null"] = linear_mean_squares(
@@ -407,11 +414,13 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                     replicas=opt["null_replicas"], x0=x0_all, H=S.H, R=S.R,
                     rng=np.random.default_rng(np.random.SeedSequence(opt["seed"], spawn_key=(NULL_STREAM,))))
             side["null_seconds"] = time.perf_counter() - t0
-        except BaseException as exc:          # re-raised in the main thread
-            side["error"] = exc
+        except BaseException as exc:
+            side["errors"].append(exc)
 
-    worker = threading.Thread(target=beside, name="monte_carlo_null", daemon=True)
-    worker.start()
+    workers = [threading.Thread(target=null, name="monte_carlo_null", daemon=True),
+               threading.Thread(target=analyses, name="monte_carlo_conditional", daemon=True)]
+    for w in workers:
+        w.start()
 
     # ---- the ensemble, in chunks of runs ------------------------------------------
     base = {"traj": traj, "model": truth, "t": t, "imu_rate": opt["imu_rate"],
@@ -444,10 +453,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             s = EnsembleSums.from_json(res["sums"][nm])
             sums[nm] = s if nm not in sums else sums[nm] + s
     t_wait = time.perf_counter()
-    worker.join()
+    for w in workers:
+        w.join()
     t_wait = time.perf_counter() - t_wait
-    if side["error"] is not None:
-        raise side["error"]
+    if side["errors"]:
+        raise side["errors"][0]
     null_ms, t_null = side["null"], side["null_seconds"]
     t_lin += side["seconds"]
     elapsed = time.perf_counter() - t_start

@@ -58,12 +58,11 @@ from covtool.errors import NumericalError
 from covtool.lincov.kalman import (check_covariance, check_system, filter_update, kalman_gain, symmetrize,
                                    time_text)
 from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
-from covtool.lincov.reduced import zupt_matrices
 from covtool.nav import attitude as quat, earth
 from covtool.nav.strapdown import NAV_STATES
 
 __all__ = [
-    "FeedbackFilter", "SensorFeedback", "RecordContext",
+    "FeedbackFilter", "SensorFeedback", "RecordContext", "compensate_cases",
 ]
 
 
@@ -132,6 +131,8 @@ class FeedbackFilter:
         :func:`covtool.lincov.reference.propagate_with_filter`, in the same order,
         so ``P`` and ``gains`` equal its ``P_filter`` and ``gains`` bit for bit.
         """
+        from covtool.lincov.reduced import zupt_matrices     # with pandas: not at a chunk worker's import
+
         names = tuple(names)
         Hf = zupt_matrices(names)
         N, nf, _ = Phi_f.shape
@@ -235,7 +236,7 @@ class SensorFeedback:
     def compensate(self, dtheta, dv, h: float, ctx: "RecordContext | None" = None):
         """Compensated increments of one record; advances ``ĉ`` to its end.
 
-        The compiled kernel (:func:`_compensate_kernel`) when every fed-back
+        The compiled kernel (:func:`compensate_cases`) when every fed-back
         block is a single-entry sensitivity (:func:`_column_table`) or the
         gravity block, else :meth:`compensate_reference`; both give the
         same increments to round-off (tests).  Parameters and returns as
@@ -243,35 +244,7 @@ class SensorFeedback:
         """
         if not self.n:
             return dtheta, dv
-        table = self._table()
-        if table is None:
-            return self.compensate_reference(dtheta, dv, h, ctx)
-        if self.needs_context and ctx is None:
-            raise ValueError("gravity-disturbance and Markov-in-distance feedback need the record context")
-        M, k, _ = dtheta.shape
-        dyn = self.dynamic.any()
-        if dyn:
-            t_mid = (np.arange(k) + 0.5) * h
-            d_mid = ctx.d_mid if ctx is not None else np.zeros(k)
-            f_mid = self._factors(t_mid, d_mid)                            # (k, n_s)
-        else:
-            f_mid = np.ones((1, self.n))
-        target, rows, types, ia, ib, cidx, gcols, gidx, adcols, adidx = table
-        gS = ctx.gravity_sensitivity if gcols.size else np.zeros((1, 3, 3))
-        if adcols.size:
-            f_edge = self._factors(np.arange(k + 1) * h, ctx.d_edge if ctx is not None else np.zeros(k + 1))
-            ad_step = np.ascontiguousarray(f_edge[1:] - f_edge[:-1])            # (k, n_s)
-        else:
-            ad_step = np.zeros((1, self.n))
-        out_th = np.empty((M, k, 3))
-        out_dv = np.empty((M, k, 3))
-        _compensate_kernel(dtheta, dv, float(h), target, rows, types, ia, ib, cidx, f_mid, np.ascontiguousarray(self.c),
-                           np.ascontiguousarray(gS), gcols, gidx, adcols, adidx, ad_step, out_th, out_dv)
-        if dyn:
-            t_end = np.array([k * h])
-            d_end = ctx.d_edge[-1:] if ctx is not None else np.zeros(1)
-            self.c = self.c * self._factors(t_end, d_end)[0][None, :]
-        return out_th, out_dv
+        return compensate_cases([self], dtheta, dv, h, ctx)
 
     def _table(self):
         """Entries of the compiled compensation, or None (use the reference)."""
@@ -304,6 +277,33 @@ class SensorFeedback:
                                                                      adcols, adidx))
         self._tab = tab
         return tab
+
+    def _plan(self):
+        """The entries of :meth:`_table` as the compiled kernel takes them, or None.
+
+        ``(fidx, cols, dyn, comp)``: per entry its feature (:data:`_FEATURES`
+        order), its column of ``ĉ``, whether its state has mean dynamics and
+        its correction component (0–2 gyro x, y, z, 3–5 accel x, y, z);
+        within a component the entries keep the table's order.
+        """
+        if getattr(self, "_plan_", False) is not False:
+            return self._plan_
+        tab = self._table()
+        plan = None
+        if tab is not None:
+            target, rows, types, ia, ib, cidx = tab[:6]
+            out = 3 * target + rows
+            # round robin over the components, table order within each: the kernel's six sums then
+            # advance side by side instead of one after the other
+            rank = np.zeros(out.size, np.int64)
+            for o in range(6):
+                rank[out == o] = np.arange(np.count_nonzero(out == o))
+            order = np.lexsort((out, rank))
+            fidx = np.select([types == 0, types == 1, types == 2, types == 3],
+                             [0, 1 + ia, 4 + ia, 7 + ia], 10 + 3 * ia + ib).astype(np.int64)
+            plan = (fidx[order], cidx[order], self.dynamic[cidx[order]].astype(np.int64), out[order])
+        self._plan_ = plan
+        return plan
 
     def compensate_reference(self, dtheta, dv, h: float, ctx: "RecordContext | None" = None):
         """Compensated increments of one record (numpy reference).
@@ -402,85 +402,189 @@ def _column_table(kind: str):
     return tuple(out)
 
 
-@numba.njit(cache=True, nogil=True)
-def _compensate_kernel(dth, dv, h, target, rows, types, ia, ib, cidx, fmid, c, gS, gcols, gidx, adcols, adidx,
-                       ad_step, out_th, out_dv):
-    """``Δθ − h S_g ĉ``, ``Δv − h S_a ĉ − h C diag(g, g, −1) ĉ_grav − Δĉ_AD`` per sample.
+#: features of a raw sample that the single-entry sensitivities take (:func:`_column_table`):
+#: 1, f̄_a, ω̄_a, |f̄_a|, f̄_a f̄_b (a, b = x, y, z), in this order
+_FEATURES = 19
 
-    ``dth``, ``dv`` (Mv, K, 3) raw (Mv = M or 1); entry e adds
-    ``v_e(f̄, ω̄) ĉ[cidx_e] fmid[k, cidx_e]`` to row ``rows_e`` of the gyro
-    (``target`` 0) or accelerometer (1) correction (:func:`_column_table`);
-    ``fmid`` (K or 1, n_s) the mean-dynamics factors; ``gS`` (K, 3, 3) the
-    gravity sensitivity, its kept columns ``gcols`` at ``gidx``; the AD-reset
-    states ``adcols`` at ``adidx`` subtract ``ĉ ad_step[k]`` (the change of
-    their mean dynamics over the sample).
+
+def compensate_cases(feedbacks, dtheta, dv, h: float, ctx: "RecordContext | None" = None, out=None):
+    """Compensated increments of several feedbacks of one record; advances each ``ĉ``.
+
+    The feedbacks (e.g. the filter cases of an ensemble) compensate the same
+    raw increments, each with its own ``ĉ``; the compiled kernel
+    (:func:`_compensate_kernel`) forms the sample means once for all of them.
+
+    Parameters
+    ----------
+    feedbacks : sequence of SensorFeedback
+        With the same number of runs M, each with fed-back states.
+    dtheta, dv : ndarray, shape (Mv, k, 3)
+        Raw increments of the record (Mv = M, or 1 shared by the runs).
+        [rad], [m/s]
+    h : float
+        Sample period. [s]
+    ctx : RecordContext, optional
+        As for :meth:`SensorFeedback.compensate_reference`.
+    out : tuple of ndarray, optional
+        ``(dtheta_c, dv_c)``, each shape (len(feedbacks)·M, k, 3), any
+        strides, to write into (default: new arrays).
+
+    Returns
+    -------
+    dtheta_c, dv_c : ndarray, shape (len(feedbacks)·M, k, 3)
+        Feedback ``i`` in rows ``i·M … (i+1)·M − 1``.
+    """
+    fbs = list(feedbacks)
+    M = fbs[0].c.shape[0]
+    _, k, _ = dtheta.shape
+    if out is None:
+        out = (np.empty((len(fbs) * M, k, 3)), np.empty((len(fbs) * M, k, 3)))
+    out_th, out_dv = out
+    compiled = []
+    for i, fb in enumerate(fbs):
+        if fb.c.shape[0] != M or not fb.n:
+            raise ValueError("compensate_cases: every feedback needs fed-back states and the same runs")
+        if fb._plan() is None:
+            th, vv = fb.compensate_reference(dtheta, dv, h, ctx)
+            out_th[i * M:(i + 1) * M] = th
+            out_dv[i * M:(i + 1) * M] = vv
+        else:
+            if fb.needs_context and ctx is None:
+                raise ValueError("gravity-disturbance and Markov-in-distance feedback need the record context")
+            compiled.append(i)
+    if not compiled:
+        return out_th, out_dv
+    # the cases' tables, their ĉ and mean-dynamics factors side by side (case j's columns from off[j])
+    use = [fbs[i] for i in compiled]
+    off = np.cumsum([0] + [fb.n for fb in use])
+    dyn = any(fb.dynamic.any() for fb in use)
+    need_ad = any(fb._table()[8].size for fb in use)
+    d_mid = ctx.d_mid if ctx is not None else np.zeros(k)
+    d_edge = ctx.d_edge if ctx is not None else np.zeros(k + 1)
+    f_mid = np.ones((k if dyn else 1, off[-1]))
+    ad_step = np.zeros((k if need_ad else 1, off[-1]))
+    fidx, cols, dflag, comp, estart = [], [], [], [], [0]
+    gstart, gcols, gidx, astart, adcols, adidx = [0], [], [], [0], [], []
+    for j, fb in enumerate(use):
+        fi, cj, dj, oj = fb._plan()
+        tab = fb._table()
+        fidx.append(fi)
+        cols.append(cj + off[j])
+        dflag.append(dj)
+        comp.append(oj)
+        estart.append(estart[-1] + fi.size)
+        gcols.append(tab[6])
+        gidx.append(tab[7] + off[j])
+        gstart.append(gstart[-1] + tab[6].size)
+        adcols.append(tab[8])
+        adidx.append(tab[9] + off[j])
+        astart.append(astart[-1] + tab[8].size)
+        if fb.dynamic.any():
+            f_mid[:, off[j]:off[j + 1]] = fb._factors((np.arange(k) + 0.5) * h, d_mid)
+        if tab[8].size:
+            f_edge = fb._factors(np.arange(k + 1) * h, d_edge)
+            ad_step[:, off[j]:off[j + 1]] = f_edge[1:] - f_edge[:-1]
+    cat = lambda parts: np.ascontiguousarray(np.concatenate(parts), dtype=np.int64)   # noqa: E731
+    gS = ctx.gravity_sensitivity if sum(g.size for g in gcols) else np.zeros((1, 3, 3))
+    c = np.ascontiguousarray(np.concatenate([fb.c for fb in use], axis=1))
+    rows = np.array(compiled, np.int64) * M
+    _compensate_kernel(dtheta, dv, float(h), np.array(estart, np.int64), cat(fidx), cat(cols), cat(dflag),
+                       cat(comp), f_mid, c,
+                       np.ascontiguousarray(gS), np.array(gstart, np.int64), cat(gcols), cat(gidx),
+                       np.array(astart, np.int64), cat(adcols), cat(adidx), ad_step, rows, out_th, out_dv)
+    for fb in use:
+        if fb.dynamic.any():
+            fb.c = fb.c * fb._factors(np.array([k * h]), d_edge[-1:])[0][None, :]
+    return out_th, out_dv
+
+
+@numba.njit(cache=True, nogil=True)
+def _compensate_kernel(dth, dv, h, estart, fidx, cols, dflag, comp, fmid, c, gS, gstart, gcols, gidx, astart,
+                       adcols, adidx, ad_step, rows, out_th, out_dv):
+    """``Δθ − h S_g ĉ``, ``Δv − h S_a ĉ − h C diag(g, g, −1) ĉ_grav − Δĉ_AD`` per sample, for several cases.
+
+    ``dth``, ``dv`` (Mv, K, 3) raw (Mv = M or 1), shared by the cases; case
+    i writes rows ``rows[i] + m`` of ``out_th``, ``out_dv``.  Its entries
+    ``estart[i] … estart[i + 1] − 1`` each add ``F[fidx_e] ĉ[cols_e]``
+    (times ``fmid[k, cols_e]`` when ``dflag_e``) to correction component
+    ``comp_e`` (gyro x, y, z, accel x, y, z),
+    F the :data:`_FEATURES` of the sample means ``f̄ = Δv/h``, ``ω̄ = Δθ/h``
+    (:func:`_column_table`); ``c`` (M, n) the cases' ĉ side by side,
+    ``fmid`` (K or 1, n) their mean-dynamics factors; ``gS`` (K, 3, 3) the
+    gravity sensitivity, the case's kept columns ``gcols`` at ``gidx``
+    (``gstart[i] …``); its AD-reset states ``adcols`` at ``adidx``
+    (``astart[i] …``) subtract ``ĉ ad_step[k]`` (the change of their mean
+    dynamics over the sample).
     """
     M = c.shape[0]
-    K = out_th.shape[1]
+    K = dth.shape[1]
+    C = rows.size
     shared = dth.shape[0] == 1
     nf = fmid.shape[0]
+    # run after run, in blocks of samples that are the inner loop (vector lanes): each sample's
+    # entries are added in table order, and every row of the outputs is written in sequence
+    KB = 128
+    F = np.empty((_FEATURES, KB))
+    acc = np.empty((6, KB))
+    dad = np.empty((3, KB))
+    fT = np.ascontiguousarray(fmid.T)
+    gT = np.ascontiguousarray(gS.transpose(1, 2, 0))
+    aT = np.ascontiguousarray(ad_step.T)
     for m in range(M):
         mb = 0 if shared else m
-        for k in range(K):
-            kf = k if nf > 1 else 0
-            f0, f1, f2 = dv[mb, k, 0] / h, dv[mb, k, 1] / h, dv[mb, k, 2] / h
-            w0, w1, w2 = dth[mb, k, 0] / h, dth[mb, k, 1] / h, dth[mb, k, 2] / h
-            g0 = g1 = g2 = 0.0
-            a0 = a1 = a2 = 0.0
-            for e in range(rows.size):
-                ty = types[e]
-                p = ia[e]
-                fp = f0 if p == 0 else (f1 if p == 1 else f2)
-                if ty == 0:
-                    v = 1.0
-                elif ty == 1:
-                    v = fp
-                elif ty == 2:
-                    v = w0 if p == 0 else (w1 if p == 1 else w2)
-                elif ty == 3:
-                    v = abs(fp)
-                else:
-                    q = ib[e]
-                    v = fp * (f0 if q == 0 else (f1 if q == 1 else f2))
-                j = cidx[e]
-                cv = v * c[m, j] * fmid[kf, j]
-                r = rows[e]
-                if target[e] == 0:
-                    if r == 0:
-                        g0 += cv
-                    elif r == 1:
-                        g1 += cv
+        for k0 in range(0, K, KB):
+            kn = min(KB, K - k0)
+            for q in range(kn):
+                k = k0 + q
+                f0, f1, f2 = dv[mb, k, 0] / h, dv[mb, k, 1] / h, dv[mb, k, 2] / h
+                w0, w1, w2 = dth[mb, k, 0] / h, dth[mb, k, 1] / h, dth[mb, k, 2] / h
+                F[0, q] = 1.0
+                F[1, q], F[2, q], F[3, q] = f0, f1, f2
+                F[4, q], F[5, q], F[6, q] = w0, w1, w2
+                F[7, q], F[8, q], F[9, q] = abs(f0), abs(f1), abs(f2)
+                F[10, q], F[11, q], F[12, q] = f0 * f0, f0 * f1, f0 * f2
+                F[13, q], F[14, q], F[15, q] = f1 * f0, f1 * f1, f1 * f2
+                F[16, q], F[17, q], F[18, q] = f2 * f0, f2 * f1, f2 * f2
+            for i in range(C):
+                acc[:, :kn] = 0.0
+                for e in range(estart[i], estart[i + 1]):
+                    fi, o, j = fidx[e], comp[e], cols[e]
+                    cm = c[m, j]
+                    if not dflag[e]:
+                        for q in range(kn):
+                            acc[o, q] += F[fi, q] * cm
+                    elif nf > 1:
+                        for q in range(kn):
+                            acc[o, q] += F[fi, q] * cm * fT[j, k0 + q]
                     else:
-                        g2 += cv
-                elif r == 0:
-                    a0 += cv
-                elif r == 1:
-                    a1 += cv
-                else:
-                    a2 += cv
-            for e in range(gcols.size):
-                j = gidx[e]
-                cj = c[m, j] * fmid[kf, j]
-                gc = gcols[e]
-                a0 += gS[k, 0, gc] * cj
-                a1 += gS[k, 1, gc] * cj
-                a2 += gS[k, 2, gc] * cj
-            out_th[m, k, 0] = dth[mb, k, 0] - h * g0
-            out_th[m, k, 1] = dth[mb, k, 1] - h * g1
-            out_th[m, k, 2] = dth[mb, k, 2] - h * g2
-            d0 = d1 = d2 = 0.0
-            for e in range(adcols.size):
-                j = adidx[e]
-                dj = c[m, j] * ad_step[k, j]
-                if adcols[e] == 0:
-                    d0 += dj
-                elif adcols[e] == 1:
-                    d1 += dj
-                else:
-                    d2 += dj
-            out_dv[m, k, 0] = dv[mb, k, 0] - h * a0 - d0
-            out_dv[m, k, 1] = dv[mb, k, 1] - h * a1 - d1
-            out_dv[m, k, 2] = dv[mb, k, 2] - h * a2 - d2
+                        fm = fT[j, 0]
+                        for q in range(kn):
+                            acc[o, q] += F[fi, q] * cm * fm
+                for e in range(gstart[i], gstart[i + 1]):
+                    j = gidx[e]
+                    gc = gcols[e]
+                    cm = c[m, j]
+                    for q in range(kn):
+                        cj = cm * fT[j, k0 + q if nf > 1 else 0]
+                        acc[3, q] += gT[0, gc, k0 + q] * cj
+                        acc[4, q] += gT[1, gc, k0 + q] * cj
+                        acc[5, q] += gT[2, gc, k0 + q] * cj
+                dad[:, :kn] = 0.0
+                for e in range(astart[i], astart[i + 1]):
+                    j = adidx[e]
+                    a = adcols[e]
+                    cm = c[m, j]
+                    for q in range(kn):
+                        dad[a, q] += cm * aT[j, k0 + q]
+                r = rows[i] + m
+                for q in range(kn):
+                    k = k0 + q
+                    out_th[r, k, 0] = dth[mb, k, 0] - h * acc[0, q]
+                    out_th[r, k, 1] = dth[mb, k, 1] - h * acc[1, q]
+                    out_th[r, k, 2] = dth[mb, k, 2] - h * acc[2, q]
+                    out_dv[r, k, 0] = dv[mb, k, 0] - h * acc[3, q] - dad[0, q]
+                    out_dv[r, k, 1] = dv[mb, k, 1] - h * acc[4, q] - dad[1, q]
+                    out_dv[r, k, 2] = dv[mb, k, 2] - h * acc[5, q] - dad[2, q]
 
 
 @dataclass(frozen=True)

@@ -30,6 +30,9 @@ are multiplied as a block, the others elementwise, which is exact.
 
 from __future__ import annotations
 
+import queue
+import threading
+
 import numpy as np
 from threadpoolctl import threadpool_limits
 
@@ -258,37 +261,111 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
 def _sample(names, G, meas, Lp, nw, Pd, dd, nd, ne, Cp, used, N, n, runs, replicas, rng, block, x0p, L0, rows):
     out = {c: np.empty((replicas, N + 1, len(rows))) for c in names}
     per = max(1, block // runs)                   # replicas per block
-    for r0 in range(0, replicas, per):
-        nr = min(per, replicas - r0)
-        B = nr * runs
-        if x0p is not None:
-            X0 = np.tile(x0p.T, (1, nr)).astype(np.float32)
-        else:
-            X0 = (L0 @ rng.standard_normal((n, B))).astype(np.float32)
-        X = {c: X0.copy() for c in names}
-        for k in range(N + 1):
-            if k in meas:
-                Hp, Lr = meas[k]
-                v = Lr @ rng.standard_normal((Lr.shape[0], B), dtype=np.float32)
+    blocks = [(r0, min(per, replicas - r0)) for r0 in range(0, replicas, per)]
+    # the random draws (a third of the work) are made by a second thread, in their one order, while
+    # this one propagates the cases: the numbers are those of drawing them in the loop
+    draws = _prefetch(_draws([nr * runs for _, nr in blocks], meas, Lp, N, n, rng, L0))
+    try:
+        for r0, nr in blocks:
+            B = nr * runs
+            X0 = next(draws) if L0 is not None else np.tile(x0p.T, (1, nr)).astype(np.float32)
+            X = {c: X0.copy() for c in names}
+            for k in range(N + 1):
+                v, W = next(draws)
+                if v is not None:
+                    Hp = meas[k][0]
+                    for c in names:
+                        g = G[c].get(k)
+                        if g is not None:
+                            X[c] -= g @ (Hp @ X[c] + v)
                 for c in names:
-                    g = G[c].get(k)
-                    if g is not None:
-                        X[c] -= g @ (Hp @ X[c] + v)
-            for c in names:
-                Y = Cp[k] @ X[c][used]
-                Y *= Y
-                ms = Y.reshape(4, nr, runs).mean(axis=2, dtype=np.float64)
-                o = out[c][r0:r0 + nr, k]
-                for j, rs in enumerate(rows):
-                    o[:, j] = ms[rs[0]] if len(rs) == 1 else ms[list(rs)].sum(axis=0)
-            if k == N:
-                break
-            W = Lp[k] @ rng.standard_normal((Lp[k].shape[1], B), dtype=np.float32) if Lp[k].shape[1] else None
-            for c in names:
-                x = X[c]
-                top = Pd[k] @ x
-                x[nd:ne] *= dd[k][:, None]
-                x[:nd] = top
-                if W is not None:
-                    x[:nw] += W
+                    Y = Cp[k] @ X[c][used]
+                    Y *= Y
+                    ms = Y.reshape(4, nr, runs).mean(axis=2, dtype=np.float64)
+                    o = out[c][r0:r0 + nr, k]
+                    for j, rs in enumerate(rows):
+                        o[:, j] = ms[rs[0]] if len(rs) == 1 else ms[list(rs)].sum(axis=0)
+                if k == N:
+                    break
+                for c in names:
+                    x = X[c]
+                    top = Pd[k] @ x
+                    x[nd:ne] *= dd[k][:, None]
+                    x[:nd] = top
+                    if W is not None:
+                        x[:nw] += W
+    finally:
+        draws.close()
     return out
+
+
+def _normal32(rng, shape):
+    """``rng.standard_normal(shape, dtype=float32)``, drawn a row at a time.
+
+    The same numbers (the rows fill in order); numpy holds the GIL while it
+    draws, and a row at a time lets the propagating thread run in between.
+    """
+    Z = np.empty(shape, np.float32)
+    for row in Z.reshape(-1, shape[-1]):
+        rng.standard_normal(dtype=np.float32, out=row)
+    return Z
+
+
+def _draws(sizes, meas, Lp, N, n, rng, L0):
+    """Every draw of :func:`_sample`, in its order: per block of ``B`` columns the initial
+    states (only with ``L0``), then per step ``(v, W)``, the measurement noise ``L_r w`` at
+    an update step (else None) and the driving noise ``L_k w`` (None at the last step or
+    without noise)."""
+    for B in sizes:
+        if L0 is not None:
+            yield (L0 @ rng.standard_normal((n, B))).astype(np.float32)
+        for k in range(N + 1):
+            v = W = None
+            if k in meas:
+                Lr = meas[k][1]
+                v = Lr @ _normal32(rng, (Lr.shape[0], B))
+            if k < N and Lp[k].shape[1]:
+                W = Lp[k] @ _normal32(rng, (Lp[k].shape[1], B))
+            yield v, W
+
+
+class _prefetch:
+    """Iterate ``gen`` in a background thread, at most ``depth`` items ahead.
+
+    ``next()`` returns its items in order (re-raising its error);
+    ``close()`` stops the thread.
+    """
+
+    def __init__(self, gen, depth: int = 4):
+        self._q = queue.Queue(depth)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, args=(gen,), name="linear_mc_draws", daemon=True)
+        self._thread.start()
+
+    def _run(self, gen):
+        try:
+            for item in gen:
+                if not self._put((True, item)):
+                    return
+            self._put((False, StopIteration()))
+        except BaseException as exc:           # handed to the consumer
+            self._put((False, exc))
+
+    def _put(self, item) -> bool:
+        while not self._stop.is_set():
+            try:
+                self._q.put(item, timeout=0.1)
+                return True
+            except queue.Full:
+                continue
+        return False
+
+    def __next__(self):
+        ok, item = self._q.get()
+        if not ok:
+            raise item
+        return item
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join()

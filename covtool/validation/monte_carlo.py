@@ -20,9 +20,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from covtool.analysis.consistency import REDUCED_NAV
 from covtool.nav import attitude as quat, earth, strapdown as sd
-from covtool.validation.feedback import FeedbackFilter, RecordContext, SensorFeedback
+from covtool.validation.feedback import compensate_cases, FeedbackFilter, RecordContext, SensorFeedback
 
 __all__ = [
     "QUANTITIES", "EnsembleCase", "EnsembleSums", "Zupt", "run_ensemble", "simulate_chunk", "initial_states",
@@ -219,8 +218,7 @@ def reference_along(traj, t, cases, *, imu_rate: float, samples_per_step: int, m
     upd_steps = sorted({k for c in cases if c.filter is not None for k in c.filter.gains})
     chunk_steps, spans = _spans(N, dt, upd_steps)
     spr = int(round(dt / sim.dt))
-    for _ in sim.records(chunk=spr * chunk_steps):    # fills the cache: the calls of a chunk's pass
-        pass
+    sim.fill_cache(chunk=spr * chunk_steps)           # the calls of a chunk's pass, without its errors
     contexts = None
     need = [SensorFeedback(model, c.filter.names, 1) for c in cases if c.filter is not None] if model else []
     if any(f.n and f.needs_context for f in need):
@@ -291,6 +289,8 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, 
         steps, an IMU simulator that does not cover it, neither or both of
         ``R`` and ``measurement``.
     """
+    from covtool.analysis.consistency import REDUCED_NAV    # with scipy.stats (0.4 s): not at a chunk worker's import
+
     if (R is None) == (measurement is None):
         raise ValueError("run_ensemble: give exactly one of R (ZUPT) and measurement")
     meas = Zupt(R, measurement_noise) if measurement is None else measurement
@@ -402,6 +402,13 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, 
     chunk_steps, spans = _spans(N, dt, upd_steps)
     records = sim.records(chunk=spr * chunk_steps)
     buf, buf_k0 = None, 0
+    # the increments the strapdown reads, one buffer for the whole pass: the raw record in rows 0 … M−1
+    # (cases without sensor feedback), then each sensor-feedback case's compensated increments
+    fed = [r for r in run if r["fb"] is not None]
+    src_th = np.empty(((1 + len(fed)) * M, spr * chunk_steps, 3))
+    src_dv = np.empty_like(src_th)
+    slot = {id(r): (1 + j) * M for j, r in enumerate(fed)}
+    run_rows = np.concatenate([slot.get(id(r), 0) + np.arange(M) for r in run]).astype(np.int64)
     k = 0
     for k, b in spans + [(N, N)]:
         state = update(k)
@@ -417,21 +424,20 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, 
             ctx = contexts.get((k, b)) if contexts is not None else None
             if ctx is None:
                 ctx = RecordContext.along(sim.traj, rec.t0, h, K, sim.mounting)
-        raw_th = np.broadcast_to(rec.dtheta, (M, K, 3))
-        raw_dv = np.broadcast_to(rec.dv, (M, K, 3))
-        parts = [r["fb"].compensate(raw_th, raw_dv, h, ctx) if r["fb"] is not None else (raw_th, raw_dv)
-                 for r in run]
-        dth = np.concatenate([p[0] for p in parts])
-        dvv = np.concatenate([p[1] for p in parts])
-        hist = sd.run(state, type(rec)(rec.t0, h, dth, dvv), n, every=spr // n)
+        dth, dvv = src_th[:, :K], src_dv[:, :K]
+        dth[:M] = rec.dtheta
+        dvv[:M] = rec.dv
+        if fed:
+            compensate_cases([r["fb"] for r in fed], dth[:M], dvv[:M], h, ctx, out=(dth[M:], dvv[M:]))
+        hist = sd.run(state, type(rec)(rec.t0, h, dth, dvv), n, every=spr // n, rows=run_rows)
         if b - k > 1:
             G = b - k - 1
             inner = sd.NavState(float(t[k + 1]), hist.lat[1:b - k].reshape(-1), hist.lon[1:b - k].reshape(-1),
                                 hist.h[1:b - k].reshape(-1), hist.v_n[1:b - k].reshape(G * CM, 3),
                                 hist.q[1:b - k].reshape(G * CM, 4), None, None)
             observe(np.arange(k + 1, b), inner)
-        state = hist.state(-1).replace(t=float(t[b]), dtheta_prev=dth[:, -1, :].copy(),
-                                       dv_prev=dvv[:, -1, :].copy())
+        state = hist.state(-1).replace(t=float(t[b]), dtheta_prev=dth[run_rows, -1, :],
+                                       dv_prev=dvv[run_rows, -1, :])
         meas.advance(k, b)
     for r in run:
         r["sums"].n_runs = M

@@ -202,14 +202,10 @@ class SensorErrors:
                     raise ValueError("Markov-in-distance states need the horizontal speed (speed_fn)")
                 dist = np.asarray(speed_fn(tn - 0.5 * self.process_dt), float) * self.process_dt
             a, b = self._coefficients(self.process_dt, dist)
-            a = np.broadcast_to(a, (J, nd))
-            b = np.broadcast_to(b, (J, nd))
-            w = self.rng.standard_normal((J, self.n_runs, nd)) if self.noise else np.zeros((J, 1, nd))
+            a = np.ascontiguousarray(np.broadcast_to(a, (J, nd)))
+            b = np.ascontiguousarray(np.broadcast_to(b, (J, nd)))
             xs = np.empty((self.n_runs, J, nd))
-            x = self._node_x[:, -1, :]
-            for j in range(J):
-                x = a[j] * x + b[j] * w[j]
-                xs[:, j] = x
+            _process_steps(np.ascontiguousarray(self._node_x[:, -1, :]), a, b, self.rng, self.noise, xs)
             self._node_t = np.concatenate([self._node_t, tn])
             self._node_x = np.concatenate([self._node_x, xs], axis=1)
         # keep the nodes from the one at or before the chunk start
@@ -227,6 +223,15 @@ class SensorErrors:
             return nx, j.astype(np.int64), u
         u = u[None, :, None]
         return nx[:, j] + u * (nx[:, j + 1] - nx[:, j])
+
+    def advance(self, t0, h, k: int, *, speed_fn=None, **context) -> None:
+        """Advance the processes over ``k`` samples from ``t0`` without injecting errors.
+
+        What :meth:`increment_errors` does first (the same process nodes and
+        speed look-ups); the attitude and gravity of ``context`` are not
+        needed.
+        """
+        self._dynamic_path(t0 + h * np.arange(k + 1), speed_fn, nodes=True)
 
     # ---- injection ---------------------------------------------------------
     def increment_errors(self, t0, h, dtheta, dv, *, speed_fn=None, attitude=None, gravity=None):
@@ -281,32 +286,35 @@ class SensorErrors:
                 cols.append(dyn_pos[int(i)] if dyn else int(i))
         out = {}
         for target in ("gyro", "accel"):
-            acc = np.zeros((M, k, 3))
+            acc = None
             Ss, cols = parts[(target, False)]
             if cols:
                 S = np.stack(Ss, axis=-1)                                  # (Mv, k, 3, nc)
                 xc = self.x0[:, cols]                                      # (M, nc)
                 if Mv == 1:   # one matrix product for all runs
-                    acc += (S[0].reshape(k * 3, -1) @ xc.T).T.reshape(M, k, 3)
+                    acc = (S[0].reshape(k * 3, -1) @ xc.T).T.reshape(M, k, 3)
                 else:
-                    acc += np.einsum("mkij,mj->mki", S, xc)
+                    acc = np.einsum("mkij,mj->mki", S, xc)
+                acc = np.require(acc, requirements=["C", "W"])
+            if acc is None:
+                acc = np.zeros((M, k, 3))
             Ss, cols = parts[(target, True)]
             if cols:
                 # S x̄ with x̄ the mean of the interpolated path over the sample (compiled)
                 S = np.ascontiguousarray(np.stack(Ss, axis=-1))            # (Mv, k, 3, nd)
                 _mean_path_apply(nx, jn, un, S, np.array(cols, np.int64), acc)
+            acc *= h
             out[target] = acc
-        ddth = out["gyro"] * h
-        ddv = out["accel"] * h
+        ddth, ddv = out["gyro"], out["accel"]
         for g in self.groups:
             if g.sensor == "ad_reset":
                 # δf^b = ė: the velocity-increment error is the change of e
                 cols = np.array([dyn_pos[int(i)] for i in g.cols], np.int64)
                 _path_difference_add(nx, jn, un, cols, ddv)
         if self.arw > 0:
-            ddth += self.arw * math.sqrt(h) * self.rng.standard_normal((M, k, 3))
+            _add_white(ddth, self.arw * math.sqrt(h), self.rng)
         if self.vrw > 0:
-            ddv += self.vrw * math.sqrt(h) * self.rng.standard_normal((M, k, 3))
+            _add_white(ddv, self.vrw * math.sqrt(h), self.rng)
         return ddth, ddv
 
 
@@ -409,18 +417,49 @@ def _edge(nx, jn, un, m, e, d):
 def _mean_path_apply(nx, jn, un, S, cols, acc):
     """``acc[m, k] += S[k] x̄[m, k, cols]``, x̄ the mean of the edge values.
 
-    ``S`` (Mv, K, 3, len(cols)) with Mv = 1 (shared) or M.
+    ``S`` (Mv, K, 3, len(cols)) with Mv = 1 (shared) or M.  The states are
+    added in ``cols`` order at every sample.
     """
     M, K = acc.shape[0], acc.shape[1]
     shared = S.shape[0] == 1
     for m in range(M):
         mv = 0 if shared else m
-        for k in range(K):
-            for c in range(cols.size):
-                d = cols[c]
-                xb = 0.5 * (_edge(nx, jn, un, m, k + 1, d) + _edge(nx, jn, un, m, k, d))
+        for c in range(cols.size):
+            d = cols[c]
+            lo = _edge(nx, jn, un, m, 0, d)
+            for k in range(K):
+                hi = _edge(nx, jn, un, m, k + 1, d)
+                xb = 0.5 * (hi + lo)
                 for i in range(3):
                     acc[m, k, i] += S[mv, k, i, c] * xb
+                lo = hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _process_steps(x, a, b, rng, noise, out):
+    """``out[:, j] = x_j = a_j x_{j−1} + b_j w_j`` from ``x_{−1} = x`` (M, n_dyn).
+
+    ``a``, ``b`` (J, n_dyn); ``w ~ N(0, 1)`` drawn from ``rng`` in (j, run,
+    state) order (the stream of ``rng.standard_normal((J, M, n_dyn))``), or
+    zero without ``noise``.
+    """
+    M, J, nd = out.shape
+    cur = x.copy()
+    for j in range(J):
+        for m in range(M):
+            for d in range(nd):
+                w = rng.standard_normal() if noise else 0.0
+                cur[m, d] = a[j, d] * cur[m, d] + b[j, d] * w
+                out[m, j, d] = cur[m, d]
+
+
+@numba.njit(cache=True, nogil=True)
+def _add_white(out, scale, rng):
+    """``out += scale · w``, ``w ~ N(0, 1)`` from ``rng`` in C order (the stream of
+    ``rng.standard_normal(out.shape)``); ``out`` C-contiguous."""
+    flat = out.reshape(-1)
+    for i in range(flat.size):
+        flat[i] += scale * rng.standard_normal()
 
 
 @numba.njit(cache=True, nogil=True)

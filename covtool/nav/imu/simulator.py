@@ -440,6 +440,29 @@ class ImuSimulator:
                 dv, res_v = _quantize(dv, qv, res_v)
             yield ImuRecord(ts, self.dt, np.ascontiguousarray(dth), np.ascontiguousarray(dv))
 
+    def fill_cache(self, chunk: int | None = None) -> None:
+        """Sample into ``truth_cache`` what a pass of :meth:`records` samples from the trajectory.
+
+        The exact increments and the errors' context (reference attitude,
+        gravity, speed) of every record, made by the very calls of
+        :meth:`records`, without injecting errors: errors with an
+        ``advance(t0, h, k, **context)`` method advance their processes
+        instead (the speed they look up; noise-free errors draw nothing).
+        A study fills the cache once and hands it to the simulators of its
+        chunks of runs.
+        """
+        if self.truth_cache is None:
+            raise ValueError("fill_cache needs a truth_cache")
+        chunk = self.chunk if chunk is None else int(chunk)
+        advance = getattr(self.errors, "advance", None)
+        for a in range(0, self.n_samples, chunk):
+            k = min(chunk, self.n_samples - a)
+            ts = self.t0 + a * self.dt
+            self._true_increments(ts, k)
+            kw = self._context(ts, k)
+            if advance is not None:
+                advance(ts, self.dt, k, **kw)
+
     def record(self) -> ImuRecord:
         """The whole span as one record (M, K, 3) (memory permitting)."""
         recs = list(self.records())

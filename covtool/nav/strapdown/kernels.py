@@ -139,18 +139,20 @@ def _nav_loop(x, qb, ub, rb, T, every, offset, out):
 _F8 = numba.float64
 _IN3 = numba.types.Array(_F8, 3, "A", readonly=True)       # increments: any strides, views, read-only
 _IN1 = numba.types.Array(_F8, 1, "A", readonly=True)
+_ROWS = numba.types.Array(numba.int64, 1, "A", readonly=True)
 #: the one compiled signature of _strapdown_loop: strided and read-only increments are taken as they are
 #: (no contiguous copy of a record or of each epoch's slice of it), and one specialisation is compiled
-_STRAPDOWN_SIG = numba.void(_F8[:, :], _IN3, _IN3, _F8[:, :], _F8[:, :], numba.int64, _IN1, _F8, numba.int64,
-                            numba.int64, _F8[:, :, :])
+_STRAPDOWN_SIG = numba.void(_F8[:, :], _IN3, _IN3, _ROWS, _F8[:, :], _F8[:, :], numba.int64, _IN1, _F8,
+                            numba.int64, numba.int64, _F8[:, :, :])
 
 
 @numba.njit([_STRAPDOWN_SIG], cache=True, nogil=True)
-def _strapdown_loop(x, dth, dv, prev_th, prev_dv, n, wc, T, every, offset, out):
+def _strapdown_loop(x, dth, dv, rows, prev_th, prev_dv, n, wc, T, every, offset, out):
     """The whole strapdown step (:func:`step`) over a record, compiled.
 
-    ``x`` (10, R) advanced in place; ``dth``, ``dv`` (Rb, K, 3) with K = S·n and
-    Rb = R or 1 (shared by the runs); ``prev_th``, ``prev_dv`` (R, 3) the
+    ``x`` (10, R) advanced in place; ``dth``, ``dv`` (Rb, K, 3) with K = S·n,
+    run m driven by row ``rows[m]`` (e.g. one row shared by every run, or
+    several runs on one row); ``prev_th``, ``prev_dv`` (R, 3) the
     sample before the record, overwritten with the last sample; ``wc`` the
     coning weights of :func:`covtool.nav.coning._weights`.  Body increments as
     :func:`covtool.nav.coning.body_increments` and
@@ -160,9 +162,8 @@ def _strapdown_loop(x, dth, dv, prev_th, prev_dv, n, wc, T, every, offset, out):
     """
     R = x.shape[1]
     S = dth.shape[1] // n
-    shared = dth.shape[0] == 1
     for m in range(R):
-        mb = 0 if shared else m
+        mb = rows[m]
         lat, lon, h = x[0, m], x[1, m], x[2, m]
         vn, ve, vd = x[3, m], x[4, m], x[5, m]
         q0, q1, q2, q3 = x[6, m], x[7, m], x[8, m], x[9, m]

@@ -166,7 +166,7 @@ def iter_intervals(imu, samples_per_step: int):
 
 
 def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
-        callback: Callable | None = None) -> NavHistory:
+        callback: Callable | None = None, rows=None) -> NavHistory:
     """Run the strapdown algorithm over a whole IMU record.
 
     Parameters
@@ -187,6 +187,12 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
         ``callback(state) -> NavState or None`` after every step, e.g. to
         apply filter feedback with :func:`correct`; a returned state
         replaces the current one.
+    rows : array_like of int, shape (M,), optional
+        The record row that drives each run, when runs share rows (e.g. the
+        cases of an ensemble that see the same increments): run ``i`` is
+        driven by ``dtheta[rows[i]]``, ``dv[rows[i]]``.  Default: run ``i``
+        by row ``i`` (every run by the one row of a one-row record).  Not
+        with ``callback``.
 
     Returns
     -------
@@ -201,6 +207,12 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
     from covtool.nav.strapdown.kernels import _nav_loop, _strapdown_loop   # numba, imported when a record runs
 
     M = state.n_runs
+    if rows is not None:
+        if callback is not None:
+            raise ValueError("rows cannot be combined with a callback")
+        rows = np.asarray(rows, dtype=np.int64)
+        if rows.shape != (M,):
+            raise ValueError(f"rows must have shape ({M},), got {rows.shape}")
     # kept states as blocks (t (S_i,), lat, lon, h (S_i, M), v_n (S_i, M, 3), q (S_i, M, 4)), joined at the end
     keep = [_block(state)]
     k = 0
@@ -212,27 +224,29 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
         T = n * rec.dt
         if abs(rec.t0 - state.t) > 1e-6 * rec.dt:
             raise ValueError(f"IMU record starts at {rec.t0:.9g} s but the state is at {state.t:.9g} s")
-        if rec.dtheta.ndim == 3 and rec.dtheta.shape[0] not in (1, M):
+        if rows is not None:
+            Rb = 1 if rec.dtheta.ndim == 2 else rec.dtheta.shape[0]
+            if rows.size and (rows.min() < 0 or rows.max() >= Rb):
+                raise ValueError(f"rows index record rows 0..{rows.max()}, the record has {Rb}")
+        elif rec.dtheta.ndim == 3 and rec.dtheta.shape[0] not in (1, M):
             raise ValueError(f"IMU record has {rec.dtheta.shape[0]} runs, the state has {M}")
         S = K // n
-        # shared increments (no run axis) are compensated once for all runs
-        shared = ((rec.dtheta.ndim == 2 or rec.dtheta.shape[0] == 1)
-                  and np.all(state.dtheta_prev == state.dtheta_prev[:1])
-                  and np.all(state.dv_prev == state.dv_prev[:1]))
-        Mr = 1 if shared else M
-        dth = np.broadcast_to(rec.dtheta, (Mr, K, 3)).reshape(Mr, S, n, 3)
-        dvv = np.broadcast_to(rec.dv, (Mr, K, 3)).reshape(Mr, S, n, 3)
         xa = np.array(_unpack(state), dtype=float)                              # (10, M)
         t0 = state.t
         if callback is None:
+            # the record's rows as they are, each run reading its own row
+            src_th = rec.dtheta if rec.dtheta.ndim == 3 else rec.dtheta[None]
+            src_dv = rec.dv if rec.dv.ndim == 3 else rec.dv[None]
+            run_rows = rows if rows is not None else (np.zeros(M, np.int64) if src_th.shape[0] == 1
+                                                      else np.arange(M, dtype=np.int64))
             # all steps of the record in the compiled kernel; the kept ones written out
             js = np.flatnonzero((k + np.arange(1, S + 1)) % every == 0)
             out = np.empty((10, M, js.size))
             pth = np.array(np.broadcast_to(state.dtheta_prev, (M, 3)), dtype=float)
             pdv = np.array(np.broadcast_to(state.dv_prev, (M, 3)), dtype=float)
             # views of the record as they are (the kernel takes any strides): no copy of the increments
-            _strapdown_loop(xa, np.asarray(dth.reshape(Mr, K, 3), dtype=float),
-                            np.asarray(dvv.reshape(Mr, K, 3), dtype=float), pth, pdv, n, _weights(n), T, every, k, out)
+            _strapdown_loop(xa, np.asarray(src_th, dtype=float), np.asarray(src_dv, dtype=float), run_rows,
+                            pth, pdv, n, _weights(n), T, every, k, out)
             if js.size:
                 # the kept states in one block (S_kept, M, ·), not one NavState each
                 keep.append((t0 + (js + 1) * T, out[0].T, out[1].T, out[2].T,
@@ -242,7 +256,14 @@ def run(state: NavState, imu, samples_per_step: int, *, every: int = 1,
             k += S
             state = _pack(t0 + S * T, tuple(xa), pth, pdv)
             continue
-        # with a callback the state may change between steps: one step per kernel call
+        # with a callback the state may change between steps: one step per kernel call;
+        # shared increments (no run axis) are compensated once for all runs
+        shared = ((rec.dtheta.ndim == 2 or rec.dtheta.shape[0] == 1)
+                  and np.all(state.dtheta_prev == state.dtheta_prev[:1])
+                  and np.all(state.dv_prev == state.dv_prev[:1]))
+        Mr = 1 if shared else M
+        dth = np.broadcast_to(rec.dtheta, (Mr, K, 3)).reshape(Mr, S, n, 3)
+        dvv = np.broadcast_to(rec.dv, (Mr, K, 3)).reshape(Mr, S, n, 3)
         prev_th = np.concatenate([state.dtheta_prev[:Mr, None], dth[:, :-1, -1]], axis=1)
         prev_dv = np.concatenate([state.dv_prev[:Mr, None], dvv[:, :-1, -1]], axis=1)
         phi, dv_b = body_increments(dth, dvv, prev_th, prev_dv)

@@ -31,7 +31,6 @@ from dataclasses import dataclass
 import math
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from covtool.errors import TrajectoryError
 from covtool.nav import attitude as quat, earth
@@ -260,6 +259,8 @@ class _Profile:
         self.starts = np.array([p.t0 for p in self.pieces])
         self.span = (float(self.pieces[0].t0), float(self.pieces[-1].t0 + self.pieces[-1].T))
         self.pos0 = []
+        from scipy.integrate import solve_ivp     # when a profile is built, not when a copy is sampled
+
         self.sols = []
         pos = np.array([lat0, lon0, h0], dtype=float)
         for p in self.pieces:
