@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool.plotting.style import LENGTH, case_style, legend_outside, shade_stops
+from covtool.plotting.style import fixed_margins, LENGTH, case_style, legend_outside, shade_stops
 from covtool.units import ARCMIN
 
 #: compared quantity -> axis label
@@ -47,7 +47,8 @@ def case_figure(result, case: str):
     legend_outside(axs[0])
     axs[-1].set_xlabel("time [min]")
     fig.suptitle(f"{case}: Monte Carlo RMS against the linear covariance analysis")
-    fig.tight_layout()
+    # known contents: log tick labels and the axis labels on the left, the legend beside the top axes
+    fixed_margins(fig, left=0.85, right=2.35, bottom=0.55, top=0.5, hspace=0.08)
     return fig
 
 
@@ -84,7 +85,7 @@ def ratio_figure(result):
     legend_outside(axs[0])
     axs[-1].set_xlabel("time [min]")
     fig.suptitle(f"Monte Carlo RMS / linear σ, N = {N}; dashed: {100 * conf:g} % χ² bounds")
-    fig.tight_layout()
+    fixed_margins(fig, left=0.85, right=1.6, bottom=0.55, top=0.5, hspace=0.08)
     return fig
 
 
@@ -131,5 +132,6 @@ def nees_figure(result):
             legend_outside(ax)
     axs[-1].set_xlabel("time [min]")
     fig.suptitle(f"Average NEES over N = {N} runs; grey: {100 * conf:g} % χ² bounds of a consistent covariance")
-    fig.tight_layout()
+    # each axes has a title: room for it between the panels
+    fixed_margins(fig, left=1.3, right=1.75, bottom=0.55, top=0.65, hspace=0.25)
     return fig
