@@ -147,3 +147,25 @@ def test_a_failed_write_stops_the_drawing_children(tmp_path, monkeypatch):
         time.sleep(0.05)
     assert _gone(pid)
     assert not out.exists() or not [p for p in out.rglob("*") if p.is_file()]
+
+
+def test_log_axis_puts_minor_ticks_at_2_and_5_of_each_decade():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from covtool.plotting.style import log_axis
+
+    fig, ax = plt.subplots()
+    ax.plot([1, 2], [1e-3, 1e2])
+    log_axis(ax, "y")
+    log_axis(ax, "x")
+    assert ax.get_yscale() == "log" and ax.get_xscale() == "log"
+    ax.set_ylim(1e-3, 1e2)
+    minor = ax.yaxis.get_minorticklocs()
+    inside = minor[(minor > 1e-3) & (minor < 1e2)]
+    mant = np.round(inside / 10.0 ** np.floor(np.log10(inside)), 6)
+    assert set(mant) == {2.0, 5.0} and inside.size == 10           # five decades, two each
+    with pytest.raises(ValueError, match="which must be 'x' or 'y', got 'z'"):
+        log_axis(ax, "z")
+    plt.close(fig)

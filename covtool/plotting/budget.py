@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool.plotting.style import LENGTH, fixed_margins, log_limits, shade_stops, source_colors
+from covtool.plotting.style import LENGTH, fixed_margins, log_limits, shade_stops, source_colors, log_axis
 from covtool.units import ARCMIN
 
 #: error -> (axis title, unit kind)
@@ -80,7 +80,7 @@ def budget_figure(result, case: str):
             handles.setdefault(lab, h)
         (h,) = row[0].plot(tm, total, color="k", lw=2.0, label="total")
         handles.setdefault("total", h)
-        row[0].set_yscale("log")
+        log_axis(row[0], "y")
         lim = log_limits([total[later]] + [y[later] for _, y, _ in lines], pad=2.0)
         if lim:
             # sources below 1e-4 of the largest total are not worth a decade of the axis

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from covtool.dualnav.difference import DIFF_NAMES
-from covtool.plotting.style import legend_outside
+from covtool.plotting.style import legend_outside, log_axis
 from covtool.units import PPM_G
 
 #: component kind -> (unit, SI to unit)
@@ -73,7 +73,7 @@ def dual_imu_figures(result) -> dict:
                 ax.add_collection(LineCollection(segs, colors=color, linewidths=0.5, alpha=0.6, label=lab))
         if thr is not None:
             ax.axhline(thr, color="k", ls="--", label=f"threshold (α = {cfg.false_alarm:g} per flight)")
-        ax.set_yscale("log")
+        log_axis(ax, "y")
         ax.autoscale_view()
         ax.set_xlabel("end of window [s]")
         ax.set_ylabel(f"Σ NIS over {cfg.window:g} s")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from covtool.plotting.style import case_style, legend_outside
+from covtool.plotting.style import case_style, legend_outside, log_axis
 
 
 def sweep_figure(result):
@@ -38,7 +38,7 @@ def sweep_figure(result):
         ax.axhline(result.threshold, color="k", ls="--", lw=1, label=f"{result.threshold:g} x A")
         dsig = result.declared[g["name"]]
         ax.axvline(float(from_si(dsig, unit)) if unit else dsig, color="0.5", ls=":", lw=1, label="declared")
-        ax.set_xscale("log")
+        log_axis(ax, "x")
         ax.set_xlabel(f"{g['name']} 1sigma [{unit}]" if unit else g["name"])
         ax.set_title(g["name"])
         ax.grid(True, which="both", alpha=0.3)

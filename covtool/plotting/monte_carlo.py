@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool.plotting.style import fixed_margins, LENGTH, case_style, legend_outside, shade_stops
+from covtool.plotting.style import fixed_margins, LENGTH, case_style, legend_outside, shade_stops, log_axis
 from covtool.units import ARCMIN
 
 #: compared quantity -> axis label
@@ -43,7 +43,7 @@ def case_figure(result, case: str):
         ax.set_ylabel(f"{LABELS[q]} [{u}]")
         ax.grid(True, which="both", alpha=0.3)
         if q != "azimuth" and np.nanmax(sig) / max(np.nanmin(sig[1:]), 1e-300) > 100:
-            ax.set_yscale("log")
+            log_axis(ax, "y")
     legend_outside(axs[0])
     axs[-1].set_xlabel("time [min]")
     fig.suptitle(f"{case}: Monte Carlo RMS against the linear covariance analysis")
@@ -124,7 +124,7 @@ def nees_figure(result):
             if i == 0 or key != "truth":
                 ax.fill_between(tm, lo / d, hi / d, color="0.5", alpha=0.15, lw=0)
         ax.axhline(1.0, color="k", lw=0.5)
-        ax.set_yscale("log")
+        log_axis(ax, "y")
         ax.set_ylabel("mean NEES / d")
         ax.set_title(titles[key], fontsize=9)
         ax.grid(True, which="both", alpha=0.3)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool.plotting.style import (LENGTH, case_style, coincident_groups, legend_outside, log_limits,
+from covtool.plotting.style import (log_axis, LENGTH, case_style, coincident_groups, legend_outside, log_limits,
                                     shade_stops)
 from covtool.units import ARCMIN
 
@@ -60,7 +60,7 @@ def error_history_figure(result, quantity: str = "horizontal"):
     tu = np.asarray(result.update_times)
     span = t >= tu[0] if tu.size else later
     lim = log_limits([y[span] for y in curves.values()])
-    ax.set_yscale("log")
+    log_axis(ax, "y")
     if lim:
         ax.set_ylim(*lim)
     ax.set_xlim(tm[0], tm[-1])
@@ -113,7 +113,7 @@ def pure_ins_figure(result):
             st = case_style(k)
             ax.plot(tm, y, label=lab, color=st["color"], linestyle=st["linestyle"], lw=1.3)
         lim = log_limits([y[later] for _, y in lines])
-        ax.set_yscale("log")
+        log_axis(ax, "y")
         if lim:
             ax.set_ylim(*lim)
         ax.set_ylabel(ylabel)

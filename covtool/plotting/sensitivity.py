@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool.plotting.style import case_style, coincident_groups, LENGTH, legend_outside, log_limits
+from covtool.plotting.style import case_style, coincident_groups, LENGTH, legend_outside, log_limits, log_axis
 
 
 def fig8_figure(result, metric: str = "horizontal"):
@@ -39,8 +39,8 @@ def fig8_figure(result, metric: str = "horizontal"):
             ax.plot(result.scales, y, st["marker"], color=st["color"], ms=5, markerfacecolor="none")
             ax.plot(fine, result.fits[(c, p, metric)](fine), color=st["color"], linestyle=st["linestyle"], lw=1.3,
                     marker=st["marker"], markevery=[], label=c)
-        ax.set_xscale("log")
-        ax.set_yscale("log")
+        log_axis(ax, "x")
+        ax.set_yscale("log")            # often under two decades: every minor tick labelled, as matplotlib does
         ax.set_xlabel(f"{result.labels['params'][p]} scale [-]")
         ax.set_title(f"{result.labels['params'][p]} scaled")
         ax.grid(True, which="both", alpha=0.3)

@@ -113,6 +113,32 @@ def shade_stops(ax, stops, *, label: str | None = "stop with ZUPT") -> None:
                    label=label if i == 0 else None, zorder=0)
 
 
+def log_axis(ax, which: str = "y") -> None:
+    """Put ``ax``'s ``which`` axis on a log scale with minor ticks at 2 and 5 of each decade.
+
+    Matplotlib's default places a minor tick (and, with ``grid(which="both")``, a grid line) at
+    every multiple 2…9 of each decade.  Each tick is an artist of several lines and texts: on a
+    figure spanning five decades they took a quarter of its drawing time.  Ticks at 2 and 5 keep
+    a readable grid and label short spans.
+
+    Parameters
+    ----------
+    ax : matplotlib.axes.Axes
+    which : {"x", "y"}
+
+    Raises
+    ------
+    ValueError
+        ``which`` is neither ``"x"`` nor ``"y"``.
+    """
+    from matplotlib.ticker import LogLocator
+
+    if which not in ("x", "y"):
+        raise ValueError(f"which must be 'x' or 'y', got {which!r}")
+    (ax.set_xscale if which == "x" else ax.set_yscale)("log")
+    getattr(ax, f"{which}axis").set_minor_locator(LogLocator(base=10.0, subs=(2.0, 5.0)))
+
+
 def legend_outside(ax, **kw):
     """Legend to the right of ``ax``: it never covers a curve."""
     return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, fontsize=8, **kw)

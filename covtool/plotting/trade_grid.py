@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from covtool.plotting.style import case_style, legend_outside, log_limits
+from covtool.plotting.style import case_style, legend_outside, log_limits, log_axis
 
 
 def trade_figure(result):
@@ -35,7 +35,7 @@ def trade_figure(result):
     for r, col in enumerate((f"CEP [{u}]", f"alt PE [{u}]")):
         lim = log_limits([nom[col].to_numpy()], pad=1.3)
         for ax in axes[r]:
-            ax.set_yscale("log")
+            log_axis(ax, "y")
             if lim:
                 ax.set_ylim(*lim)
             ax.grid(True, which="both", alpha=0.3)
