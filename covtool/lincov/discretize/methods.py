@@ -10,7 +10,8 @@ from __future__ import annotations
 import numpy as np
 
 from covtool.errors import InputError
-from covtool.lincov.discretize.series import MAX_ORDER, _balanced, _series, _unbalance, balancing
+from covtool.lincov.discretize.series import (MAX_ORDER, _balanced, _series, _unbalance, balancing,
+                                             random_constants)
 from covtool.lincov.discretize.steps import StepInfo, _check_result, _dedup, _expand_phi_qd, _prepare
 from covtool.lincov.discretize.structured import _exact
 from covtool.lincov.stacks import gather
@@ -121,21 +122,6 @@ def taylor(F: np.ndarray, Qc: np.ndarray, dt, order: int | None = None, *, what:
     Phi, Qd, inf = _dedup(lambda F_, Q_, dt_, t_: _taylor_fixed(F_, Q_, dt_, order, what, t_), F, [(Qc, 2)], dt,
                           times, _expand_phi_qd)
     return (Phi, Qd, inf) if info else (Phi, Qd)
-
-
-def random_constants(F: np.ndarray, Qc: np.ndarray) -> np.ndarray:
-    """States with a zero ``F`` row and no noise at every step: random constants.
-
-    Parameters
-    ----------
-    F, Qc : ndarray, shape (N, n, n)
-
-    Returns
-    -------
-    ndarray of bool, shape (n,)
-    """
-    return ~((np.asarray(F) != 0).any(axis=(0, 2)) | (np.asarray(Qc) != 0).any(axis=(0, 2))
-             | (np.asarray(Qc) != 0).any(axis=(0, 1)))
 
 
 def _exact_constants(F, Qc, dt, what, times):

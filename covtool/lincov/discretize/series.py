@@ -275,3 +275,20 @@ def sensor_states(F, Qc) -> np.ndarray:
     n = F.shape[-1]
     off = ~np.eye(n, dtype=bool)
     return ~(((F != 0) & off).any(axis=(0, 2)) | ((Qc != 0) & off).any(axis=(0, 2)))
+
+
+def random_constants(F: np.ndarray, Qc: np.ndarray) -> np.ndarray:
+    """States with a zero ``F`` row and no noise at every step: random constants.
+
+    The sensor states (:func:`sensor_states`) whose diagonal entries are zero too.
+
+    Parameters
+    ----------
+    F, Qc : ndarray, shape (N, n, n)
+
+    Returns
+    -------
+    ndarray of bool, shape (n,)
+    """
+    return ~((np.asarray(F) != 0).any(axis=(0, 2)) | (np.asarray(Qc) != 0).any(axis=(0, 2))
+             | (np.asarray(Qc) != 0).any(axis=(0, 1)))
