@@ -75,13 +75,30 @@ def _progress(args) -> bool:
 
 
 def _cmd_run(args) -> int:
+    t0 = time.perf_counter()
+    out = _output_dir(args)
+    # a figure server prepares matplotlib on the other core while the study computes
+    server = None if args.no_figures else _figure_server()
+    try:
+        return _run_and_write(args, out, t0, server)
+    finally:
+        if server is not None:
+            server.close()
+
+
+def _figure_server():
+    """A :class:`covtool.io.figure_server.FigureServer`, or None where none can run."""
+    from covtool.io.figure_server import FigureServer
+
+    return FigureServer.start()
+
+
+def _run_and_write(args, out, t0, server) -> int:
     from covtool.io.console import console_table, console_width, KEY_COLUMNS
     from covtool.io.writers import write_outputs
     from covtool.io.lock import DirLock
     from covtool.studies import run_study
 
-    t0 = time.perf_counter()
-    out = _output_dir(args)
     _refuse_unused_options(args)
     args.store_dir = out / "cases"                        # named in the interrupt message
     # one run at a time per output directory: outputs and the result store are written by one process
@@ -107,7 +124,7 @@ def _cmd_run(args) -> int:
                 print(f"covtool: warning: {_one_line(w.message)}", file=sys.stderr)
             else:
                 warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-        files = write_outputs(result, out, figures=not args.no_figures)
+        files = write_outputs(result, out, figures=not args.no_figures, server=server)
     dt = time.perf_counter() - t0
     if not args.quiet:
         width = console_width()

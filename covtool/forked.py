@@ -81,18 +81,40 @@ class Forked:
     """
 
     def __init__(self, fn, *args, **kwargs):
+        self._start(fn, args, kwargs, busy=True)
+
+    @classmethod
+    def waiting(cls, fn, *args, **kwargs) -> "Forked":
+        """A child that mostly waits (a server fed through a pipe): not counted as running.
+
+        Unlike a :class:`Forked` child it leaves this process's BLAS pool
+        as it is and does not stop :func:`split` from forking; without
+        ``os.fork``, or while :mod:`tracemalloc` traces, it raises
+        ``OSError`` instead of running the call here (the call would wait
+        for this process).
+        """
+        self = cls.__new__(cls)
+        if not hasattr(os, "fork") or _tracing():
+            raise OSError("no forked server here")
+        self._start(fn, args, kwargs, busy=False)
+        return self
+
+    def _start(self, fn, args, kwargs, busy):
         self.pid = None
         self._done = False
+        self._busy = busy
         if not hasattr(os, "fork") or _tracing():
             self._run_here(fn, args, kwargs)
             return
         r, w = os.pipe()
         life_r, life_w = os.pipe()                          # the lifeline: only this process writes (never)
-        _one_blas_thread()                                  # this process and the child: one BLAS thread each
+        if busy:
+            _one_blas_thread()                              # this process and the child: one BLAS thread each
         try:
             pid = os.fork()
         except OSError:
-            _release_blas()
+            if busy:
+                _release_blas()
             for fd in (r, w, life_r, life_w):
                 os.close(fd)
             raise
@@ -142,7 +164,8 @@ class Forked:
             _, status = os.waitpid(self.pid, 0)
             self._payload, self._status = b"".join(chunks), os.waitstatus_to_exitcode(status)
             self._done = True
-            _release_blas()
+            if self._busy:
+                _release_blas()
         if not self._payload:
             raise RuntimeError(f"a worker process ended with status {self._status} and no result")
         if not hasattr(self, "_outcome"):
@@ -171,7 +194,8 @@ class Forked:
         os.close(self._life)
         os.waitpid(self.pid, 0)
         self._payload, self._status, self._done = b"", -9, True
-        _release_blas()
+        if self._busy:
+            _release_blas()
 
 
     def __del__(self):
@@ -180,6 +204,75 @@ class Forked:
             self.cancel()
         except Exception:                                   # noqa: BLE001 - interpreter shutdown
             pass
+
+
+def can_split() -> bool:
+    """Whether :func:`split` runs its parts at once: a fork is possible and useful here.
+
+    Only the main thread of a top-level process forks, with two cores or
+    more, while no other :class:`Forked` child runs (a child of this module
+    or a worker of :mod:`covtool.parallel` already keeps the other core
+    busy), and never while :mod:`tracemalloc` traces.
+    """
+    import multiprocessing
+    import threading
+
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    return (hasattr(os, "fork") and cores >= 2 and _ACTIVE["children"] == 0 and not _tracing()
+            and threading.current_thread() is threading.main_thread()
+            and multiprocessing.parent_process() is None)
+
+
+def shared_empty(shape, dtype=float, *, shared: bool = True):
+    """An uninitialised array that a forked child can fill (anonymous shared memory).
+
+    Parameters
+    ----------
+    shape : tuple of int
+    dtype : numpy dtype
+    shared : bool
+        False: an ordinary ``np.empty`` (nothing will be forked).
+
+    Returns
+    -------
+    ndarray
+        Writable; backed by a ``MAP_SHARED`` anonymous mapping when
+        ``shared``, so that what a forked child writes is seen by this
+        process (no pickling, no copy).
+    """
+    import mmap
+
+    import numpy as np
+
+    size = int(np.prod(shape, dtype=np.int64))
+    nbytes = size * np.dtype(dtype).itemsize
+    if not shared or nbytes == 0:
+        return np.empty(shape, dtype)
+    return np.frombuffer(mmap.mmap(-1, nbytes), dtype=dtype, count=size).reshape(shape)
+
+
+def split(fn, parts) -> list:
+    """``[fn(p) for p in parts]``, the first part here and the others in forked children at once.
+
+    For work that writes its results into :func:`shared_empty` arrays
+    (each part its own slice) and returns little.  Runs the parts one
+    after the other here unless :func:`can_split`.  The error of the
+    earliest failing part is raised (this process's part first), after
+    every child has been stopped and reaped.
+    """
+    parts = list(parts)
+    if len(parts) < 2 or not can_split():
+        return [fn(p) for p in parts]
+    children = [Forked(fn, p) for p in parts[1:]]
+    try:
+        first = fn(parts[0])
+        return [first] + [c.result() for c in children]
+    finally:
+        for c in children:
+            c.cancel()
 
 
 #: exit status of a forked child whose parent died (nobody waits for it)

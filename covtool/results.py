@@ -67,6 +67,29 @@ class StudyResult:
 
     #: the figure :meth:`plot` draws (default: the first of ``figures``)
     main_figure: ClassVar[str | None] = None
+    #: fields no figure reads, left out of :meth:`figure_view` (the study's systems: up to hundreds of MB)
+    not_drawn: ClassVar[tuple[str, ...]] = ()
+
+    def figure_view(self) -> "StudyResult":
+        """A shallow copy for drawing the figures in another process.
+
+        The fields of :attr:`not_drawn` are None and ``figures`` is empty,
+        so that the copy pickles small (the figure makers reference this
+        result, not the copy).  Used by
+        :class:`covtool.io.figure_server.FigureServer`.
+
+        Returns
+        -------
+        StudyResult
+            Of this result's class.
+        """
+        import copy
+
+        view = copy.copy(self)
+        view.figures = {}
+        for name in self.not_drawn:
+            setattr(view, name, None)
+        return view
 
     @property
     def summary(self) -> pd.DataFrame:
@@ -184,6 +207,7 @@ class ZuptFilterOrderResult(_Navigation, StudyResult):
     trajectory: Any = None
     record_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     main_figure: ClassVar[str] = "fig6_horizontal_cep"
+    not_drawn: ClassVar[tuple[str, ...]] = ("filter_models",)
 
 
 @dataclass
@@ -233,6 +257,7 @@ class ErrorBudgetResult(_Navigation, StudyResult):
     setup: Any = None
     truth_system: Any = None
     noise: Any = None
+    not_drawn: ClassVar[tuple[str, ...]] = ("runs", "setup", "truth_system", "noise")
 
 
 @dataclass
@@ -271,6 +296,7 @@ class ZuptSensitivityResult(StudyResult):
     filter_models: dict = field(default_factory=dict)
     setup: Any = None
     main_figure: ClassVar[str] = "fig8_1_horizontal"
+    not_drawn: ClassVar[tuple[str, ...]] = ("filter_models", "setup")
 
 
 @dataclass

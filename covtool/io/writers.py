@@ -68,8 +68,19 @@ def _inside(stage: Path, filename: str) -> Path:
     return p
 
 
-def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list[Path]:
+def write_outputs(result: StudyResult, out_dir, *, figures: bool = True, server=None) -> list[Path]:
     """Write all outputs of ``result`` into ``out_dir``; return the file paths.
+
+    Parameters
+    ----------
+    result : StudyResult
+    out_dir : path-like
+    figures : bool
+        Draw the figures (PNG files).
+    server : covtool.io.figure_server.FigureServer, optional
+        A running figure server (the command line's): the figures are sent
+        to it, else (or if it cannot take them, or fails) drawn in forked
+        processes from ``result`` as usual.
 
     Raises
     ------
@@ -88,9 +99,10 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
         book = _inside(stage, f"{result.name}.xlsx")
         items = [(name, make, _inside(stage, f"{name}.png")) for name, make in result.figures.items()] \
             if figures and result.figures else []
-        # the figures are drawn in forked processes (started first: their matplotlib import is the
-        # longest wait) while this one writes the tables and the workbook
-        children = _start_figures(items)
+        # the figures are drawn in other processes (started first: matplotlib's import is the longest
+        # wait, which a figure server has done already) while this one writes the tables and the workbook
+        served = server.submit(result, items) if server is not None and items else None
+        children = [served] if served is not None else _start_figures(items)
         try:
             for df, path in tables:
                 write_csv(df, path)
@@ -100,7 +112,14 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True) -> list
         except BaseException:
             _finish_figures(children, report=False)
             raise
-        _finish_figures(children)
+        try:
+            _finish_figures(children)
+        except Exception:
+            if served is None:
+                raise
+            # the server could not draw them (a view it could not use): drawn from the full result; a
+            # figure's own error is raised again from there
+            _finish_figures(_start_figures(items))
         written = [out_dir / p.relative_to(stage) for p in sorted(stage.rglob("*")) if p.is_file()]
     return written
 
@@ -139,10 +158,11 @@ def draw_figures(items) -> None:
         plt.close(fig)
 
 
-def _draw_in_processes(items) -> None:
+def draw_in_processes(items) -> None:
     """Import matplotlib once, then draw the figures in forked children.
 
-    Runs in a child of the writer (:func:`_start_figures`): matplotlib's
+    Runs in a child of the writer (:func:`_start_figures`) or in a figure
+    server (:mod:`covtool.io.figure_server`): matplotlib's
     import (0.3-0.8 s) is paid once, by this process, never by the one
     writing the tables, and each child inherits it.  Figures go to up to
     :data:`FIGURE_PROCESSES` children, round robin in the study's order
@@ -160,10 +180,10 @@ def _draw_in_processes(items) -> None:
 
 
 def _start_figures(items) -> list:
-    """Draw ``items`` in a forked child (:func:`_draw_in_processes`), while this process writes the tables."""
+    """Draw ``items`` in a forked child (:func:`draw_in_processes`), while this process writes the tables."""
     from covtool.forked import Forked
 
-    return [Forked(_draw_in_processes, items)] if items else []
+    return [Forked(draw_in_processes, items)] if items else []
 
 
 def _finish_figures(children, report: bool = True) -> None:

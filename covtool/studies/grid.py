@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+import re
+
 from dataclasses import dataclass
 
 import numpy as np
 
 from covtool.analysis.metrics import first_invalid, nav_metrics, validity_text
-from covtool.errors import StudyFileError
+from covtool.errors import NumericalError, StudyFileError
 from covtool.lincov.discretize import discretize
 from covtool.lincov.dynamics import Context, error_dynamics, NavOptions
 from covtool.lincov.kalman import check_covariance, check_system
@@ -216,6 +218,12 @@ def check_step_motion(traj, t: np.ndarray, where: str = "<study>") -> StepMotion
     return m
 
 
+#: chunks of :func:`discretize_chunked` from which half are discretised in a forked child
+SPLIT_CHUNKS = 4
+#: states from which :func:`discretize_chunked` splits its chunks (smaller systems are cheaper than the fork)
+SPLIT_STATES = 40
+
+
 def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="discretising", chunk=DISCRETIZE_CHUNK,
                        what="", times=None):
     """Discretise in chunks (bounded memory) with a progress bar.
@@ -225,17 +233,46 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
     ``what`` and ``times`` (start time of each step [s]) name the system
     and the step in error messages.
     """
+    from covtool.forked import can_split, shared_empty, split
+
     N = F.shape[0]
-    Phi = np.empty_like(F)
-    Qd = np.empty_like(F)
+    starts = list(range(0, N, chunk))
+    # two halves of the chunks at once, in this process and a forked child, when there are enough:
+    # every chunk is discretised exactly as in one process (the same chunks), so the numbers are too
+    parallel = len(starts) >= SPLIT_CHUNKS and F.shape[1] >= SPLIT_STATES and can_split()
+    Phi = shared_empty(F.shape, float, shared=parallel)
+    Qd = shared_empty(F.shape, float, shared=parallel)
     dt = np.broadcast_to(np.asarray(dt, float), (N,))
     with progress_bar(N, desc, progress) as bar:
-        for a in range(0, N, chunk):
-            b = min(N, a + chunk)
-            Phi[a:b], Qd[a:b] = discretize(F[a:b], Qc[a:b], dt[a:b], method, order, what=what,
-                                           times=None if times is None else times[a:b])
-            bar.update(b - a)
+        def run(part, here=True):
+            for a in part:
+                b = min(N, a + chunk)
+                try:
+                    Phi[a:b], Qd[a:b] = discretize(F[a:b], Qc[a:b], dt[a:b], method, order, what=what,
+                                                   times=None if times is None else times[a:b])
+                except (NumericalError, ValueError) as e:
+                    raise _on_grid(e, what, a) from None
+                if here:
+                    bar.update(b - a)
+
+        if parallel:
+            half = (len(starts) + 1) // 2
+            split(lambda p: run(*p), [(starts[:half], True), (starts[half:], False)])
+            bar.update(N - starts[half])
+        else:
+            run(starts)
     return Phi, Qd
+
+
+def _on_grid(e: Exception, what: str, first: int) -> Exception:
+    """``e`` with the step it names counted on the whole grid, not within the chunk from ``first``."""
+    prefix = re.escape(f"{what}: ") if what else ""
+    msg = re.sub(rf"^({prefix})step (\d+) \(", lambda m: f"{m.group(1)}step {int(m.group(2)) + first} (", str(e),
+                 count=1)
+    try:
+        return type(e)(msg)
+    except TypeError:                                       # an error of other arguments: as it was
+        return e
 
 
 def truth_system(model: Model, traj, t: np.ndarray, method: str, *, options=NavOptions(), progress=False,

@@ -1,0 +1,148 @@
+"""A process that prepares matplotlib while a study computes, then draws the study's figures.
+
+Drawing a study's figures first costs about half a second of imports
+(matplotlib, pandas, the plotting code) and a first figure's set-up (fonts,
+the mathtext parser of log-axis labels), which the figures would otherwise
+wait for after the computation.  ``covtool run`` starts this server first
+thing (:meth:`FigureServer.start`): a forked child that does that work on
+the otherwise idle core, then waits.  When the result is ready,
+:func:`covtool.io.writers.write_outputs` sends it the figure makers,
+rebound to a light copy of the result
+(:meth:`covtool.results.StudyResult.figure_view`), through a pipe; the
+server draws them as :func:`covtool.io.writers.draw_in_processes` does.
+
+The server only saves time: when it cannot take the figures (no
+``os.fork``, a maker that does not pickle, a view larger than
+:data:`MAX_VIEW_BYTES`) or fails to draw them, the writer draws them as
+before, from the full result.  It dies with this process
+(:class:`covtool.forked.Forked`) and is reaped by :meth:`FigureServer.close`.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+from functools import partial
+
+from covtool.forked import Forked
+
+#: a larger pickled view is not sent (the writer draws from the full result instead)
+MAX_VIEW_BYTES = 64 * 2**20
+
+
+def _prepare() -> None:
+    """Import what drawing needs and draw one small figure (fonts, mathtext parser, Agg caches)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    import covtool.results  # noqa: F401 - pandas and the result classes, for unpickling the view
+
+    fig, ax = plt.subplots(figsize=(2.0, 2.0))
+    ax.plot([1.0, 2.0, 3.0], [1.0, 30.0, 1e4], label="x")
+    ax.set_yscale("log")
+    ax.set_title("t [min]")
+    ax.legend()
+    fig.canvas.draw()
+    plt.close(fig)
+
+
+def _serve(job_fd: int, other_fd: int):
+    """In the server: prepare, read one job until end of file, draw it; None if none came."""
+    from covtool.io.writers import draw_in_processes
+
+    os.close(other_fd)                                  # the write end belongs to the parent
+    _prepare()
+    chunks = []
+    while True:
+        b = os.read(job_fd, 1 << 20)
+        if not b:
+            break
+        chunks.append(b)
+    os.close(job_fd)
+    if not chunks:
+        return None
+    draw_in_processes(pickle.loads(b"".join(chunks)))
+    return "drawn"
+
+
+class FigureServer:
+    """A forked process that draws one study's figures (module notes).
+
+    Use :meth:`start`, then at most one :meth:`submit`, then :meth:`close`
+    (or the object as a context manager).
+    """
+
+    def __init__(self):
+        r, w = os.pipe()
+        try:
+            self._child = Forked.waiting(_serve, r, w)
+        except OSError:
+            os.close(r)
+            os.close(w)
+            raise
+        os.close(r)
+        self._w = w
+
+    @classmethod
+    def start(cls) -> "FigureServer | None":
+        """A running server, or None where none can be forked."""
+        try:
+            return cls()
+        except OSError:
+            return None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def submit(self, result, items):
+        """Send the figures ``items`` of ``result``; return a handle, or None if it cannot take them.
+
+        Parameters
+        ----------
+        result : covtool.results.StudyResult
+        items : list of (str, callable, pathlib.Path)
+            ``(name, maker, png path)``; a maker that is a
+            ``functools.partial`` over ``result`` is rebound to its
+            :meth:`~covtool.results.StudyResult.figure_view`.
+
+        Returns
+        -------
+        object with ``result()`` and ``cancel()``, or None
+            ``result()`` waits for the figures and raises the first error.
+        """
+        if self._w is None:
+            return None
+        view = result.figure_view()
+        light = []
+        for name, make, path in items:
+            if isinstance(make, partial) and make.args and make.args[0] is result:
+                make = partial(make.func, view, *make.args[1:], **(make.keywords or {}))
+            light.append((name, make, path))
+        try:
+            payload = pickle.dumps(light, protocol=pickle.HIGHEST_PROTOCOL)
+        except Exception:                                   # noqa: BLE001 - a closure, a lock: drawn here instead
+            return None
+        if len(payload) > MAX_VIEW_BYTES:
+            return None
+        try:
+            view_bytes = memoryview(payload)
+            while view_bytes:
+                view_bytes = view_bytes[os.write(self._w, view_bytes):]
+        except OSError:                                     # the server is gone
+            return None
+        finally:
+            os.close(self._w)
+            self._w = None
+        return self._child
+
+    def close(self) -> None:
+        """Stop the server (it has drawn, or will get nothing) and reap it; idempotent."""
+        if self._w is not None:
+            os.close(self._w)
+            self._w = None
+        self._child.cancel()                                # nothing once its result was collected

@@ -1,0 +1,180 @@
+"""The figure server: figures drawn from a light view of the result, the same pixels (issue 13).
+
+``covtool run`` forks :class:`covtool.io.figure_server.FigureServer` first
+thing; it prepares matplotlib while the study computes and draws the
+figures from :meth:`covtool.results.StudyResult.figure_view`.  The files must
+be byte for byte those drawn from the full result; a maker the server
+cannot take, or a view it cannot draw from, must fall back to the usual
+path; a server that gets no job must go at once, leaving no process.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import tomllib
+from dataclasses import dataclass, field
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from covtool.io import writers
+from covtool.io.figure_server import FigureServer
+from covtool.results import StudyResult
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.skipif(not hasattr(os, "fork"), reason="the server is a forked process")
+
+
+@dataclass
+class _Heavy(StudyResult):
+    """A result with a large field no figure reads, and one the figure reads."""
+
+    curve: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    system: object = None
+    not_drawn = ("system",)
+
+
+def _curve_figure(result, k):
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(3, 2))
+    ax.semilogy(np.arange(result.curve.size), result.curve ** k)
+    ax.set_title(f"{result.name}: power {k}")
+    return fig
+
+
+def _system_figure(result):
+    """A figure that (wrongly) reads a field declared not drawn: the view cannot draw it."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(3, 2))
+    ax.plot(result.system[:10, 0])
+    return fig
+
+
+def _heavy(figures=None) -> _Heavy:
+    r = _Heavy(name="heavy", kind="test", tables={"summary": pd.DataFrame({"x [m]": [1.0]})},
+               resolved={"study": {"kind": "test", "name": "heavy"}}, provenance={},
+               curve=np.linspace(1.0, 1e3, 50), system=np.ones((2000, 1000)))      # 16 MB not drawn
+    r.figures = figures(r) if figures else {f"p{k}": partial(_curve_figure, r, k) for k in (1, 2)}
+    return r
+
+
+def _reaped(pid):
+    with pytest.raises(ChildProcessError):
+        os.waitpid(pid, os.WNOHANG)
+
+
+def test_the_view_leaves_out_what_no_figure_reads_and_the_makers():
+    r = _heavy()
+    v = r.figure_view()
+    assert type(v) is _Heavy and v.system is None and v.figures == {}
+    assert v.curve is r.curve and r.system is not None and len(r.figures) == 2       # the result is untouched
+
+
+def test_served_figures_equal_those_drawn_from_the_full_result(tmp_path):
+    r = _heavy()
+    with FigureServer.start() as server:
+        files = writers.write_outputs(r, tmp_path / "out", server=server)
+        pid = server._child.pid
+        assert server._w is None                           # the job was sent: the server drew them
+    _reaped(pid)
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    writers.draw_figures([(n, m, ref / f"{n}.png") for n, m in r.figures.items()])
+    assert sorted(p.name for p in files if p.suffix == ".png") == ["p1.png", "p2.png"]
+    for n in r.figures:
+        assert (tmp_path / "out" / f"{n}.png").read_bytes() == (ref / f"{n}.png").read_bytes()
+
+
+def test_a_maker_that_does_not_pickle_is_drawn_the_usual_way(tmp_path):
+    r = _heavy(lambda r: {"closure": lambda: _curve_figure(r, 1)})
+    with FigureServer.start() as server:
+        assert server.submit(r, [("closure", r.figures["closure"], tmp_path / "x.png")]) is None
+        files = writers.write_outputs(r, tmp_path / "out", server=server)
+    assert (tmp_path / "out" / "closure.png") in files
+
+
+def test_a_view_the_server_cannot_draw_from_falls_back_to_the_full_result(tmp_path):
+    r = _heavy(lambda r: {"sys": partial(_system_figure, r)})
+    with FigureServer.start() as server:
+        files = writers.write_outputs(r, tmp_path / "out", server=server)
+        assert server._w is None                           # it was sent, failed there, and was drawn here
+    ref = tmp_path / "ref.png"
+    writers.draw_figures([("sys", r.figures["sys"], ref)])
+    assert (tmp_path / "out" / "sys.png") in files
+    assert (tmp_path / "out" / "sys.png").read_bytes() == ref.read_bytes()
+
+
+def test_a_figure_error_still_reaches_the_caller_as_itself(tmp_path):
+    from covtool.errors import InputError
+
+    r = _heavy(lambda r: {"bad": partial(_bad_figure, r)})
+    with FigureServer.start() as server:
+        with pytest.raises(InputError, match=r"heavy.toml: \[output\] figure: cannot be drawn \(test\)"):
+            writers.write_outputs(r, tmp_path / "out", server=server)
+    assert not [p for p in (tmp_path / "out").rglob("*") if p.is_file()]
+
+
+def _bad_figure(result):
+    from covtool.errors import InputError
+
+    raise InputError(f"{result.name}.toml: [output] figure", "cannot be drawn (test)")
+
+
+def test_a_server_without_a_job_goes_at_once_and_leaves_no_process():
+    server = FigureServer.start()
+    pid = server._child.pid
+    t0 = time.perf_counter()
+    server.close()                                         # still importing matplotlib: stopped, not awaited
+    assert time.perf_counter() - t0 < 1.0
+    _reaped(pid)
+    server.close()                                         # idempotent
+
+
+def _short(name: str, tmp_path: Path) -> Path:
+    """``studies/<name>.toml`` over 6 min, reported at 6 min, written beside a copy of the models."""
+    decl = tomllib.loads((ROOT / "studies" / f"{name}.toml").read_text())
+    decl["study"]["duration"] = "6 min"
+    decl["output"]["report_times"] = ["6 min"]
+    if "file" in decl.get("filters", {}):
+        decl["filters"]["file"] = str(ROOT / "models" / "filters" / Path(decl["filters"]["file"]).name)
+    import tomli_w
+
+    p = tmp_path / f"{name}.toml"
+    p.write_text(tomli_w.dumps(decl))
+    return p
+
+
+@pytest.mark.parametrize("name", ["zupt_filter_order", "error_budget", "zupt_sensitivity"])
+def test_every_figure_of_the_studies_that_leave_fields_out_is_the_same_from_the_view(name, tmp_path):
+    """The fields each result declares not drawn are indeed read by none of its figures."""
+    import pickle
+
+    from covtool.studies import run_study
+
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")                    # validity notes of a short study: not the point here
+        r = run_study(_short(name, tmp_path))
+    assert type(r).not_drawn
+    view = r.figure_view()
+    light = pickle.loads(pickle.dumps([(n, partial(m.func, view, *m.args[1:], **m.keywords))
+                                       for n, m in r.figures.items()]))
+    full, served = tmp_path / "full", tmp_path / "served"
+    full.mkdir()
+    served.mkdir()
+    writers.draw_figures([(n, m, full / f"{n}.png") for n, m in r.figures.items()])
+    writers.draw_figures([(n, m, served / f"{n}.png") for n, m in light])
+    for n in r.figures:
+        assert (served / f"{n}.png").read_bytes() == (full / f"{n}.png").read_bytes(), n
