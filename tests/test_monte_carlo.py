@@ -287,6 +287,23 @@ def test_rms_and_nees_bounds_cover_95_percent():
     assert fr == {"inside": 0.5, "above": 0.25, "below": 0.25, "points": 4}
 
 
+def test_chi2_quantile_is_scipy_stats_chi2_ppf_bit_for_bit():
+    """The bounds use scipy.special (no scipy.stats import): the same numbers as scipy.stats."""
+    from scipy import stats
+
+    from covtool.analysis.consistency import chi2_quantile
+
+    rng = np.random.default_rng(5)
+    q = np.r_[0.025, 0.975, 0.5, rng.uniform(1e-6, 1 - 1e-6, 500)]
+    nu = np.r_[200.0, 350.5, 1.0, rng.uniform(0.5, 2e5, 500)]
+    assert np.array_equal(chi2_quantile(q, nu), stats.chi2.ppf(q, nu))
+    assert chi2_quantile(0.5, 2.0) == pytest.approx(2.0 * np.log(2.0), rel=1e-14)     # χ²₂ is exponential(1/2)
+    lo, hi = mc.rms_bounds(3.0, 200, [1.0, 1.7])
+    nu2 = 200 * np.array([1.0, 1.7])
+    np.testing.assert_array_equal(lo, 3.0 * np.sqrt(stats.chi2.ppf(0.025, nu2) / nu2))
+    np.testing.assert_array_equal(hi, 3.0 * np.sqrt(stats.chi2.ppf(0.975, nu2) / nu2))
+
+
 def test_horizontal_bounds_cover_95_percent():
     """Radial RMS of an elongated 2-D error: Satterthwaite bounds cover ≈ 95 %; 2N dof would not."""
     rng = np.random.default_rng(3)

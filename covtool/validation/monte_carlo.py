@@ -289,7 +289,7 @@ def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, 
         steps, an IMU simulator that does not cover it, neither or both of
         ``R`` and ``measurement``.
     """
-    from covtool.analysis.consistency import REDUCED_NAV    # with scipy.stats (0.4 s): not at a chunk worker's import
+    from covtool.analysis.consistency import REDUCED_NAV    # with scipy.special (0.2 s): not at a chunk worker's import
 
     if (R is None) == (measurement is None):
         raise ValueError("run_ensemble: give exactly one of R (ZUPT) and measurement")
