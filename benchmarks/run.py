@@ -55,6 +55,9 @@ import sys
 import time
 from pathlib import Path
 
+# the in-process parts ([1]-[5]) run with numpy's default transparent-huge-page advice unless the caller sets
+# NUMPY_MADVISE_HUGEPAGE: the command line turns it off (covtool.cli._ordinary_pages), which speeds covtool's
+# engine in [5] (1.6 s against 2.0 s here) and slows the per-step baseline (5.9-6.2 s against 4.8-5.1 s)
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -436,10 +439,18 @@ def fair_report(path: Path = FLAGSHIP) -> dict:
     """[5]: engine vs fair dense baseline on the flagship computation (1 BLAS thread both)."""
     from threadpoolctl import threadpool_limits
 
-    with threadpool_limits(limits=1, user_api="blas"):
-        t_eng, t_eng_truth, eng, S = flagship_engine(path)
-        t_eng2, t_eng_truth2, _, _ = flagship_engine(path)
-        t_fair, t_fair_truth, fair = flagship_fair(S)
+    from covtool.studies import grid
+
+    # one core each: the engine's large discretisations would otherwise be split with a forked child
+    # (covtool.studies.grid.discretize_chunked), the baseline's not
+    split_from, grid.SPLIT_CHUNKS = grid.SPLIT_CHUNKS, 10**9
+    try:
+        with threadpool_limits(limits=1, user_api="blas"):
+            t_eng, t_eng_truth, eng, S = flagship_engine(path)
+            t_eng2, t_eng_truth2, _, _ = flagship_engine(path)
+            t_fair, t_fair_truth, fair = flagship_fair(S)
+    finally:
+        grid.SPLIT_CHUNKS = split_from
     t_eng, t_eng_truth = min(t_eng, t_eng2), min(t_eng_truth, t_eng_truth2)
     q_end = S.nodes.q_nb[-1]
     diff = max(rel_diff(physical(eng[c][:10, :10], q_end), physical(fair[c][:10, :10], q_end)) for c in eng)
