@@ -77,13 +77,31 @@ def _progress(args) -> bool:
 def _cmd_run(args) -> int:
     t0 = time.perf_counter()
     out = _output_dir(args)
-    # a figure server prepares matplotlib on the other core while the study computes
-    server = None if args.no_figures else _figure_server()
-    try:
-        return _run_and_write(args, out, t0, server)
-    finally:
-        if server is not None:
-            server.close()
+    _refuse_unused_options(args)
+    args.store_dir = out / "cases"                        # named in the interrupt message
+    from covtool.io.lock import DirLock
+
+    # one run at a time per output directory: outputs and the result store are written by one process
+    with DirLock(out, command=f"covtool run {args.study}"):
+        # a figure server prepares matplotlib on the other core while the study computes (stopped with
+        # SIGTERM at the end, or at once if the study fails)
+        server = None if args.no_figures else _figure_server()
+        try:
+            result, files = _run_and_write(args, out, server)
+        finally:
+            if server is not None:
+                server.close()
+    dt = time.perf_counter() - t0
+    if not args.quiet:
+        from covtool.io.console import console_table, console_width, KEY_COLUMNS
+
+        width = console_width()
+        print(console_table(result.summary, width=width, max_rows=MAX_SUMMARY_ROWS,
+                            file_hint=str(out / "summary.csv"), prefer=KEY_COLUMNS.get(result.kind, ())))
+        if len(result.summary) > MAX_SUMMARY_ROWS and "pivot_cep" in result.tables:
+            print("\n" + console_table(result.tables["pivot_cep"], width=width, file_hint=str(out)))
+        print(f"\nwrote {len(files)} files to {out}/ in {dt:.1f} s")
+    return 0
 
 
 def _figure_server():
@@ -93,47 +111,33 @@ def _figure_server():
     return FigureServer.start()
 
 
-def _run_and_write(args, out, t0, server) -> int:
-    from covtool.io.console import console_table, console_width, KEY_COLUMNS
+def _run_and_write(args, out, server):
+    """Run the study and write its outputs (inside the output lock); ``(result, files)``."""
     from covtool.io.writers import write_outputs
-    from covtool.io.lock import DirLock
     from covtool.studies import run_study
 
-    _refuse_unused_options(args)
-    args.store_dir = out / "cases"                        # named in the interrupt message
-    # one run at a time per output directory: outputs and the result store are written by one process
-    with DirLock(out, command=f"covtool run {args.study}"):
-        backend = None
-        try:
-            if args.workers is not None or args.scheduler is not None:
-                from covtool.parallel import make_backend
+    backend = None
+    try:
+        if args.workers is not None or args.scheduler is not None:
+            from covtool.parallel import make_backend
 
-                backend = make_backend(workers=args.workers, scheduler=args.scheduler)
-            with warnings.catch_warnings(record=True) as caught:
-                warnings.simplefilter("always", CovtoolWarning)
-                result = run_study(args.study, progress=_progress(args), backend=backend, store=out / "cases",
-                                   resume=args.resume)
-        except BaseException:
-            if backend is not None:
-                backend.abort()                          # never wait for running chunks on an error
-            raise
+            backend = make_backend(workers=args.workers, scheduler=args.scheduler)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always", CovtoolWarning)
+            result = run_study(args.study, progress=_progress(args), backend=backend, store=out / "cases",
+                               resume=args.resume)
+    except BaseException:
         if backend is not None:
-            backend.close()
-        for w in caught:      # one line each (validity, flagged cases); other warnings as Python shows them
-            if issubclass(w.category, CovtoolWarning):
-                print(f"covtool: warning: {_one_line(w.message)}", file=sys.stderr)
-            else:
-                warnings.showwarning(w.message, w.category, w.filename, w.lineno)
-        files = write_outputs(result, out, figures=not args.no_figures, server=server)
-    dt = time.perf_counter() - t0
-    if not args.quiet:
-        width = console_width()
-        print(console_table(result.summary, width=width, max_rows=MAX_SUMMARY_ROWS,
-                            file_hint=str(out / "summary.csv"), prefer=KEY_COLUMNS.get(result.kind, ())))
-        if len(result.summary) > MAX_SUMMARY_ROWS and "pivot_cep" in result.tables:
-            print("\n" + console_table(result.tables["pivot_cep"], width=width, file_hint=str(out)))
-        print(f"\nwrote {len(files)} files to {out}/ in {dt:.1f} s")
-    return 0
+            backend.abort()                          # never wait for running chunks on an error
+        raise
+    if backend is not None:
+        backend.close()
+    for w in caught:      # one line each (validity, flagged cases); other warnings as Python shows them
+        if issubclass(w.category, CovtoolWarning):
+            print(f"covtool: warning: {_one_line(w.message)}", file=sys.stderr)
+        else:
+            warnings.showwarning(w.message, w.category, w.filename, w.lineno)
+    return result, write_outputs(result, out, figures=not args.no_figures, server=server)
 
 
 def _cmd_models(args) -> int:

@@ -198,6 +198,34 @@ class Forked:
             _release_blas()
 
 
+    def terminate(self, grace: float = 5.0) -> None:
+        """Stop the child with SIGTERM, SIGKILL after ``grace`` seconds; reap it; its result is dropped.
+
+        For a child that may be writing files outside this module's control
+        (matplotlib's font cache): SIGTERM lets it unwind, its ``finally``
+        blocks run (a lock file removed).
+        """
+        if self._done or self.pid is None:
+            return
+        import signal
+        import time
+
+        try:
+            os.kill(self.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+        end = time.monotonic() + grace
+        while time.monotonic() < end:
+            if os.waitpid(self.pid, os.WNOHANG)[0]:
+                os.close(self._fd)
+                os.close(self._life)
+                self._payload, self._status, self._done = b"", -15, True
+                if self._busy:
+                    _release_blas()
+                return
+            time.sleep(0.01)
+        self.cancel()
+
     def __del__(self):
         # a result never collected (the parent failed first): the child is stopped and reaped
         try:
@@ -210,9 +238,11 @@ def can_split() -> bool:
     """Whether :func:`split` runs its parts at once: a fork is possible and useful here.
 
     Only the main thread of a top-level process forks, with two cores or
-    more, while no other :class:`Forked` child runs (a child of this module
-    or a worker of :mod:`covtool.parallel` already keeps the other core
-    busy), and never while :mod:`tracemalloc` traces.
+    more, while no other thread runs (a lock another thread holds at the
+    fork would stay held in the child), while no other :class:`Forked`
+    child runs (a child of this module or a worker of
+    :mod:`covtool.parallel` already keeps the other core busy), and never
+    while :mod:`tracemalloc` traces.
     """
     import multiprocessing
     import threading
@@ -221,8 +251,10 @@ def can_split() -> bool:
         cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
         cores = os.cpu_count() or 1
+    others = [t for t in threading.enumerate()
+              if t is not threading.current_thread() and t.name != WATCHDOG_THREAD]
     return (hasattr(os, "fork") and cores >= 2 and _ACTIVE["children"] == 0 and not _tracing()
-            and threading.current_thread() is threading.main_thread()
+            and threading.current_thread() is threading.main_thread() and not others
             and multiprocessing.parent_process() is None)
 
 
@@ -251,7 +283,7 @@ def shared_empty(shape, dtype=float, *, shared: bool = True):
     nbytes = size * np.dtype(dtype).itemsize
     if not shared or nbytes == 0:
         return np.empty(shape, dtype)
-    return np.frombuffer(mmap.mmap(-1, nbytes), dtype=dtype, count=size).reshape(shape)
+    return np.frombuffer(mmap.mmap(-1, nbytes), dtype=dtype, count=size).reshape(shape)   # OSError: no mapping
 
 
 def split(fn, parts) -> list:
@@ -266,14 +298,22 @@ def split(fn, parts) -> list:
     parts = list(parts)
     if len(parts) < 2 or not can_split():
         return [fn(p) for p in parts]
-    children = [Forked(fn, p) for p in parts[1:]]
+    children = []
     try:
+        for p in parts[1:]:
+            try:
+                children.append(Forked(fn, p))
+            except OSError:                                 # no fork now (EAGAIN, ENOMEM): the rest here
+                break
         first = fn(parts[0])
-        return [first] + [c.result() for c in children]
+        return [first] + [c.result() for c in children] + [fn(p) for p in parts[1 + len(children):]]
     finally:
         for c in children:
             c.cancel()
 
+
+#: name of a forked child's thread that waits for its parent's death (:func:`_watch_parent`)
+WATCHDOG_THREAD = "covtool-parent-watchdog"
 
 #: exit status of a forked child whose parent died (nobody waits for it)
 ORPHAN_EXIT = 75
@@ -299,7 +339,7 @@ def _watch_parent(fd: int) -> None:
             pass
         os._exit(ORPHAN_EXIT)
 
-    threading.Thread(target=watch, name="covtool-parent-watchdog", daemon=True).start()
+    threading.Thread(target=watch, name=WATCHDOG_THREAD, daemon=True).start()
 
 
 def _outcome(fn, args, kwargs) -> bytes:

@@ -67,6 +67,8 @@ def progress_bar(total: int, desc: str, enabled: bool, *, unit: str = "step", in
     """
     from tqdm.auto import tqdm
 
+    # no monitor thread: a process with a thread alive does not fork (covtool.forked.can_split)
+    tqdm.monitor_interval = 0
     return tqdm(total=total, initial=initial, desc=desc, disable=not enabled, delay=DELAY, leave=False,
                 unit=unit, file=sys.stderr, smoothing=0.1, dynamic_ncols=True)
 

@@ -99,7 +99,9 @@ def test_served_figures_equal_those_drawn_from_the_full_result(tmp_path):
 def test_a_maker_that_does_not_pickle_is_drawn_the_usual_way(tmp_path):
     r = _heavy(lambda r: {"closure": lambda: _curve_figure(r, 1)})
     with FigureServer.start() as server:
+        pid = server._child.pid
         assert server.submit(r, [("closure", r.figures["closure"], tmp_path / "x.png")]) is None
+        _reaped(pid)                                       # a server that cannot take them is stopped at once
         files = writers.write_outputs(r, tmp_path / "out", server=server)
     assert (tmp_path / "out" / "closure.png") in files
 
@@ -131,12 +133,29 @@ def _bad_figure(result):
     raise InputError(f"{result.name}.toml: [output] figure", "cannot be drawn (test)")
 
 
+def test_a_process_forked_after_the_server_does_not_hold_up_its_job(tmp_path):
+    """The job is length-prefixed: a later child holding the pipe's write end open changes nothing."""
+    from covtool.forked import Forked
+
+    r = _heavy()
+    with FigureServer.start() as server:
+        sleeper = Forked(time.sleep, 60)                   # inherits the job pipe's write end
+        try:
+            t0 = time.perf_counter()
+            writers.write_outputs(r, tmp_path / "out", server=server)
+            assert time.perf_counter() - t0 < 30
+            assert server._w is None
+        finally:
+            sleeper.cancel()
+    assert sorted(p.name for p in (tmp_path / "out").glob("*.png")) == ["p1.png", "p2.png"]
+
+
 def test_a_server_without_a_job_goes_at_once_and_leaves_no_process():
     server = FigureServer.start()
     pid = server._child.pid
     t0 = time.perf_counter()
-    server.close()                                         # still importing matplotlib: stopped, not awaited
-    assert time.perf_counter() - t0 < 1.0
+    server.close()                                         # still importing matplotlib: SIGTERM, not awaited
+    assert time.perf_counter() - t0 < 2.0
     _reaped(pid)
     server.close()                                         # idempotent
 

@@ -106,3 +106,37 @@ def test_an_error_in_either_half_names_the_step_of_the_whole_grid(bad):
     times = 100.0 + np.arange(F.shape[0])
     with pytest.raises(NumericalError, match=rf"test system: step {bad} \(t = {100 + bad:g} s"):
         grid.discretize_chunked(F, Qc, dt, "van_loan", chunk=40, what="test system", times=times)
+
+
+def test_no_split_while_another_thread_runs():
+    import threading
+
+    stop = threading.Event()
+    th = threading.Thread(target=stop.wait, daemon=True)
+    th.start()
+    try:
+        assert can_split() is False                        # a lock it holds at the fork would stay held
+    finally:
+        stop.set()
+        th.join()
+    assert can_split() is True
+
+
+def test_a_progress_bar_starts_no_thread_and_so_does_not_stop_the_split():
+    from covtool.progress import progress_bar
+
+    with progress_bar(10, "test", True) as bar:
+        bar.update(1)
+        assert can_split() is True
+
+
+def test_renumbering_touches_only_step_mentions_and_keeps_the_error():
+    from covtool.errors import StudyFileError
+
+    e = StudyFileError("s.toml: [study] dt", "the series diverges at step 30 (t = 190 s); 2 steps (of 40) fail")
+    grid._on_grid(e, 160)
+    assert str(e) == "s.toml: [study] dt: the series diverges at step 190 (t = 190 s); 2 steps (of 40) fail"
+    assert e.problem == "the series diverges at step 190 (t = 190 s); 2 steps (of 40) fail"
+    v = ValueError("singular matrix")
+    grid._on_grid(v, 160)
+    assert v.args == ("singular matrix",)

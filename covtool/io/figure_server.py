@@ -15,7 +15,10 @@ The server only saves time: when it cannot take the figures (no
 ``os.fork``, a maker that does not pickle, a view larger than
 :data:`MAX_VIEW_BYTES`) or fails to draw them, the writer draws them as
 before, from the full result.  It dies with this process
-(:class:`covtool.forked.Forked`) and is reaped by :meth:`FigureServer.close`.
+(:class:`covtool.forked.Forked`) and is reaped by :meth:`FigureServer.close`
+(SIGTERM first).  The command line starts it once the study file has
+been read and the output directory locked, so that a mistake in the
+command or the file's TOML starts nothing.
 """
 
 from __future__ import annotations
@@ -31,39 +34,74 @@ MAX_VIEW_BYTES = 64 * 2**20
 
 
 def _prepare() -> None:
-    """Import what drawing needs and draw one small figure (fonts, mathtext parser, Agg caches)."""
-    import matplotlib
+    """Import what drawing needs and draw one small figure (fonts, mathtext parser, Agg caches).
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    matplotlib's log messages of this step (a cache directory it could not
+    create, a font cache it rebuilds) are held back: they would precede the
+    study's own output, or an input error's one line.
+    """
+    import logging
 
-    import covtool.results  # noqa: F401 - pandas and the result classes, for unpickling the view
+    quiet = logging.getLogger("matplotlib")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)
+    try:
+        import matplotlib
 
-    fig, ax = plt.subplots(figsize=(2.0, 2.0))
-    ax.plot([1.0, 2.0, 3.0], [1.0, 30.0, 1e4], label="x")
-    ax.set_yscale("log")
-    ax.set_title("t [min]")
-    ax.legend()
-    fig.canvas.draw()
-    plt.close(fig)
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        import covtool.results  # noqa: F401 - pandas and the result classes, for unpickling the view
+
+        fig, ax = plt.subplots(figsize=(2.0, 2.0))
+        ax.plot([1.0, 2.0, 3.0], [1.0, 30.0, 1e4], label="x")
+        ax.set_yscale("log")
+        ax.set_title("t [min]")
+        ax.legend()
+        fig.canvas.draw()
+        plt.close(fig)
+    finally:
+        quiet.setLevel(level)
+
+
+#: bytes of the job's length, sent before the job (big-endian)
+_HEADER = 8
+
+
+def _read_exactly(fd: int, n: int) -> bytes | None:
+    """``n`` bytes from ``fd``, or None at end of file before them."""
+    chunks, left = [], n
+    while left:
+        b = os.read(fd, min(left, 1 << 20))
+        if not b:
+            return None
+        chunks.append(b)
+        left -= len(b)
+    return b"".join(chunks)
 
 
 def _serve(job_fd: int, other_fd: int):
-    """In the server: prepare, read one job until end of file, draw it; None if none came."""
+    """In the server: prepare, read one length-prefixed job, draw it; None if the pipe closes first.
+
+    The job's length comes first, so the server never waits for the end
+    of the pipe (a process forked later may hold its write end open).
+    SIGTERM (:meth:`FigureServer.close`) raises ``SystemExit`` here, so
+    that matplotlib's ``finally`` blocks run (its font-cache lock file).
+    """
+    import signal
+    import sys
+
     from covtool.io.writers import draw_in_processes
 
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     os.close(other_fd)                                  # the write end belongs to the parent
     _prepare()
-    chunks = []
-    while True:
-        b = os.read(job_fd, 1 << 20)
-        if not b:
-            break
-        chunks.append(b)
+    head = _read_exactly(job_fd, _HEADER)
+    job = None if head is None else _read_exactly(job_fd, int.from_bytes(head, "big"))
     os.close(job_fd)
-    if not chunks:
+    if job is None:
         return None
-    draw_in_processes(pickle.loads(b"".join(chunks)))
+    draw_in_processes(pickle.loads(job))
     return "drawn"
 
 
@@ -102,6 +140,9 @@ class FigureServer:
     def submit(self, result, items):
         """Send the figures ``items`` of ``result``; return a handle, or None if it cannot take them.
 
+        One job per server: after a call (sent or not) the server takes no
+        other; one that cannot take the figures is stopped at once.
+
         Parameters
         ----------
         result : covtool.results.StudyResult
@@ -117,32 +158,38 @@ class FigureServer:
         """
         if self._w is None:
             return None
-        view = result.figure_view()
-        light = []
-        for name, make, path in items:
-            if isinstance(make, partial) and make.args and make.args[0] is result:
-                make = partial(make.func, view, *make.args[1:], **(make.keywords or {}))
-            light.append((name, make, path))
         try:
+            view = result.figure_view()
+            light = []
+            for name, make, path in items:
+                if isinstance(make, partial) and make.args and make.args[0] is result:
+                    make = partial(make.func, view, *make.args[1:], **(make.keywords or {}))
+                light.append((name, make, path))
             payload = pickle.dumps(light, protocol=pickle.HIGHEST_PROTOCOL)
         except Exception:                                   # noqa: BLE001 - a closure, a lock: drawn here instead
-            return None
-        if len(payload) > MAX_VIEW_BYTES:
+            payload = None
+        if payload is None or len(payload) > MAX_VIEW_BYTES:
+            self.close()
             return None
         try:
-            view_bytes = memoryview(payload)
-            while view_bytes:
-                view_bytes = view_bytes[os.write(self._w, view_bytes):]
+            data = memoryview(len(payload).to_bytes(_HEADER, "big") + payload)
+            while data:
+                data = data[os.write(self._w, data):]
         except OSError:                                     # the server is gone
+            self.close()
             return None
-        finally:
-            os.close(self._w)
-            self._w = None
+        os.close(self._w)
+        self._w = None
         return self._child
 
     def close(self) -> None:
-        """Stop the server (it has drawn, or will get nothing) and reap it; idempotent."""
+        """Stop the server (it has drawn, or will get nothing) and reap it; idempotent.
+
+        A server still preparing or waiting is stopped with SIGTERM (SIGKILL
+        after a grace period): killed outright it could leave matplotlib's
+        font cache half written and its lock file behind.
+        """
         if self._w is not None:
             os.close(self._w)
             self._w = None
-        self._child.cancel()                                # nothing once its result was collected
+        self._child.terminate()                             # nothing once its result was collected

@@ -78,9 +78,9 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True, server=
     figures : bool
         Draw the figures (PNG files).
     server : covtool.io.figure_server.FigureServer, optional
-        A running figure server (the command line's): the figures are sent
-        to it, else (or if it cannot take them, or fails) drawn in forked
-        processes from ``result`` as usual.
+        A running figure server (the command line's; one job each): the
+        figures are sent to it, else (or if it cannot take them, or fails)
+        drawn in forked processes from ``result`` as usual.
 
     Raises
     ------
@@ -120,6 +120,9 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True, server=
             # the server could not draw them (a view it could not use): drawn from the full result; a
             # figure's own error is raised again from there
             _finish_figures(_start_figures(items))
+        except BaseException:                           # interrupted while waiting: no drawing goes on
+            _finish_figures(children, report=False)
+            raise
         written = [out_dir / p.relative_to(stage) for p in sorted(stage.rglob("*")) if p.is_file()]
     return written
 

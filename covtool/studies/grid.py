@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from covtool.analysis.metrics import first_invalid, nav_metrics, validity_text
-from covtool.errors import NumericalError, StudyFileError
+from covtool.errors import CovtoolError, StudyFileError
 from covtool.lincov.discretize import discretize
 from covtool.lincov.dynamics import Context, error_dynamics, NavOptions
 from covtool.lincov.kalman import check_covariance, check_system
@@ -233,25 +233,33 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
     ``what`` and ``times`` (start time of each step [s]) name the system
     and the step in error messages.
     """
+    from threadpoolctl import threadpool_limits
+
     from covtool.forked import can_split, shared_empty, split
 
     N = F.shape[0]
     starts = list(range(0, N, chunk))
     # two halves of the chunks at once, in this process and a forked child, when there are enough:
-    # every chunk is discretised exactly as in one process (the same chunks), so the numbers are too
+    # every chunk is discretised exactly as in one process (the same chunks, one BLAS thread each), so
+    # the numbers are too
     parallel = len(starts) >= SPLIT_CHUNKS and F.shape[1] >= SPLIT_STATES and can_split()
-    Phi = shared_empty(F.shape, float, shared=parallel)
-    Qd = shared_empty(F.shape, float, shared=parallel)
+    try:
+        Phi = shared_empty(F.shape, float, shared=parallel)
+        Qd = shared_empty(F.shape, float, shared=parallel)
+    except OSError:                                         # no shared mapping now: one process
+        parallel = False
+        Phi, Qd = np.empty(F.shape), np.empty(F.shape)
     dt = np.broadcast_to(np.asarray(dt, float), (N,))
-    with progress_bar(N, desc, progress) as bar:
+    with progress_bar(N, desc, progress) as bar, threadpool_limits(limits=1, user_api="blas"):
         def run(part, here=True):
             for a in part:
                 b = min(N, a + chunk)
                 try:
                     Phi[a:b], Qd[a:b] = discretize(F[a:b], Qc[a:b], dt[a:b], method, order, what=what,
                                                    times=None if times is None else times[a:b])
-                except (NumericalError, ValueError) as e:
-                    raise _on_grid(e, what, a) from None
+                except (CovtoolError, ValueError) as e:
+                    _on_grid(e, a)
+                    raise
                 if here:
                     bar.update(b - a)
 
@@ -264,15 +272,24 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
     return Phi, Qd
 
 
-def _on_grid(e: Exception, what: str, first: int) -> Exception:
-    """``e`` with the step it names counted on the whole grid, not within the chunk from ``first``."""
-    prefix = re.escape(f"{what}: ") if what else ""
-    msg = re.sub(rf"^({prefix})step (\d+) \(", lambda m: f"{m.group(1)}step {int(m.group(2)) + first} (", str(e),
-                 count=1)
-    try:
-        return type(e)(msg)
-    except TypeError:                                       # an error of other arguments: as it was
-        return e
+def _on_grid(e: Exception, first: int) -> None:
+    """Renumber, in place, the steps ``e`` names from a chunk starting at step ``first`` to the whole grid.
+
+    A discretisation error names its step as ``step k (t = …`` within its
+    input (:func:`covtool.lincov.discretize.steps.repeated_steps` keeps the
+    caller's numbering); every such mention in the message (its ``args``,
+    and an :class:`~covtool.errors.InputError`'s ``problem``) is shifted
+    by ``first``.  Nothing else is changed; the error keeps its traceback.
+    """
+    if not first:
+        return
+
+    def shift(text):
+        return re.sub(r"\bstep (\d+) \(", lambda m: f"step {int(m.group(1)) + first} (", text)
+
+    e.args = tuple(shift(a) if isinstance(a, str) else a for a in e.args)
+    if isinstance(getattr(e, "problem", None), str):
+        e.problem = shift(e.problem)
 
 
 def truth_system(model: Model, traj, t: np.ndarray, method: str, *, options=NavOptions(), progress=False,
