@@ -6,8 +6,13 @@ the call and sends back only its (small) result through a pipe.  The
 figures of a study are drawn while its tables are written
 (:mod:`covtool.io.writers`); the flagship's dropped-state impact table is
 computed while its cases are propagated
-(:mod:`covtool.studies.zupt_filter_order`).  Without ``os.fork`` the call
-runs at once, in this process.
+(:mod:`covtool.studies.zupt_filter_order`); :func:`split` runs parts of one
+computation at once that write their results into shared memory
+(:func:`shared_empty`: the large discretisations of
+:func:`covtool.studies.grid.discretize_chunked`); :meth:`Forked.waiting`
+starts a server that waits for its job (the command line's figure server,
+:mod:`covtool.io.figure_server`).  Without ``os.fork`` the call runs at
+once, in this process.
 """
 
 from __future__ import annotations
@@ -190,13 +195,8 @@ class Forked:
             os.kill(self.pid, signal.SIGKILL)
         except ProcessLookupError:
             pass
-        os.close(self._fd)
-        os.close(self._life)
         os.waitpid(self.pid, 0)
-        self._payload, self._status, self._done = b"", -9, True
-        if self._busy:
-            _release_blas()
-
+        self._dropped(-9)
 
     def terminate(self, grace: float = 5.0) -> None:
         """Stop the child with SIGTERM, SIGKILL after ``grace`` seconds; reap it; its result is dropped.
@@ -217,14 +217,18 @@ class Forked:
         end = time.monotonic() + grace
         while time.monotonic() < end:
             if os.waitpid(self.pid, os.WNOHANG)[0]:
-                os.close(self._fd)
-                os.close(self._life)
-                self._payload, self._status, self._done = b"", -15, True
-                if self._busy:
-                    _release_blas()
+                self._dropped(-15)
                 return
             time.sleep(0.01)
         self.cancel()
+
+    def _dropped(self, status: int) -> None:
+        """The child is reaped without its result: close the pipes, give the BLAS pool back."""
+        os.close(self._fd)
+        os.close(self._life)
+        self._payload, self._status, self._done = b"", status, True
+        if self._busy:
+            _release_blas()
 
     def __del__(self):
         # a result never collected (the parent failed first): the child is stopped and reaped
@@ -274,6 +278,12 @@ def shared_empty(shape, dtype=float, *, shared: bool = True):
         Writable; backed by a ``MAP_SHARED`` anonymous mapping when
         ``shared``, so that what a forked child writes is seen by this
         process (no pickling, no copy).
+
+    Raises
+    ------
+    OSError
+        The system refused the mapping (the caller falls back to
+        ``shared=False`` and one process).
     """
     import mmap
 

@@ -197,3 +197,14 @@ def test_every_figure_of_the_studies_that_leave_fields_out_is_the_same_from_the_
     writers.draw_figures([(n, m, served / f"{n}.png") for n, m in light])
     for n in r.figures:
         assert (served / f"{n}.png").read_bytes() == (full / f"{n}.png").read_bytes(), n
+
+
+def test_every_field_a_result_class_leaves_out_of_its_view_is_one_of_its_fields():
+    import dataclasses
+
+    from covtool.results import RESULT_CLASSES
+
+    classes = RESULT_CLASSES.values() if isinstance(RESULT_CLASSES, dict) else RESULT_CLASSES
+    for cls in classes:
+        fields = {f.name for f in dataclasses.fields(cls)}
+        assert set(cls.not_drawn) <= fields - {"name", "kind", "tables", "figures"}, cls.__name__

@@ -231,7 +231,26 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
     BLAS is limited to one thread: for these 58–116-wide matrices OpenBLAS's
     thread pool was measured 3–10× slower on a loaded 2-core machine.
     ``what`` and ``times`` (start time of each step [s]) name the system
-    and the step in error messages.
+    and the step in error messages, the step counted on the whole grid.
+
+    A system of :data:`SPLIT_STATES` states or more in :data:`SPLIT_CHUNKS`
+    chunks or more is split: the second half of the chunks goes to a
+    forked child (:func:`covtool.forked.split`) that writes its Φ, Q_d into
+    the same shared arrays (:func:`covtool.forked.shared_empty`).  The
+    chunks are those of one process, so the numbers are bit for bit the
+    same; where no fork is possible or useful (:func:`covtool.forked.can_split`)
+    everything runs here.
+
+    Returns
+    -------
+    Phi, Qd : ndarray, shape (N, n, n)
+        Float64.
+
+    Raises
+    ------
+    covtool.errors.NumericalError
+        From :func:`covtool.lincov.discretize.discretize`, the earliest
+        failing step's (this process's half first).
     """
     from threadpoolctl import threadpool_limits
 
