@@ -515,11 +515,7 @@ def test_compiled_compensation_equals_reference(files, small, model_name, keep):
     if keep == "B1":
         names = names[:10] + [n for n in names[10:] if n.startswith(("acc_bias", "gyro_bias", "acc_sf", "gyro_sf"))]
     M, k, h = 4, 250, 0.01
-    rng = np.random.default_rng(3)
-    x0 = sample_states(truth, M, rng, q0=traj.sample([40.0]).q_nb[0]) * 100.0
-    sim = ImuSimulator(traj, 100.0, t0=40.0, duration=k * h, errors=SensorErrors(truth, x0, 5, process_dt=0.1))
-    rec = sim.record()
-    ctx = feedback.RecordContext.along(traj, rec.t0, h, k)
+    x0, rec, ctx = _amplified_record(truth, traj, M, k, h, rng=np.random.default_rng(3), stream=5)
     a, b = feedback.SensorFeedback(truth, names, M), feedback.SensorFeedback(truth, names, M)
     est = x0[:, [truth.index[n] for n in a.names]]
     a.add(est)
@@ -532,6 +528,15 @@ def test_compiled_compensation_equals_reference(files, small, model_name, keep):
         assert corr > 0 and np.abs(g - r).max() <= 1e-12 * corr + 1e-18
     np.testing.assert_allclose(a.c, b.c, rtol=1e-14, atol=0)
 
+
+
+def _amplified_record(truth, traj, M, k, h, *, rng, stream):
+    """``M`` runs' initial states ×100 (the compensation is visible), one 100 Hz record of ``k`` samples
+    from t = 40 s with their sensor errors, and its context: ``(x0, record, RecordContext)``."""
+    x0 = sample_states(truth, M, rng, q0=traj.sample([40.0]).q_nb[0]) * 100.0
+    sim = ImuSimulator(traj, 1.0 / h, t0=40.0, duration=k * h, errors=SensorErrors(truth, x0, stream, process_dt=0.1))
+    rec = sim.record()
+    return x0, rec, feedback.RecordContext.along(traj, rec.t0, h, k)
 
 
 def test_cases_compensated_together_equal_each_alone(files, small):
@@ -548,10 +553,7 @@ def test_cases_compensated_together_equal_each_alone(files, small):
     traj = load_trajectory(decl, "<test>", None, 1.0)
     M, k, h = 3, 200, 0.01
     rng = np.random.default_rng(5)
-    x0 = sample_states(truth, M, rng, q0=traj.sample([40.0]).q_nb[0]) * 100.0
-    sim = ImuSimulator(traj, 100.0, t0=40.0, duration=k * h, errors=SensorErrors(truth, x0, 6, process_dt=0.1))
-    rec = sim.record()
-    ctx = feedback.RecordContext.along(traj, rec.t0, h, k)
+    x0, rec, ctx = _amplified_record(truth, traj, M, k, h, rng=rng, stream=6)
     keep = [truth.names, truth.names[:10] + [n for n in truth.names if n.startswith(("acc_sf", "gyro_bias"))],
             truth.names[:10] + [n for n in truth.names if n.startswith("gyro_mis")]]
     together = [feedback.SensorFeedback(truth, names, M) for names in keep]
