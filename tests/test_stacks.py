@@ -58,3 +58,27 @@ def test_nav_options_derived_from_the_models_dynamics_equal_a_fresh_build(option
     if options != NavOptions():
         assert got.F is not base.F and not np.array_equal(got.F[:, :10, :10], base.F[:, :10, :10])
         assert np.array_equal(got.F[:, :, 10:], base.F[:, :, 10:]) and np.array_equal(got.F[:, 10:], base.F[:, 10:])
+
+
+@pytest.mark.parametrize("rows, cols", [([0, 5, 12, 3], None), ([9, 10, 57, 1], [2, 40, 9, 0, 0]),
+                                        (np.arange(10), np.arange(10, 20)), ([30, 20], [11, 12]),
+                                        ([-58, -49, 11], [-1, 3]), (np.arange(58), None)])
+def test_options_dynamics_sub_blocks_equal_those_of_the_full_stack(rows, cols):
+    """A reduced filter's rows of F under other options are gathered without building the (N, 58, 58) copy.
+
+    The sub-block mixes the replaced navigation block (rows and columns below 10) with the base F's
+    sensor entries; it must equal the same gather from the fresh build (error_dynamics under the
+    options), element for element, and leave the full stack unbuilt until ``F`` itself is read.
+    """
+    model = load_model(SDINS58)
+    s = land_vehicle(dt=1.0).sample(np.linspace(0.0, 600.0, 61))
+    ctx = Context.from_trajectory(s)
+    options = NavOptions(coriolis=False, couple_vertical=False)
+    got = with_nav_options(error_dynamics(model, ctx), ctx, options)
+    want = error_dynamics(model, ctx, options).F
+    c = rows if cols is None else cols
+    block = got.F_block(rows, cols)
+    assert got._F is None                                     # not built by a gather
+    assert np.array_equal(block, want[:, np.asarray(rows)][:, :, np.asarray(c)])
+    assert block.flags.c_contiguous
+    assert np.array_equal(got.F, want) and np.array_equal(got.F_block(rows, cols), block)   # after the build too

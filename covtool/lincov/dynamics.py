@@ -51,6 +51,7 @@ import numpy as np
 
 from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
 from covtool.lincov.model.spec import Model
+from covtool.lincov.stacks import gather
 from covtool.nav import attitude as quat, earth
 
 I_L, I_l, I_H, I_VN, I_VE, I_VD = range(6)
@@ -215,6 +216,63 @@ class ErrorDynamics:
                 out[:, nz[:, None], nz[None, :]] += (G * src.psd[:, None, :]) @ np.swapaxes(G, 1, 2)
             self._qc = out
         return self._qc
+
+    def F_block(self, rows, cols=None) -> np.ndarray:
+        """``F[:, rows][:, :, cols]`` as a new C-contiguous stack (:func:`covtool.lincov.stacks.gather`).
+
+        Parameters
+        ----------
+        rows : array_like of int, shape (r,)
+        cols : array_like of int, shape (c,), optional
+            Default ``rows``.
+
+        Returns
+        -------
+        ndarray, shape (N, r, c)
+        """
+        return gather(self.F, rows, cols)
+
+
+class OptionsDynamics(ErrorDynamics):
+    """The dynamics of :func:`with_nav_options`: another model's F with its navigation block replaced.
+
+    ``F`` (shape ``(N, n, n)``) is built on first access; :meth:`F_block`
+    gathers a sub-block from the base F and the new navigation block
+    without building it (a reduced filter needs only its own rows), with
+    the same values.  Q_c and the noise sources are the base's own.
+
+    Parameters
+    ----------
+    base : ErrorDynamics
+        The model's dynamics under the default options.
+    nav : ndarray, shape (N, 10, 10)
+        :func:`nav_matrix` under the other options (seed 002 eq (1), (4)).
+    """
+
+    def __init__(self, base: ErrorDynamics, nav: np.ndarray):
+        self.names, self.noise = base.names, base.noise
+        self._base, self._nav, self._F = base, nav, None
+        self._qc = base.Qc
+
+    @property
+    def F(self) -> np.ndarray:
+        if self._F is None:
+            F = self._base.F.copy()
+            F[:, :10, :10] = self._nav
+            self._F = F
+        return self._F
+
+    def F_block(self, rows, cols=None) -> np.ndarray:
+        if self._F is not None:
+            return gather(self._F, rows, cols)
+        rows = np.asarray(rows, np.intp).reshape(-1)
+        cols = rows if cols is None else np.asarray(cols, np.intp).reshape(-1)
+        out = gather(self._base.F, rows, cols)
+        n = self._base.F.shape[1]
+        r, c = np.flatnonzero(rows % n < 10), np.flatnonzero(cols % n < 10)
+        if r.size and c.size:
+            out[:, r[:, None], c[None, :]] = self._nav[:, (rows[r] % n)[:, None], (cols[c] % n)[None, :]]
+        return out
 
 
 #: steps of F, Q_c, Φ and Q_d generated at once when a study streams in time (a multiple of
@@ -431,17 +489,14 @@ def with_nav_options(dyn: ErrorDynamics, ctx: Context, options: NavOptions) -> E
         Equal to ``error_dynamics(model, ctx, options)``: the options change
         only the 10×10 navigation block of F (:func:`nav_matrix`; seed 002
         eq (1), (4) without the Coriolis terms or the vertical coupling),
-        never the sensor columns or the noise, so F is a copy of ``dyn.F``
-        with that block replaced, and the noise sources and Q_c are
-        ``dyn``'s own (shared, not copied).
+        never the sensor columns or the noise, so F is ``dyn.F`` with that
+        block replaced (an :class:`OptionsDynamics`: the full stack is built
+        only when it is read; a reduced filter gathers its rows without it),
+        and the noise sources and Q_c are ``dyn``'s own (shared, not copied).
     """
     if dyn_key(options) == dyn_key(None):
         return dyn
-    F = dyn.F.copy()
-    F[:, :10, :10] = nav_matrix(ctx, options)
-    out = ErrorDynamics(dyn.names, F, dyn.noise)
-    out._qc = dyn.Qc
-    return out
+    return OptionsDynamics(dyn, nav_matrix(ctx, options))
 
 
 def attitude_errors(P_qq: np.ndarray, q: np.ndarray) -> np.ndarray:

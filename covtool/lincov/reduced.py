@@ -220,16 +220,16 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         # C-contiguous (as FilterModel.chunk does), the couplings laid out time fastest as the streamed
         # columns are (DynamicsStream.columns): the same round-off either way
         whole = np.array_equal(kidx, np.arange(truth.n))
-        F = dyn.F if whole else gather(dyn.F, kidx)
+        F = dyn.F if whole else dyn.F_block(kidx)
         Qc_kept = dyn.Qc if whole else gather(dyn.Qc, kidx)
         Qc = Qc_kept
         # (N, n_f, n_s) their couplings
-        B = np.ascontiguousarray(gather(dyn.F, kidx, kidx[sens]).transpose(2, 1, 0)).transpose(2, 1, 0) \
+        B = np.ascontiguousarray(dyn.F_block(kidx, kidx[sens]).transpose(2, 1, 0)).transpose(2, 1, 0) \
             if mode else None
         if mode and dropped:
             # F_kept,dropped of every dropped state in one gather; each (N, n_f), time fastest as the
             # per-state slices dyn.F[:, kidx, j] and the streamed columns are
-            Fd = np.ascontiguousarray(dyn.F[:, kidx[:, None], np.asarray(dropped)[None, :]].transpose(2, 1, 0))
+            Fd = np.ascontiguousarray(dyn.F_block(kidx, dropped).transpose(2, 1, 0))
             cols = {j: Fd[c].T for c, j in enumerate(dropped)}
         else:
             cols = {}
