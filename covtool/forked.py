@@ -113,6 +113,7 @@ class Forked:
             return
         r, w = os.pipe()
         life_r, life_w = os.pipe()                          # the lifeline: only this process writes (never)
+        self._mfd = _result_memory() if busy else None      # where the child puts the result's large arrays
         if busy:
             _one_blas_thread()                              # this process and the child: one BLAS thread each
         try:
@@ -122,6 +123,7 @@ class Forked:
                 _release_blas()
             for fd in (r, w, life_r, life_w):
                 os.close(fd)
+            self._close_memory()
             raise
         if pid == 0:                                        # the child: run, report, leave without cleanup
             code = 0
@@ -129,7 +131,7 @@ class Forked:
                 os.close(r)
                 os.close(life_w)
                 _watch_parent(life_r)
-                payload = _outcome(fn, args, kwargs)
+                payload = _outcome(fn, args, kwargs, self._mfd)
             except BaseException:                           # noqa: BLE001 - nothing may escape the child
                 code, payload = 1, b""
             try:
@@ -141,6 +143,11 @@ class Forked:
         os.close(w)
         os.close(life_r)
         self.pid, self._fd, self._life = pid, r, life_w
+
+    def _close_memory(self) -> None:
+        if getattr(self, "_mfd", None) is not None:
+            os.close(self._mfd)
+            self._mfd = None
 
     def _run_here(self, fn, args, kwargs):
         self._payload = _outcome(fn, args, kwargs)
@@ -174,7 +181,10 @@ class Forked:
         if not self._payload:
             raise RuntimeError(f"a worker process ended with status {self._status} and no result")
         if not hasattr(self, "_outcome"):
-            ok, value, caught = pickle.loads(self._payload)
+            try:
+                ok, value, caught = _loads(self._payload, getattr(self, "_mfd", None))
+            finally:
+                self._close_memory()
             if not ok:
                 value = _rebuild(*value)
             self._outcome = ok, value
@@ -226,6 +236,7 @@ class Forked:
         """The child is reaped without its result: close the pipes, give the BLAS pool back."""
         os.close(self._fd)
         os.close(self._life)
+        self._close_memory()
         self._payload, self._status, self._done = b"", status, True
         if self._busy:
             _release_blas()
@@ -352,12 +363,32 @@ def _watch_parent(fd: int) -> None:
     threading.Thread(target=watch, name=WATCHDOG_THREAD, daemon=True).start()
 
 
-def _outcome(fn, args, kwargs) -> bytes:
+#: arrays of at least this many bytes in a child's result travel through shared memory, not the pipe
+OUT_OF_BAND_BYTES = 1 << 20
+#: alignment of each array in that memory (bytes)
+_ALIGN = 64
+
+
+def _result_memory() -> int | None:
+    """A memory file (``memfd``) a forked child can size and fill with its result's arrays, or None."""
+    try:
+        return os.memfd_create("covtool-forked-result", os.MFD_CLOEXEC)
+    except (AttributeError, OSError):
+        return None
+
+
+def _outcome(fn, args, kwargs, mfd: int | None = None) -> bytes:
     """Pickled ``(ok, value or (exception class, args, attributes), warnings)`` of one call.
 
     An exception travels as its class, ``args`` and attributes, not pickled
     itself: an exception whose ``__init__`` takes other arguments than its
     ``args`` (``InputError(where, problem)``) does not unpickle.
+
+    With ``mfd`` (a forked child's :func:`_result_memory`), the buffers of
+    :data:`OUT_OF_BAND_BYTES` or more (numpy arrays, by pickle protocol 5)
+    are written into that memory file instead of the pickle stream
+    (:func:`_dumps`): the parent maps them where they are (:func:`_loads`)
+    instead of reading tens of MB through the pipe and copying them twice.
     """
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -367,10 +398,51 @@ def _outcome(fn, args, kwargs) -> bytes:
             out = (False, (type(e), e.args, dict(getattr(e, "__dict__", {}))))
     ws = [(w.message, w.category, w.filename, w.lineno) for w in caught]
     try:
-        return pickle.dumps((*out, ws))
+        return _dumps((*out, ws), mfd)
     except Exception as e:                                  # noqa: BLE001 - an unpicklable result or error
         what = f"{out[1][0].__name__}: {out[1][1]}" if not out[0] else f"{type(e).__name__}: {e}"
-        return pickle.dumps((False, (RuntimeError, (what,), {}), []))
+        return _dumps((False, (RuntimeError, (what,), {}), []), None)
+
+
+def _dumps(obj, mfd: int | None) -> bytes:
+    """``pickle.dumps(obj)`` framed as ``(layout, stream)``; large buffers into ``mfd`` (layout: their offsets, sizes)."""
+    if mfd is None:
+        return pickle.dumps(((), pickle.dumps(obj, protocol=pickle.HIGHEST_PROTOCOL)))
+    import mmap
+
+    bufs = []
+
+    def keep_in_band(buf):
+        if buf.raw().nbytes >= OUT_OF_BAND_BYTES:
+            bufs.append(buf)
+            return False                                    # out of band: written below
+        return True
+
+    stream = pickle.dumps(obj, protocol=5, buffer_callback=keep_in_band)
+    layout, end = [], 0
+    for b in bufs:
+        n = b.raw().nbytes
+        layout.append((end, n))
+        end += -(-n // _ALIGN) * _ALIGN
+    if bufs:
+        os.ftruncate(mfd, end)
+        with mmap.mmap(mfd, end) as mm:
+            for (off, n), b in zip(layout, bufs):
+                mm[off:off + n] = b.raw()
+    return pickle.dumps((tuple(layout), stream))
+
+
+def _loads(payload: bytes, mfd: int | None):
+    """The object :func:`_dumps` framed; its out-of-band buffers are views of the mapped ``mfd`` (no copy)."""
+    layout, stream = pickle.loads(payload)
+    if not layout:
+        return pickle.loads(stream)
+    import mmap
+
+    end = layout[-1][0] + layout[-1][1]
+    mm = mmap.mmap(mfd, end, flags=mmap.MAP_SHARED | getattr(mmap, "MAP_POPULATE", 0))
+    view = memoryview(mm)
+    return pickle.loads(stream, buffers=[view[off:off + n] for off, n in layout])
 
 
 def _rebuild(cls, args, attrs) -> BaseException:

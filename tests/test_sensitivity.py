@@ -199,6 +199,28 @@ def short():
     return study.run(short_decl(), path=STUDY)
 
 
+def test_filters_swept_in_a_forked_process_give_the_same_tables(short, monkeypatch):
+    """Half the filters are built and swept in a forked process: every table equals the one-process run.
+
+    The shares: the truth copy A stays here, B1 and D are balanced by their states (D forked).
+    """
+    from covtool.forked import can_split
+
+    if not can_split():
+        pytest.skip("needs os.fork and two cores")
+    assert short.provenance["filters_swept_in_a_forked_process"] == "D"
+    assert short.filter_models["D"].F.shape[1:] == (10, 10) and short.filter_models["D"].Qc is not None
+    monkeypatch.setattr(study, "can_split", lambda: False)
+    one = study.run(short_decl(), path=STUDY)
+    assert one.provenance["filters_swept_in_a_forked_process"] == "none"
+    for name, tab in one.tables.items():
+        if name == "timing":
+            continue
+        pd.testing.assert_frame_equal(short.tables[name], tab, check_exact=True, obj=name)
+    for c, fm in one.filter_models.items():
+        assert np.array_equal(short.filter_models[c].F, fm.F) and np.array_equal(short.filter_models[c].Qc, fm.Qc)
+
+
 def _rms(P, S, k):
     m = nav_metrics(P[None, :10, :10], S.nodes.lat[k:k + 1], S.nodes.h[k:k + 1], S.nodes.q_nb[k:k + 1])
     return m["sigma_horizontal"][0], m["sigma_down"][0]

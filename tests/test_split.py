@@ -140,3 +140,55 @@ def test_renumbering_touches_only_step_mentions_and_keeps_the_error():
     v = ValueError("singular matrix")
     grid._on_grid(v, 160)
     assert v.args == ("singular matrix",)
+
+
+def _arrays():
+    a = np.random.default_rng(5).normal(size=(400, 30, 30))            # 2.9 MB: out of band
+    return {"big": a, "ints": np.arange(200_000, dtype=np.int64), "strided": a[:, ::2],
+            "small": np.arange(5.0), "text": "x", "nested": [a[:3].copy(), (1, 2)]}
+
+
+def test_a_childs_large_arrays_come_back_through_shared_memory():
+    """A Forked result's arrays of 1 MB or more are mapped from the child's memory file, equal and writable."""
+    from covtool.forked import Forked, OUT_OF_BAND_BYTES
+
+    got, want = Forked(_arrays).result(), _arrays()
+    assert want["big"].nbytes >= OUT_OF_BAND_BYTES and want["ints"].nbytes >= OUT_OF_BAND_BYTES
+    for k in ("big", "ints", "strided", "small"):
+        assert got[k].dtype == want[k].dtype and np.array_equal(got[k], want[k])
+    assert np.array_equal(got["nested"][0], want["nested"][0]) and got["nested"][1] == (1, 2) and got["text"] == "x"
+    # the large contiguous ones are views of the mapping (not copies read through the pipe), and writable
+    for k in ("big", "ints"):
+        base = got[k]
+        while isinstance(base, np.ndarray):
+            base = base.base
+        assert isinstance(base, memoryview), k
+        assert got[k].flags.writeable
+    got["big"][0, 0, 0] = 1.5
+    assert got["big"][0, 0, 0] == 1.5
+
+
+def test_a_child_without_a_result_memory_still_returns_its_arrays(monkeypatch):
+    """No memfd on this system: everything travels through the pipe, the same values."""
+    import covtool.forked as fk
+
+    monkeypatch.setattr(fk, "_result_memory", lambda: None)
+    got = fk.Forked(_arrays).result()
+    assert np.array_equal(got["big"], _arrays()["big"])
+    assert np.array_equal(got["ints"], _arrays()["ints"])
+
+
+def test_a_failing_child_leaves_no_memory_file_open():
+    """An error in the child is re-raised here; the result memory is closed on every path."""
+    from covtool.forked import Forked
+
+    def bad():
+        raise ValueError("no result")
+
+    before = len(os.listdir("/proc/self/fd"))
+    job = Forked(bad)
+    with pytest.raises(ValueError, match="no result"):
+        job.result()
+    dropped = Forked(_arrays)
+    dropped.cancel()
+    assert len(os.listdir("/proc/self/fd")) == before

@@ -79,7 +79,8 @@ from covtool.results import ZuptSensitivityResult
 from covtool.studies.inputs import length_unit, LENGTH_UNITS, study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
 from covtool.studies.tables import case_validity
-from covtool.studies.zupt_setup import setup
+from covtool.studies.zupt_setup import setup, truth_copy
+from covtool.forked import can_split, Forked
 from covtool.units import ARCMIN, FT
 
 
@@ -169,7 +170,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
         if k not in S.specs:
             raise StudyFileError(f"{where}: [cost] paper_seconds {k}",
                                  f"unknown filter {k!r} (declared in {', '.join(map(str, S.filter_files))}: {', '.join(S.specs)})")
-    t, nodes = S.t, S.nodes
+    t = S.t
     N = t.size - 1
     rec = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
     ev = events(N, S.update_steps, rec)
@@ -178,41 +179,29 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
     timing["compose truth"] = time.perf_counter() - tic
     cases = sweep_cases(sw["parameters"], sw["scales"])
     B = cases.n_cases
-    lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
     results, fmodels, reused, statuses = {}, {}, {}, {}
+    # summed over the filters, in whichever process each ran (CPU-like: more than the wall time when forked)
     timing.update({"filter models": 0.0, "compose filters": 0.0, "batched runs": 0.0})
-    nr = len(rec)
 
-    def rep(a):
-        return np.broadcast_to(a, (B,) + a.shape).reshape((B * nr,) + a.shape[1:])
-
-    def one(c):
-        tic = time.perf_counter()
-        fm, Phi_f, Qd_f, reused_c = S.filter_system(c, sw["discretization"])
-        tac = time.perf_counter()
-        filt = truth_sys if reused_c else System.from_steps(Phi_f, Qd_f, ev)
-        tuc = time.perf_counter()
-        res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
-                        S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update,
-                        label=f"{where}: sweep of filter {c}", names=S.truth.names, filter_names=fm.names,
-                        times=t)
-        statuses[c] = res.status
-        toc = time.perf_counter()
-        mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
-        mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
-        out = ({k: v.reshape(B, nr) for k, v in mt.items()}, {k: v.reshape(B, nr) for k, v in mf.items()})
-        return fm, reused_c, out, (tac - tic, tuc - tac, toc - tuc)
-
+    sweep = partial(_sweep_filters, S, sw=sw, co=co, truth_sys=truth_sys, ev=ev, rec=rec, cases=cases, where=where)
+    # the filters' builds and sweeps are independent: a forked process takes about half of them while
+    # this one does the rest (each filter's numbers are the same wherever it runs: one BLAS thread)
+    forked, own = _sweep_shares(S) if can_split() else ([], list(S.cases))
+    job = Forked(sweep, forked) if forked else None
     with progress_bar(len(S.cases), "filters", progress) as bar:
-        for c in S.cases:
-            fmodels[c], reused[c], results[c], dts = one(c)
-            for key, dt_ in zip(("filter models", "compose filters", "batched runs"), dts):
-                timing[key] += dt_
-            bar.update(1)
+        done = sweep(own, bar=bar)
+        if job is not None:
+            done |= job.result()
+            bar.update(len(forked))
+    cost_inputs = {}
+    for c in S.cases:                                        # in the declared order
+        fmodels[c], reused[c], results[c], statuses[c], dts, cost_inputs[c] = done[c]
+        for key, dt_ in zip(("filter models", "compose filters", "batched runs"), dts):
+            timing[key] += dt_
     t_sweep, c_sweep = time.perf_counter() - t_start, time.process_time() - c_start
 
     tic = time.perf_counter()
-    cost_rows = _cost(S, fmodels, co)
+    cost_rows = _cost(S, fmodels, co, cost_inputs)
     timing["compute-cost (FLOPs, timing)"] = time.perf_counter() - tic
 
     tic = time.perf_counter()
@@ -240,6 +229,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
         "zupt_updates": int(len(S.update_steps)), "zupt_interval_s": S.zupt_interval,
         "zupt_sigma_m_s": S.zupt_sigma, "truth_discretization": S.hdr["discretization"],
         "filter_discretization": sw["discretization"],
+        "filters_swept_in_a_forked_process": ", ".join(forked) or "none",
         "filters_reusing_truth_phi_qd": ", ".join(c for c, r in reused.items() if r) or "none",
         "sweep_scales": ", ".join(f"{s:.6g}" for s in cases.scales), "batched_cases_per_filter": B,
         "fit_model": f"log10(error [{unit}]) = sum_k c_k log10(scale)^k, k = 0..{sw['fit_degree']}, least squares",
@@ -393,20 +383,90 @@ def _ratio(a, b):
     return a / b if b > 0 else np.inf
 
 
-def _cost(S, fmodels, co) -> dict:
+def _sweep_filters(S, names, *, sw, co, truth_sys, ev, rec, cases, where, bar=None) -> dict:
+    """Build and sweep each filter of ``names`` (:func:`covtool.analysis.sensitivity.run_sweep`).
+
+    Returns
+    -------
+    dict of str to tuple
+        Per filter ``(FilterModel, reused, (truth metrics, filter metrics),
+        status, (model, compose, sweep seconds), cost inputs)``; the
+        metrics are arrays of shape (B, n_report), the cost inputs those of
+        :func:`_cost` (:func:`_cost_inputs`).
+    """
+    B, nr, t, nodes = cases.n_cases, len(rec), S.t, S.nodes
+    lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
+
+    def rep(a):
+        return np.broadcast_to(a, (B,) + a.shape).reshape((B * nr,) + a.shape[1:])
+
+    out = {}
+    for c in names:
+        tic = time.perf_counter()
+        fm, Phi_f, Qd_f, reused_c = S.filter_system(c, sw["discretization"])
+        tac = time.perf_counter()
+        filt = truth_sys if reused_c else System.from_steps(Phi_f, Qd_f, ev)
+        tuc = time.perf_counter()
+        res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
+                        S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update,
+                        label=f"{where}: sweep of filter {c}", names=S.truth.names, filter_names=fm.names,
+                        times=t)
+        toc = time.perf_counter()
+        mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
+        mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
+        metrics = ({k: v.reshape(B, nr) for k, v in mt.items()}, {k: v.reshape(B, nr) for k, v in mf.items()})
+        out[c] = (fm, reused_c, metrics, res.status, (tac - tic, tuc - tac, toc - tuc), _cost_inputs(S, fm, co))
+        if bar is not None:
+            bar.update(1)
+    return out
+
+
+def _sweep_shares(S) -> tuple[list, list]:
+    """``(forked, own)``: the filters a forked process sweeps and those left to this one.
+
+    A filter that is the truth itself (:func:`~covtool.studies.zupt_setup.truth_copy`)
+    reuses the truth's Φ, Q_d and holds its F, Q_c: it stays here (its
+    model would cost more to send back than to build).  The others are
+    balanced by a cost estimate of each build, the square of the filter's
+    states, the heaviest first to the lighter side; this process keeps its
+    share in the declared order.
+    """
+    own = [c for c in S.cases if truth_copy(S.specs[c], S.truth, S.filter_truth)]
+    load, share = [0.0, 0.0], ([], [])
+    for c in sorted((c for c in S.cases if c not in own), key=lambda c: S.specs[c].n, reverse=True):
+        k = int(load[1] < load[0])
+        share[k].append(c)
+        load[k] += float(S.specs[c].n) ** 2
+    forked = [c for c in S.cases if c in share[1]]
+    return forked, [c for c in S.cases if c not in forked]
+
+
+def _cost_inputs(S, fm, co) -> tuple[int, int]:
+    """``(order, step)`` of :func:`_cost` for one filter: the series terms N_t and the step timed.
+
+    ``order``: the declared Taylor order, or (``taylor_order = "auto"``) the
+    most terms the adaptive eq (6b)–(6d) series takes on every
+    :data:`TAYLOR_STRIDE`-th step; ``step``: the step of the largest
+    ``‖F_f‖₁`` (the cycle timed, :func:`covtool.analysis.cost.time_cycle`).
+    """
+    if co["taylor_order"] == "auto":
+        order = fm.spec.taylor_order or taylor_terms(fm.F[::TAYLOR_STRIDE], fm.Qc[::TAYLOR_STRIDE],
+                                                          np.diff(S.t)[::TAYLOR_STRIDE])
+    else:
+        order = co["taylor_order"]
+    k = int(np.argmax(np.linalg.norm(fm.F, 1, axis=(1, 2)))) if co["measure"] else 0
+    return int(order), k
+
+
+def _cost(S, fmodels, co, inputs=None) -> dict:
     m = S.H.shape[0]
     out = {}
     for c, fm in fmodels.items():
         n = fm.spec.n
-        if co["taylor_order"] == "auto":
-            order = fm.spec.taylor_order or taylor_terms(fm.F[::TAYLOR_STRIDE], fm.Qc[::TAYLOR_STRIDE],
-                                                              np.diff(S.t)[::TAYLOR_STRIDE])
-        else:
-            order = co["taylor_order"]
+        order, k = inputs[c] if inputs is not None else _cost_inputs(S, fm, co)
         fl = cycle_flops(n, m, order, fm.spec.update)
         sec = np.nan
         if co["measure"]:
-            k = int(np.argmax(np.linalg.norm(fm.F, 1, axis=(1, 2))))
             sec = time_cycle(fm.F[k], fm.Qc[k], float(S.t[k + 1] - S.t[k]), fm.P0, zupt_matrices(fm.names),
                                    S.filter_R(c), order, fm.spec.update, repeats=co["repeats"], min_time=0.005)
         out[c] = {"n": n, "m": m, "order": order, "form": fm.spec.update, "flops": fl, "seconds": sec,
