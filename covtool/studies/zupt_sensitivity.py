@@ -35,6 +35,10 @@ What is computed
   (:func:`covtool.analysis.sensitivity.run_sweep`, B = 1 + 3·(n_scales − 1): the
   nominal case is shared by the three parameters).  Only the report times
   are recorded.
+* The filters are independent: on two cores or more a forked process
+  builds and sweeps about half of them (:func:`_sweep_shares`; the truth
+  copy stays in this process) while this one does the rest; the numbers
+  are the same as in one process (one BLAS thread each, the same calls).
 * Errors at each report time: horizontal RMS ``sqrt(σ_N² + σ_E²)`` and
   altitude RMS ``σ_D`` (the paper's "RMS navigation error"), plus CEP, PE and
   azimuth.  Fits, sensitivities and figures use the last report time.
