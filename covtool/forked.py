@@ -425,10 +425,13 @@ def _dumps(obj, mfd: int | None) -> bytes:
         layout.append((end, n))
         end += -(-n // _ALIGN) * _ALIGN
     if bufs:
-        os.ftruncate(mfd, end)
-        with mmap.mmap(mfd, end) as mm:
-            for (off, n), b in zip(layout, bufs):
-                mm[off:off + n] = b.raw()
+        try:
+            os.ftruncate(mfd, end)
+            with mmap.mmap(mfd, end) as mm:
+                for (off, n), b in zip(layout, bufs):
+                    mm[off:off + n] = b.raw()
+        except OSError:                                     # no room for the memory file: through the pipe
+            return _dumps(obj, None)
     return pickle.dumps((tuple(layout), stream))
 
 

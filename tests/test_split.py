@@ -192,3 +192,15 @@ def test_a_failing_child_leaves_no_memory_file_open():
     dropped = Forked(_arrays)
     dropped.cancel()
     assert len(os.listdir("/proc/self/fd")) == before
+
+
+def test_a_memory_file_that_cannot_grow_sends_the_arrays_through_the_pipe(monkeypatch):
+    """The child cannot size the memory file (shared memory full): the result comes whole through the pipe."""
+    import covtool.forked as fk
+
+    def full(fd, n):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(fk.os, "ftruncate", full)
+    got = fk.Forked(_arrays).result()
+    assert np.array_equal(got["big"], _arrays()["big"]) and got["big"].flags.writeable
