@@ -185,13 +185,24 @@ def test_a_failing_child_leaves_no_memory_file_open():
     def bad():
         raise ValueError("no result")
 
-    before = len(os.listdir("/proc/self/fd"))
+    def result_files():
+        out = []
+        for fd in os.listdir("/proc/self/fd"):
+            try:
+                if "covtool-forked-result" in os.readlink(f"/proc/self/fd/{fd}"):
+                    out.append(fd)
+            except OSError:                                 # closed meanwhile (the listing's own fd)
+                pass
+        return out
+
+    before = result_files()
     job = Forked(bad)
+    assert len(result_files()) == len(before) + 1          # the memory file is open while the child runs
     with pytest.raises(ValueError, match="no result"):
         job.result()
     dropped = Forked(_arrays)
     dropped.cancel()
-    assert len(os.listdir("/proc/self/fd")) == before
+    assert result_files() == before
 
 
 def test_a_memory_file_that_cannot_grow_sends_the_arrays_through_the_pipe(monkeypatch):
