@@ -169,3 +169,50 @@ def test_log_axis_puts_minor_ticks_at_2_and_5_of_each_decade():
     with pytest.raises(ValueError, match="which must be 'x' or 'y', got 'z'"):
         log_axis(ax, "z")
     plt.close(fig)
+
+
+def test_plain_log_labels_are_the_decades_in_unicode():
+    from covtool.plotting.ticks import plain_label, PlainLogFormatter
+
+    # the forms LogFormatterSciNotation writes, each as the text it should read
+    assert plain_label(r"$\mathdefault{10^{-2}}$") == "10\u207b\u00b2"
+    assert plain_label(r"$\mathdefault{10^{15}}$") == "10\u00b9\u2075"
+    assert plain_label(r"$\mathdefault{2\times10^{3}}$") == "2\u00d710\u00b3"
+    assert plain_label(r"$\mathdefault{0}$") == "0"
+    assert plain_label("") == ""
+    assert plain_label(r"$\mathdefault{10^{0.30}}$") == r"$\mathdefault{10^{0.30}}$"   # not a known form: kept
+    fmt = PlainLogFormatter(base=10.0)
+    assert [fmt(x) for x in (1e-3, 1.0, 1e4)] == ["10\u207b\u00b3", "10\u2070", "10\u2074"]
+    assert fmt(3e2) == "3\u00d710\u00b2"                                # a non-decade, as matplotlib writes it
+
+
+def test_log_axes_draw_without_a_mathtext_parse(monkeypatch):
+    """A log axis (major and minor labels) is drawn without mathtext; the labels read 10ⁿ and c×10ⁿ."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.mathtext
+    import matplotlib.pyplot as plt
+
+    from covtool.plotting.style import log_axis, plain_log_labels
+
+    parsed = []
+    real = matplotlib.mathtext.MathTextParser.parse
+    monkeypatch.setattr(matplotlib.mathtext.MathTextParser, "parse",
+                        lambda self, s, *a, **k: parsed.append(s) or real(self, s, *a, **k))
+    fig, (a1, a2) = plt.subplots(1, 2)
+    a1.plot([1, 2], [1e-3, 1e4])
+    log_axis(a1, "y")
+    a2.plot([1, 2], [20.0, 300.0])
+    a2.set_yscale("log")                 # under two decades: matplotlib labels the minor ticks too
+    plain_log_labels(a2, "y")
+    a1.set_ylim(1e-3, 1e4)
+    a2.set_ylim(20.0, 300.0)
+    fig.canvas.draw()
+    major = [t.get_text() for t in a1.yaxis.get_ticklabels() if t.get_text()]
+    minor = [t.get_text() for t in a2.yaxis.get_ticklabels(minor=True) if t.get_text()]
+    plt.close(fig)
+    assert parsed == []
+    assert "10\u207b\u00b3" in major and "10\u2074" in major and "10\u2070" in major
+    assert "2\u00d710\u00b9" in minor and "3\u00d710\u00b2" in minor
+    with pytest.raises(ValueError, match="which must be 'x' or 'y', got 'z'"):
+        plain_log_labels(a1, "z")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from covtool.plotting.style import case_style, legend_outside
+from covtool.plotting.style import case_style, legend_outside, plain_log_labels
 
 
 def ratio_label(r: float) -> str:
@@ -61,6 +61,7 @@ def _bode(df, name, spec):
     for col in df.columns[1:]:
         (a1 if "magnitude" in col else a2).semilogx(df["frequency [Hz]"], df[col],
                                                      label=col.split(" magnitude")[0].split(" phase")[0])
+    plain_log_labels(a1, "x")                           # a2 shares the x axis, its scale and its tickers
     a1.set_ylabel("magnitude [dB]")
     a2.set_ylabel("phase [deg]")
     a2.set_xlabel("frequency [Hz]")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from covtool.plotting.style import case_style, coincident_groups, LENGTH, legend_outside, log_limits, log_axis
+from covtool.plotting.style import case_style, coincident_groups, LENGTH, legend_outside, log_limits, log_axis, plain_log_labels
 
 
 def fig8_figure(result, metric: str = "horizontal"):
@@ -41,6 +41,7 @@ def fig8_figure(result, metric: str = "horizontal"):
                     marker=st["marker"], markevery=[], label=c)
         log_axis(ax, "x")
         ax.set_yscale("log")            # often under two decades: every minor tick labelled, as matplotlib does
+        plain_log_labels(ax, "y")
         ax.set_xlabel(f"{result.labels['params'][p]} scale [-]")
         ax.set_title(f"{result.labels['params'][p]} scaled")
         ax.grid(True, which="both", alpha=0.3)

@@ -568,6 +568,8 @@ def _slug(s):
 def _figure(study, grade, metrics, tr, outages):
     def make():
         import matplotlib.pyplot as plt
+
+        from covtool.plotting.style import plain_log_labels
         fig, axs = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
         for (g, case), m in metrics.items():
             if g != grade:
@@ -580,6 +582,8 @@ def _figure(study, grade, metrics, tr, outages):
         axs[0].set_yscale("log")
         axs[0].set_ylabel("CEP [m]")
         axs[1].set_yscale("log")
+        for ax in axs:
+            plain_log_labels(ax, "y")
         axs[1].set_ylabel("altitude error 1σ [m]")
         axs[1].set_xlabel("time [min]")
         axs[0].legend(fontsize=8)

@@ -100,10 +100,14 @@ def _sweep_table(swept, sweep, tr, rtimes):
 def _sweep_figure(study, df, sweep):
     def make():
         import matplotlib.pyplot as plt
+
+        from covtool.plotting.style import plain_log_labels
         last = df[df["t [min]"] == df["t [min]"].max()]
         fig, ax = plt.subplots(figsize=(7, 5))
         for (g, case), d in last.groupby(["grade", "case"], sort=False):
             ax.loglog(d["scale"], d["CEP [m]"], "o-", label=f"{g}: {case}" if g != "as declared" else case)
+        plain_log_labels(ax, "x")
+        plain_log_labels(ax, "y")
         ax.set_xlabel(f"{sweep['measurement']} {sweep['what']} scale [-]")
         ax.set_ylabel(f"CEP at {last['t [min]'].iloc[0]:g} min [m]")
         ax.grid(True, which="both", alpha=0.3)
