@@ -225,3 +225,25 @@ def test_impact_split_between_processes_equals_one_process(tmp_path):
     assert split[["filter", "variant", "block"]].equals(one[["filter", "variant", "block"]])
     num = split.select_dtypes("number").columns
     np.testing.assert_allclose(split[num].to_numpy(float), one[num].to_numpy(float), rtol=1e-12)
+
+
+def test_impact_builds_the_filters_own_dynamics_when_not_cached(S):
+    """A filter built elsewhere (another process) leaves no dynamics here: the impact builds its own.
+
+    D assumes no Coriolis and no vertical coupling; taking the truth's F for
+    it instead (the fallback this replaced) moves its members' covariance.
+    """
+    from covtool.lincov.dynamics import dyn_key
+
+    N = S.t.size - 1
+    spec = S.specs["D"]
+    assert dyn_key(spec.options) != dyn_key(None)
+    first = impact_run(S, "D", [N])
+    for key in [k for k in S._dyn_cache if dyn_key(spec.options) in (k, k[1:] if len(k) > 1 else None)]:
+        del S._dyn_cache[key]
+    assert dyn_key(spec.options) not in S._dyn_cache
+    again = impact_run(S, "D", [N])
+    assert again.variants == first.variants
+    np.testing.assert_array_equal(again.P, first.P)
+    assert S.options_dynamics(spec.options) is S._dyn_cache[dyn_key(spec.options)]
+    assert not np.array_equal(S.options_dynamics(spec.options).F, S.dyn.F)

@@ -119,7 +119,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     ev = events(N, S.update_steps, rec)
     if truth_system is None:
         truth_system = System.from_steps(S.Phi, S.Qd, ev)
-    dyn = S._dyn_cache.get(dyn_key(spec.options), S.dyn)
+    dyn = S.options_dynamics(spec.options)
     tkey = ("impact transition", dyn_key(spec.options))
     if dyn_key(spec.options) == dyn_key(None) and S.hdr["discretization"] == "van_loan":
         Phi_pad = S.Phi                                   # the truth's own e^{FΔt}

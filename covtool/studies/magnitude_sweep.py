@@ -166,7 +166,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
         for name in S.cases:
             fm, Phi_f, _ = S.filter_model(name)
             kidx = truth.idx(fm.names)
-            dyn = S._dyn_cache.get(_key(fm.spec.options), S.dyn)
+            dyn = S.options_dynamics(fm.spec.options)
             fown = [src for src in dyn.noise if src.name in names_sw]
             frest = [src for src in dyn.noise if src.name not in names_sw]
             fac = [restricted_noise("rest", frest, kidx)] + [restricted_noise(src.name, [src], kidx) for src in fown]
@@ -236,11 +236,6 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
         declared={g["name"]: truth.states[truth.index[g["states"][0]]].sigma for g in opts["groups"]})
     result.figures = {"magnitude_sweep": partial(sweep_figure, result)}
     return result
-
-
-def _key(options):
-    from covtool.lincov.dynamics import dyn_key
-    return dyn_key(options)
 
 
 def threshold_table(sweep: pd.DataFrame, thr: float, groups, filters, truth, opts) -> pd.DataFrame:

@@ -36,7 +36,7 @@ What is computed
   nominal case is shared by the three parameters).  Only the report times
   are recorded.
 * The filters are independent: on two cores or more a forked process
-  builds and sweeps about half of them (:func:`_sweep_shares`; the truth
+  builds and sweeps about half of them (:meth:`ZuptSetup.filter_shares`; the truth
   copy stays in this process) while this one does the rest; the numbers
   are the same as in one process (one BLAS thread each, the same calls).
 * Errors at each report time: horizontal RMS ``sqrt(σ_N² + σ_E²)`` and
@@ -83,7 +83,7 @@ from covtool.results import ZuptSensitivityResult
 from covtool.studies.inputs import length_unit, LENGTH_UNITS, study_inputs
 from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
 from covtool.studies.tables import case_validity
-from covtool.studies.zupt_setup import setup, truth_copy
+from covtool.studies.zupt_setup import setup
 from covtool.forked import can_split, Forked
 from covtool.units import ARCMIN, FT
 
@@ -190,7 +190,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
     sweep = partial(_sweep_filters, S, sw=sw, co=co, truth_sys=truth_sys, ev=ev, rec=rec, cases=cases, where=where)
     # the filters' builds and sweeps are independent: a forked process takes about half of them while
     # this one does the rest (each filter's numbers are the same wherever it runs: one BLAS thread)
-    forked, own = _sweep_shares(S) if can_split() else ([], list(S.cases))
+    forked, own = S.filter_shares(S.cases) if can_split() else ([], list(S.cases))
     job = Forked(sweep, forked) if forked else None
     with progress_bar(len(S.cases), "filters", progress) as bar:
         done = sweep(own, bar=bar)
@@ -423,26 +423,6 @@ def _sweep_filters(S, names, *, sw, co, truth_sys, ev, rec, cases, where, bar=No
         if bar is not None:
             bar.update(1)
     return out
-
-
-def _sweep_shares(S) -> tuple[list, list]:
-    """``(forked, own)``: the filters a forked process sweeps and those left to this one.
-
-    A filter that is the truth itself (:func:`~covtool.studies.zupt_setup.truth_copy`)
-    reuses the truth's Φ, Q_d and holds its F, Q_c: it stays here (its
-    model would cost more to send back than to build).  The others are
-    balanced by a cost estimate of each build, the square of the filter's
-    states, the heaviest first to the lighter side; this process keeps its
-    share in the declared order.
-    """
-    own = [c for c in S.cases if truth_copy(S.specs[c], S.truth, S.filter_truth)]
-    load, share = [0.0, 0.0], ([], [])
-    for c in sorted((c for c in S.cases if c not in own), key=lambda c: S.specs[c].n, reverse=True):
-        k = int(load[1] < load[0])
-        share[k].append(c)
-        load[k] += float(S.specs[c].n) ** 2
-    forked = [c for c in S.cases if c in share[1]]
-    return forked, [c for c in S.cases if c not in forked]
 
 
 def _cost_inputs(S, fm, co) -> tuple[int, int]:

@@ -443,16 +443,9 @@ class ZuptSetup:
             spec = self.specs[name]
             if ckey[1] is not None:
                 spec = dataclasses.replace(spec, discretization=ckey[1])
-            key = dyn_key(spec.options)
             ftruth = self.filter_truth if self.filter_truth is not None else self.truth
-            if key not in self._dyn_cache:
-                # the options change only F's navigation block: derived from the model's own dynamics
-                if ftruth is not self.truth and ("filter truth",) not in self._dyn_cache:
-                    self._dyn_cache[("filter truth",)] = error_dynamics(ftruth, self.ctx)
-                base = self.dyn if ftruth is self.truth else self._dyn_cache[("filter truth",)]
-                self._dyn_cache[key] = with_nav_options(base, self.ctx, spec.options)
             fm = build_filter(spec, ftruth, self.ctx, zupt_interval=self.zupt_interval,
-                              q0=self.nodes.q_nb[0], truth_dynamics=self._dyn_cache[key],
+                              q0=self.nodes.q_nb[0], truth_dynamics=self.options_dynamics(spec.options),
                               mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
                               update_steps=self.update_steps)
             # the truth is discretised exactly (van_loan, or taylor without an order: the same
@@ -474,6 +467,55 @@ class ZuptSetup:
                 check_system(f"{self.where}: filter {name}", Phi_f, Qd_f, names=fm.names, times=self.t)
                 self._filters[ckey] = (fm, Phi_f, Qd_f, False)
         return self._filters[ckey]
+
+    def options_dynamics(self, options=None):
+        """F and Q_c along the whole grid of the model the filters are built from, under ``options``.
+
+        The truth's own (:attr:`dyn`) for its options, else the model's
+        dynamics with the navigation block of ``options``
+        (:func:`covtool.lincov.dynamics.with_nav_options`; F built on first
+        use), cached per options: every filter with these options, and
+        every analysis of it (the dropped-state impact, the magnitude
+        sweep), uses this one.
+
+        Parameters
+        ----------
+        options : covtool.nav.NavOptions, optional
+            The filter's navigation options (None: the model's own).
+
+        Returns
+        -------
+        covtool.lincov.dynamics.ErrorDynamics
+        """
+        key = dyn_key(options)
+        if key not in self._dyn_cache:
+            # the options change only F's navigation block: derived from the model's own dynamics
+            ftruth = self.filter_truth if self.filter_truth is not None else self.truth
+            if ftruth is not self.truth and ("filter truth",) not in self._dyn_cache:
+                self._dyn_cache[("filter truth",)] = error_dynamics(ftruth, self.ctx)
+            base = self.dyn if ftruth is self.truth else self._dyn_cache[("filter truth",)]
+            self._dyn_cache[key] = with_nav_options(base, self.ctx, options)
+        return self._dyn_cache[key]
+
+    def filter_shares(self, names) -> tuple[list, list]:
+        """``(forked, own)``: the filters of ``names`` a forked process builds, and those left to this one.
+
+        A filter with all the truth's states (a truth copy,
+        :func:`truth_copy`, reuses the truth's Φ, Q_d and holds its F, Q_c)
+        stays here: its arrays would cost more to send back than to build.
+        The others are balanced by a cost estimate of each build, the square
+        of the filter's states, the heaviest first to the lighter side; both
+        lists keep the order of ``names``.
+        """
+        names = list(names)
+        own = [c for c in names if self.specs[c].n == self.truth.n]
+        load, share = [0.0, 0.0], ([], [])
+        for c in sorted((c for c in names if c not in own), key=lambda c: self.specs[c].n, reverse=True):
+            k = int(load[1] < load[0])
+            share[k].append(c)
+            load[k] += float(self.specs[c].n) ** 2
+        forked = [c for c in names if c in share[1]]
+        return forked, [c for c in names if c not in forked]
 
     def filter_model(self, name: str):
         """``(FilterModel, Φ_f, Q_f)`` of a declared filter, cached (see :meth:`filter_system`)."""
