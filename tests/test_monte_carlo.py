@@ -675,3 +675,37 @@ def test_acceptance_test_is_reported_per_cell(study, files):
     off = covtool.run_study(small_decl(files, null_replicas=0, runs=20, runs_per_chunk=20), backend=SerialBackend())
     assert "verdict" not in off.tables["comparison"].columns
     assert "none (null_replicas = 0)" in off.tables["settings"].set_index("setting")["value"]["acceptance test"]
+
+
+def test_reference_sampled_ahead_in_a_forked_process_is_the_cases_one(files, monkeypatch):
+    """The trajectory reference a forked process samples before the gains exist is the one the cases need.
+
+    The study samples it from the update steps and the filters' states
+    while it computes the gains; :func:`reference_inputs` of the cases
+    gives the same inputs (else it would sample again), and the ensemble
+    sums are those of sampling it in-process after the gains, bit for bit.
+    """
+    import covtool.forked
+    import covtool.studies.monte_carlo as study_mc
+    from covtool.validation.monte_carlo import reference_inputs
+
+    decl = small_decl(files, runs=4, runs_per_chunk=2)
+    seen = []
+
+    def recording(cases):
+        seen.append(reference_inputs(cases))
+        return seen[-1]
+
+    monkeypatch.setattr(study_mc, "reference_inputs", recording)
+    ahead = covtool.run_study(decl, backend=SerialBackend())
+    S = setup(decl, extra_sections=("monte_carlo",))
+    steps, names = seen[0]
+    assert steps == sorted(int(k) for k in S.update_steps) and steps
+    assert names == [list(S.filter_model(c)[0].names) for c in S.cases]
+    monkeypatch.setattr(study_mc, "can_split", lambda: False)           # sampled here, after the gains
+    here = covtool.run_study(decl, backend=SerialBackend())
+    assert covtool.forked.can_split() or pytest.skip("no fork here: both runs sampled in-process")
+    for c in ahead.sums:
+        a, b = ahead.sums[c], here.sums[c]
+        assert np.array_equal(a.s2, b.s2) and np.array_equal(a.s1, b.s1)
+        assert all(np.array_equal(a.nees[k], b.nees[k]) for k in a.nees)

@@ -62,8 +62,13 @@ Chunks of runs go to a :mod:`covtool.parallel` backend: the one given
 per CPU.  The conditional and driven-part analyses and the linear Monte Carlo
 need only the draws and the gains, so threads of the study's process compute
 them while the chunks run (both cores busy; the linear Monte Carlo draws its
-random numbers in a thread of its own); their results do not depend on it.  With a result store (``covtool run`` keeps one in ``OUT/cases``)
-every finished chunk is stored and ``--resume`` reuses it.
+random numbers in a thread of its own); their results do not depend on it.
+The trajectory as every chunk samples it (:func:`~covtool.validation.monte_carlo.reference_along`)
+needs only the update steps and the filters' states: on two cores a forked
+process samples it while this one computes the gains, so the chunks start
+as soon as the gains exist (the same calls, the same numbers).  With a
+result store (``covtool run`` keeps one in ``OUT/cases``) every finished
+chunk is stored and ``--resume`` reuses it.
 
 With ``[[measurement]]`` tables (the aided kind's declaration) instead of
 ``[zupt]``, the study runs in :mod:`covtool.studies.aided_monte_carlo` (issue 15).
@@ -83,6 +88,7 @@ from covtool.analysis.consistency import (expected_nees, horizontal_dof, inside_
                                           nees_whitening, null_test, REDUCED_NAV, rms_bounds)
 from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text
 from covtool.errors import StudyFileError
+from covtool.forked import can_split, Forked
 from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
 from covtool.lincov.kalman import symmetrize
 from covtool.lincov.reduced import zupt_matrices
@@ -99,7 +105,7 @@ from covtool.units import ARCMIN
 from covtool.validation.feedback import FeedbackFilter
 from covtool.validation.linear_mc import GROUPS, linear_mean_squares, output_rows
 from covtool.validation.monte_carlo import (EnsembleCase, EnsembleSums, initial_states, reference_along,
-                                             simulate_chunk)
+                                             reference_inputs, simulate_chunk)
 from covtool.version import __version__
 
 __all__ = [
@@ -327,6 +333,15 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     null_cases = {}                          # correction gains D K of each case, for the linear Monte Carlo
     lin_c, predicted_c, lin_d = {}, {}, {}
     Z0 = np.zeros_like(P0_cond)              # the driven part alone: its sampling is all that remains
+    # the trajectory as every chunk samples it (increments, attitude, gravity, span contexts) needs only
+    # the update steps and the filters' states: a forked process samples it while this one runs the
+    # linear analyses below (the same calls, the same numbers)
+    ref_inputs = (sorted({int(k) for k in S.update_steps if 0 <= k < t.size}) if S.cases else [],
+                  [list(S.filter_model(c)[0].names) for c in S.cases])
+    ref_args = dict(imu_rate=opt["imu_rate"], samples_per_step=opt["samples_per_step"], model=truth,
+                    process_dt=opt["process_dt"])
+    S.Phi                                    # the truth's Φ, Q_d first (split in two processes of their own)
+    ref_job = Forked(reference_along, traj, t, *ref_inputs, **ref_args) if can_split() else None
     if pure:
         P = propagate(S.Phi, S.Qd, S.P0, label=f"{where}: pure INS", names=truth.names, times=t,
                       system_checked=True)
@@ -417,6 +432,17 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         except BaseException as exc:
             side["errors"].append(exc)
 
+    try:
+        # the inputs the gains give (always these: the gains are at the update steps, the filters' states
+        # are their models'); sampled again here if they were not
+        if ref_job is not None and reference_inputs(cases) != ref_inputs:
+            ref_job.cancel()
+            ref_job = None
+        reference = ref_job.result() if ref_job is not None else None
+    except BaseException:
+        if ref_job is not None:
+            ref_job.cancel()
+        raise
     workers = [threading.Thread(target=null, name="monte_carlo_null", daemon=True),
                threading.Thread(target=analyses, name="monte_carlo_conditional", daemon=True)]
     for w in workers:
@@ -428,9 +454,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             "sensor_noise": opt["sensor_noise"], "measurement_noise": opt["measurement_noise"],
             "process_dt": opt["process_dt"]}
     # the trajectory as every chunk samples it (increments, attitude, gravity, span contexts), sampled once
-    base["reference"] = reference_along(traj, t, cases, imu_rate=opt["imu_rate"],
-                                        samples_per_step=opt["samples_per_step"], model=truth,
-                                        process_dt=opt["process_dt"])
+    base["reference"] = reference if reference is not None else \
+        reference_along(traj, t, *reference_inputs(cases), **ref_args)
     tasks = [{**base, "chunk": i, "runs": m} for i, m in enumerate(sizes)]
     keys = [f"runs-{i:04d}" for i in range(len(sizes))]
     first = np.cumsum([0] + sizes)

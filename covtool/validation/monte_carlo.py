@@ -26,6 +26,7 @@ from covtool.validation.feedback import compensate_cases, FeedbackFilter, Record
 __all__ = [
     "QUANTITIES", "EnsembleCase", "EnsembleSums", "Zupt", "run_ensemble", "simulate_chunk", "initial_states",
     "reference_along",
+    "reference_inputs",
 ]
 
 
@@ -179,7 +180,7 @@ def _spans(N: int, dt: float, upd_steps) -> tuple:
     return chunk_steps, spans
 
 
-def reference_along(traj, t, cases, *, imu_rate: float, samples_per_step: int, model=None,
+def reference_along(traj, t, update_steps, filter_names, *, imu_rate: float, samples_per_step: int, model=None,
                     process_dt: float = 0.1, mounting=None) -> dict:
     """What every chunk of runs samples from the trajectory, sampled once.
 
@@ -191,10 +192,19 @@ def reference_along(traj, t, cases, *, imu_rate: float, samples_per_step: int, m
     (:func:`simulate_chunk`, ``task["reference"]``).  The very calls a chunk
     would make are made here, so the values are the same bit for bit.
 
+    It needs the cases only through their update steps and the states
+    their filters feed back (:func:`reference_inputs`), so a study can
+    sample it before the cases' gains exist (in another process, while it
+    computes them).
+
     Parameters
     ----------
-    traj, t, cases, imu_rate, samples_per_step, model, process_dt, mounting
+    traj, t, imu_rate, samples_per_step, model, process_dt, mounting
         As for :func:`simulate_chunk` and :func:`run_ensemble`.
+    update_steps : sequence of int
+        The steps at which some filter updates (the keys of the gains).
+    filter_names : sequence of list of str
+        The state names of each feedback filter.
 
     Returns
     -------
@@ -215,12 +225,11 @@ def reference_along(traj, t, cases, *, imu_rate: float, samples_per_step: int, m
                        mounting=mounting, truth_cache=cache)
     sim.initial_state()
     N = t.size - 1
-    upd_steps = sorted({k for c in cases if c.filter is not None for k in c.filter.gains})
-    chunk_steps, spans = _spans(N, dt, upd_steps)
+    chunk_steps, spans = _spans(N, dt, sorted({int(k) for k in update_steps}))
     spr = int(round(dt / sim.dt))
     sim.fill_cache(chunk=spr * chunk_steps)           # the calls of a chunk's pass, without its errors
     contexts = None
-    need = [SensorFeedback(model, c.filter.names, 1) for c in cases if c.filter is not None] if model else []
+    need = [SensorFeedback(model, names, 1) for names in filter_names] if model else []
     if any(f.n and f.needs_context for f in need):
         contexts = {}
         for k, b in spans:
@@ -229,6 +238,24 @@ def reference_along(traj, t, cases, *, imu_rate: float, samples_per_step: int, m
             rec_t0 = buf_t0 + ((k - buf_k0) * spr) * sim.dt
             contexts[(k, b)] = RecordContext.along(traj, rec_t0, sim.dt, (b - k) * spr, sim.mounting)
     return {"truth": cache, "contexts": contexts}
+
+
+def reference_inputs(cases) -> tuple[list, list]:
+    """``(update_steps, filter_names)`` of :func:`reference_along` for the ensemble ``cases``.
+
+    Parameters
+    ----------
+    cases : sequence of EnsembleCase
+
+    Returns
+    -------
+    update_steps : list of int
+        Sorted steps of every feedback filter's gains.
+    filter_names : list of list of str
+        Each feedback filter's state names, in the cases' order.
+    """
+    steps = sorted({int(k) for c in cases if c.filter is not None for k in c.filter.gains})
+    return steps, [list(c.filter.names) for c in cases if c.filter is not None]
 
 
 def run_ensemble(sim, x0, cases, t, *, samples_per_step: int, R=None, rng=None, measurement_noise: bool = True,
