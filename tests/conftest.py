@@ -15,6 +15,7 @@ thread and 20× its wall time.
 """
 
 import numpy  # noqa: F401  (loads numpy's OpenBLAS)
+import pytest
 import scipy.linalg  # noqa: F401  (loads scipy's OpenBLAS)
 
 from covtool.studies import one_blas_thread
@@ -39,3 +40,27 @@ _SLOW_FIRST = (
 def pytest_collection_modifyitems(session, config, items):
     rank = {name: i for i, name in enumerate(_SLOW_FIRST)}
     items.sort(key=lambda item: rank.get(item.path.name, len(rank)))     # stable: order within a module kept
+
+
+@pytest.fixture
+def forking():
+    """A test of a forked path: skipped where no fork can help (no ``os.fork``, one core), else it must fork.
+
+    :func:`covtool.forked.can_split` also refuses while another thread runs
+    (a lock it holds at the fork would stay held in the child): a test that
+    leaves a thread behind would make later tests of this worker take the
+    one-process path and pass without testing the forked one.  That fails
+    here, naming the threads.
+    """
+    import os
+    import threading
+
+    from covtool.forked import can_split
+
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cores = os.cpu_count() or 1
+    if not hasattr(os, "fork") or cores < 2:
+        pytest.skip("needs os.fork and two cores")
+    assert can_split(), f"this process does not fork: threads {[t.name for t in threading.enumerate()]}"

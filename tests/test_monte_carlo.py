@@ -677,7 +677,7 @@ def test_acceptance_test_is_reported_per_cell(study, files):
     assert "none (null_replicas = 0)" in off.tables["settings"].set_index("setting")["value"]["acceptance test"]
 
 
-def test_reference_sampled_ahead_in_a_forked_process_is_the_cases_one(files, monkeypatch):
+def test_reference_sampled_ahead_in_a_forked_process_is_the_cases_one(forking, files, monkeypatch):
     """The trajectory reference a forked process samples before the gains exist is the one the cases need.
 
     The study samples it from the update steps and the filters' states
@@ -685,7 +685,6 @@ def test_reference_sampled_ahead_in_a_forked_process_is_the_cases_one(files, mon
     gives the same inputs (else it would sample again), and the ensemble
     sums are those of sampling it in-process after the gains, bit for bit.
     """
-    import covtool.forked
     import covtool.studies.monte_carlo as study_mc
     from covtool.validation.monte_carlo import reference_inputs
 
@@ -704,7 +703,6 @@ def test_reference_sampled_ahead_in_a_forked_process_is_the_cases_one(files, mon
     assert names == [list(S.filter_model(c)[0].names) for c in S.cases]
     monkeypatch.setattr(study_mc, "can_split", lambda: False)           # sampled here, after the gains
     here = covtool.run_study(decl, backend=SerialBackend())
-    assert covtool.forked.can_split() or pytest.skip("no fork here: both runs sampled in-process")
     for c in ahead.sums:
         a, b = ahead.sums[c], here.sums[c]
         assert np.array_equal(a.s2, b.s2) and np.array_equal(a.s1, b.s1)

@@ -35,7 +35,7 @@ from covtool.lincov.reference import propagate_with_filter
 from covtool.lincov.batch import System, events, run_batch
 from covtool.lincov.kalman import joseph_update as _joseph
 from covtool.io.lock import LOCK_NAME
-from covtool.parallel import (DaskBackend, ProcessBackend, SerialBackend, WorkerError, call_limited,
+from covtool.parallel import (ProcessBackend, SerialBackend, WorkerError, call_limited,
                               make_backend, run_chunks)
 from covtool.io.store import ResultStore, StoreError, _record_hash, fingerprint
 
@@ -157,15 +157,27 @@ def test_process_backend_identical_to_in_process(study, reference, tmp_path):
     assert prov["backend"] == "2 local processes"
 
 
+#: the Dask run of the test below, in a Python process of its own: a Dask client leaves its IO loop and
+#: offload threads running in the process for good, and a process with other threads never forks
+#: (covtool.forked.can_split), so later tests in this worker would not take their forked paths
+_DASK_RUN = """
+import sys
+from dask.distributed import LocalCluster
+from covtool.cli import main
+with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
+                  host="127.0.0.1") as cluster:
+    code = main(["run", sys.argv[1], "--out", sys.argv[2], "--quiet", "--no-figures",
+                 "--scheduler", cluster.scheduler_address])
+sys.exit(code)
+"""
+
+
 def test_dask_local_cluster_identical_to_in_process(study, reference, tmp_path):
     """Two single-threaded Dask workers reached through the CLI's --scheduler ADDRESS."""
-    from dask.distributed import LocalCluster
-
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                      host="127.0.0.1") as cluster:
-        out = tmp_path / "dask"
-        assert main(["run", str(study), "--out", str(out), "--quiet", "--no-figures",
-                     "--scheduler", cluster.scheduler_address]) == 0
+    out = tmp_path / "dask"
+    done = subprocess.run([sys.executable, "-c", _DASK_RUN, str(study), str(out)], capture_output=True,
+                          text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
     assert_same_outputs(reference, out)
     prov = pd.read_excel(out / "trade_grid.xlsx", sheet_name="provenance").set_index("key")["value"]
     assert prov["backend"].startswith("dask at tcp://127.0.0.1") and "(2 workers)" in prov["backend"]
@@ -490,8 +502,21 @@ def test_backend_errors():
     with pytest.raises(ValueError, match=r"backend: unknown backend 'gpu'"):
         make_backend("gpu")
     assert isinstance(make_backend(), SerialBackend) and isinstance(make_backend(workers=1), SerialBackend)
-    with pytest.raises(ValueError, match=r"scheduler: cannot connect to Dask scheduler 'tcp://127.0.0.1:9'"):
-        DaskBackend("tcp://127.0.0.1:9", timeout="1s")
+    # in a process of its own: a Dask client leaves threads behind (see _DASK_RUN)
+    done = subprocess.run([sys.executable, "-c", _DASK_REFUSED], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert re.search(r"scheduler: cannot connect to Dask scheduler 'tcp://127.0.0.1:9'", done.stdout), done.stdout
+
+
+_DASK_REFUSED = """
+from covtool.parallel import DaskBackend
+try:
+    DaskBackend("tcp://127.0.0.1:9", timeout="1s")
+except ValueError as exc:
+    print(exc)
+else:
+    raise SystemExit("no error")
+"""
 
 
 def test_process_backend_maps_and_reraises(tmp_path):

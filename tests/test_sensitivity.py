@@ -199,15 +199,11 @@ def short():
     return study.run(short_decl(), path=STUDY)
 
 
-def test_filters_swept_in_a_forked_process_give_the_same_tables(short, monkeypatch):
+def test_filters_swept_in_a_forked_process_give_the_same_tables(forking, short, monkeypatch):
     """Half the filters are built and swept in a forked process: every table equals the one-process run.
 
     The shares: the truth copy A stays here, B1 and D are balanced by their states (D forked).
     """
-    from covtool.forked import can_split
-
-    if not can_split():
-        pytest.skip("needs os.fork and two cores")
     assert short.provenance["filters_swept_in_a_forked_process"] == "D"
     assert short.filter_models["D"].F.shape[1:] == (10, 10) and short.filter_models["D"].Qc is not None
     monkeypatch.setattr(study, "can_split", lambda: False)
