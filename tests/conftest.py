@@ -55,7 +55,7 @@ def forking():
     import os
     import threading
 
-    from covtool.forked import can_split
+    from covtool.forked import _ACTIVE, _tracing, can_split
 
     try:
         cores = len(os.sched_getaffinity(0))
@@ -63,4 +63,5 @@ def forking():
         cores = os.cpu_count() or 1
     if not hasattr(os, "fork") or cores < 2:
         pytest.skip("needs os.fork and two cores")
-    assert can_split(), f"this process does not fork: threads {[t.name for t in threading.enumerate()]}"
+    assert can_split(), (f"this process does not fork: threads {[t.name for t in threading.enumerate()]}, "
+                         f"forked children running {_ACTIVE['children']}, tracemalloc tracing {_tracing()}")

@@ -247,3 +247,40 @@ def test_impact_builds_the_filters_own_dynamics_when_not_cached(S):
     np.testing.assert_array_equal(again.P, first.P)
     assert S.options_dynamics(spec.options) is S._dyn_cache[dyn_key(spec.options)]
     assert not np.array_equal(S.options_dynamics(spec.options).F, S.dyn.F)
+
+
+EXTRA_MARKOV = '''
+[[filter]]
+name = "B1_markov"
+description = "B1 with the accelerometer Markov biases put back"
+keep = ["nav", "acc_bias", "gyro_bias", "acc_sf", "gyro_sf", "acc_markov"]
+equivalent_noise = "eq11-13"
+'''
+
+
+def test_put_back_block_follows_the_filters_model_under_a_truth_override(tmp_path):
+    """With an override that only the truth sees, a block put back has the filter model's dynamics.
+
+    The truth's accelerometer Markov biases get τ = 2 min; the filters keep the
+    model file's 30 min (``override_filters = false``).  B1 (the truth's
+    navigation options) with the block put back equals B1_markov declared on
+    its own; the truth's Φ, which has the overridden τ, in the filter's place
+    moved the put-back member's CEP, altitude PE and azimuth by 0.4 %.
+    """
+    from covtool.studies.zupt_setup import setup
+
+    ff = tmp_path / "filters.toml"
+    ff.write_text((ROOT / "models" / "filters" / "zupt_filters.toml").read_text() + EXTRA_MARKOV)
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "11 min"
+    d["output"]["report_times"] = ["11 min"]
+    d["filters"]["file"] = str(ff)
+    d["filters"]["cases"] = ["B1", "B1_markov"]
+    d["truth"]["override"] = {"acc_markov": {"tau": "2 min"}}
+    S = setup(d, path=FLAGSHIP)
+    assert S.filter_truth is not None and S.filter_truth is not S.truth
+    N = S.t.size - 1
+    r = impact_run(S, "B1", [N])
+    b = r.variants.index((BACK, "acc_markov"))
+    np.testing.assert_allclose(_metrics(S, r.P[b, -1]), _metrics(S, _reference(S, "B1_markov")), rtol=1e-7)
+    np.testing.assert_allclose(_metrics(S, r.P[0, -1]), _metrics(S, _reference(S, "B1")), rtol=1e-8)

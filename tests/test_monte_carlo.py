@@ -695,15 +695,44 @@ def test_reference_sampled_ahead_in_a_forked_process_is_the_cases_one(forking, f
         seen.append(reference_inputs(cases))
         return seen[-1]
 
+    forks = []
+
+    class Recorded(study_mc.Forked):
+        def __init__(self, fn, *args, **kwargs):
+            forks.append(self)
+            super().__init__(fn, *args, **kwargs)
+
+        def cancel(self):
+            forks.remove(self)
+            super().cancel()
+
     monkeypatch.setattr(study_mc, "reference_inputs", recording)
+    monkeypatch.setattr(study_mc, "Forked", Recorded)
     ahead = covtool.run_study(decl, backend=SerialBackend())
+    assert len(seen) == 1 and len(forks) == 1                  # sampled ahead once, and that one was used
     S = setup(decl, extra_sections=("monte_carlo",))
     steps, names = seen[0]
-    assert steps == sorted(int(k) for k in S.update_steps) and steps
-    assert names == [list(S.filter_model(c)[0].names) for c in S.cases]
+    # the gains are at the ZUPTs: 1 Hz over the 20 s ending at each 150-s interval (both ends), 1-s grid
+    assert steps == list(range(130, 151)) + list(range(280, 301))
+    assert names == [list(S.filter_model(c)[0].names) for c in ("OPT", "B", "N")]
     monkeypatch.setattr(study_mc, "can_split", lambda: False)           # sampled here, after the gains
     here = covtool.run_study(decl, backend=SerialBackend())
     for c in ahead.sums:
         a, b = ahead.sums[c], here.sums[c]
         assert np.array_equal(a.s2, b.s2) and np.array_equal(a.s1, b.s1)
         assert all(np.array_equal(a.nees[k], b.nees[k]) for k in a.nees)
+
+
+def test_a_failed_linear_analysis_leaves_no_reference_process(forking, files, monkeypatch):
+    """An error while the gains are computed stops the forked reference sampling at once (not at collection)."""
+    import covtool.forked
+    import covtool.studies.monte_carlo as study_mc
+
+    def diverges(*a, **k):
+        raise RuntimeError("pure INS diverged")
+
+    monkeypatch.setattr(study_mc, "propagate", diverges)
+    with pytest.raises(RuntimeError, match="pure INS diverged") as caught:
+        covtool.run_study(small_decl(files, runs=4, runs_per_chunk=2), backend=SerialBackend())
+    assert caught.value is not None                       # the traceback (and its frames) still held here
+    assert covtool.forked._ACTIVE["children"] == 0 and covtool.forked.can_split()

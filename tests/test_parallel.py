@@ -172,11 +172,23 @@ sys.exit(code)
 """
 
 
+def _isolated(code: str, *args: str, timeout: float) -> subprocess.CompletedProcess:
+    """``python -c code args…`` in a session of its own; on a timeout the whole group (its Dask workers) is killed."""
+    proc = subprocess.Popen([sys.executable, "-c", code, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True, start_new_session=True)
+    try:
+        out, err = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.communicate()
+        raise
+    return subprocess.CompletedProcess(proc.args, proc.returncode, out, err)
+
+
 def test_dask_local_cluster_identical_to_in_process(study, reference, tmp_path):
     """Two single-threaded Dask workers reached through the CLI's --scheduler ADDRESS."""
     out = tmp_path / "dask"
-    done = subprocess.run([sys.executable, "-c", _DASK_RUN, str(study), str(out)], capture_output=True,
-                          text=True, timeout=600)
+    done = _isolated(_DASK_RUN, str(study), str(out), timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     assert_same_outputs(reference, out)
     prov = pd.read_excel(out / "trade_grid.xlsx", sheet_name="provenance").set_index("key")["value"]
@@ -503,7 +515,7 @@ def test_backend_errors():
         make_backend("gpu")
     assert isinstance(make_backend(), SerialBackend) and isinstance(make_backend(workers=1), SerialBackend)
     # in a process of its own: a Dask client leaves threads behind (see _DASK_RUN)
-    done = subprocess.run([sys.executable, "-c", _DASK_REFUSED], capture_output=True, text=True, timeout=120)
+    done = _isolated(_DASK_REFUSED, timeout=120)
     assert done.returncode == 0, done.stderr[-2000:]
     assert re.search(r"scheduler: cannot connect to Dask scheduler 'tcp://127.0.0.1:9'", done.stdout), done.stdout
 

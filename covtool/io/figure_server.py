@@ -36,6 +36,11 @@ MAX_VIEW_BYTES = 64 * 2**20
 def _prepare() -> None:
     """Import what drawing needs and draw one small figure (fonts, mathtext parser, Agg caches).
 
+    Its log axis keeps matplotlib's mathtext labels, which build the parser
+    once for the figures whose labels hold mathtext (seed 000's); the
+    studies' own log axes are labelled in plain text
+    (:func:`covtool.plotting.style.log_axis`).
+
     matplotlib's log messages of this step (a cache directory it could not
     create, a font cache it rebuilds) are held back: they would precede the
     study's own output, or an input error's one line.

@@ -121,8 +121,8 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
         truth_system = System.from_steps(S.Phi, S.Qd, ev)
     dyn = S.options_dynamics(spec.options)
     tkey = ("impact transition", dyn_key(spec.options))
-    if dyn_key(spec.options) == dyn_key(None) and S.hdr["discretization"] == "van_loan":
-        Phi_pad = S.Phi                                   # the truth's own e^{FΔt}
+    if dyn is S.dyn and S.hdr["discretization"] == "van_loan":
+        Phi_pad = S.Phi                                   # the truth's own e^{FΔt}, of these very F
     else:
         # filters that share navigation options share this transition: computed once per study
         if tkey not in S._dyn_cache:

@@ -145,8 +145,9 @@ def log_axis(ax, which: str = "y") -> None:
 def plain_log_labels(ax, which: str = "y") -> None:
     """Label ``ax``'s ``which`` log axis in plain text (:class:`covtool.plotting.ticks.PlainLogFormatter`).
 
-    The same labels on the same ticks as matplotlib's default, without a
-    mathtext parse per label in each process that draws.
+    The same labels on the same ticks as matplotlib's default (in the
+    scale's base), without a mathtext parse per label in each process that
+    draws.  Call it after the axis is put on its log scale.
 
     Raises
     ------
@@ -158,8 +159,9 @@ def plain_log_labels(ax, which: str = "y") -> None:
     if which not in ("x", "y"):
         raise ValueError(f"which must be 'x' or 'y', got {which!r}")
     axis = getattr(ax, f"{which}axis")
-    axis.set_major_formatter(PlainLogFormatter(base=10.0))
-    axis.set_minor_formatter(PlainLogFormatter(base=10.0, labelOnlyBase=False))
+    base = float(getattr(axis.get_transform(), "base", 10.0))     # the scale's own base (10 unless set)
+    axis.set_major_formatter(PlainLogFormatter(base=base))
+    axis.set_minor_formatter(PlainLogFormatter(base=base, labelOnlyBase=False))
 
 
 def legend_outside(ax, **kw):

@@ -102,7 +102,7 @@ from covtool.studies.resources import memory_estimate, noise_columns, resource_p
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN
-from covtool.validation.feedback import FeedbackFilter
+from covtool.validation.feedback import FeedbackFilter, gain_steps
 from covtool.validation.linear_mc import GROUPS, linear_mean_squares, output_rows
 from covtool.validation.monte_carlo import (EnsembleCase, EnsembleSums, initial_states, reference_along,
                                              reference_inputs, simulate_chunk)
@@ -336,70 +336,84 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     # the trajectory as every chunk samples it (increments, attitude, gravity, span contexts) needs only
     # the update steps and the filters' states: a forked process samples it while this one runs the
     # linear analyses below (the same calls, the same numbers)
-    ref_inputs = (sorted({int(k) for k in S.update_steps if 0 <= k < t.size}) if S.cases else [],
+    ref_inputs = (gain_steps(S.update_steps, t.size - 1) if S.cases else [],
                   [list(S.filter_model(c)[0].names) for c in S.cases])
     ref_args = dict(imu_rate=opt["imu_rate"], samples_per_step=opt["samples_per_step"], model=truth,
                     process_dt=opt["process_dt"])
     S.Phi                                    # the truth's Φ, Q_d first (split in two processes of their own)
-    ref_job = Forked(reference_along, traj, t, *ref_inputs, **ref_args) if can_split() else None
-    if pure:
-        P = propagate(S.Phi, S.Qd, S.P0, label=f"{where}: pure INS", names=truth.names, times=t,
-                      system_checked=True)
-        lin["pure_ins"] = _linear(P, nodes, "pure_ins")
-        spec = nees_whitening(P, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)
-        cases.append(EnsembleCase("pure_ins", None, {"truth": spec}))
-        null_cases["pure_ins"] = None
-        states["pure_ins"] = truth.n
-        del P
-
-        def conditional_pure(spec=spec):
-            P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names,
-                          times=t, system_checked=True)
-            lin_c["pure_ins"] = _linear(P, nodes)
-            predicted_c[("pure_ins", "truth")] = expected_nees(spec, P, truth.names, nodes.q_nb)
-            P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t,
+    try:
+        ref_job = Forked(reference_along, traj, t, *ref_inputs, **ref_args) if can_split() else None
+    except OSError:                          # no fork here: sampled in this process, after the gains
+        ref_job = None
+    try:
+        if pure:
+            P = propagate(S.Phi, S.Qd, S.P0, label=f"{where}: pure INS", names=truth.names, times=t,
                           system_checked=True)
-            lin_d["pure_ins"] = _linear(P, nodes)
-        later.append(conditional_pure)
-    for c in S.cases:
-        spec = S.specs[c]
-        fm, Phi_f, Qd_f = S.filter_model(c)
-        Rf = S.filter_R(c)
-        ff = FeedbackFilter.design(c, fm.names, Phi_f, Qd_f, fm.P0, Rf, S.update_steps, form=spec.update, times=t)
-        res = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
-                                    S.update_steps, Rf=Rf, form=spec.update, label=f"{where}: filter {c}", times=t,
-                                    names=truth.names, filter_names=fm.names, system_checked=True)
-        pf_check[c] = float(np.max(np.abs(ff.P - res.P_filter)))
-        lin[c] = _linear(res.P_truth, nodes, c)
-        claimed[c] = _linear(ff.P[:, :10, :10], nodes) if tuple(fm.names[:10]) == NAV_STATES else None
-        const = [nm for nm in fm.names[10:] if truth.states[truth.index[nm]].process == "constant"]
-        nees = {"truth": nees_whitening(res.P_truth, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb),
-                "filter": nees_whitening(ff.P, ff.names, REDUCED_NAV + tuple(const), nees_steps, nodes.q_nb),
-                "filter_nav": nees_whitening(ff.P, ff.names, REDUCED_NAV, nees_steps, nodes.q_nb)}
-        # what the linear analysis predicts for the NEES of the filter's claim: the actual errors of the
-        # filter states have the truth covariance under its gains (labels are truth state names)
-        for key in ("filter", "filter_nav"):
-            predicted[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
-        del res
+            lin["pure_ins"] = _linear(P, nodes, "pure_ins")
+            spec = nees_whitening(P, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)
+            cases.append(EnsembleCase("pure_ins", None, {"truth": spec}))
+            null_cases["pure_ins"] = None
+            states["pure_ins"] = truth.n
+            del P
 
-        def conditional_case(c=c, fm=fm, Phi_f=Phi_f, Qd_f=Qd_f, Rf=Rf, spec=spec, nees=nees):
-            res = propagate_with_filter(S.Phi, S.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names),
-                                        fm.D, S.R, S.update_steps, Rf=Rf, form=spec.update,
-                                        label=f"{where}: filter {c} (conditional)", times=t, names=truth.names,
-                                        filter_names=fm.names, system_checked=True)
-            lin_c[c] = _linear(res.P_truth, nodes)
-            for key in nees:
-                predicted_c[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
+            def conditional_pure(spec=spec):
+                P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names,
+                              times=t, system_checked=True)
+                lin_c["pure_ins"] = _linear(P, nodes)
+                predicted_c[("pure_ins", "truth")] = expected_nees(spec, P, truth.names, nodes.q_nb)
+                P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t,
+                              system_checked=True)
+                lin_d["pure_ins"] = _linear(P, nodes)
+            later.append(conditional_pure)
+        for c in S.cases:
+            spec = S.specs[c]
+            fm, Phi_f, Qd_f = S.filter_model(c)
+            Rf = S.filter_R(c)
+            ff = FeedbackFilter.design(c, fm.names, Phi_f, Qd_f, fm.P0, Rf, S.update_steps, form=spec.update, times=t)
+            res = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+                                        S.update_steps, Rf=Rf, form=spec.update, label=f"{where}: filter {c}", times=t,
+                                        names=truth.names, filter_names=fm.names, system_checked=True)
+            pf_check[c] = float(np.max(np.abs(ff.P - res.P_filter)))
+            lin[c] = _linear(res.P_truth, nodes, c)
+            claimed[c] = _linear(ff.P[:, :10, :10], nodes) if tuple(fm.names[:10]) == NAV_STATES else None
+            const = [nm for nm in fm.names[10:] if truth.states[truth.index[nm]].process == "constant"]
+            nees = {"truth": nees_whitening(res.P_truth, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb),
+                    "filter": nees_whitening(ff.P, ff.names, REDUCED_NAV + tuple(const), nees_steps, nodes.q_nb),
+                    "filter_nav": nees_whitening(ff.P, ff.names, REDUCED_NAV, nees_steps, nodes.q_nb)}
+            # what the linear analysis predicts for the NEES of the filter's claim: the actual errors of the
+            # filter states have the truth covariance under its gains (labels are truth state names)
+            for key in ("filter", "filter_nav"):
+                predicted[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
             del res
-            res = propagate_with_filter(S.Phi, S.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
-                                        S.R, S.update_steps, Rf=Rf, form=spec.update,
-                                        label=f"{where}: filter {c} (driven part)", times=t, names=truth.names,
-                                        filter_names=fm.names, system_checked=True)
-            lin_d[c] = _linear(res.P_truth, nodes)
-        later.append(conditional_case)
-        cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
-        states[c] = len(fm.names)
-        null_cases[c] = {int(k): fm.D @ K for k, K in ff.gains.items()}
+
+            def conditional_case(c=c, fm=fm, Phi_f=Phi_f, Qd_f=Qd_f, Rf=Rf, spec=spec, nees=nees):
+                res = propagate_with_filter(S.Phi, S.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names),
+                                            fm.D, S.R, S.update_steps, Rf=Rf, form=spec.update,
+                                            label=f"{where}: filter {c} (conditional)", times=t, names=truth.names,
+                                            filter_names=fm.names, system_checked=True)
+                lin_c[c] = _linear(res.P_truth, nodes)
+                for key in nees:
+                    predicted_c[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
+                del res
+                res = propagate_with_filter(S.Phi, S.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
+                                            S.R, S.update_steps, Rf=Rf, form=spec.update,
+                                            label=f"{where}: filter {c} (driven part)", times=t, names=truth.names,
+                                            filter_names=fm.names, system_checked=True)
+                lin_d[c] = _linear(res.P_truth, nodes)
+            later.append(conditional_case)
+            cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
+            states[c] = len(fm.names)
+            null_cases[c] = {int(k): fm.D @ K for k, K in ff.gains.items()}
+        # the inputs the gains give (always these: the gains are at the update steps, the filters' states
+        # are their models'); sampled again after them if they were not
+        if ref_job is not None and reference_inputs(cases) != ref_inputs:
+            ref_job.cancel()
+            ref_job = None
+        reference = ref_job.result() if ref_job is not None else None
+    except BaseException:                    # the child does not outlive a failed analysis
+        if ref_job is not None:
+            ref_job.cancel()
+        raise
     t_lin = time.perf_counter() - t_lin
     N = opt["runs"]
 
@@ -432,17 +446,6 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         except BaseException as exc:
             side["errors"].append(exc)
 
-    try:
-        # the inputs the gains give (always these: the gains are at the update steps, the filters' states
-        # are their models'); sampled again here if they were not
-        if ref_job is not None and reference_inputs(cases) != ref_inputs:
-            ref_job.cancel()
-            ref_job = None
-        reference = ref_job.result() if ref_job is not None else None
-    except BaseException:
-        if ref_job is not None:
-            ref_job.cancel()
-        raise
     workers = [threading.Thread(target=null, name="monte_carlo_null", daemon=True),
                threading.Thread(target=analyses, name="monte_carlo_conditional", daemon=True)]
     for w in workers:

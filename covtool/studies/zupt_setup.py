@@ -471,8 +471,11 @@ class ZuptSetup:
     def options_dynamics(self, options=None):
         """F and Q_c along the whole grid of the model the filters are built from, under ``options``.
 
-        The truth's own (:attr:`dyn`) for its options, else the model's
-        dynamics with the navigation block of ``options``
+        The filters' model is the truth itself, or (``[truth]
+        override_filters = false`` with overrides) the truth without the
+        study's overrides (:attr:`filter_truth`).  Its own dynamics for its
+        own options (:attr:`dyn` when it is the truth), else its dynamics
+        with the navigation block of ``options``
         (:func:`covtool.lincov.dynamics.with_nav_options`; F built on first
         use), cached per options: every filter with these options, and
         every analysis of it (the dropped-state impact, the magnitude
@@ -500,15 +503,15 @@ class ZuptSetup:
     def filter_shares(self, names) -> tuple[list, list]:
         """``(forked, own)``: the filters of ``names`` a forked process builds, and those left to this one.
 
-        A filter with all the truth's states (a truth copy,
-        :func:`truth_copy`, reuses the truth's Φ, Q_d and holds its F, Q_c)
-        stays here: its arrays would cost more to send back than to build.
+        A filter that is the truth itself (:func:`truth_copy`: it reuses the
+        truth's Φ, Q_d and holds its F, Q_c) stays here: its arrays would
+        cost more to send back than to build.
         The others are balanced by a cost estimate of each build, the square
         of the filter's states, the heaviest first to the lighter side; both
         lists keep the order of ``names``.
         """
         names = list(names)
-        own = [c for c in names if self.specs[c].n == self.truth.n]
+        own = [c for c in names if truth_copy(self.specs[c], self.truth, self.filter_truth)]
         load, share = [0.0, 0.0], ([], [])
         for c in sorted((c for c in names if c not in own), key=lambda c: self.specs[c].n, reverse=True):
             k = int(load[1] < load[0])

@@ -62,8 +62,27 @@ from covtool.nav import attitude as quat, earth
 from covtool.nav.strapdown import NAV_STATES
 
 __all__ = [
-    "FeedbackFilter", "SensorFeedback", "RecordContext", "compensate_cases",
+    "FeedbackFilter", "SensorFeedback", "RecordContext", "compensate_cases", "gain_steps",
 ]
+
+
+def gain_steps(update_steps, N: int) -> list[int]:
+    """The steps of a grid of ``N`` steps at which :meth:`FeedbackFilter.design` computes a gain.
+
+    Parameters
+    ----------
+    update_steps : iterable of int
+        Grid indices of the updates.
+    N : int
+        Grid steps (indices ``0 … N``).
+
+    Returns
+    -------
+    list of int
+        The distinct update steps in ``0 … N``, in increasing order (the keys
+        of :attr:`FeedbackFilter.gains`).
+    """
+    return sorted({int(k) for k in update_steps if 0 <= int(k) <= N})
 
 
 # --------------------------------------------------------------------------
@@ -140,7 +159,7 @@ class FeedbackFilter:
             raise ValueError(f"filter {name!r}: Phi_f has {nf} states, names has {len(names)}")
         label = f"Monte Carlo filter {name}"
         check_system(label, Phi=Phi_f, Qd=Qd_f, P0=P0, R=Rf, names=names, times=times)
-        upd = set(int(k) for k in update_steps)
+        upd = set(gain_steps(update_steps, N))
         P = np.full((N + 1, nf, nf), np.nan)
         gains = {}
         Pf = symmetrize(np.asarray(P0, float))

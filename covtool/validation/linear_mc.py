@@ -267,7 +267,6 @@ def _sample(names, G, meas, Lp, nw, Pd, dd, nd, ne, Cp, used, N, n, runs, replic
     draws = _prefetch(_draws([nr * runs for _, nr in blocks], meas, Lp, N, n, rng, L0))
     try:
         for r0, nr in blocks:
-            B = nr * runs
             X0 = next(draws) if L0 is not None else np.tile(x0p.T, (1, nr)).astype(np.float32)
             X = {c: X0.copy() for c in names}
             for k in range(N + 1):
