@@ -135,10 +135,9 @@ def log_axis(ax, which: str = "y") -> None:
     """
     from matplotlib.ticker import LogLocator
 
-    if which not in ("x", "y"):
-        raise ValueError(f"which must be 'x' or 'y', got {which!r}")
+    axis = _axis(ax, which)
     (ax.set_xscale if which == "x" else ax.set_yscale)("log")
-    getattr(ax, f"{which}axis").set_minor_locator(LogLocator(base=10.0, subs=(2.0, 5.0)))
+    axis.set_minor_locator(LogLocator(base=10.0, subs=(2.0, 5.0)))
     plain_log_labels(ax, which)
 
 
@@ -156,12 +155,17 @@ def plain_log_labels(ax, which: str = "y") -> None:
     """
     from covtool.plotting.ticks import PlainLogFormatter
 
-    if which not in ("x", "y"):
-        raise ValueError(f"which must be 'x' or 'y', got {which!r}")
-    axis = getattr(ax, f"{which}axis")
+    axis = _axis(ax, which)
     base = float(getattr(axis.get_transform(), "base", 10.0))     # the scale's own base (10 unless set)
     axis.set_major_formatter(PlainLogFormatter(base=base))
     axis.set_minor_formatter(PlainLogFormatter(base=base, labelOnlyBase=False))
+
+
+def _axis(ax, which: str):
+    """``ax.xaxis`` or ``ax.yaxis``; ``ValueError`` for any other ``which``."""
+    if which not in ("x", "y"):
+        raise ValueError(f"which must be 'x' or 'y', got {which!r}")
+    return getattr(ax, f"{which}axis")
 
 
 def legend_outside(ax, **kw):
