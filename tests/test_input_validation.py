@@ -766,3 +766,19 @@ def test_imu_grade_path_is_relative_to_the_study(tmp_path, monkeypatch):
     d["imu"]["kimu"]["grade"] = "g.toml"
     cfg = parse_study(d, str(sub / "s.toml"), sub)
     assert cfg.grades["kimu"].path == str(sub / "g.toml") and cfg.grades["kimu"].rate == 400.0
+
+
+def test_memory_estimate_counts_the_filters_own_model_under_a_truth_override():
+    """Overrides that reach the truth only: the filters' model has dynamics of its own, and the estimate counts them.
+
+    B1 and D against a truth whose accelerometer Markov τ is overridden
+    (``override_filters = false``): the traced peak grew by 32 MB (3.3 stacks
+    of 360 × 58 × 58 doubles: the model's F, Q_c and G, and the impact's
+    transition under it) and the estimate had stayed at that of the study
+    without the override, 23 % under the peak.
+    """
+    d = order_decl(("B1", "D"), "6 min")
+    d["truth"]["override"] = {"acc_markov": {"tau": "2 min"}}
+    r, peak = _peak(d)
+    est = float(r.provenance["estimated_peak_memory"].split()[0]) * 1e6
+    assert peak <= est <= 1.3 * peak, (peak, est)

@@ -178,9 +178,22 @@ def filter_cases(fcfg, specs: dict, ffile, where: str, *, nonempty: bool = False
                  what="filter")
 
 
-def filter_dynamics(specs: dict, cases) -> int:
-    """Distinct truth dynamics the cases need (the truth's own and one per other NavOptions)."""
-    return len({dyn_key(None)} | {dyn_key(specs[c].options) for c in cases})
+#: (N, n, n) stacks of the filters' own model when it is not the truth (``[truth] override_filters = false``
+#: with overrides): its F, Q_c, noise G (n × columns ≤ n × n) and the dropped-state impact's transition e^{FΔt}
+#: under it (the truth's Φ serves only a filter with the truth's own dynamics, covtool.lincov.impact)
+SEPARATE_MODEL_STACKS = 4
+
+
+def filter_dynamics(specs: dict, cases, separate_model: bool = False) -> int:
+    """Truth dynamics the cases need, in (N, n, n) stacks for :func:`covtool.studies.resources.memory_estimate`.
+
+    The truth's own and one F per other set of navigation options; with
+    ``separate_model`` (the filters are built from the truth without the
+    study's overrides, :attr:`ZuptSetup.filter_truth`) also that model's own
+    dynamics (:data:`SEPARATE_MODEL_STACKS`).
+    """
+    options = len({dyn_key(None)} | {dyn_key(specs[c].options) for c in cases})
+    return options + (SEPARATE_MODEL_STACKS if separate_model and len(cases) else 0)
 
 
 @dataclass
@@ -578,7 +591,8 @@ def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=
                 if not truth_copy(specs[c], truth, ftruth) and system_key(specs[c]) not in keys:
                     keys.append(system_key(specs[c]))
             kw["distinct"] = [k.n for k in keys]            # streamed: one system per distinct key
-        est = check_memory(memory(steps, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases), **kw),
+        est = check_memory(memory(steps, truth, [specs[c].n for c in cases],
+                                  filter_dynamics(specs, cases, ftruth is not truth), **kw),
                            where, hdr["max_memory"], shrink)
     traj = load_trajectory(cfg, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"], where)
