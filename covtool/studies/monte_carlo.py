@@ -404,6 +404,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
             states[c] = len(fm.names)
             null_cases[c] = {int(k): fm.D @ K for k, K in ff.gains.items()}
+        t_lin = time.perf_counter() - t_lin          # (not the wait for the reference below)
         # the inputs the gains give (always these: the gains are at the update steps, the filters' states
         # are their models'); sampled again after them if they were not
         if ref_job is not None and reference_inputs(cases) != ref_inputs:
@@ -414,7 +415,6 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         if ref_job is not None:
             ref_job.cancel()
         raise
-    t_lin = time.perf_counter() - t_lin
     N = opt["runs"]
 
     # ---- beside the ensemble: the conditional and driven-part analyses, and the null -------------
