@@ -736,3 +736,22 @@ def test_a_failed_linear_analysis_leaves_no_reference_process(forking, files, mo
         covtool.run_study(small_decl(files, runs=4, runs_per_chunk=2), backend=SerialBackend())
     assert caught.value is not None                       # the traceback (and its frames) still held here
     assert covtool.forked._ACTIVE["children"] == 0 and covtool.forked.can_split()
+
+
+def test_a_failed_fork_samples_the_reference_here(files, monkeypatch):
+    """No fork to be had (``OSError``): the study samples the reference itself, after the gains, same sums."""
+    import covtool.studies.monte_carlo as study_mc
+
+    decl = small_decl(files, runs=4, runs_per_chunk=2)
+    monkeypatch.setattr(study_mc, "can_split", lambda: False)
+    here = covtool.run_study(decl, backend=SerialBackend())
+
+    def no_fork(*a, **k):
+        raise BlockingIOError(11, "Resource temporarily unavailable")
+
+    monkeypatch.setattr(study_mc, "can_split", lambda: True)
+    monkeypatch.setattr(study_mc, "Forked", no_fork)
+    refused = covtool.run_study(decl, backend=SerialBackend())
+    for c in here.sums:
+        assert np.array_equal(here.sums[c].s2, refused.sums[c].s2)
+        assert np.array_equal(here.sums[c].s1, refused.sums[c].s1)
