@@ -384,6 +384,53 @@ def _ordinary_pages() -> None:
         os.environ.setdefault("NUMPY_MADVISE_HUGEPAGE", "0")
 
 
+#: glibc's mallopt parameters and the values the command line sets (:func:`_keep_freed_memory`)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+#: blocks below this are served from the heap, not mapped afresh (glibc's largest on 64-bit) [bytes]
+MMAP_THRESHOLD = 32 * 2**20
+#: free memory at the heap's top is returned to the system only beyond this [bytes]
+TRIM_THRESHOLD = 2**30
+#: the environment variables by which a user tunes glibc's allocator (then it is left alone)
+_MALLOC_ENV = ("MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_", "MALLOC_TOP_PAD_", "MALLOC_MMAP_MAX_")
+
+
+def _keep_freed_memory() -> bool:
+    """Keep glibc from handing freed array memory back to the system at once.
+
+    By default glibc maps every block above a threshold that it adjusts
+    between 128 kB and 32 MB, and gives a freed heap top back to the system
+    when it exceeds twice that threshold.  A study allocates and frees
+    stacks of 58×58 matrices of 1-30 MB all the time, so the same memory is
+    mapped, returned and faulted in again, page by page: 400 k page faults,
+    1.2-1.3 s of system time, in the flagship study on the 2-core machine.
+    With a fixed threshold of :data:`MMAP_THRESHOLD` and a trim threshold
+    of :data:`TRIM_THRESHOLD`, freed memory is reused: 280 k faults and
+    0.8 s (peak RSS unchanged, 747 against 755 MB).  Done by the command
+    line only (a process-wide setting is not a library's to make), on
+    glibc only, and not when the user set one of :data:`_MALLOC_ENV` or a
+    ``glibc.malloc`` tunable.  Forked workers inherit it.
+
+    Returns
+    -------
+    bool
+        Whether both settings were made.
+    """
+    if any(k in os.environ for k in _MALLOC_ENV) or "glibc.malloc" in os.environ.get("GLIBC_TUNABLES", ""):
+        return False
+    import platform
+
+    if platform.libc_ver()[0] != "glibc":
+        return False
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
+    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) & bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+
+
 def main(argv=None) -> int:
     """Entry point of the ``covtool`` command.
 
@@ -399,6 +446,7 @@ def main(argv=None) -> int:
         does.
     """
     _ordinary_pages()
+    _keep_freed_memory()
     args = build_parser().parse_args(argv)
     handlers = {}
     if threading.current_thread() is threading.main_thread():

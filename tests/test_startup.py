@@ -12,6 +12,8 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
+import platform
+import resource
 import subprocess
 import sys
 
@@ -107,3 +109,57 @@ def test_a_library_user_keeps_numpys_page_advice():
     default = bool(_set_madvise_hugepage(True))
     _set_madvise_hugepage(default)
     assert json.loads(proc.stdout.strip().splitlines()[-1]) == {"env": None, "advised": default}
+
+
+_FAULTS = """
+import ctypes, json, resource, sys
+from covtool.cli import _keep_freed_memory
+tuned = _keep_freed_memory() if sys.argv[1] == "tuned" else None
+libc = ctypes.CDLL(None)
+libc.malloc.restype, libc.malloc.argtypes = ctypes.c_void_p, (ctypes.c_size_t,)
+libc.free.argtypes = (ctypes.c_void_p,)
+libc.memset.argtypes = (ctypes.c_void_p, ctypes.c_int, ctypes.c_size_t)
+size, faults = 6 * 2**20, []
+for _ in range(4):                        # eight 6-MB blocks held together, freed, then again (a study's stacks)
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    blocks = [libc.malloc(size) for _ in range(8)]
+    for b in blocks:
+        libc.memset(b, 1, size)
+    for b in blocks:
+        libc.free(b)
+    faults.append(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+print(json.dumps({"tuned": tuned, "faults": faults}))
+"""
+
+
+def _faults(mode: str, env=None) -> dict:
+    e = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "GLIBC_TUNABLES"}
+    e["PYTHONPATH"] = str(ROOT)
+    e.update(env or {})
+    proc = subprocess.run([sys.executable, "-c", _FAULTS, mode], cwd=ROOT, env=e, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="glibc's allocator only")
+def test_the_command_line_keeps_freed_memory_for_reuse():
+    """Freed blocks are reused, not mapped afresh and faulted in page by page (glibc's default trims them).
+
+    48 MB in 6-MB blocks is 12 288 pages: glibc's default gives the heap top
+    back at every free, so each round faults most of them in again; tuned,
+    the rounds after the first fault in almost none.
+    """
+    plain, tuned = _faults("plain"), _faults("tuned")
+    pages = 8 * 6 * 2**20 // resource.getpagesize()
+    assert tuned["tuned"] is True
+    assert min(plain["faults"][1:]) > 0.5 * pages           # the default: faulted in again, every round
+    assert max(tuned["faults"][1:]) < 0.02 * pages          # tuned: reused
+    assert tuned["faults"][0] > 0.5 * pages                 # (the first round does touch the pages)
+
+
+@pytest.mark.parametrize("env", [{"MALLOC_TRIM_THRESHOLD_": "131072"}, {"MALLOC_MMAP_THRESHOLD_": "65536"},
+                                 {"GLIBC_TUNABLES": "glibc.malloc.trim_threshold=131072"}])
+def test_a_users_allocator_settings_are_respected(env):
+    """With the user's own glibc malloc setting the command line changes nothing."""
+    assert _faults("tuned", env)["tuned"] is False
