@@ -400,15 +400,18 @@ def _keep_freed_memory() -> bool:
     By default glibc maps every block above a threshold that it adjusts
     between 128 kB and 32 MB, and gives a freed heap top back to the system
     when it exceeds twice that threshold.  A study allocates and frees
-    stacks of 58×58 matrices of 1-30 MB all the time, so the same memory is
+    stacks of 58×58 matrices of 1-50 MB all the time, so the same memory is
     mapped, returned and faulted in again, page by page: 400 k page faults,
     1.2-1.3 s of system time, in the flagship study on the 2-core machine.
     With a fixed threshold of :data:`MMAP_THRESHOLD` and a trim threshold
     of :data:`TRIM_THRESHOLD`, freed memory is reused: 280 k faults and
-    0.8 s (peak RSS unchanged, 747 against 755 MB).  Done by the command
-    line only (a process-wide setting is not a library's to make), on
-    glibc only, and not when the user set one of :data:`_MALLOC_ENV` or a
-    ``glibc.malloc`` tunable.  Forked workers inherit it.
+    0.8 s (peak RSS unchanged, 747 against 755 MB).
+
+    Done by the command line only (a process-wide setting is not a
+    library's to make), on glibc only, and not when the user set one of
+    :data:`_MALLOC_ENV` or a ``glibc.malloc`` tunable.  Forked workers
+    inherit the setting; spawned ones (the Monte Carlo's local processes)
+    get it from the same environment variables, which are set here.
 
     Returns
     -------
@@ -428,7 +431,11 @@ def _keep_freed_memory() -> bool:
     except (OSError, AttributeError):
         return False
     mallopt.argtypes, mallopt.restype = (ctypes.c_int, ctypes.c_int), ctypes.c_int
-    return bool(mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD)) & bool(mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    if not (mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD) and mallopt(_M_TRIM_THRESHOLD, TRIM_THRESHOLD)):
+        return False
+    os.environ["MALLOC_MMAP_THRESHOLD_"] = str(MMAP_THRESHOLD)
+    os.environ["MALLOC_TRIM_THRESHOLD_"] = str(TRIM_THRESHOLD)
+    return True
 
 
 def main(argv=None) -> int:
