@@ -685,3 +685,34 @@ def test_sweep_fit_leaves_out_flagged_cases():
     np.testing.assert_allclose(f.coef, [np.log10(3.0), 0.25], rtol=1e-12)
     assert np.all(np.isnan(_fit(s, np.full(5, np.nan), 1).coef))
     assert np.isnan(_ratio(np.nan, 2.0)) and _ratio(1.0, 0.0) == np.inf and _ratio(1.0, 2.0) == 0.5
+
+
+@pytest.mark.parametrize("tol", [PSD_TOL, 1e-3])
+def test_states_zero_in_every_matrix_do_not_change_the_psd_verdict(tol):
+    """A Q_d stack whose random constants have zero rows and columns (36 of 58 in sdins58).
+
+    The PSD test factorises only the states that are non-zero somewhere:
+    the verdicts, states and values equal those of the stack with every
+    row live (a tiny variance on the dead states), and the closed form:
+    one correlation ρ between otherwise uncorrelated states gives the
+    smallest eigenvalue 1 − |ρ|.
+    """
+    from covtool.lincov.guard import NOT_PSD, OK
+
+    rng = np.random.default_rng(3)
+    n, live = 12, np.array([1, 4, 5, 9])               # dead states in between and at both ends
+    X = np.zeros((6, n, n))
+    X[:, live, live] = 10.0 ** rng.uniform(-8, 4, (6, live.size))       # uncorrelated, any units
+    sig = np.sqrt(X[2, 4, 4] * X[2, 9, 9])
+    X[2, 4, 9] = X[2, 9, 4] = (1.0 + 10 * tol) * sig             # |ρ| > 1 + tol: λ_min = −10 tol
+    X[4, 1, 5] = X[4, 5, 1] = (1.0 + 0.5 * tol) * np.sqrt(X[4, 1, 1] * X[4, 5, 5])   # within tol
+    st = covariance_status(X, tol)
+    assert st.code.tolist() == [OK, OK, NOT_PSD, OK, OK, OK]
+    assert st.state[2] in (4, 9)
+    assert st.value[2] == pytest.approx(-10 * tol, rel=1e-6)
+    Y = X.copy()
+    dead = np.setdiff1d(np.arange(n), live)
+    Y[:, dead, dead] = 1e-30                              # every state live: the full factorisation
+    full = covariance_status(Y, tol)
+    assert full.code.tolist() == st.code.tolist() and full.state[2] == st.state[2]
+    assert full.value[2] == pytest.approx(st.value[2], rel=1e-9)

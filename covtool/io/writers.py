@@ -133,8 +133,16 @@ FIGURE_PROCESSES = 4
 PNG_COMPRESSION = 3
 
 
+#: axes titles at the top of their axes (matplotlib's default moves each one above any decoration on
+#: top, measuring the x axis's tight box at every draw: 14 % of drawing the budget's figures, which,
+#: like every figure of the shipped studies, have nothing on top, so the pixels are the same)
+FIXED_TITLES = {"axes.titley": 1.0}
+
+
 def draw_figures(items) -> None:
     """Draw and save ``(name, make, path)`` figures with the Agg backend.
+
+    Titles sit at the top of their axes (:data:`FIXED_TITLES`).
 
     A figure without a layout gets the constrained layout (never
     ``bbox_inches="tight"``, which draws every figure twice).  A figure
@@ -150,14 +158,15 @@ def draw_figures(items) -> None:
     from matplotlib.layout_engine import PlaceHolderLayoutEngine
 
     for _name, make, path in items:
-        fig = make()
-        engine = fig.get_layout_engine()
-        if engine is None:
-            fig.set_layout_engine("constrained")
-        elif isinstance(engine, PlaceHolderLayoutEngine):
-            fig.set_layout_engine(None)
-        # zlib level 3 instead of 6: the same pixels, encoded in ~30 % less time, files 5-12 % larger
-        fig.savefig(path, dpi=120, pil_kwargs={"compress_level": PNG_COMPRESSION})
+        with matplotlib.rc_context(FIXED_TITLES):
+            fig = make()
+            engine = fig.get_layout_engine()
+            if engine is None:
+                fig.set_layout_engine("constrained")
+            elif isinstance(engine, PlaceHolderLayoutEngine):
+                fig.set_layout_engine(None)
+            # zlib level 3 instead of 6: the same pixels, encoded in ~30 % less time, files 5-12 % larger
+            fig.savefig(path, dpi=120, pil_kwargs={"compress_level": PNG_COMPRESSION})
         plt.close(fig)
 
 

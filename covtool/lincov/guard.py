@@ -293,9 +293,17 @@ def _status_chunk(X, tol, psd, sym_tol, code, state, other, value, scale=None, g
     if not cand.size:
         return
     # Cholesky of S (C + tol I) S = P + tol S²: it exists iff λ_min(C) > −tol, and Cholesky's
-    # backward error is invariant under the diagonal scaling S, so C itself need not be formed
-    Y = X[cand] if cand.size < X.shape[0] else X.copy()
-    Y[:, diag, diag] += tol * s[cand] ** 2
+    # backward error is invariant under the diagonal scaling S, so C itself need not be formed.
+    # A state whose row and column are zero in every matrix (a random constant's in Q_d: 36 of 58)
+    # adds an isolated tol·1 to the diagonal, which changes nothing: factorised without those states
+    nz = X[cand] != 0
+    live = np.flatnonzero(nz.any(axis=(0, 1)) | nz.any(axis=(0, 2)))
+    if live.size < n:
+        Y = X[cand][:, live[:, None], live[None, :]]
+        Y[:, np.arange(live.size), np.arange(live.size)] += tol * s[cand][:, live] ** 2
+    else:
+        Y = X[cand] if cand.size < X.shape[0] else X.copy()
+        Y[:, diag, diag] += tol * s[cand] ** 2
     try:
         np.linalg.cholesky(Y)
         return
