@@ -401,11 +401,13 @@ def _keep_freed_memory() -> bool:
     between 128 kB and 32 MB, and gives a freed heap top back to the system
     when it exceeds twice that threshold.  A study allocates and frees
     stacks of 58×58 matrices of 1-50 MB all the time, so the same memory is
-    mapped, returned and faulted in again, page by page: 400 k page faults,
-    1.2-1.3 s of system time, in the flagship study on the 2-core machine.
-    With a fixed threshold of :data:`MMAP_THRESHOLD` and a trim threshold
-    of :data:`TRIM_THRESHOLD`, freed memory is reused: 280 k faults and
-    0.8 s (peak RSS unchanged, 747 against 755 MB).
+    mapped, returned and faulted in again, page by page.  With a fixed
+    threshold of :data:`MMAP_THRESHOLD` and a trim threshold of
+    :data:`TRIM_THRESHOLD`, freed memory is reused.  Measured on the 2-core
+    machine in alternating CLI runs (page faults, system time): the flagship
+    450-500 k and 1.5-1.6 s before, 350 k and 1.15-1.4 s after; the error
+    budget 310 k, 1.0-1.2 s and 224 k, 0.8-0.9 s; the Monte Carlo 1.3 M,
+    4.3-4.5 s and 0.9 M, 3.4-3.6 s.  Peak RSS: +1 to +3 %.
 
     Done by the command line only (a process-wide setting is not a
     library's to make), on glibc only, and not when the user set one of
