@@ -296,8 +296,9 @@ def _status_chunk(X, tol, psd, sym_tol, code, state, other, value, scale=None, g
     # backward error is invariant under the diagonal scaling S, so C itself need not be formed.
     # A state whose row and column are zero in every matrix (a random constant's in Q_d: 36 of 58)
     # adds an isolated tol·1 to the diagonal, which changes nothing: factorised without those states
-    nz = X[cand] != 0
-    live = np.flatnonzero(nz.any(axis=(0, 1)) | nz.any(axis=(0, 2)))
+    # (over every matrix of the chunk: a superset of the candidates' live states, without a gathered copy)
+    nz = (X != 0).any(axis=0)
+    live = np.flatnonzero(nz.any(axis=0) | nz.any(axis=1))
     if live.size < n:
         Y = X[cand][:, live[:, None], live[None, :]]
         Y[:, np.arange(live.size), np.arange(live.size)] += tol * s[cand][:, live] ** 2
