@@ -455,7 +455,8 @@ def main(argv=None) -> int:
         does.
     """
     _ordinary_pages()
-    _keep_freed_memory()
+    if argv is None:                            # the command itself, not a caller of main() in its own process
+        _keep_freed_memory()
     args = build_parser().parse_args(argv)
     handlers = {}
     if threading.current_thread() is threading.main_thread():
