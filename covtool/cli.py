@@ -453,6 +453,12 @@ def main(argv=None) -> int:
         (130), SIGTERM (143) or a closed stdout pipe (141).  Argument
         errors raise ``SystemExit(2)`` after their one line, as argparse
         does.
+
+    Notes
+    -----
+    Run as the command (``argv`` None) it also tunes glibc's allocator
+    (:func:`_keep_freed_memory`); a caller of ``main(argv)`` in its own
+    process keeps its allocator as it is.
     """
     _ordinary_pages()
     if argv is None:                            # the command itself, not a caller of main() in its own process
