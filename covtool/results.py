@@ -67,16 +67,18 @@ class StudyResult:
 
     #: the figure :meth:`plot` draws (default: the first of ``figures``)
     main_figure: ClassVar[str | None] = None
-    #: fields no figure reads, left out of :meth:`figure_view` (the study's systems: up to hundreds of MB)
-    not_drawn: ClassVar[tuple[str, ...]] = ()
+    #: the only fields its figures read, besides ``name`` and ``kind`` (None: every field); the others
+    #: are left out of :meth:`figure_view`: the study's systems and histories (up to hundreds of MB), and
+    #: objects whose unpickling imports what no figure needs (a trajectory's ODE solution, scipy.integrate)
+    drawn_from: ClassVar[tuple[str, ...] | None] = None
 
     def figure_view(self) -> "StudyResult":
         """A shallow copy for drawing the figures in another process.
 
-        The fields of :attr:`not_drawn` are None and ``figures`` is empty,
-        so that the copy pickles small (the figure makers reference this
-        result, not the copy).  Used by
-        :class:`covtool.io.figure_server.FigureServer`.
+        Every field but ``name``, ``kind`` and those of :attr:`drawn_from`
+        is None, and ``figures`` is empty, so that the copy pickles small
+        and unpickles fast (the figure makers reference this result, not
+        the copy).  Used by :class:`covtool.io.figure_server.FigureServer`.
 
         Returns
         -------
@@ -84,11 +86,15 @@ class StudyResult:
             Of this result's class.
         """
         import copy
+        import dataclasses
 
         view = copy.copy(self)
         view.figures = {}
-        for name in self.not_drawn:
-            setattr(view, name, None)
+        if self.drawn_from is not None:
+            keep = {"name", "kind", *self.drawn_from}
+            for f in dataclasses.fields(self):
+                if f.name not in keep and f.name != "figures":
+                    setattr(view, f.name, None)
         return view
 
     @property
@@ -207,7 +213,8 @@ class ZuptFilterOrderResult(_Navigation, StudyResult):
     trajectory: Any = None
     record_steps: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     main_figure: ClassVar[str] = "fig6_horizontal_cep"
-    not_drawn: ClassVar[tuple[str, ...]] = ("filter_models",)
+    drawn_from: ClassVar[tuple[str, ...]] = ("tables", "report_times", "length_unit", "metrics", "stops", "times",
+                                             "update_times")
 
 
 @dataclass
@@ -257,7 +264,8 @@ class ErrorBudgetResult(_Navigation, StudyResult):
     setup: Any = None
     truth_system: Any = None
     noise: Any = None
-    not_drawn: ClassVar[tuple[str, ...]] = ("runs", "setup", "truth_system", "noise")
+    drawn_from: ClassVar[tuple[str, ...]] = ("length_unit", "source_order", "sources", "stops", "times", "top",
+                                             "variances")
 
 
 @dataclass
@@ -296,7 +304,8 @@ class ZuptSensitivityResult(StudyResult):
     filter_models: dict = field(default_factory=dict)
     setup: Any = None
     main_figure: ClassVar[str] = "fig8_1_horizontal"
-    not_drawn: ClassVar[tuple[str, ...]] = ("filter_models", "setup")
+    drawn_from: ClassVar[tuple[str, ...]] = ("curves", "filters", "fits", "labels", "length_unit", "parameters",
+                                             "report_time", "scales")
 
 
 @dataclass
