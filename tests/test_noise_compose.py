@@ -117,3 +117,57 @@ def test_shared_compositions_are_reused_only_for_the_same_source_system_and_stat
     np.testing.assert_allclose(q2[0], 2.0 * ref[0], rtol=1e-13, atol=1e-14 * np.abs(ref[0]).max())
     compose_noise(P_s, F_s, sub[:1], dt, ev, cache=cache, system="filter options", rows=rows)
     assert cache.hits == 2
+
+
+def _with_constants(rng, N, nd, nc):
+    """Per-step Φ with ``nc`` random-constant states (identity rows) driving ``nd`` dynamic ones, permuted."""
+    n = nd + nc
+    F = np.zeros((N, n, n))
+    F[:, :nd, :] = 0.05 * rng.standard_normal((N, nd, n))
+    Phi = van_loan(F, np.zeros_like(F), 1.0)[0]
+    perm = rng.permutation(n)                               # the constants anywhere, not trailing
+    Phi = Phi[:, perm[:, None], perm[None, :]]
+    d = np.sort(np.flatnonzero(perm < nd))
+    return Phi, d
+
+
+@pytest.mark.parametrize("chunk", [None, 1, 7])
+def test_random_constants_are_composed_on_the_dynamic_rows_exactly(chunk):
+    """Identity rows of Φ (random constants) keep that form: the structured reduction equals the steps.
+
+    Oracle: :func:`covtool.lincov.batch.compose`, step by step.  A ``Q`` that
+    reaches a constant's row must take the dense reduction, and still agree.
+    """
+    from covtool.lincov.batch import dynamic_states
+    from covtool.lincov.noise import _constant_rows
+
+    rng = np.random.default_rng(21)
+    N, nd, nc = 40, 4, 7
+    Phi, d = _with_constants(rng, N, nd, nc)
+    n = nd + nc
+    ev = np.array([0, 1, 6, 17, 40])
+    assert np.array_equal(dynamic_states(Phi)[0], d)
+    Qdd = _psd(rng, N, nd)
+    Q = np.zeros((N, n, n))
+    Q[:, d[:, None], d[None, :]] = Qdd
+    assert _constant_rows(Phi, Q, ev) is not None
+    P1, Q1 = compose(Phi, Q, ev)
+    P2, Q2 = compose_scan(Phi, Q, ev, chunk=chunk)
+    np.testing.assert_allclose(P2, P1, rtol=1e-13, atol=1e-13 * np.abs(P1).max())
+    np.testing.assert_allclose(Q2, Q1, rtol=1e-13, atol=1e-13 * np.abs(Q1).max())
+    c = np.setdiff1d(np.arange(n), d)
+    np.testing.assert_array_equal(P2[:, c], np.broadcast_to(np.eye(n)[c], (len(ev) - 1, c.size, n)))
+    assert not Q2[:, c].any() and not Q2[:, :, c].any()
+    np.testing.assert_allclose(compose_transition(Phi, ev), P1, rtol=1e-13, atol=1e-13 * np.abs(P1).max())
+    # two sources at once, the second twice the first
+    Q3 = compose_scan(Phi, np.stack([Q, 2.0 * Q], axis=1), ev, chunk=chunk)[1]
+    np.testing.assert_allclose(Q3[:, 0], Q1, rtol=1e-13, atol=1e-13 * np.abs(Q1).max())
+    np.testing.assert_allclose(Q3[:, 1], 2.0 * Q3[:, 0], rtol=1e-15, atol=0)
+    # noise on a constant's row: not of that form, composed densely, the same answer
+    Qx = Q.copy()
+    Qx[:, c[0], c[0]] = 1e-3
+    assert _constant_rows(Phi, Qx, ev) is None
+    P4, Q4 = compose_scan(Phi, Qx, ev, chunk=chunk)
+    P5, Q5 = compose(Phi, Qx, ev)
+    np.testing.assert_allclose(Q4, Q5, rtol=1e-13, atol=1e-13 * np.abs(Q5).max())
+    np.testing.assert_allclose(P4, P5, rtol=1e-13, atol=1e-13 * np.abs(P5).max())
