@@ -164,6 +164,7 @@ class PureInsResult(_Navigation, StudyResult):
     history: "CovarianceHistory | None" = None
     truth_history: "CovarianceHistory | None" = None
     main_figure: ClassVar[str] = "pure_ins_errors"
+    drawn_from: ClassVar[tuple[str, ...]] = ("times", "metrics", "length_unit")
 
 
 @dataclass
@@ -328,6 +329,7 @@ class MagnitudeSweepResult(StudyResult):
     groups: list = field(default_factory=list)
     threshold: float = 0.0
     declared: dict = field(default_factory=dict)
+    drawn_from: ClassVar[tuple[str, ...]] = ("declared", "groups", "sweep", "threshold")
 
 
 @dataclass
@@ -348,6 +350,7 @@ class AdResetResult(StudyResult):
     params: dict = field(default_factory=dict)
     derived: dict = field(default_factory=dict)
     main_figure: ClassVar[str] = "fig2"
+    drawn_from: ClassVar[tuple[str, ...]] = ("tables", "figure_specs")
 
 
 @dataclass
@@ -405,6 +408,8 @@ class MonteCarloResult(_Navigation, StudyResult):
     acceptance_tests: dict = field(default_factory=dict)
     null_mean_squares: Any = None
     main_figure: ClassVar[str] = "mc_ratio"
+    drawn_from: ClassVar[tuple[str, ...]] = ("bands", "cases", "confidence", "length_unit", "nees", "runs", "stops",
+                                             "times")
 
 
 @dataclass
@@ -434,6 +439,7 @@ class DualImuResult(StudyResult):
     estimates: bool = True
     bridged: Any = None
     main_figure: ClassVar[str] = "difference_envelope"
+    drawn_from: ClassVar[tuple[str, ...]] = ("config", "fault_free", "fault", "labels", "estimates")
 
 
 @dataclass
@@ -458,6 +464,7 @@ class TradeGridResult(StudyResult):
     filters: list = field(default_factory=list)
     duration: float = 0.0
     length_unit: str = "ft"
+    drawn_from: ClassVar[tuple[str, ...]] = ("duration", "filters", "grades", "length_unit", "nominal")
 
 
 #: study kind -> its result class

@@ -79,6 +79,29 @@ def test_whitener_replays_its_record_bitwise():
     assert np.isfinite(again.nis).all() and (again.nis > 0).all()
 
 
+def test_a_model_with_a_record_pickles_without_it_and_whitens_the_same():
+    """The record holds a weak reference to a live Whitener: a pickled model leaves it out (the figure
+    server receives the dual-IMU runs, issue 13); the copy records again and whitens bitwise the same."""
+    import pickle
+
+    m = _model(seed=5)
+    z = np.random.default_rng(6).normal(0, 1, (4, m.t.size, m.m))
+    ref = _whiten(m, z)                                          # records
+    assert hasattr(m, "_whitener_record")
+    back = pickle.loads(pickle.dumps(m))
+    assert not hasattr(back, "_whitener_record") and hasattr(m, "_whitener_record")
+    for f in dataclasses.fields(m):
+        a, b = getattr(m, f.name), getattr(back, f.name)
+        if isinstance(a, np.ndarray):
+            np.testing.assert_array_equal(b, a, err_msg=f.name)
+        else:
+            assert b == a, f.name
+    w = _whiten(back, z)
+    assert len(back._whitener_record.steps) == 2 * m.t.size - 1
+    for name in ("nu", "S", "nis", "rho", "P", "mu", "x"):
+        np.testing.assert_array_equal(getattr(w, name), getattr(ref, name), err_msg=name)
+
+
 def test_whitener_departing_from_the_record_computes_its_own():
     """A Whitener that takes other steps than the record (an epoch skipped) is not given the recorded P."""
     m = _model(seed=3)
@@ -212,3 +235,25 @@ def test_strapdown_takes_strided_views_as_they_are():
         ref = step(ref, view_th[:, 4 * j:4 * j + 4], view_dv[:, 4 * j:4 * j + 4], 0.01)
     np.testing.assert_allclose(a.q[-1], ref.q, rtol=0, atol=1e-13)
     np.testing.assert_allclose(a.v_n[-1], ref.v_n, rtol=1e-12, atol=1e-10)
+
+
+def test_the_dual_imu_figures_go_to_the_figure_server_with_the_same_pixels(tmp_path):
+    """Its makers are partials over the result and its runs pickle (no whitener record): the server
+    takes them (issue 13) and draws the PNG files byte for byte as from the result itself."""
+    import pickle
+    from functools import partial
+
+    from covtool.io import writers
+    from covtool.io.figure_server import light_items
+
+    r = run_study(short_decl(runs=6, fault_runs=3, gaps=False))
+    assert set(r.figures) == {"difference_envelope", "window_test", "gsens_estimates"}
+    assert all(isinstance(m, partial) and m.args[0] is r for m in r.figures.values())
+    full, served = tmp_path / "full", tmp_path / "served"
+    full.mkdir()
+    served.mkdir()
+    job = pickle.dumps(light_items(r, [(n, m, served / f"{n}.png") for n, m in r.figures.items()]))
+    writers.draw_figures(pickle.loads(job))
+    writers.draw_figures([(n, m, full / f"{n}.png") for n, m in r.figures.items()])
+    for n in r.figures:
+        assert (served / f"{n}.png").read_bytes() == (full / f"{n}.png").read_bytes(), n

@@ -205,6 +205,14 @@ class DifferenceModel:
     candidates: tuple
     Hphi: np.ndarray | None = None
 
+    def __getstate__(self):
+        """The fields only: the whitener's record of covariance steps (``_whitener_record``,
+        :class:`covtool.dualnav.monitor.Whitener`) belongs to a live whitener of this process (a weak
+        reference) and is recorded again by the first whitener of the copy."""
+        state = dict(self.__dict__)
+        state.pop("_whitener_record", None)
+        return state
+
     @property
     def n(self) -> int:
         """Joint states."""

@@ -110,6 +110,32 @@ def _serve(job_fd: int, other_fd: int):
     return "drawn"
 
 
+def light_items(result, items) -> list:
+    """``items`` with each maker that is a ``functools.partial`` over ``result`` rebound to its figure view.
+
+    Parameters
+    ----------
+    result : covtool.results.StudyResult
+    items : list of (str, callable, pathlib.Path)
+
+    Returns
+    -------
+    list of (str, callable, pathlib.Path)
+        What :meth:`FigureServer.submit` pickles: a maker over the data it
+        draws (a partial of a plotting function over arrays and tables) is
+        sent as it is; one over ``result`` draws from
+        :meth:`~covtool.results.StudyResult.figure_view` instead.
+    """
+    view = None
+    light = []
+    for name, make, path in items:
+        if isinstance(make, partial) and make.args and make.args[0] is result:
+            view = result.figure_view() if view is None else view
+            make = partial(make.func, view, *make.args[1:], **(make.keywords or {}))
+        light.append((name, make, path))
+    return light
+
+
 class FigureServer:
     """A forked process that draws one study's figures (module notes).
 
@@ -164,13 +190,7 @@ class FigureServer:
         if self._w is None:
             return None
         try:
-            view = result.figure_view()
-            light = []
-            for name, make, path in items:
-                if isinstance(make, partial) and make.args and make.args[0] is result:
-                    make = partial(make.func, view, *make.args[1:], **(make.keywords or {}))
-                light.append((name, make, path))
-            payload = pickle.dumps(light, protocol=pickle.HIGHEST_PROTOCOL)
+            payload = pickle.dumps(light_items(result, items), protocol=pickle.HIGHEST_PROTOCOL)
         except Exception:                                   # noqa: BLE001 - a closure, a lock: drawn here instead
             payload = None
         if payload is None or len(payload) > MAX_VIEW_BYTES:

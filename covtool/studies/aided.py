@@ -53,6 +53,7 @@ from __future__ import annotations
 
 import re
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -68,8 +69,9 @@ from covtool.lincov.measurements import KINDS, Schedule, WHEN
 from covtool.lincov.measurements.base import error_state
 from covtool.lincov.reduced import build_filter
 from covtool.lincov.reference import propagate
+from covtool.plotting.aided import aided_history_figure, aided_sweep_figure
 from covtool.results import StudyResult
-from covtool.studies.aided_sweep import _sweep_figure, _sweep_table, parse_sweep, scaled_plan
+from covtool.studies.aided_sweep import _sweep_table, parse_sweep, scaled_plan
 from covtool.studies.config import MEASUREMENT_NAME
 from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
@@ -405,10 +407,11 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         tables["measurement_sweep"] = _sweep_table(swept, sweep, tr, rtimes)
     if variants:
         tables["measurement_state_impact"] = _variant_table(metrics, claimed, variants, tr, rtimes, grades)
-    figures = {f"aided_{_slug(g['name'])}": _figure(hdr["name"], g["name"], metrics, tr, outage_marks)
-               for g in grades}
+    # partials of the plotting module's makers, over the data they draw: they pickle (the figure server)
+    figures = {f"aided_{_slug(g['name'])}": partial(aided_history_figure, hdr["name"], g["name"], metrics, tr,
+                                                    outage_marks) for g in grades}
     if sweep is not None:
-        figures["measurement_sweep"] = _sweep_figure(hdr["name"], tables["measurement_sweep"], sweep)
+        figures["measurement_sweep"] = partial(aided_sweep_figure, hdr["name"], tables["measurement_sweep"], sweep)
     return StudyResult(
         name=hdr["name"], kind="aided", tables=tables, figures=figures,
         resolved={**decl, "study": {**decl["study"], "name": hdr["name"]}},
@@ -563,32 +566,3 @@ def _variant_table(metrics, claimed, variants, tr, rtimes, grades):
 
 def _slug(s):
     return re.sub(r"[^A-Za-z0-9]+", "_", s).strip("_").lower() or "grade"
-
-
-def _figure(study, grade, metrics, tr, outages):
-    def make():
-        import matplotlib.pyplot as plt
-
-        from covtool.plotting.style import plain_log_labels
-        fig, axs = plt.subplots(2, 1, figsize=(9, 7), sharex=True)
-        for (g, case), m in metrics.items():
-            if g != grade:
-                continue
-            axs[0].plot(tr / 60, m["cep"], label=case, lw=1.2)
-            axs[1].plot(tr / 60, m["sigma_down"], label=case, lw=1.2)
-        for _, a, b in outages:
-            for ax in axs:
-                ax.axvspan(a / 60, b / 60, color="0.85", lw=0)
-        axs[0].set_yscale("log")
-        axs[0].set_ylabel("CEP [m]")
-        axs[1].set_yscale("log")
-        for ax in axs:
-            plain_log_labels(ax, "y")
-        axs[1].set_ylabel("altitude error 1σ [m]")
-        axs[1].set_xlabel("time [min]")
-        axs[0].legend(fontsize=8)
-        for ax in axs:
-            ax.grid(True, alpha=0.3, which="both")
-        fig.suptitle(f"{study}: truth under each filter, grade {grade}" + (" (outages shaded)" if outages else ""))
-        return fig
-    return make

@@ -67,6 +67,7 @@ The runs go in one piece in-process (no chunks, no result store).
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 import pandas as pd
@@ -79,6 +80,7 @@ from covtool.io.filters import load_filters
 from covtool.lincov.aided import error_processes
 from covtool.lincov.kalman import symmetrize
 from covtool.nav.imu.simulator import ImuSimulator
+from covtool.plotting.aided import aided_ensemble_figure
 from covtool.results import StudyResult
 from covtool.studies.aided import (_measurement_table, _memory, check_error_state_names, filter_run,
                                    filter_system, measurement_steps, parse_measurements)
@@ -287,7 +289,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                   "monte_carlo_seconds": f"{t_mc:.2f}", "null_seconds": f"{t_null:.2f}",
                   "compute_seconds": f"{elapsed:.2f}"}
     return StudyResult(name=hdr["name"], kind="monte_carlo", tables=tables,
-                       figures={"mc_aided_ratio": _figure(hdr["name"], cases, bands, t, M, conf)},
+                       figures={"mc_aided_ratio": partial(aided_ensemble_figure, hdr["name"],
+                                                          [q for q, *_ in QUANTITIES], cases, bands, t, M, conf)},
                        resolved={**decl, "study": {**decl["study"], "name": hdr["name"]},
                                  "monte_carlo": {**MC_DEFAULTS, **decl["monte_carlo"]}},
                        provenance=provenance)
@@ -318,25 +321,3 @@ def augmented_system(Phi, Qd, err):
     j = np.arange(n0, n)
     Phi_a[:, j, j], Qd_a[:, j, j] = phi, qd
     return Phi_a, Qd_a
-
-
-def _figure(study, cases, bands, t, runs, confidence):
-    def make():
-        import matplotlib.pyplot as plt
-        qs = [q for q, *_ in QUANTITIES]
-        fig, axs = plt.subplots(len(qs), 1, figsize=(9, 2.2 * len(qs)), sharex=True)
-        for ax, q in zip(axs, qs):
-            for c in cases:
-                rms, sig, lo, hi = bands[(c, q)]
-                pos = sig > 0
-                line, = ax.plot(t[pos] / 60, rms[pos] / sig[pos], lw=1.0, label=f"filter {c}")
-                ax.fill_between(t[pos] / 60, lo[pos] / sig[pos], hi[pos] / sig[pos], color=line.get_color(),
-                                alpha=0.15, lw=0)
-            ax.axhline(1.0, color="0.3", lw=0.8)
-            ax.set_ylabel(f"{q}\nRMS/σ")
-            ax.grid(True, alpha=0.3)
-        axs[0].legend(fontsize=8)
-        axs[-1].set_xlabel("time [min]")
-        fig.suptitle(f"{study}: {runs}-run ensemble RMS / linear σ ({100 * confidence:g} % χ² bounds shaded)")
-        return fig
-    return make

@@ -95,23 +95,3 @@ def _sweep_table(swept, sweep, tr, rtimes):
                          "azimuth [arcmin]": mt["sigma_azimuth"][i] / ARCMIN,
                          "filter-claimed CEP [m]": mc["cep"][i]})
     return pd.DataFrame(rows)
-
-
-def _sweep_figure(study, df, sweep):
-    def make():
-        import matplotlib.pyplot as plt
-
-        from covtool.plotting.style import plain_log_labels
-        last = df[df["t [min]"] == df["t [min]"].max()]
-        fig, ax = plt.subplots(figsize=(7, 5))
-        for (g, case), d in last.groupby(["grade", "case"], sort=False):
-            ax.loglog(d["scale"], d["CEP [m]"], "o-", label=f"{g}: {case}" if g != "as declared" else case)
-        plain_log_labels(ax, "x")
-        plain_log_labels(ax, "y")
-        ax.set_xlabel(f"{sweep['measurement']} {sweep['what']} scale [-]")
-        ax.set_ylabel(f"CEP at {last['t [min]'].iloc[0]:g} min [m]")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-        fig.suptitle(f"{study}: {sweep['measurement']} {sweep['what']} sweep")
-        return fig
-    return make
