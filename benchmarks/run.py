@@ -15,7 +15,9 @@ Everything is measured in this one run and printed as a report:
 0. CLI wall time and peak RSS of each study (``python -m covtool run``
    in a subprocess, interpreter start and every output included; peak RSS
    of the child from ``resource.getrusage``), median of ``--repeats`` runs,
-   this tree and the ``--baseline`` checkout alternating.
+   this tree and the ``--baseline`` checkout alternating, each from its
+   own bytecode cache as an installed covtool runs (one untimed run of
+   each study first).
 1. Large-GEMM rate of numpy: 2000×2000 float64 matmul, best of 5, with one
    BLAS thread and with the default pool; measured again in every round of
    [3] (interleaved with the core), and the highest rate is the reference
@@ -298,14 +300,22 @@ print("@@", time.perf_counter() - t0, max(ru.ru_maxrss, rc.ru_maxrss),
 """
 
 
-def cli_run(tree: Path, study: Path, out: Path) -> tuple[float, float, float]:
-    """One ``covtool run`` in a fresh interpreter: (wall [s] incl. interpreter start, peak RSS [MB], CPU [s])."""
+def cli_run(tree: Path, study: Path, out: Path, pycache: Path | None = None) -> tuple[float, float, float]:
+    """One ``covtool run`` in a fresh interpreter: (wall [s] incl. interpreter start, peak RSS [MB], CPU [s]).
+
+    With ``pycache``, the tree's modules are byte-compiled once into it and loaded from there, as from an
+    installed covtool (``pip install .`` byte-compiles every module; a source tree run under
+    ``PYTHONDONTWRITEBYTECODE``, as on this machine, would compile all of covtool at every start).
+    """
     import resource
     import shutil
     import subprocess
 
     shutil.rmtree(out, ignore_errors=True)
     env = {**os.environ, "PYTHONPATH": str(tree)}
+    if pycache is not None:
+        env.pop("PYTHONDONTWRITEBYTECODE", None)
+        env["PYTHONPYCACHEPREFIX"] = str(pycache)
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     t0 = time.perf_counter()
     r = subprocess.run([sys.executable, "-c", _CHILD, "run", str(study), "--out", str(out)], cwd=tree, env=env,
@@ -322,12 +332,20 @@ def cli_run(tree: Path, study: Path, out: Path) -> tuple[float, float, float]:
 
 
 def cli_table(trees: dict, studies, repeats: int, out: Path) -> dict:
-    """Median CLI wall, peak RSS and median CPU per (tree, study), the trees alternating within each repeat."""
+    """Median CLI wall, peak RSS and median CPU per (tree, study), the trees alternating within each repeat.
+
+    Each tree runs from its own bytecode cache (:func:`cli_run`), written by one untimed run of each study
+    first (which also fills the numba caches of the Monte Carlo and dual-IMU kernels).
+    """
     res = {}
+    caches = {label: out.parent / f"pycache-{label}" for label in trees}
     for st in studies:
+        for label, tree in trees.items():
+            cli_run(tree, tree / "studies" / f"{st}.toml", out, caches[label])
         for _ in range(repeats):
             for label, tree in trees.items():
-                res.setdefault((label, st), []).append(cli_run(tree, tree / "studies" / f"{st}.toml", out))
+                res.setdefault((label, st), []).append(cli_run(tree, tree / "studies" / f"{st}.toml", out,
+                                                               caches[label]))
     return {k: (float(np.median([w for w, _, _ in v])), float(max(m for _, m, _ in v)),
                 float(np.median([c for _, _, c in v]))) for k, v in res.items()}
 

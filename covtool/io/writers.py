@@ -11,6 +11,7 @@ workbook's name is checked to be one plain file-name component first.
 from __future__ import annotations
 
 import datetime as _dt
+import os
 import platform
 from pathlib import Path
 
@@ -127,8 +128,8 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True, server=
     return written
 
 
-#: processes that draw a study's figures at once (besides the one writing the tables)
-FIGURE_PROCESSES = 4
+#: processes that draw a study's figures at once (besides the one writing the tables); None: one per core
+FIGURE_PROCESSES = None
 #: zlib level of the PNG files (PIL's default is 6)
 PNG_COMPRESSION = 3
 
@@ -176,10 +177,12 @@ def draw_in_processes(items) -> None:
     Runs in a child of the writer (:func:`_start_figures`) or in a figure
     server (:mod:`covtool.io.figure_server`): matplotlib's
     import (0.3-0.8 s) is paid once, by this process, never by the one
-    writing the tables, and each child inherits it.  Figures go to up to
-    :data:`FIGURE_PROCESSES` children, round robin in the study's order
-    (one figure per child up to that many figures), so that the longest
-    figure does not wait behind another.  The first error is re-raised.
+    writing the tables, and each child inherits it.  Up to
+    :data:`FIGURE_PROCESSES` children (one per core by default) take the
+    figures from a queue in the study's order, the next one as soon as
+    they are done with the last, so that a long figure does not wait
+    behind another and a child's second figure finds its fonts and text
+    caches warm.  The first error is re-raised.
     """
     from covtool.forked import Forked
 
@@ -187,8 +190,40 @@ def draw_in_processes(items) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot  # noqa: F401 - imported once here, inherited by every child
 
-    n = min(len(items), FIGURE_PROCESSES)
-    _finish_figures([Forked(draw_figures, items[w::n]) for w in range(n)])   # each dies with this process
+    n = min(len(items), _figure_processes())
+    if n <= 1 or len(items) > 255:
+        _finish_figures([Forked(draw_figures, items[w::max(n, 1)]) for w in range(max(n, 1))])
+        return
+    r, w = os.pipe()                                     # the queue: one byte per figure, read one at a time
+    try:
+        os.write(w, bytes(range(len(items))))            # ≤ 255 bytes: one atomic write into the pipe's buffer
+        os.close(w)
+        w = None
+        children = [Forked(_draw_queued, items, r) for _ in range(n)]   # each dies with this process
+    finally:
+        if w is not None:
+            os.close(w)
+        os.close(r)
+    _finish_figures(children)
+
+
+def _figure_processes() -> int:
+    """:data:`FIGURE_PROCESSES`, or the cores this process may run on."""
+    if FIGURE_PROCESSES is not None:
+        return max(1, int(FIGURE_PROCESSES))
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except (AttributeError, OSError):
+        return max(1, os.cpu_count() or 1)
+
+
+def _draw_queued(items, fd: int) -> None:
+    """In a figure child: draw the figures whose indices it reads from ``fd`` until the queue is empty."""
+    while True:
+        b = os.read(fd, 1)
+        if not b:
+            return
+        draw_figures([items[b[0]]])
 
 
 def _start_figures(items) -> list:
