@@ -56,6 +56,20 @@ def test_figures_from_child_processes_equal_those_drawn_in_process(tmp_path):
         assert (tmp_path / "out" / f"{n}.png").read_bytes() == (ref / f"{n}.png").read_bytes()
 
 
+@pytest.mark.parametrize("processes", [1, 2, None])
+def test_more_figures_than_processes_are_each_drawn_once_from_the_queue(tmp_path, monkeypatch, processes):
+    """The drawing children take the figures from a queue (one per core by default): all of them, once."""
+    monkeypatch.setattr(writers, "FIGURE_PROCESSES", processes)
+    figs = {f"q{k}": (lambda k=k: _figure(k % 4)) for k in range(7)}
+    files = writers.write_outputs(_result(figs), tmp_path / "out")
+    assert sorted(p.name for p in files if p.suffix == ".png") == sorted(f"{n}.png" for n in figs)
+    ref = tmp_path / "ref"
+    ref.mkdir()
+    writers.draw_figures([(n, m, ref / f"{n}.png") for n, m in figs.items()])
+    for n in figs:
+        assert (tmp_path / "out" / f"{n}.png").read_bytes() == (ref / f"{n}.png").read_bytes(), n
+
+
 def test_an_error_while_drawing_reaches_the_caller_and_nothing_is_written(tmp_path):
     def bad():
         raise InputError("figs.toml: [output] figure", "cannot be drawn (test)")
