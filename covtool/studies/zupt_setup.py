@@ -453,14 +453,8 @@ class ZuptSetup:
         """
         ckey = (name, None if discretization == "declared" else discretization)
         if ckey not in self._filters:
-            spec = self.specs[name]
-            if ckey[1] is not None:
-                spec = dataclasses.replace(spec, discretization=ckey[1])
-            ftruth = self.filter_truth if self.filter_truth is not None else self.truth
-            fm = build_filter(spec, ftruth, self.ctx, zupt_interval=self.zupt_interval,
-                              q0=self.nodes.q_nb[0], truth_dynamics=self.options_dynamics(spec.options),
-                              mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
-                              update_steps=self.update_steps)
+            fm = self.filter_build(name, ckey[1])
+            spec = fm.spec
             # the truth is discretised exactly (van_loan, or taylor without an order: the same
             # converged series, covtool.lincov.discretize); so is a filter with either
             same_method = spec.discretization == "van_loan" or spec.taylor_order is None
@@ -480,6 +474,21 @@ class ZuptSetup:
                 check_system(f"{self.where}: filter {name}", Phi_f, Qd_f, names=fm.names, times=self.t)
                 self._filters[ckey] = (fm, Phi_f, Qd_f, False)
         return self._filters[ckey]
+
+    def filter_build(self, name: str, discretization: str | None = None):
+        """The :class:`~covtool.lincov.reduced.FilterModel` of a declared filter (seed 002, eq (11)–(13)), not cached.
+
+        Its F_f, Q_f along the grid, D and P_f(0), as :meth:`filter_system` builds
+        them before discretising (``discretization`` overrides the declared one).
+        """
+        spec = self.specs[name]
+        if discretization not in (None, "declared"):
+            spec = dataclasses.replace(spec, discretization=discretization)
+        ftruth = self.filter_truth if self.filter_truth is not None else self.truth
+        return build_filter(spec, ftruth, self.ctx, zupt_interval=self.zupt_interval,
+                            q0=self.nodes.q_nb[0], truth_dynamics=self.options_dynamics(spec.options),
+                            mean_speed=self.mean_speed, dt_steps=np.diff(self.t),
+                            update_steps=self.update_steps)
 
     def options_dynamics(self, options=None):
         """F and Q_c along the whole grid of the model the filters are built from, under ``options``.
