@@ -545,7 +545,7 @@ def long_report(trees: dict, run_baseline: bool = False) -> None:
                           f"estimate {est} ({what})")
                     continue
                 try:
-                    wall, rss, cpu = cli_run(tree, path, Path(tmp) / "out")
+                    wall, rss, cpu = cli_run(tree, path, Path(tmp) / "out", Path(tmp) / f"pycache-{label}")
                     print(f"    {path.stem:24s} {label:10s}: {wall:8.1f} s wall, {cpu:8.1f} s CPU, peak RSS "
                           f"{rss:8.0f} MB; estimate {est} ({what}; load avg {loadavg()})")
                 except RuntimeError as exc:

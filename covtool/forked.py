@@ -179,6 +179,7 @@ class Forked:
             if self._busy:
                 _release_blas()
         if not self._payload:
+            self._close_memory()                            # a child that died leaves its result memory here
             raise RuntimeError(f"a worker process ended with status {self._status} and no result")
         if not hasattr(self, "_outcome"):
             try:

@@ -70,6 +70,17 @@ def test_more_figures_than_processes_are_each_drawn_once_from_the_queue(tmp_path
         assert (tmp_path / "out" / f"{n}.png").read_bytes() == (ref / f"{n}.png").read_bytes(), n
 
 
+def test_drawing_processes_follow_the_cores_up_to_a_cap(monkeypatch):
+    """One per core this process may run on, at most MAX_FIGURE_PROCESSES (a container may show its host's)."""
+    monkeypatch.setattr(writers, "FIGURE_PROCESSES", None)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: set(range(64)), raising=False)
+    assert writers._figure_processes() == writers.MAX_FIGURE_PROCESSES == 4
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert writers._figure_processes() == 2
+    monkeypatch.setattr(writers, "FIGURE_PROCESSES", 3)
+    assert writers._figure_processes() == 3
+
+
 def test_an_error_while_drawing_reaches_the_caller_and_nothing_is_written(tmp_path):
     def bad():
         raise InputError("figs.toml: [output] figure", "cannot be drawn (test)")
@@ -111,6 +122,29 @@ def test_forked_call_returns_its_value_from_another_process_and_reissues_its_war
     assert pid != os.getpid()
     np.testing.assert_array_equal(sq, [0, 1, 4, 9, 16])
     np.testing.assert_array_equal(job.result()[1], sq)          # collected once, kept
+
+
+def _result_memory_fds() -> int:
+    """Descriptors of this process open on a forked child's result memory (Linux: /proc/self/fd)."""
+    n = 0
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            n += "covtool-forked-result" in os.readlink(f"/proc/self/fd/{fd}")
+        except OSError:
+            pass
+    return n
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self/fd"), reason="counts descriptors through /proc")
+def test_a_child_that_dies_leaves_no_result_memory_open():
+    """A drawing child may die (the figure queue's other children go on): its result memory is closed too."""
+    from covtool.forked import Forked
+
+    before = _result_memory_fds()
+    job = Forked(os._exit, 3)
+    with pytest.raises(RuntimeError, match="a worker process ended with status 3 and no result"):
+        job.result()
+    assert _result_memory_fds() == before
 
 
 def test_forked_call_reraises_the_error_and_cancel_reaps_the_child():

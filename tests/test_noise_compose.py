@@ -171,3 +171,14 @@ def test_random_constants_are_composed_on_the_dynamic_rows_exactly(chunk):
     P5, Q5 = compose(Phi, Qx, ev)
     np.testing.assert_allclose(Q4, Q5, rtol=1e-13, atol=1e-13 * np.abs(Q5).max())
     np.testing.assert_allclose(P4, P5, rtol=1e-13, atol=1e-13 * np.abs(P5).max())
+
+
+def test_no_steps_compose_to_the_identity_as_step_by_step():
+    """N = 0: every interval is empty; the pairwise reduction agrees with the step-by-step composition."""
+    Phi, Q = np.zeros((0, 3, 3)), np.zeros((0, 3, 3))
+    P1, Q1 = compose(Phi, Q, np.array([0, 0]))
+    P2, Q2 = compose_scan(Phi, Q, np.array([0, 0]))
+    np.testing.assert_array_equal(P2, P1)
+    np.testing.assert_array_equal(P2, np.eye(3)[None])
+    np.testing.assert_array_equal(Q2, Q1)
+    np.testing.assert_array_equal(Q2, np.zeros((1, 3, 3)))

@@ -128,8 +128,10 @@ def write_outputs(result: StudyResult, out_dir, *, figures: bool = True, server=
     return written
 
 
-#: processes that draw a study's figures at once (besides the one writing the tables); None: one per core
+#: processes that draw a study's figures at once (besides the one writing the tables); None: one per core,
+#: at most :data:`MAX_FIGURE_PROCESSES` (a container may report its host's cores)
 FIGURE_PROCESSES = None
+MAX_FIGURE_PROCESSES = 4
 #: zlib level of the PNG files (PIL's default is 6)
 PNG_COMPRESSION = 3
 
@@ -208,13 +210,14 @@ def draw_in_processes(items) -> None:
 
 
 def _figure_processes() -> int:
-    """:data:`FIGURE_PROCESSES`, or the cores this process may run on."""
+    """:data:`FIGURE_PROCESSES`, or the cores this process may run on (at most :data:`MAX_FIGURE_PROCESSES`)."""
     if FIGURE_PROCESSES is not None:
         return max(1, int(FIGURE_PROCESSES))
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cores = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):
-        return max(1, os.cpu_count() or 1)
+        cores = os.cpu_count() or 1
+    return max(1, min(cores, MAX_FIGURE_PROCESSES))
 
 
 def _draw_queued(items, fd: int) -> None:

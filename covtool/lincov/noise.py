@@ -320,7 +320,7 @@ def compose_scan(Phi: np.ndarray, Qd, ev, *, chunk: int | None = None) -> tuple[
     single = Qd is not None and np.ndim(Qd) == 3
     J = 0 if Qd is None else (1 if single else np.shape(Qd)[1])
     fold = _Fold(ev, n, J, _constant_rows(Phi, Qd, ev))
-    step = N if chunk is None else max(1, int(chunk))
+    step = max(1, N) if chunk is None else max(1, int(chunk))
     for a in range(0, N, step):
         b = min(N, a + step)
         Q = None if Qd is None else (np.asarray(Qd[a:b], float)[:, None] if single else np.asarray(Qd[a:b], float))
