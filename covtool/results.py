@@ -441,6 +441,30 @@ class DualImuResult(StudyResult):
     main_figure: ClassVar[str] = "difference_envelope"
     drawn_from: ClassVar[tuple[str, ...]] = ("config", "fault_free", "fault", "labels", "estimates")
 
+    def figure_view(self) -> "DualImuResult":
+        """:meth:`StudyResult.figure_view` whose runs hold only what the figures draw.
+
+        Each run becomes a namespace of its epochs, differences, predicted
+        envelope, window statistics and g-sensitivity estimates (arrays), and
+        the configuration one of the name, fault, false-alarm rate and window
+        the figures print, so that the view unpickles without the dual-IMU
+        kernels and the typed configuration (0.3 s in the figure server).
+        """
+        from types import SimpleNamespace
+
+        def drawn(r):
+            return SimpleNamespace(t=r.t, z=r.z, envelope=r.envelope, window_stat=r.window_stat,
+                                   window_threshold=r.window_threshold,
+                                   model=SimpleNamespace(components=tuple(r.model.components)),
+                                   gsens=SimpleNamespace(candidates=r.gsens.candidates, estimate=r.gsens.estimate))
+
+        view = super().figure_view()
+        cfg = self.config
+        view.config = SimpleNamespace(name=cfg.name, fault=cfg.fault, false_alarm=cfg.false_alarm, window=cfg.window)
+        view.fault_free = [drawn(r) for r in self.fault_free]
+        view.fault = [drawn(r) for r in self.fault]
+        return view
+
 
 @dataclass
 class TradeGridResult(StudyResult):

@@ -257,3 +257,14 @@ def test_the_dual_imu_figures_go_to_the_figure_server_with_the_same_pixels(tmp_p
     writers.draw_figures([(n, m, full / f"{n}.png") for n, m in r.figures.items()])
     for n in r.figures:
         assert (served / f"{n}.png").read_bytes() == (full / f"{n}.png").read_bytes(), n
+    # the view's runs and configuration are plain data: the server unpickles them without the dual-IMU
+    # kernels (numba) or the typed study configuration
+    import subprocess
+    import sys
+
+    blob = tmp_path / "job.pickle"
+    blob.write_bytes(job)
+    code = ("import pickle, sys; import covtool.results; pickle.loads(open(sys.argv[1], 'rb').read()); "
+            "print(sorted(m for m in ('numba', 'covtool.studies', 'covtool.dualnav.monitor') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code, str(blob)], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout
