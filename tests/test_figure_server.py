@@ -82,6 +82,29 @@ def test_the_view_leaves_out_what_no_figure_reads_and_the_makers():
     assert v.curve is r.curve and r.system is not None and len(r.figures) == 2       # the result is untouched
 
 
+def test_a_maker_over_a_variant_of_the_result_is_sent_its_view_too(tmp_path):
+    """The trade grid's per-aiding figures are partials over ``dataclasses.replace(result, ...)``."""
+    import dataclasses
+    import pickle
+
+    from covtool.io.figure_server import light_items
+
+    r = _heavy()
+    variant = dataclasses.replace(r, curve=r.curve[::-1].copy())
+    items = [("own", partial(_curve_figure, r, 1), tmp_path / "own.png"),
+             ("variant", partial(_curve_figure, variant, 1), tmp_path / "variant.png")]
+    light = light_items(r, items)
+    for (_, make, _), src in zip(light, (r, variant)):
+        view = make.args[0]
+        assert view is not src and view.system is None and view.tables is None
+        np.testing.assert_array_equal(view.curve, src.curve)
+    assert len(pickle.dumps(light)) < 100_000                        # not the 16-MB systems
+    writers.draw_figures(pickle.loads(pickle.dumps(light)))
+    ref = tmp_path / "ref.png"
+    writers.draw_figures([("v", partial(_curve_figure, variant, 1), ref)])
+    assert (tmp_path / "variant.png").read_bytes() == ref.read_bytes()
+
+
 def test_served_figures_equal_those_drawn_from_the_full_result(tmp_path):
     r = _heavy()
     with FigureServer.start() as server:

@@ -111,7 +111,7 @@ def _serve(job_fd: int, other_fd: int):
 
 
 def light_items(result, items) -> list:
-    """``items`` with each maker that is a ``functools.partial`` over ``result`` rebound to its figure view.
+    """``items`` with each maker that is a ``functools.partial`` over a result rebound to its figure view.
 
     Parameters
     ----------
@@ -123,15 +123,20 @@ def light_items(result, items) -> list:
     list of (str, callable, pathlib.Path)
         What :meth:`FigureServer.submit` pickles: a maker over the data it
         draws (a partial of a plotting function over arrays and tables) is
-        sent as it is; one over ``result`` draws from
-        :meth:`~covtool.results.StudyResult.figure_view` instead.
+        sent as it is; one over ``result``, or over another result object
+        (a variant of it, as the trade grid's per-aiding figures), draws from
+        that object's :meth:`~covtool.results.StudyResult.figure_view` instead.
     """
-    view = None
+    from covtool.results import StudyResult
+
+    views = {}
     light = []
     for name, make, path in items:
-        if isinstance(make, partial) and make.args and make.args[0] is result:
-            view = result.figure_view() if view is None else view
-            make = partial(make.func, view, *make.args[1:], **(make.keywords or {}))
+        if isinstance(make, partial) and make.args and isinstance(make.args[0], StudyResult):
+            own = make.args[0]
+            if id(own) not in views:
+                views[id(own)] = (own, own.figure_view())      # the object kept: its id stays its own
+            make = partial(make.func, views[id(own)][1], *make.args[1:], **(make.keywords or {}))
         light.append((name, make, path))
     return light
 
