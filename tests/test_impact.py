@@ -75,6 +75,10 @@ def test_nominal_member_is_the_declared_filter(S, name):
     assert r.variants[0] == (NOMINAL, None) and r.variants[1] == (NONE, None)
     np.testing.assert_allclose(_metrics(S, r.P[0, -1]), _metrics(S, _reference(S, name)), rtol=1e-8)
     assert r.noise_check < 1e-10          # Σ per-block composed noise = the filter's own Q_f
+    dyn = S.options_dynamics(S.specs[name].options)
+    if dyn is not S.dyn:
+        # the truth's F under the filter's options is read in runs of steps and sub-blocks, never built whole
+        assert dyn._F is None
 
 
 def test_block_put_back_equals_the_filter_that_keeps_it(S):

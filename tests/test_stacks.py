@@ -82,3 +82,26 @@ def test_options_dynamics_sub_blocks_equal_those_of_the_full_stack(rows, cols):
     assert np.array_equal(block, want[:, np.asarray(rows)][:, :, np.asarray(c)])
     assert block.flags.c_contiguous
     assert np.array_equal(got.F, want) and np.array_equal(got.F_block(rows, cols), block)   # after the build too
+
+
+@pytest.mark.parametrize("a, b", [(0, 60), (0, 1), (17, 42), (59, 60), (30, 30)])
+def test_options_dynamics_step_runs_equal_those_of_the_full_stack(a, b):
+    """F under other options, steps a … b−1 (the impact table's chunked transition), without the full copy.
+
+    Equal element for element to the rows of the fresh build (error_dynamics under the options), and
+    C-contiguous; the base dynamics' own runs are views of its F.
+    """
+    model = load_model(SDINS58)
+    s = land_vehicle(dt=1.0).sample(np.linspace(0.0, 600.0, 61))
+    ctx = Context.from_trajectory(s)
+    options = NavOptions(coriolis=False, couple_vertical=False)
+    base = error_dynamics(model, ctx)
+    got = with_nav_options(base, ctx, options)
+    want = error_dynamics(model, ctx, options).F
+    run = got.F_steps(a, b)
+    assert got._F is None                                     # not built by a run of steps
+    assert run.shape == (b - a, 58, 58) and run.flags.c_contiguous
+    assert np.array_equal(run, want[a:b])
+    assert not np.array_equal(run[:, :10, :10], base.F[a:b, :10, :10]) or a == b
+    assert np.shares_memory(base.F_steps(a, b), base.F) or a == b
+    assert np.array_equal(got.F[a:b], run) and np.array_equal(got.F_steps(a, b), run)   # after the build too

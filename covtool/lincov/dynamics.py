@@ -232,14 +232,18 @@ class ErrorDynamics:
         """
         return gather(self.F, rows, cols)
 
+    def F_steps(self, a: int, b: int) -> np.ndarray:
+        """``F[a:b]``, shape ``(b − a, n, n)``: the steps ``a … b−1``, C-contiguous."""
+        return self.F[a:b]
+
 
 class OptionsDynamics(ErrorDynamics):
     """The dynamics of :func:`with_nav_options`: another model's F with its navigation block replaced.
 
     ``F`` (shape ``(N, n, n)``) is built on first access; :meth:`F_block`
     gathers a sub-block from the base F and the new navigation block
-    without building it (a reduced filter needs only its own rows), with
-    the same values.  Q_c and the noise sources are the base's own.
+    without building it (a reduced filter needs only its own rows), and
+    :meth:`F_steps` a run of steps, with the same values.  Q_c and the noise sources are the base's own.
 
     Parameters
     ----------
@@ -261,6 +265,13 @@ class OptionsDynamics(ErrorDynamics):
             F[:, :10, :10] = self._nav
             self._F = F
         return self._F
+
+    def F_steps(self, a: int, b: int) -> np.ndarray:
+        if self._F is not None:
+            return self._F[a:b]
+        F = self._base.F[a:b].copy()                     # the values of F[a:b], without building F
+        F[:, :10, :10] = self._nav[a:b]
+        return F
 
     def F_block(self, rows, cols=None) -> np.ndarray:
         if self._F is not None:

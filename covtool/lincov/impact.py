@@ -78,14 +78,21 @@ def dropped_blocks(truth, kept) -> list[str]:
     return [b for b in truth.block_names() if any(s.block == b and s.name not in ks for s in truth.states)]
 
 
-def _transition(F, dt):
-    """Φ = e^{FΔt} per step (the truth F under the filter's options), by :func:`covtool.lincov.discretize.van_loan`."""
-    out = np.empty_like(F)
-    dt = np.broadcast_to(np.asarray(dt, float), (F.shape[0],))
-    zero = np.zeros(F.shape[1:])
-    for a in range(0, F.shape[0], TRANSITION_CHUNK):
-        b = min(F.shape[0], a + TRANSITION_CHUNK)
-        out[a:b] = van_loan(F[a:b], zero, dt[a:b], what="impact: Φ under the filter's navigation options")[0]
+def _transition(dyn, dt):
+    """Φ = e^{FΔt} per step (the truth F under the filter's options), by :func:`covtool.lincov.discretize.van_loan`.
+
+    ``dyn`` (:class:`~covtool.lincov.dynamics.ErrorDynamics`) gives F one
+    chunk of steps at a time (:meth:`~covtool.lincov.dynamics.ErrorDynamics.F_steps`):
+    the whole F under the options is never built.  Returns shape (N, n, n).
+    """
+    dt = np.asarray(dt, float)
+    N, n = dt.shape[0], len(dyn.names)
+    out = np.empty((N, n, n))
+    zero = np.zeros((n, n))
+    for a in range(0, N, TRANSITION_CHUNK):
+        b = min(N, a + TRANSITION_CHUNK)
+        out[a:b] = van_loan(dyn.F_steps(a, b), zero, dt[a:b],
+                            what="impact: Φ under the filter's navigation options")[0]
     return out
 
 
@@ -126,7 +133,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     else:
         # filters that share navigation options share this transition: computed once per study
         if tkey not in S._dyn_cache:
-            S._dyn_cache[tkey] = _transition(dyn.F, dt)
+            S._dyn_cache[tkey] = _transition(dyn, dt)
         Phi_pad = S._dyn_cache[tkey]
     # so do the sources' composed noises: a source composed on the states it reaches is the same in
     # every filter of these options that holds them (the kept navigation states, a dropped block's own)
@@ -139,7 +146,7 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     state_block = {s.name: s.block for s in truth.states}
     # --- filter-noise components in the filter's own space
     PhiX = gather(Phi_pad, kidx)
-    FX = gather(dyn.F, kidx)
+    FX = dyn.F_block(kidx)
     factors = [restricted_noise("kept", dyn.noise, kidx)]
     ewn_of = {b: [src for src in fm.ewn_noise if state_block[src.name] == b] for b in blocks}
     ewn_blocks = [b for b in blocks if ewn_of[b]]
@@ -159,12 +166,12 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
     # when no noisy block drives another (no kept state drives a dropped one, F_dropped,kept = 0), for
     # then each source's composed noise on the union is its noise on (kept ∪ its block) bordered by
     # zeros; else one pass per block
-    apart = all(not np.any(gather(dyn.F, block_states[c], block_states[b]))
+    apart = all(not np.any(dyn.F_block(block_states[c], block_states[b]))
                 and not np.any(gather(Phi_pad, block_states[c], block_states[b]))
                 for b in noisy for c in noisy if c != b)
     for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
         urows = np.array(sorted(kset.union(*(block_states[b] for b in group))))
-        Qu = compose_noise(gather(Phi_pad, urows), gather(dyn.F, urows),
+        Qu = compose_noise(gather(Phi_pad, urows), dyn.F_block(urows),
                            [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev,
                            rows=urows, **shared)
         for j, b in enumerate(group):

@@ -26,7 +26,8 @@ def impact_figure(result):
     value = {}
     for key, v in zip(zip(tab["filter"], tab["block"], tab["variant"]), zip(*(tab[c] for c in cols))):
         value.setdefault(key, v)
-    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.2 + 2.6 * len(names)), squeeze=False)
+    # the two panels of a filter share its blocks' axis: the names are written once, on the left
+    fig, axes = plt.subplots(len(names), 2, figsize=(12, 2.2 + 2.6 * len(names)), squeeze=False, sharey="row")
     for r, name in enumerate(names):
         blocks = list(dict.fromkeys(b for (f, b, _v) in value if f == name and b != ""))
         nom = next(v for (f, _b, var), v in value.items() if f == name and var == "nominal")
@@ -40,9 +41,9 @@ def impact_figure(result):
             ax.barh(y + 0.2, back, 0.4, label="(b) this block put back into the filter")
             ax.axvline(nom[c], color="k", lw=1.2, label="nominal (all dropped blocks as noise)")
             ax.axvline(none[c], color="0.5", lw=1.0, ls="--", label="no equivalent noise")
-            ax.set_yticks(y)
-            ax.set_yticklabels(blocks, fontsize=8)
-            ax.invert_yaxis()
+            if c == 0:
+                ax.set_yticks(y, blocks, fontsize=8)
+                ax.invert_yaxis()
             ax.set_xlabel(f"true {col} at {t_report / 60:g} min")
             ax.set_title(f"filter {name}: {col.split(' [')[0]}")
             ax.grid(True, axis="x", alpha=0.3)
