@@ -269,3 +269,46 @@ def test_recorded_steps_equal_the_full_history(S):
     np.testing.assert_array_equal(part.steps, [0, 300, 600])
     np.testing.assert_array_equal(part.P_truth, full.P_truth[[0, 300, 600]])
     assert sorted(part.prior_truth) == [300, 600]
+
+
+def test_shared_jacobians_equal_each_epochs_own_and_follow_the_geometry(S):
+    """The measurement Jacobians shared by a study's runs (covtool.lincov.aided.Jacobians, issue 13).
+
+    Epochs built with one shared instance, for two filters and a σ-scaled copy of the plan, equal those
+    built alone, element for element; a copy differing only in σ takes the same arrays, one with another
+    lever arm its own (and different) ones; Jacobians of another trajectory are refused.
+    """
+    import dataclasses
+
+    from covtool.lincov.aided import Jacobians
+    from covtool.lincov.measurements.base import nav_point
+
+    plan, states = gnss_mix(S)
+    names = list(S.truth.names) + [s.name for s in states]
+    jac = Jacobians(S.nodes)
+    scaled = [(dataclasses.replace(m, sigma=m.sigma * 3.0, filter_sigma=m.sigma * 0.5), st) for m, st in plan]
+    for f, kept in (("A", ["gps_N", "baro_bias"]), ("B1", [])):
+        fnames = list(S.filter_model(f)[0].names) + kept
+        for p in (plan, scaled):
+            shared, alone = build_epochs(p, S.nodes, names, fnames, jacobians=jac), build_epochs(p, S.nodes, names,
+                                                                                                 fnames)
+            assert len(shared) == len(alone) > 100
+            for a, b in zip(shared, alone):
+                assert a.step == b.step and a.rows == b.rows
+                for x in ("H", "R", "Hf", "Rf"):
+                    assert np.array_equal(getattr(a, x), getattr(b, x)), (f, x, a.step)
+    pos, k = plan[0][0], int(plan[0][1][7])
+    x, w = nav_point(S.nodes, k)
+    H_nav, H_err = jac(pos, k)
+    want = pos.jacobian(x, w)
+    assert np.array_equal(H_nav, want[0]) and np.array_equal(H_err, want[1])
+    assert jac(scaled[0][0], k)[0] is H_nav                         # σ does not enter H (seed 002, eq (14))
+    moved = dataclasses.replace(pos, lever_arm=pos.lever_arm + np.array([0.0, 0.0, 1.0]))
+    assert moved.geometry_key() != pos.geometry_key() == scaled[0][0].geometry_key()
+    H_moved = jac(moved, k)[0]
+    assert H_moved is not H_nav and np.array_equal(H_moved, moved.jacobian(x, w)[0])
+    assert not np.array_equal(H_moved, H_nav)
+    assert not H_nav.flags.writeable
+    other = S.nodes.sample(S.t)
+    with pytest.raises(ValueError, match="another trajectory"):
+        build_epochs(plan, other, names, names, jacobians=jac)

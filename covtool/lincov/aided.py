@@ -142,7 +142,50 @@ def error_variance(state, t: float) -> float:
     return state.sigma**2 + (state.rw**2 * t if state.process == "random_walk" else 0.0)
 
 
-def build_epochs(plan, nodes, names, filter_names, *, absorb: bool = True) -> list[Epoch]:
+class Jacobians:
+    """The truth's measurement Jacobians ``(H_nav, H_err)`` at the grid steps, each computed once.
+
+    :meth:`Measurement.jacobian <covtool.lincov.measurements.base.Measurement.jacobian>`
+    at step ``k`` depends on the trajectory there and on what the
+    measurement is (:meth:`~covtool.lincov.measurements.base.Measurement.geometry_key`),
+    not on the filter, the grade or the noise 1σ: the filter runs of one
+    study share one instance (:func:`build_epochs`), and so do the scaled
+    copies of a σ sweep.  Holds ``m × (10 + n_e)`` numbers per measurement
+    and update step.
+
+    Parameters
+    ----------
+    nodes : covtool.nav.trajectory.core.Trajectory
+        The trajectory sampled on the grid.
+    """
+
+    def __init__(self, nodes):
+        self.nodes = nodes
+        self._keys: dict = {}
+        self._points: dict = {}
+        self._values: dict = {}
+
+    def point(self, k: int):
+        """``(x, w)`` of grid step ``k`` (:func:`covtool.lincov.measurements.base.nav_point`)."""
+        if k not in self._points:
+            self._points[k] = nav_point(self.nodes, k)
+        return self._points[k]
+
+    def __call__(self, meas, k: int):
+        """``(H_nav, H_err)`` of ``meas`` at grid step ``k``, shapes (m, 10) and (m, n_e); read only."""
+        key = self._keys.get(id(meas))
+        if key is None or key[0] is not meas:                    # the measurement itself pins its id
+            key = self._keys[id(meas)] = (meas, meas.geometry_key())
+        hit = self._values.get((key[1], k))
+        if hit is None:
+            H_nav, H_err = meas.jacobian(*self.point(k))
+            H_nav.flags.writeable = H_err.flags.writeable = False
+            hit = self._values[(key[1], k)] = (H_nav, H_err)
+        return hit
+
+
+def build_epochs(plan, nodes, names, filter_names, *, absorb: bool = True,
+                 jacobians: Jacobians | None = None) -> list[Epoch]:
     """Stack the measurements due at each grid step.
 
     Parameters
@@ -159,22 +202,32 @@ def build_epochs(plan, nodes, names, filter_names, *, absorb: bool = True) -> li
         measurement noise: the measurement counterpart of seed 002,
         eq (11)–(13), which replace a dropped state coupling through F by
         white process noise).  False: the filter ignores them.
+    jacobians : Jacobians, optional
+        The measurement Jacobians of ``nodes``, shared between calls (the
+        filters of a study); a new one by default.
 
     Returns
     -------
     list of Epoch, in time order
+
+    Raises
+    ------
+    ValueError
+        ``jacobians`` belongs to another trajectory.
     """
     fset = set(filter_names)
     due: dict[int, list] = {}
     for meas, steps in plan:
         for k in np.asarray(steps, int):
             due.setdefault(int(k), []).append(meas)
+    jac = Jacobians(nodes) if jacobians is None else jacobians
+    if jac.nodes is not nodes:
+        raise ValueError("build_epochs: the Jacobians are of another trajectory")
     out = []
     for k in sorted(due):
-        x, w = nav_point(nodes, k)
         Hs, Hfs, Rs, Rfs, rows, r0 = [], [], [], [], [], 0
         for meas in due[k]:
-            H_nav, H_err = meas.jacobian(x, w)
+            H_nav, H_err = jac(meas, k)
             Hs.append(place(H_nav, H_err, meas, names))
             Hfs.append(place(H_nav, H_err, meas, filter_names))
             Rs.append(meas.R())

@@ -63,7 +63,7 @@ from covtool.errors import StudyFileError
 from covtool.io.config import (check_keys, choice, names, number, quantity, quantity_list, require,
                                string, table)
 from covtool.io.filters import load_filters
-from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
+from covtool.lincov.aided import augment, build_epochs, error_processes, Jacobians, propagate_aided
 from covtool.lincov.kalman import check_system
 from covtool.lincov.measurements import KINDS, Schedule, WHEN
 from covtool.lincov.measurements.base import error_state
@@ -344,6 +344,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     metrics, claimed, nstates, at_updates, swept = {}, {}, {}, [], {}
     dt_steps = np.diff(t)
     err = error_processes(states, dt_steps)[:2]
+    jac = Jacobians(nodes)                 # the measurement Jacobians: the same in every grade, filter and scale
     for g in grades:
         truth = load_truth(decl, where, base_dir, grade=g) if g["scale"] != 1.0 else truth0
         ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
@@ -366,7 +367,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
             fm, Phi_f, Qd_f = built[base]
             kept = [s.name for s in states if s.name not in drop]
             r, fnames, _, _ = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all,
-                                         err, rec, form=specs_g[base].update, label=f"{where}: {gl}: filter {label}")
+                                         err, rec, form=specs_g[base].update, label=f"{where}: {gl}: filter {label}",
+                                         jacobians=jac)
             metrics[(gl, label)] = _metrics(r.P_truth, nodes, rec)
             if sweep is not None and not drop:     # the same filter with the swept measurement's σ scaled
                 for sc in sweep["scales"]:
@@ -374,7 +376,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                     rs = r if sc == 1.0 else filter_run(
                         fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, pairs, nodes, names_all, err, rec,
                         form=specs_g[base].update, label=f"{where}: {gl}: filter {label}, {sweep['measurement']} "
-                                                         f"{sweep['what']} x{sc:g}")[0]
+                                                         f"{sweep['what']} x{sc:g}", jacobians=jac)[0]
                     swept[(gl, label, sc)] = (next(m for m, _ in pairs if m.name == sweep["measurement"]),
                                               _metrics(rs.P_truth, nodes, rec),
                                               _metrics(rs.P_filter[:, :10, :10], nodes, rec))
@@ -423,12 +425,14 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
 
 def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all, err, rec, *, form,
-               label, all_gains=False, P0_truth=None):
+               label, all_gains=False, P0_truth=None, jacobians=None):
     """The truth under one filter with the declared measurements (seed 002, eq (15)–(16)).
 
     ``P0_truth`` (n₀ + n_e square), if given, replaces the truth's initial
     covariance over ``[x_INS; e]`` (the Monte Carlo's conditional
-    prediction); the filter and its gains do not depend on it.
+    prediction); the filter and its gains do not depend on it.  ``jacobians``
+    (:class:`covtool.lincov.aided.Jacobians` of ``nodes``) shares the
+    measurement Jacobians between the runs of a study.
 
     Returns
     -------
@@ -444,7 +448,7 @@ def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, na
     Pf0 = np.zeros((nf0 + len(kept),) * 2)
     Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0, Pf_e
     fnames = list(fm.names) + list(kept)
-    epochs = build_epochs(meas_pairs, nodes, names_all, fnames)
+    epochs = build_epochs(meas_pairs, nodes, names_all, fnames, jacobians=jacobians)
     err_f = error_processes([s for s in states if s.name in kept], np.diff(nodes.t))[:2]
     r = propagate_aided(Phi, Qd, P0a, Phi_f, Qd_f, Pf0, D, epochs, err=err, err_f=err_f, record=rec, form=form,
                         label=label, times=nodes.t, names=names_all, filter_names=fnames, system_checked=True,

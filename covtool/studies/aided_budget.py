@@ -53,7 +53,7 @@ from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, table
 from covtool.io.filters import load_filters
-from covtool.lincov.aided import error_processes
+from covtool.lincov.aided import error_processes, Jacobians
 from covtool.lincov.reference import propagate
 from covtool.plotting.budget import budget_figure
 from covtool.results import ErrorBudgetResult
@@ -121,6 +121,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
                                      resolution=opts["resolution"])
     lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
     runs, var, nominal, residuals, first = {}, {}, {}, {}, {}
+    jac = Jacobians(nodes)                 # the measurement Jacobians, shared by every case
     for c in ([PURE] if want_pure else []) + list(cases):
         label = f"{where}: {'pure INS' if c == PURE else 'filter ' + c} error budget"
         if c == PURE:                      # no update: the measurements' sources are zero, left out
@@ -135,7 +136,8 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
                                             mean_speed=mean_speed, update_steps=all_steps, where=where)
             r, _, D, epochs = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, [s.name for s in states],
                                          meas_pairs, nodes, names_all, err, rec, form=specs[c].update,
-                                         label=f"{where}: filter {c} (nominal run)", all_gains=True)
+                                         label=f"{where}: filter {c} (nominal run)", all_gains=True,
+                                         jacobians=jac)
             nominal[c] = r.P_truth[:, :10, :10]
             runs[c] = run_aided_budget(Phi, dyn.F, factors, dt_steps, sources, states, mnames, D, epochs, r.gains,
                                        rec, err=err, label=label, names=names_all, times=t)

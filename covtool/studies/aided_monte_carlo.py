@@ -77,7 +77,7 @@ from covtool.analysis.metrics import nav_metrics, ned_position_covariance
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, table
 from covtool.io.filters import load_filters
-from covtool.lincov.aided import error_processes
+from covtool.lincov.aided import error_processes, Jacobians
 from covtool.lincov.kalman import symmetrize
 from covtool.nav.imu.simulator import ImuSimulator
 from covtool.plotting.aided import aided_ensemble_figure
@@ -197,13 +197,14 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         factors = noise_factors(Qd_a)
         C_out = output_rows(nodes.lat, nodes.h, nodes.q_nb)
     rows, hist, bands, tests = [], [], {}, {}
+    jac = Jacobians(nodes)                 # the measurement Jacobians, shared by every case and run
     t_mc = t_null = 0.0
     for i, c in enumerate(cases):
         fm, Phi_f, Qd_f = filter_system(specs[c], truth, ctx, dyn, Phi, Qd, hdr, t, nodes, ewn_dt=ewn_dt,
                                         mean_speed=mean_speed, update_steps=all_steps, where=where)
         r, fnames, D, epochs = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all,
                                           err, every, form=specs[c].update, label=f"{where}: filter {c}",
-                                          all_gains=True)
+                                          all_gains=True, jacobians=jac)
         m = nav_metrics(r.P_truth, nodes.lat, nodes.h, nodes.q_nb)
         dof_h = horizontal_dof(ned_position_covariance(r.P_truth[:, :3, :3], nodes.lat, nodes.h)[:, :2, :2])
         # one random stream per case, from the seed: the cases are independent ensembles
@@ -214,7 +215,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         X0 = np.hstack([x0, e0])
         rc = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all, err, every,
                         form=specs[c].update, label=f"{where}: filter {c} (conditional)",
-                        P0_truth=symmetrize(X0.T @ X0 / M))[0]
+                        P0_truth=symmetrize(X0.T @ X0 / M), jacobians=jac)[0]
         mc_ = nav_metrics(rc.P_truth, nodes.lat, nodes.h, nodes.q_nb)
         dof_c = horizontal_dof(ned_position_covariance(rc.P_truth[:, :3, :3], nodes.lat, nodes.h)[:, :2, :2])
         sim = ImuSimulator(traj, opt["imu_rate"], t0=float(t[0]), duration=float(t[-1] - t[0]),

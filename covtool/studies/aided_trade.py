@@ -18,7 +18,7 @@ import numpy as np
 
 from covtool.errors import NumericalError, StudyFileError
 from covtool.io.config import check_keys, require, string, table
-from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
+from covtool.lincov.aided import augment, build_epochs, error_processes, Jacobians, propagate_aided
 from covtool.studies.aided import parse_measurement
 
 def parse_aiding(decl: dict, axis, where: str) -> list:
@@ -136,6 +136,7 @@ def trade_cases(S, f: str, cases: list, aiding: dict, rec, label: str) -> list:
     P0a, Pf_e, D = augment(S.P0, fm.D, states, [s.name for s in states])
     fnames = list(fm.names) + [s.name for s in states]
     nf0 = fm.P0.shape[0]
+    jac = Jacobians(S.nodes)               # the measurement Jacobians: the cases differ in their σ only
     out = []
     for c in cases:
         sig = float(c["_sigma"])
@@ -149,7 +150,7 @@ def trade_cases(S, f: str, cases: list, aiding: dict, rec, label: str) -> list:
         Pf0 = np.zeros((len(fnames),) * 2)
         Pf0[:nf0, :nf0], Pf0[nf0:, nf0:] = fm.P0 * c["P0 scale"], Pf_e * c["P0 scale"]
         q = float(c["Q scale"])
-        epochs = build_epochs(pairs, S.nodes, names_all, fnames)
+        epochs = build_epochs(pairs, S.nodes, names_all, fnames, jacobians=jac)
         try:
             run_ = propagate_aided(S.Phi, S.Qd, P0a, Phi_f, Qd_f if q == 1.0 else Qd_f * q, Pf0, D, epochs, err=err,
                                    err_f=(err[0], err[1] * q), record=rec, form=spec.update,

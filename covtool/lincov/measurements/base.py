@@ -30,6 +30,7 @@ other state.
 from __future__ import annotations
 
 import abc
+import dataclasses
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -243,6 +244,20 @@ class Measurement(abc.ABC):
         """
         M = self.scale(x)
         return M @ self.nav_jacobian(x, w), -M @ self.error_jacobian(x, w)
+
+    def geometry_key(self) -> tuple:
+        """What :meth:`jacobian` depends on besides the trajectory: the kind and every field but the noise 1σ.
+
+        Two measurements with equal keys have equal Jacobians at every point
+        (``sigma`` and ``filter_sigma`` enter R and R_f only, never H: seed
+        002, eq (14)); a σ sweep's scaled copies share them
+        (:class:`covtool.lincov.aided.Jacobians`).
+        """
+        def frozen(v):
+            return ("array", v.shape, v.dtype.str, v.tobytes()) if isinstance(v, np.ndarray) else repr(v)
+
+        return (type(self),) + tuple((f.name, frozen(getattr(self, f.name))) for f in dataclasses.fields(self)
+                                     if f.name not in ("sigma", "filter_sigma"))
 
     def R(self) -> np.ndarray:
         """True measurement-noise covariance, shape (m, m)."""
