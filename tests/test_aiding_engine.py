@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import math
+import re
 import tomllib
 from pathlib import Path
 
@@ -179,6 +180,40 @@ def test_propagate_aided_refuses_a_bad_R(S):
     epochs = build_epochs([(z, S.update_steps)], S.nodes, S.truth.names, fm.names)
     with pytest.raises(NumericalError, match=r"\(filter\) at .*R.*non-finite"):
         propagate_aided(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, fm.D, epochs, times=S.t)
+
+
+def test_propagate_aided_names_the_first_epoch_with_a_bad_R_of_mixed_layouts(S):
+    """The epochs' R and R_f are guarded as stacks per row layout; the message names the first bad epoch in time.
+
+    GNSS position + velocity at 1 Hz, baro every other second (two layouts): the truth R of the baro at
+    one late epoch and the filter R_f of a GNSS epoch before it are broken; the earlier (the filter's at
+    the GNSS epoch) is reported, with its time, its stage and its component.
+    """
+    import dataclasses
+
+    fm, Phi_f, Qd_f = S.filter_model("A")
+    plan, states = gnss_mix(S)
+    names = list(S.truth.names) + [s.name for s in states]
+    P0, Pf_e, D = augment(S.P0, fm.D, states, [])
+    epochs = build_epochs(plan, S.nodes, names, list(fm.names))
+    err = error_processes(states, np.diff(S.t))[:2]
+    layouts = {tuple(nm for nm, _ in ep.rows) for ep in epochs}
+    assert layouts == {("gps", "gpsv", "baro"), ("gps", "gpsv")}
+    late = next(i for i in range(150, len(epochs)) if len(epochs[i].rows) == 3)
+    early = next(i for i in range(40, late) if len(epochs[i].rows) == 2)
+    R = epochs[late].R.copy()
+    R[6, 6] = -1.0                                                      # the baro's true variance
+    Rf = epochs[early].Rf.copy()
+    Rf[4, 4] = np.inf                                                   # the GNSS velocity's east, assumed
+    epochs[late] = dataclasses.replace(epochs[late], R=R)
+    epochs[early] = dataclasses.replace(epochs[early], Rf=Rf)
+    when = re.escape(f"t = {S.t[epochs[early].step]:.1f} s")
+    with pytest.raises(NumericalError, match=rf"^x \(filter\) at {when}: R: covariance .*non-finite.*'gpsv\[1\]'"):
+        propagate_aided(S.Phi, S.Qd, P0, Phi_f, Qd_f, fm.P0, D, epochs, err=err, times=S.t, label="x")
+    epochs[early] = dataclasses.replace(epochs[early], Rf=epochs[early + 2].Rf)
+    when = re.escape(f"t = {S.t[epochs[late].step]:.1f} s")
+    with pytest.raises(NumericalError, match=rf"^x \(truth\) at {when}.*: R: covariance has a negative .*'baro\[0\]'"):
+        propagate_aided(S.Phi, S.Qd, P0, Phi_f, Qd_f, fm.P0, D, epochs, err=err, times=S.t, label="x")
 
 
 def test_propagate_aided_refuses_inconsistent_sizes(S):

@@ -366,8 +366,11 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
         sys_ = {} if system_checked else {"truth": (Phi, Qd), "filter": (Phi_f, Qd_f)}
         check_system(f"{label} (truth)", *sys_.get("truth", ()), P0=P0, names=names, times=times)
         check_system(f"{label} (filter)", *sys_.get("filter", ()), P0=Pf0, names=filter_names, times=times)
-        for ep in epochs:
-            comps = [f"{nm}[{i}]" for nm, sl in ep.rows for i in range(sl.stop - sl.start)]
+        # every epoch's R and R_f, stacked by row layout (one guard pass per layout, not per epoch); the
+        # first epoch in time with a bad one is checked again alone, for its message
+        bad = ~(_noise_ok(epochs, "R") & _noise_ok(epochs, "Rf"))
+        for ep in (epochs[i] for i in np.flatnonzero(bad)[:1]):
+            comps = _components(ep.rows)
             check_system(f"{label} (truth) at {_when(ep.step, times)}", R=ep.R, measurement_names=comps)
             check_system(f"{label} (filter) at {_when(ep.step, times)}", R=ep.Rf, measurement_names=comps)
     rec = np.arange(N + 1) if record is None else np.unique(np.asarray(record, int))
@@ -405,6 +408,27 @@ def _parts(ep: Epoch, sequential: bool) -> tuple:
     """The ``(H, R, H_f, R_f)`` parts of an epoch: one stacked part, or one per measurement."""
     rows = [sl for _, sl in ep.rows] if sequential else [slice(0, ep.H.shape[0])]
     return tuple((ep.H[sl], ep.R[sl, sl], ep.Hf[sl], ep.Rf[sl, sl]) for sl in rows)
+
+
+def _components(rows) -> list[str]:
+    """``name[i]`` of every row of a stacked update (:attr:`Epoch.rows`)."""
+    return [f"{nm}[{i}]" for nm, sl in rows for i in range(sl.stop - sl.start)]
+
+
+def _noise_ok(epochs, attr: str) -> np.ndarray:
+    """Per epoch, whether its ``R`` or ``R_f`` (``attr``) is a covariance, as :func:`check_system` tests it.
+
+    Epochs of one row layout are tested as one stack (:func:`covariance_status`, the components
+    scaled in the groups of their names).  Returns shape (len(epochs),), bool.
+    """
+    ok = np.ones(len(epochs), bool)
+    layouts: dict = {}
+    for i, ep in enumerate(epochs):
+        layouts.setdefault(tuple((nm, sl.start, sl.stop) for nm, sl in ep.rows), []).append(i)
+    for idx in layouts.values():
+        R = np.stack([getattr(epochs[i], attr) for i in idx])
+        ok[idx] = covariance_status(R, groups=scale_groups(_components(epochs[idx[0]].rows), R.shape[-1])).ok
+    return ok
 
 
 def _when(k, times):
