@@ -185,3 +185,35 @@ def test_residual_on_strapdown_states_is_linear_to_second_order():
         assert d1 < 0.05 * l1, f"{kind}: the linearisation is off by {d1 / l1:.1e} at these errors"
         if d1 > 1e-9 * l1:
             assert 0.2 < d2 / d1 < 0.3, f"{kind}: second-order ratio {d2 / d1:.3f}, expected 1/4"
+
+
+@pytest.mark.parametrize("kind", sorted(KINDS))
+def test_stacked_innovation_equals_each_points_own(kind, points):
+    """``innovation`` of a stack of estimates (a Monte Carlo's runs, covtool.validation.aided) equals the
+    residual of each estimate alone, for every kind, with error states of the order of their σ."""
+    meas = measurement(kind)
+    rng = np.random.default_rng(7)
+    for x, w in points[::5]:
+        M = 9
+        xh = x + rng.standard_normal((M, 10)) * STEP * 30.0
+        e = rng.standard_normal((M, len(meas.states))) * np.array([SIGMA[s.dimension] for s in meas.states])
+        z = meas.innovation(x, w, xh, e)
+        assert z.shape == (M, meas.m)
+        # the innovation is a small difference of large readings: round-off is relative to the readings
+        size = max(1.0, float(np.abs(meas.predict(x, w) @ meas.scale(x).T).max()))
+        for m in range(M):
+            own = meas.residual(x, w, xh[m] - x, e[m])
+            np.testing.assert_allclose(z[m], own, rtol=1e-12, atol=4e-15 * size)
+        assert np.all(np.ptp(z, axis=0) > 0)                          # the runs differ
+
+
+def test_stacked_heading_innovation_wraps():
+    """A Monte Carlo run whose computed heading is across ±180° from the truth takes the short way round."""
+    meas = measurement("heading")
+    q = np.array([math.cos(math.radians(179.5) / 2), 0, 0, math.sin(math.radians(179.5) / 2)])
+    x = np.concatenate([[0.6, 2.2, 10.0, 0, 0, 0], q])
+    xh = np.tile(x, (3, 1))
+    for m, deg in enumerate((-179.5, 179.0, 178.0)):
+        xh[m, 6:] = [math.cos(math.radians(deg) / 2), 0, 0, math.sin(math.radians(deg) / 2)]
+    z = meas.innovation(x, np.zeros(3), xh, np.zeros((3, 1)))
+    np.testing.assert_allclose(z[:, 0], np.radians([1.0, -0.5, -1.5]), rtol=1e-9)

@@ -101,15 +101,10 @@ class DeclaredMeasurements:
         ep = self.by_step[k]
         x, w = nav_point(self.nodes, k)
         lat, lon, h, v_n, q = (a[rows] for a in (state.lat, state.lon, state.h, state.v_n, state.q))
-        M = lat.shape[0]
-        z = np.empty((M, ep.H.shape[0]))
-        for m in range(M):
-            xh = np.concatenate([[lat[m], lon[m], h[m]], v_n[m], q[m]])
-            parts = []
-            for meas in self.due[k]:
-                em = self.e[m, [self.snames.index(nm) for nm in meas.state_names]]
-                parts.append(meas.scale(x) @ (meas.predict(xh, w) - meas.sensor(x, w, em)))
-            z[m] = np.concatenate(parts)
+        # every run at once: its computed navigation point and its own error-state values
+        xh = np.concatenate([lat[:, None], lon[:, None], h[:, None], v_n, q], axis=1)          # (M, 10)
+        z = np.concatenate([meas.innovation(x, w, xh, self.e[:, [self.snames.index(nm) for nm in meas.state_names]])
+                            for meas in self.due[k]], axis=1)
         if self.noise:
             if k not in self._v:              # one draw per update, shared by the cases
                 self._v = {k: self.rng.standard_normal(z.shape) @ np.linalg.cholesky(ep.R).T}

@@ -23,10 +23,10 @@ class Baro(Measurement):
     ref = "issue 15 (barometric altitude)"
 
     def predict(self, x, w):
-        return x[2:3]
+        return x[..., 2:3]
 
     def sensor(self, x, w, e):
-        return np.atleast_1d((1.0 + self.error_value(e, "scale_factor")) * x[2] + self.error_value(e, "bias"))
+        return np.asarray((1.0 + self.error_value(e, "scale_factor")) * x[2] + self.error_value(e, "bias"))[..., None]
 
     def nav_jacobian(self, x, w):
         J = np.zeros((1, 10))
@@ -48,13 +48,13 @@ class Heading(Measurement):
     ref = "issue 15 (heading / azimuth mark)"
 
     def predict(self, x, w):
-        return np.atleast_1d(heading(x[I_Q]))
+        return np.asarray(heading(x[..., I_Q]))[..., None]
 
     def sensor(self, x, w, e):
-        return np.atleast_1d(heading(x[I_Q]) + self.error_value(e, "bias"))
+        return np.asarray(heading(x[I_Q]) + self.error_value(e, "bias"))[..., None]
 
-    def residual(self, x, w, dx, e):
-        r = super().residual(x, w, dx, e)
+    def innovation(self, x, w, xh, e):
+        r = super().innovation(x, w, xh, e)
         return (r + np.pi) % (2 * np.pi) - np.pi        # a heading difference, not an angle
 
     def nav_jacobian(self, x, w):

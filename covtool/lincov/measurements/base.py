@@ -67,8 +67,12 @@ def nav_point(traj, k: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def body_velocity(x, w, lever):
-    """Velocity of a body-fixed point, body axes: ``C_nᵇ v^n + ω × l``. [m/s]"""
-    return quat.dcm(x[I_Q]).T @ x[I_VEL] + np.cross(w, lever)
+    """Velocity of a body-fixed point, body axes: ``C_nᵇ v^n + ω × l``, shape (..., 3). [m/s]
+
+    ``x`` of shape (..., 10) (:func:`nav_point`), a stack of points (the runs of a Monte Carlo).
+    """
+    v = x[..., I_VEL]
+    return (v[..., None, :] @ quat.dcm(x[..., I_Q]))[..., 0, :] + np.cross(w, lever)
 
 
 def body_velocity_jacobian(x, w, lever) -> np.ndarray:
@@ -87,11 +91,13 @@ def antenna_position(x, lever):
 
     ``r_a = r + C_b^n l``, to first order in ``|l|/R`` (a lever arm of metres
     against the Earth's radius: the neglected term is below 1e-12 m).
+    ``x`` of shape (..., 10); returns shape (..., 3).
     """
-    lat, h = x[0], x[2]
+    lat, h = x[..., 0], x[..., 2]
     rm, rn = earth.radii(lat)
-    d = quat.dcm(x[I_Q]) @ lever
-    return np.array([lat + d[0] / (rm + h), x[1] + d[1] / ((rn + h) * np.cos(lat)), h - d[2]])
+    d = quat.dcm(x[..., I_Q]) @ lever
+    return np.stack([lat + d[..., 0] / (rm + h), x[..., 1] + d[..., 1] / ((rn + h) * np.cos(lat)),
+                     h - d[..., 2]], axis=-1)
 
 
 def antenna_position_jacobian(x, lever) -> np.ndarray:
@@ -125,8 +131,8 @@ def ned_metres(x) -> np.ndarray:
 
 
 def heading(q):
-    """True heading ψ of the 3-2-1 Euler angles of the quaternion ``q``. [rad]"""
-    q0, q1, q2, q3 = q
+    """True heading ψ of the 3-2-1 Euler angles of the quaternion ``q`` (shape (..., 4)), shape (...). [rad]"""
+    q0, q1, q2, q3 = np.moveaxis(np.asarray(q), -1, 0)
     return np.arctan2(2 * (q1 * q2 + q0 * q3), q0 * q0 + q1 * q1 - q2 * q2 - q3 * q3)
 
 
@@ -193,8 +199,9 @@ class Measurement(abc.ABC):
         return next((i for i, s in enumerate(self.states) if s.name == name), None)
 
     def error_value(self, e, suffix: str):
+        """The error state ``suffix`` of ``e`` (shape (..., n_e)), shape (...); 0 if not declared."""
         i = self.error_index(suffix)
-        return 0.0 if i is None else e[i]
+        return 0.0 if i is None else e[..., i]
 
     # -- each kind implements these (an abstract base: a kind missing one cannot be built) ----------
     @abc.abstractmethod
@@ -218,6 +225,22 @@ class Measurement(abc.ABC):
         return np.eye(self.m)
 
     # -- common -------------------------------------------------------------------------
+    def innovation(self, x, w, xh, e):
+        """``M (predict(x̂) − sensor(x, e))`` for a stack of estimates, shape (..., m).
+
+        Parameters
+        ----------
+        x : ndarray, shape (10,)
+            True navigation point (:data:`NAV_POINT`).
+        w : ndarray, shape (3,)
+            Body rate ``ω_ib^b``. [rad/s]
+        xh : ndarray, shape (..., 10)
+            Navigation points the INS computes (a Monte Carlo's runs).
+        e : ndarray, shape (..., n_e)
+            Values of the measurement's own error states, per estimate.
+        """
+        return (self.predict(xh, w) - self.sensor(x, w, e)) @ self.scale(x).T
+
     def residual(self, x, w, dx, e):
         """Nonlinear residual ``M (predict(x + δx) − sensor(x, e))``, shape (m,).
 
@@ -232,7 +255,7 @@ class Measurement(abc.ABC):
         e : ndarray, shape (n_e,)
             Values of the measurement's own error states.
         """
-        return self.scale(x) @ (self.predict(x + dx, w) - self.sensor(x, w, e))
+        return self.innovation(x, w, x + dx, e)
 
     def jacobian(self, x, w) -> tuple[np.ndarray, np.ndarray]:
         """``(H_nav, H_err)``: the truth H over ``δx`` and the own error states.

@@ -31,8 +31,8 @@ class GnssPosition(Measurement):
         return antenna_position(x, self.lever_arm)
 
     def sensor(self, x, w, e):
-        eps = np.array([self.error_value(e, a) for a in "NED"])
-        return antenna_position(x, self.lever_arm) + np.linalg.solve(ned_metres(np.real(x)), eps)
+        eps = np.stack(np.broadcast_arrays(*(self.error_value(e, a) for a in "NED")), axis=-1)
+        return antenna_position(x, self.lever_arm) + np.linalg.solve(ned_metres(np.real(x)), eps[..., None])[..., 0]
 
     def nav_jacobian(self, x, w):
         return antenna_position_jacobian(x, self.lever_arm)
@@ -56,7 +56,7 @@ class GnssVelocity(Measurement):
     ref = "issue 15 (GNSS velocity)"
 
     def _v(self, x, w):
-        return x[I_VEL] + quat.dcm(x[I_Q]) @ np.cross(w, self.lever_arm)
+        return x[..., I_VEL] + quat.dcm(x[..., I_Q]) @ np.cross(w, self.lever_arm)
 
     def predict(self, x, w):
         return self._v(x, w)

@@ -28,13 +28,13 @@ class Odometer(Measurement):
     ref = "issue 15 (odometer; MAPS, seed 002 ref [4])"
 
     def predict(self, x, w):
-        return body_velocity(x, w, self.lever_arm)[:1]
+        return body_velocity(x, w, self.lever_arm)[..., :1]
 
     def sensor(self, x, w, e):
         s = 1.0 + self.error_value(e, "scale_factor") + self.error_value(e, "scale_factor_markov")
         th, ps = self.error_value(e, "boresight_pitch"), self.error_value(e, "boresight_yaw")
-        a = np.array([np.cos(th) * np.cos(ps), np.cos(th) * np.sin(ps), -np.sin(th)])
-        return np.atleast_1d(s * (a @ body_velocity(x, w, self.lever_arm)))
+        a = np.stack(np.broadcast_arrays(np.cos(th) * np.cos(ps), np.cos(th) * np.sin(ps), -np.sin(th)), axis=-1)
+        return np.asarray(s * (a @ body_velocity(x, w, self.lever_arm)))[..., None]
 
     def nav_jacobian(self, x, w):
         return body_velocity_jacobian(x, w, self.lever_arm)[:1]
@@ -61,7 +61,7 @@ class NonHolonomic(Measurement):
     ref = "issue 15 (non-holonomic constraint)"
 
     def predict(self, x, w):
-        return body_velocity(x, w, self.lever_arm)[1:]
+        return body_velocity(x, w, self.lever_arm)[..., 1:]
 
     def sensor(self, x, w, e):
         return body_velocity(x, w, self.lever_arm)[1:]

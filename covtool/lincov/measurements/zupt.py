@@ -20,7 +20,7 @@ class Zupt(Measurement):
     ref = "seed 002, §2.3 (ZUPT), eq (7), (16)"
 
     def predict(self, x, w):
-        return x[I_VEL]
+        return x[..., I_VEL]
 
     def sensor(self, x, w, e):
         return x[I_VEL]
