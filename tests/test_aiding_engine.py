@@ -216,6 +216,27 @@ def test_propagate_aided_names_the_first_epoch_with_a_bad_R_of_mixed_layouts(S):
         propagate_aided(S.Phi, S.Qd, P0, Phi_f, Qd_f, fm.P0, D, epochs, err=err, times=S.t, label="x")
 
 
+def test_a_flagged_epoch_that_passes_alone_does_not_hide_a_later_bad_R(S, monkeypatch):
+    """A stack may flag an R at the PSD tolerance that its epoch alone passes (the stacked test takes the
+    eigenvalue path for the whole chunk): every flagged epoch is checked again alone, in time order, so a bad
+    R after it is still named (review of the stacked guard)."""
+    import dataclasses
+
+    import covtool.lincov.aided as aided
+
+    fm, Phi_f, Qd_f = S.filter_model("A")
+    z = Zupt(name="zupt", sigma=np.full(3, S.zupt_sigma))
+    epochs = build_epochs([(z, S.update_steps)], S.nodes, S.truth.names, fm.names)
+    R = epochs[1].R.copy()
+    R[0, 1] = R[1, 0] = 2.0 * R[0, 0]                                   # correlation 2: not a covariance
+    epochs[1] = dataclasses.replace(epochs[1], R=R)
+    flagged = np.array([True, True])                                   # the first passes alone
+    monkeypatch.setattr(aided, "_noise_ok", lambda eps, attr: ~flagged if attr == "R" else np.ones(len(eps), bool))
+    when = re.escape(f"t = {S.t[epochs[1].step]:.1f} s")
+    with pytest.raises(NumericalError, match=rf"^x \(truth\) at {when}.*: R: covariance lost positive"):
+        propagate_aided(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, fm.D, epochs, times=S.t, label="x")
+
+
 def test_propagate_aided_refuses_inconsistent_sizes(S):
     fm, Phi_f, Qd_f = S.filter_model("A")
     with pytest.raises(ValueError, match="inconsistent sizes"):

@@ -151,7 +151,9 @@ class Jacobians:
     not on the filter, the grade or the noise 1σ: the filter runs of one
     study share one instance (:func:`build_epochs`), and so do the scaled
     copies of a σ sweep.  Holds ``m × (10 + n_e)`` numbers per measurement
-    and update step.
+    and update step.  A measurement's key is taken at its first use: the
+    measurements are frozen dataclasses, and an array field changed in
+    place afterwards is not seen.
 
     Parameters
     ----------
@@ -367,9 +369,10 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
         check_system(f"{label} (truth)", *sys_.get("truth", ()), P0=P0, names=names, times=times)
         check_system(f"{label} (filter)", *sys_.get("filter", ()), P0=Pf0, names=filter_names, times=times)
         # every epoch's R and R_f, stacked by row layout (one guard pass per layout, not per epoch); the
-        # first epoch in time with a bad one is checked again alone, for its message
+        # flagged epochs are checked again alone, in time order, for the message of the first bad one (a
+        # stack flags every matrix its epoch alone would, and may flag one more at the PSD tolerance)
         bad = ~(_noise_ok(epochs, "R") & _noise_ok(epochs, "Rf"))
-        for ep in (epochs[i] for i in np.flatnonzero(bad)[:1]):
+        for ep in (epochs[i] for i in np.flatnonzero(bad)):
             comps = _components(ep.rows)
             check_system(f"{label} (truth) at {_when(ep.step, times)}", R=ep.R, measurement_names=comps)
             check_system(f"{label} (filter) at {_when(ep.step, times)}", R=ep.Rf, measurement_names=comps)

@@ -206,11 +206,18 @@ class Measurement(abc.ABC):
     # -- each kind implements these (an abstract base: a kind missing one cannot be built) ----------
     @abc.abstractmethod
     def predict(self, x, w):
-        """What the INS expects the sensor to read at its own state ``x`` and sample ``w``, shape (m,)."""
+        """What the INS expects the sensor to read at its own state ``x`` and sample ``w``.
+
+        ``x`` of shape (10,) or a stack (..., 10) (the runs of a Monte Carlo); returns shape (..., m).
+        """
 
     @abc.abstractmethod
     def sensor(self, x, w, e):
-        """What the sensor reads at the true state ``x`` with its own errors ``e``, shape (m,)."""
+        """What the sensor reads at the true state ``x`` (shape (10,)) with its own errors ``e``.
+
+        ``e`` of shape (n_e,) or a stack (..., n_e); returns shape (..., m), or (m,) for a kind whose
+        reading does not depend on ``e``.
+        """
 
     @abc.abstractmethod
     def nav_jacobian(self, x, w) -> np.ndarray:
@@ -277,7 +284,11 @@ class Measurement(abc.ABC):
         (:class:`covtool.lincov.aided.Jacobians`).
         """
         def frozen(v):
-            return ("array", v.shape, v.dtype.str, v.tobytes()) if isinstance(v, np.ndarray) else repr(v)
+            if isinstance(v, np.ndarray):
+                return ("array", v.shape, v.dtype.str, v.tobytes())
+            if isinstance(v, (tuple, list)):
+                return (type(v).__name__,) + tuple(frozen(u) for u in v)
+            return repr(v)                   # dataclasses (the error states), numbers, text: exact reprs
 
         return (type(self),) + tuple((f.name, frozen(getattr(self, f.name))) for f in dataclasses.fields(self)
                                      if f.name not in ("sigma", "filter_sigma"))
