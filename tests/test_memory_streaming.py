@@ -165,6 +165,32 @@ def test_streamed_study_equals_the_whole_grid_study():
         np.testing.assert_array_equal(a[num].to_numpy(), b[num].to_numpy())
 
 
+@pytest.mark.parametrize("budget", [None, 1])
+def test_stream_keeps_the_filters_transitions_for_the_equivalent_noise_table(budget, monkeypatch):
+    """The reduced filters' Φ_f chunks of the propagation's stream serve the equivalent-noise table
+    (ZuptSetup._keep, StreamedTransitions) within KEPT_TRANSITIONS bytes: the same table as the whole-grid
+    study's, element for element, with the chunks kept (11 min: all of them) or with none fitting the budget
+    (every chunk computed again)."""
+    import covtool
+    import covtool.studies.zupt_setup as zs
+
+    if budget is not None:
+        monkeypatch.setattr(zs, "KEPT_TRANSITIONS", budget)
+    made = []
+    discretise = zs.ZuptSetup._discretise_filter
+    monkeypatch.setattr(zs.ZuptSetup, "_discretise_filter",
+                        lambda self, name, dyn, a, b: made.append((name, a)) or discretise(self, name, dyn, a, b))
+    streamed = covtool.run_study(_decl("11 min", ("A", "B1", "C")))
+    whole = covtool.run_study(_decl("11 min", ("A", "B1", "C"), impact=("C",)))
+    a, b = streamed.tables["equivalent_noise"], whole.tables["equivalent_noise"]
+    num = a.select_dtypes("number").columns
+    np.testing.assert_array_equal(a[num].to_numpy(), b[num].to_numpy())
+    # each reduced filter's two chunks: discretised once by the stream and taken by the table as they were,
+    # or, with nothing kept, discretised again by the table
+    per_chunk = [(c, a0) for c in ("B1", "C") for a0 in (0, 600)]
+    assert sorted(made) == sorted(per_chunk * (1 if budget is None else 2))
+
+
 def test_chunk_constants_agree():
     from covtool.lincov.guard import _CHUNK
     from covtool.studies.resources import DISCRETIZE_CHUNK, GUARD_CHUNK, STREAM_CHUNK as RES_CHUNK

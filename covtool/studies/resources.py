@@ -151,6 +151,10 @@ def memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, histor
 #: steps per chunk of a study that streams in time (covtool.lincov.dynamics.STREAM_CHUNK, restated here so
 #: that the estimate is made before the numeric core is imported; test_memory checks they agree)
 STREAM_CHUNK = 600
+#: bytes of the reduced filters' Φ_f chunks a streamed study keeps from its propagation for its
+#: equivalent-noise table (covtool.studies.zupt_setup.ZuptSetup.stream, StreamedTransitions): a 30-min study
+#: keeps all of them, a long one its first chunks and computes the others again
+KEPT_TRANSITIONS = 64 * 2**20
 #: float64 per step and per equivalent-noise source held by a streamed filter: the 3 or 4 rows its
 #: dropped state drives, times up to 2 columns (interval-matched), and its PSD (CompactNoiseSource)
 _EWN_FLOATS = 10
@@ -231,6 +235,7 @@ def stream_memory_estimate(steps: int, n: int, *, filters=(), dropped=(), dynami
         # the couplings gathered over the grid (N m n) and a few (N, m) temporaries of the eq (11)-(13) rules;
         # the navigation-effect table stacks every source's 2 columns (N m 2d) and their PSD (N 2d)
         parts["filter build (largest)"] = max(max(N * m * (n + 4), 2 * N * d * (m + 1)) for m, d in red) * _F8
+        parts["kept filter transitions"] = min(KEPT_TRANSITIONS, sum(N * m * m for m, _ in red) * _F8)
     rec = N + 1 if records is None else int(records)
     if len(histories):
         parts["covariance histories"] = sum(rec * m * m * _F8 for m in histories)

@@ -42,7 +42,7 @@ from covtool.studies import grid as _grid
 from covtool.studies.grid import (check_step_motion, discretize_chunked, initial_covariance, midpoint_context,
                                   time_grid)
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_config, study_header
-from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, steps_of,
+from covtool.studies.resources import (check_memory, KEPT_TRANSITIONS, memory_estimate, noise_columns, steps_of,
                                        stream_memory_estimate)
 
 
@@ -249,6 +249,8 @@ class ZuptSetup:
     method: str = "van_loan"
     _dyn_cache: dict = field(default_factory=dict)
     _filters: dict = field(default_factory=dict)
+    #: (system key, first step, Φ_f) of a reduced filter over one stream chunk, up to KEPT_TRANSITIONS bytes
+    _kept: list = field(default_factory=list)
     _dyn: ErrorDynamics | None = None
     _Phi: np.ndarray | None = None
     _Qd: np.ndarray | None = None
@@ -409,9 +411,26 @@ class ZuptSetup:
                     Phi_f, Qd_f = Phi_f[a:b], Qd_f[a:b]
                 else:
                     Phi_f, Qd_f = self._discretise_filter(c, dyn_of(fm.spec.options), a, b)
+                    if fm.spec.n < self.truth.n:
+                        self._keep(key, a, Phi_f)             # for the equivalent-noise table
                 fsys[c] = System(cev, *compose(Phi_f, Qd_f, cev - a))
                 shared.append((key, fsys[c]))
             yield tsys, fsys
+
+    def _keep(self, key, a: int, Phi_f: np.ndarray) -> None:
+        """Hold Φ_f of the chunk from step ``a`` (read only) while the kept chunks stay within the budget.
+
+        ``key`` is the filter's :func:`system_key` (filters of one key share the chunk); the budget is
+        :data:`~covtool.studies.resources.KEPT_TRANSITIONS` bytes.
+        """
+        if self.kept_transition(key, a) is None \
+                and sum(P.nbytes for _, _, P in self._kept) + Phi_f.nbytes <= KEPT_TRANSITIONS:
+            Phi_f.flags.writeable = False
+            self._kept.append((key, a, Phi_f))
+
+    def kept_transition(self, key, a: int):
+        """Φ_f the stream kept for system ``key`` over the chunk from step ``a`` (:meth:`_keep`), or None."""
+        return next((P for k, a_, P in self._kept if a_ == a and k == key), None)
 
     def _discretise_filter(self, name: str, dyn, a: int, b: int):
         """Φ_f, Q_f of filter ``name`` over the steps ``a … b−1`` from the chunk's truth dynamics, guarded."""
@@ -625,6 +644,9 @@ def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=
 class StreamedTransitions:
     """Φ_f[k] of a filter computed on demand by chunks of :data:`STREAM_CHUNK` steps (the last two kept).
 
+    A chunk the propagation's stream held (:meth:`ZuptSetup.stream`, up to
+    :data:`~covtool.studies.resources.KEPT_TRANSITIONS` bytes) is taken as it is.
+
     Stands for the ``(N, n_f, n_f)`` stack where a consumer reads the steps
     in runs (:func:`covtool.lincov.reduced.ewn_navigation_effect` walks each
     ZUPT interval backwards); values equal the whole-grid stack's.
@@ -647,10 +669,13 @@ class StreamedTransitions:
         if m not in self._cache:
             a, b = m * self.chunk, min(self.shape[0], (m + 1) * self.chunk)
             S = self.S
-            if self.reused:
+            fm, _ = S.filter_stream(self.name)
+            kept = None if self.reused else S.kept_transition(system_key(fm.spec), a)
+            if kept is not None:                                 # held from the propagation's stream
+                self._cache[m] = kept
+            elif self.reused:
                 self._cache[m] = S._discretise_truth(S.dynamics_stream(None).chunk(a, b), a, b)[0]
             else:
-                fm, _ = S.filter_stream(self.name)
                 self._cache[m] = S._discretise_filter(self.name, S.dynamics_stream(fm.spec.options).chunk(a, b), a,
                                                       b)[0]
             while len(self._cache) > 2:
