@@ -291,11 +291,12 @@ class ZuptSetup:
         return Phi, Qd
 
     def release(self) -> None:
-        """Free the whole-grid arrays and the filters' systems (rebuilt on demand)."""
+        """Free the whole-grid arrays, the filters' systems and the kept stream chunks (rebuilt on demand)."""
         self._dyn = self._Phi = self._Qd = None
         self._dyn_cache.clear()
         self._filters.clear()
         self._streams.clear()
+        self._kept.clear()
 
     # -- streaming in time: nothing of size N × n² is held
     def filter_stream(self, name: str):
