@@ -187,9 +187,11 @@ class CompactNoiseSource(NoiseSource):
         return out
 
     def add_qc(self, Qc: np.ndarray, a: int = 0, b: int | None = None) -> None:
-        # the full rows of the chunk, multiplied as NoiseSource does: the same sums, to the last bit
-        G = self._expand(a, b)
-        Qc += (G * self.psd[a:b, None, :]) @ np.swapaxes(G, 1, 2)
+        # on its rows only, as covtool.lincov.reduced.equivalent_noise_qc adds the whole grid's: each
+        # element is the same sum over the source's columns (the other rows' products are zeros)
+        Gr = self.G_rows[a:b]
+        r = self.rows
+        Qc[:, r[:, None], r[None, :]] += (Gr * self.psd[a:b, None, :]) @ np.swapaxes(Gr, 1, 2)
 
     def compact(self) -> "CompactNoiseSource":
         return self

@@ -84,10 +84,16 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
     # whole-grid systems, built first (the stream then slices them)
     imp_job, imp_own = None, []
     if imp_filters:
+        imp_forked, imp_own = impact_shares(S, imp_filters)
+        if imp_forked:
+            # the forked share's systems first (and the truth's, which every share reads), so that its process
+            # starts while this one builds the other filters
+            S.Phi
+            for c in imp_forked:
+                S.filter_model(c)
+            imp_job = Forked(impact_runs, S, imp_forked)
         for c in cases:
             S.filter_model(c)
-        imp_forked, imp_own = impact_shares(S, imp_filters)
-        imp_job = Forked(impact_runs, S, imp_forked) if imp_forked else None
     # every case (and the pure INS) advances chunk by chunk in time, carrying its full P and P_f across
     # the chunks: F, Q_c, Φ, Q_d and their composition exist for one chunk at a time (ZuptSetup.stream)
     pure_run = None
