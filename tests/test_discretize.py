@@ -460,6 +460,25 @@ def test_sensor_states_by_blocks_equal_the_dense_series(dyn, monkeypatch):
         assert _q_error(Qb, Qd) <= 1e-14
 
 
+def test_transition_alone_by_blocks_is_the_exponential(dyn):
+    """Without noise the block series sums Φ alone: Q_d = 0 exactly, Φ that of the noisy system.
+
+    (Without noise the random walks are random constants too, folded out
+    (:func:`covtool.lincov.discretize.methods._exact_constants`): a smaller
+    system, balanced and scaled on its own, so Φ agrees to round-off, not
+    bit for bit.)  Φ is checked against ``scipy.linalg.expm`` (independent)
+    at 1 s and 30 s.
+    """
+    F, Qc = dyn
+    for dt in (1.0, 30.0):
+        Pn, _ = van_loan(F[:40], Qc[:40], dt)
+        P0, Q0 = van_loan(F[:40], np.zeros_like(Qc[:40]), dt)
+        assert _phi_column_error(P0, Pn) <= 1e-13
+        assert not Q0.any()
+        ref = np.array([expm(F[k] * dt) for k in (0, 17, 39)])
+        assert _phi_column_error(P0[[0, 17, 39]], ref) <= 1e-13
+
+
 def test_per_source_groups_equal_the_summed_columns(dyn):
     """``per_source(groups=…)`` equals the per-column Q_d summed by group, and sums to Van Loan's Q_d.
 

@@ -66,34 +66,42 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
     done = np.zeros(N, bool)
     idx = np.arange(N)
     Aw, Mw, dw = A, M, dd
+    # no noise (a transition alone): every C_i is zero, the Q_d sums stay zero (as in _series)
+    noise = bool(np.any(QA) or np.any(q))
     for i in range(1, MAX_TERMS):
         f = hw / i
         TM = (Aw @ TM + Mw * TD[:, None, :]) * f
         TA = (Aw @ TA) * f
         TD = TD * dw * f[:, :, 0]
-        QtA, QtX, QtS = CA * coef, CX * coef, CS * coef[:, :, 0]
-        for x, y in zip(work, (TA, TM, TD, QtA, QtX, QtS)):
+        for x, y in zip(work[:3], (TA, TM, TD)):
             x += y
-        AC = Aw @ CA + Mw @ np.swapaxes(CX, 1, 2)
-        CX = Aw @ CX + Mw * CS[:, None, :] + CX * dw[:, None, :]
-        CA = AC + np.swapaxes(AC, 1, 2)
-        CS = 2.0 * dw * CS
+        if noise:
+            QtA, QtX, QtS = CA * coef, CX * coef, CS * coef[:, :, 0]
+            for x, y in zip(work[3:], (QtA, QtX, QtS)):
+                x += y
+            AC = Aw @ CA + Mw @ np.swapaxes(CX, 1, 2)
+            CX = Aw @ CX + Mw * CS[:, None, :] + CX * dw[:, None, :]
+            CA = AC + np.swapaxes(AC, 1, 2)
+            CS = 2.0 * dw * CS
         coef = coef * hw / (i + 1)
         ai = a[idx]
         rp, rq = ai / (i + 1), 2.0 * ai / (i + 1)
         col = np.maximum(np.einsum("kij,kij->kj", TA, TA).max(axis=1),
                          (np.einsum("kij,kij->kj", TM, TM) + TD**2).max(axis=1, initial=0.0))
-        dg = np.concatenate([np.einsum("kii->ki", work[3]), work[5]], axis=1)
-        rc = rch[idx]
-        started = np.all(~rc | (dg > 0), axis=1)
-        sd = np.sqrt(np.where(rc, np.maximum(dg, 1e-32 * dg.sum(axis=1, keepdims=True)), 1.0))
-        sa, ss = sd[:, :k], sd[:, k:]
-        X = np.maximum((np.abs(QtA) / sa[:, :, None] / sa[:, None, :]).max(axis=(1, 2)),
-                       (np.abs(QtX) / sa[:, :, None] / ss[:, None, :]).max(axis=(1, 2), initial=0.0))
-        X = np.maximum(X, (np.abs(QtS) / ss**2).max(axis=1, initial=0.0))
         with np.errstate(divide="ignore", invalid="ignore"):
-            ok = ((rq < 1.0) & (np.sqrt(col) * rp / (1.0 - rp) <= phi_floor[idx]) & started
-                  & (X * rq / (1.0 - rq) <= UNIT_ROUNDOFF))
+            # the rule on rq < 1 is kept without noise: the same terms, the same Φ
+            ok = (rq < 1.0) & (np.sqrt(col) * rp / (1.0 - rp) <= phi_floor[idx])
+        if noise:
+            dg = np.concatenate([np.einsum("kii->ki", work[3]), work[5]], axis=1)
+            rc = rch[idx]
+            started = np.all(~rc | (dg > 0), axis=1)
+            sd = np.sqrt(np.where(rc, np.maximum(dg, 1e-32 * dg.sum(axis=1, keepdims=True)), 1.0))
+            sa, ss = sd[:, :k], sd[:, k:]
+            X = np.maximum((np.abs(QtA) / sa[:, :, None] / sa[:, None, :]).max(axis=(1, 2)),
+                           (np.abs(QtX) / sa[:, :, None] / ss[:, None, :]).max(axis=(1, 2), initial=0.0))
+            X = np.maximum(X, (np.abs(QtS) / ss**2).max(axis=1, initial=0.0))
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ok &= started & (X * rq / (1.0 - rq) <= UNIT_ROUNDOFF)
         if ok.any():
             fin = idx[ok]
             for x, y in zip(out, work):
