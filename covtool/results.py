@@ -69,7 +69,8 @@ class StudyResult:
     main_figure: ClassVar[str | None] = None
     #: the only fields its figures read, besides ``name`` and ``kind`` (None: every field); the others
     #: are left out of :meth:`figure_view`: the study's systems and histories (up to hundreds of MB), and
-    #: objects whose unpickling imports what no figure needs (a trajectory's ODE solution, scipy.integrate)
+    #: objects whose unpickling imports what no figure needs (a trajectory and its generating profile,
+    #: covtool.nav.trajectory; a board's parameters, python-control)
     drawn_from: ClassVar[tuple[str, ...] | None] = None
 
     def figure_view(self) -> "StudyResult":

@@ -226,8 +226,9 @@ def test_every_figure_of_the_studies_that_leave_fields_out_is_the_same_from_the_
     writers.draw_figures(pickle.loads(job))
     for n in r.figures:
         assert (served / f"{n}.png").read_bytes() == (full / f"{n}.png").read_bytes(), n
-    # the job unpickles without the modules only the study needed: a trajectory's ODE solution would
-    # import scipy.integrate (0.3 s in the server, before any figure), the board's parameters python-control
+    # the job unpickles without the modules only the study needed: a trajectory would import
+    # covtool.nav.trajectory (and, while its position was a scipy ODE solution, scipy.integrate: 0.3 s in
+    # the server, before any figure), the board's parameters python-control
     blob = tmp_path / "job.pickle"
     blob.write_bytes(job)
     import subprocess

@@ -303,6 +303,239 @@ def test_initial_speed_and_heading():
 
 
 # --------------------------------------------------------------------------
+# position integration (Chebyshev–Picard, segments._Profile)
+# --------------------------------------------------------------------------
+
+#: an airliner for ~10 h: long cruises, a fast (30 deg/s) reversal, an hour of holding-pattern turns,
+#: a climb and a descent, speed changes
+AIRLINER = [
+    {"kind": "cruise", "duration": "2 h"},
+    {"kind": "turn", "rate": "3 deg/s", "angle": "90 deg", "transition": "2 s"},
+    {"kind": "grade", "angle": "3 deg", "duration": "20 min", "transition": "20 s"},
+    {"kind": "turn", "rate": "-30 deg/s", "angle": "-180 deg", "transition": "0.5 s"},
+    {"kind": "turn", "rate": "1.5 deg/s", "duration": "1 h"},
+    {"kind": "accelerate", "to_speed": "280 m/s", "duration": "60 s"},
+    {"kind": "cruise", "duration": "3 h"},
+    {"kind": "turn", "angle": "-45 deg", "duration": "30 s"},
+    {"kind": "grade", "angle": "-2 deg", "duration": "30 min"},
+    {"kind": "decelerate", "to_speed": "240 m/s", "acceleration": "0.5 m/s^2"},
+    {"kind": "cruise", "duration": "3 h"},
+]
+AIRLINER_INITIAL = {"lat": "30 deg", "lon": "-100 deg", "h": "10000 m", "heading": "45 deg", "speed": "250 m/s"}
+
+
+def _start(initial):
+    return (math.radians(float(initial["lat"].split()[0])), math.radians(float(initial["lon"].split()[0])),
+            float(initial["h"].split()[0]))
+
+
+def _dop853_positions(traj, start, t, rtol=1e-13):
+    """(lat, lon, h) at ``t`` by scipy's DOP853 from the declared start, piece by piece (the reference).
+
+    The right-hand side is ``earth.position_rates`` written out in scalars,
+    on the analytic kinematics of the pieces; the pieces are chained with
+    DOP853's own end values, not the code under test.
+    """
+    from scipy.integrate import solve_ivp
+
+    src = traj._source
+    k_of = np.clip(np.searchsorted(src.starts, t, side="right") - 1, 0, len(src.pieces) - 1)
+    out = np.empty((t.size, 3))
+    pos = np.array(start, dtype=float)
+    for k, p in enumerate(src.pieces):
+        m = k_of == k
+        if p.s0 == 0.0 and p.accel.a == 0.0 and p.accel.b == 0.0:   # at rest
+            out[m] = pos
+            continue
+
+        def rhs(tau, y, p=p, lat_p=pos[0], h_p=pos[2]):
+            s = p.s0 + p.accel.integral(tau)
+            psi = p.psi0 + p.yaw_rate.integral(tau)
+            th = p.pitch.value(tau)
+            lat, h = lat_p + y[0], h_p + y[2]
+            w = 1.0 - earth.E2 * math.sin(lat) ** 2
+            rn = earth.A / math.sqrt(w)
+            rm = rn * (1.0 - earth.E2) / w
+            return [s * math.cos(th) * math.cos(psi) / (rm + h),
+                    s * math.cos(th) * math.sin(psi) / ((rn + h) * math.cos(lat)), s * math.sin(th)]
+
+        sol = solve_ivp(rhs, (0.0, p.T), np.zeros(3), method="DOP853", rtol=rtol, atol=(1e-18, 1e-18, 1e-11),
+                        dense_output=True)
+        assert sol.success
+        if m.any():
+            out[m] = pos + sol.sol(t[m] - p.t0).T
+        pos = pos + sol.y[:, -1]
+    return out
+
+
+def _assert_matches_dop853(traj, start):
+    """At the grid and 0.37 s after each grid time: ≤ 1e-12 rad (~6 µm) in lat, lon and ≤ 1e-5 m in h."""
+    off = traj.t[traj.t + 0.37 <= traj.t[-1]] + 0.37
+    for t, label in ((traj.t, "grid"), (off, "off the grid")):
+        ref = _dop853_positions(traj, start, t)
+        got = traj.sample(t)
+        np.testing.assert_allclose(got.lat, ref[:, 0], rtol=0, atol=1e-12, err_msg=f"lat, {label}")
+        np.testing.assert_allclose(got.lon, ref[:, 1], rtol=0, atol=1e-12, err_msg=f"lon, {label}")
+        np.testing.assert_allclose(got.h, ref[:, 2], rtol=0, atol=1e-5, err_msg=f"h, {label}")
+
+
+@pytest.mark.parametrize("name", ["lv", "helix"])
+def test_position_matches_dop853(name, request):
+    """The route and the helix against DOP853 at rtol = 1e-13.
+
+    The Chebyshev–Picard positions agree to ~2e-16 rad and ~4e-12 m; taking
+    R_M at the start latitude (no Picard iteration) would be off by ~3e-10
+    rad on the route.
+    """
+    tr = request.getfixturevalue(name)
+    _assert_matches_dop853(tr, _start(INITIAL))
+
+
+def test_fast_long_flight_matches_dop853():
+    """~10 h at 240-280 m/s with a 30 deg/s reversal, an hour of turns, a climb and a descent."""
+    tr = from_segments(AIRLINER, AIRLINER_INITIAL, dt=10.0, name="airliner")
+    assert tr.duration > 9.5 * 3600 and tr.distance[-1] > 8.5e6
+    src = tr._source
+    assert src._sub_t.size > len(src.pieces)            # the hour of turning is cut into sub-intervals
+    _assert_matches_dop853(tr, _start(AIRLINER_INITIAL))
+
+
+def test_near_polar_rhumb_line_matches_dop853():
+    """From 70 deg N at heading 10 deg to 89.2 deg N: the longitude integrand (1/cos L) is halved."""
+    init = {"lat": "70 deg", "lon": "0 deg", "h": "10000 m", "heading": "10 deg", "speed": "250 m/s"}
+    tr = from_segments([{"kind": "cruise", "duration": "8700 s"}], init, dt=10.0)
+    assert math.degrees(tr.lat[-1]) > 89.1 and math.degrees(tr.lon[-1]) > 30.0
+    assert tr._source._sub_t.size > 1                   # one piece, cut where 1/cos L steepens
+    _assert_matches_dop853(tr, _start(init))
+
+
+def test_due_east_cruise_closed_form():
+    """Due east at constant speed and height: lat constant, lon = lon0 + v t / ((R_N + h) cos lat)."""
+    v, h0 = 250.0, 60.0
+    tr = from_segments([{"kind": "cruise", "duration": "10 h"}],
+                       {**INITIAL, "heading": "90 deg", "speed": f"{v} m/s"}, dt=60.0)
+    lat0, lon0, _ = _start(INITIAL)
+    t = np.linspace(0.0, tr.t[-1], 777)
+    s = tr.sample(t)
+    _, rn = earth.radii(lat0)
+    np.testing.assert_allclose(s.lat, lat0, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(s.lon, lon0 + v * t / ((rn + h0) * math.cos(lat0)), rtol=0, atol=1e-14)
+    np.testing.assert_allclose(s.h, h0, rtol=0, atol=1e-12)
+
+
+def test_constant_pitch_climb_closed_form():
+    """Due east on a 10-deg climb at 200 m/s after a 20-s pitch-up.
+
+    After the pitch-up: ``h = h_r + v (t − t_r) sin θ`` and
+    ``lon = lon_r + cot θ / cos L · ln((R_N + h)/(R_N + h_r))``; over the
+    pitch-up ``h_r − h0 = v T_r ∫_0^1 sin(θ S(u)) du`` (quadrature).
+    """
+    v, th, t_r, h0 = 200.0, math.radians(10.0), 20.0, 60.0
+    tr = from_segments([{"kind": "grade", "angle": "10 deg", "duration": "20 min", "transition": "20 s",
+                         "level_off": False}], {**INITIAL, "heading": "90 deg", "speed": f"{v} m/s"}, dt=1.0)
+    lat0, lon0, _ = _start(INITIAL)
+    ramp, _ = quad(lambda u: math.sin(th * 0.5 * (1.0 - math.cos(math.pi * u))), 0.0, 1.0, epsabs=1e-15,
+                   epsrel=1e-15)
+    r = tr.sample([t_r])
+    assert r.h[0] - h0 == pytest.approx(v * t_r * ramp, rel=1e-13, abs=0)
+    t = np.linspace(t_r, tr.t[-1], 555)
+    s = tr.sample(t)
+    assert s.h[-1] > 4e4
+    np.testing.assert_allclose(s.h, r.h[0] + v * (t - t_r) * math.sin(th), rtol=0, atol=1e-9)
+    _, rn = earth.radii(lat0)
+    lon = r.lon[0] + math.cos(th) / (math.sin(th) * math.cos(lat0)) * np.log((rn + s.h) / (rn + r.h[0]))
+    np.testing.assert_allclose(s.lon, lon, rtol=0, atol=1e-14)
+    np.testing.assert_allclose(s.lat, lat0, rtol=0, atol=1e-15)
+
+
+def test_due_north_cruise_meridian_arc():
+    """Due north at 250 m/s for 2 h: the meridian arc ∫(R_M(φ) + h) dφ to lat(t) is v t (quadrature)."""
+    v, h0 = 250.0, 60.0
+    tr = from_segments([{"kind": "cruise", "duration": "2 h"}],
+                       {**INITIAL, "heading": "0 deg", "speed": f"{v} m/s"}, dt=60.0)
+    lat0, lon0, _ = _start(INITIAL)
+    t = np.linspace(0.0, tr.t[-1], 61) + np.r_[0.0, np.full(59, 0.37), 0.0]
+    s = tr.sample(t)
+    assert math.degrees(s.lat[-1] - lat0) > 16.0
+    # the arc as (R_M(lat0) + h)(L − lat0) + ∫(R_M(φ) − R_M(lat0)) dφ: the quadrature sees only the ~1e4 m/rad
+    # variation of R_M, to ~1e-10 m
+    rm0 = earth.radii(lat0)[0]
+    arc = np.array([(rm0 + h0) * (L - lat0) + quad(lambda p: earth.radii(p)[0] - rm0, lat0, L, epsabs=1e-10,
+                                                   epsrel=1e-13)[0] for L in s.lat])
+    np.testing.assert_allclose(arc, v * t, rtol=0, atol=1e-6)          # [m]: ~1.6e-13 rad
+    np.testing.assert_array_equal(s.lon, lon0)
+    np.testing.assert_array_equal(s.h, h0)
+
+
+def test_turns_without_the_first_cut_are_resolved_by_halving(monkeypatch):
+    """10 h of turning (1885 rad of heading): the tail test alone splits the aliased piece.
+
+    With the first cut off, halving stops where the series are resolved and
+    gives the same positions to 1e-14 rad; capped at 4 halvings it refuses,
+    naming the piece.
+    """
+    import covtool.nav.trajectory.segments as seg
+
+    segs = [{"kind": "turn", "rate": "3 deg/s", "duration": "10 h"}]
+    init = {"lat": "45 deg", "lon": "10 deg", "h": "10000 m", "speed": "250 m/s"}
+    cut = from_segments(segs, init, dt=10.0)
+    monkeypatch.setattr(seg, "_MAX_TURN", math.inf)
+    halved = from_segments(segs, init, dt=10.0)
+    assert halved._source._sub_t.size > 200
+    for key, tol in (("lat", 1e-14), ("lon", 1e-14), ("h", 1e-9)):
+        np.testing.assert_allclose(getattr(halved, key), getattr(cut, key), rtol=0, atol=tol, err_msg=key)
+    monkeypatch.setattr(seg, "_SPLIT_MAX", 4)
+    with pytest.raises(TrajectoryError, match=r"^turns: piece 1 \(t = 3 to 35997 s\): the kinematics are not "
+                                              r"resolved to round-off by Chebyshev series of degree 32 after 4 "
+                                              r"halvings"):
+        from_segments(segs, init, dt=10.0, where="turns")
+
+
+def test_position_not_converged_names_the_piece(monkeypatch):
+    import covtool.nav.trajectory.segments as seg
+
+    monkeypatch.setattr(seg, "_PICARD_MAX", 1)
+    with pytest.raises(TrajectoryError, match=r"^land_vehicle: piece 0 \(t = 0 to 3 s\): the latitude did not "
+                                              r"converge in 1 Picard iteration\(s\) \(last change 1\.6\de-07 rad"):
+        land_vehicle()
+
+
+def test_latitude_beyond_the_pole_is_refused():
+    # a rhumb line from 60 deg N at heading 30 deg reaches the pole after ~3500 km
+    with pytest.raises(TrajectoryError, match=r"^polar: piece 0 \(t = 0 to 36000 s\): the latitude reaches "
+                                              r"1\d\d\.\d+ deg, beyond ±89\.9 deg"):
+        from_segments([{"kind": "cruise", "duration": "10 h"}],
+                      {"lat": "60 deg", "lon": "0 deg", "h": "10000 m", "heading": "30 deg", "speed": "250 m/s"},
+                      where="polar")
+
+
+def test_profile_pickles_and_samples_the_same(lv):
+    import pickle
+
+    copy = pickle.loads(pickle.dumps(lv))
+    t = np.linspace(0.0, 1800.0, 4001)[1:-1] + 0.01
+    a, b = lv.sample(t), copy.sample(t)
+    for key in ("lat", "lon", "h", "v_n", "f_b", "w_ib_b"):
+        np.testing.assert_array_equal(getattr(a, key), getattr(b, key), err_msg=key)
+    assert len(pickle.dumps(lv._source)) < 400_000
+
+
+def test_building_a_profile_does_not_import_scipy_integrate():
+    import os
+    from pathlib import Path
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import sys; from covtool.nav.trajectory.profiles import land_vehicle; land_vehicle(); "
+            "print('scipy.integrate' in sys.modules)")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, cwd=root,
+                         env=dict(os.environ, PYTHONPATH=str(root)))
+    assert out.stdout.strip() == "False", out.stdout + out.stderr
+
+
+
+# --------------------------------------------------------------------------
 # configuration
 # --------------------------------------------------------------------------
 
