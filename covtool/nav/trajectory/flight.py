@@ -57,6 +57,8 @@ DEFAULT_TRANSITION = 1.0
 
 # spectral integration: nodes per knot interval and the largest interval
 _NODES = 10
+#: Picard iterations of the latitude at most (:meth:`FlightProfile._integrate`)
+_PICARD_MAX = 50
 _MAX_KNOT = 0.1
 
 
@@ -249,6 +251,7 @@ class FlightProfile:
     """
 
     def __init__(self, segments, *, lat, lon, h, heading=0.0, pitch=0.0, vibration=(), where="flight"):
+        self.where = where
         if not abs(lat) < math.radians(89.9):
             raise TrajectoryError(f"{where}: initial: lat", f"{math.degrees(lat):g} deg is not within ±89.9 deg")
         if not -1e4 < h < 1e5:
@@ -433,14 +436,27 @@ class FlightProfile:
         gh = -v_n[..., 2]
         h_k, h_nodes = integrate(gh, self.h0)
         lat_nodes = np.full((K, _NODES), self.lat0)
-        for _ in range(8):
+        # Picard sweeps until the change is at round-off (the latitude feeds back only through R_M: a
+        # contraction of ~0.02 × distance / R_E per sweep); never left unconverged
+        for _ in range(_PICARD_MAX):
             rm, _rn = earth.radii(lat_nodes)
             gL = v_n[..., 0] / (rm + h_nodes)
             L_k, new = integrate(gL, self.lat0)
-            change = np.max(np.abs(new - lat_nodes))
+            change = float(np.max(np.abs(new - lat_nodes)))
             lat_nodes = new
-            if change < 1e-16:
+            tol = 4.0 * np.finfo(float).eps * max(1.0, float(np.max(np.abs(lat_nodes))))
+            if change <= tol:
                 break
+        else:
+            raise TrajectoryError(self.where, f"the latitude did not converge in {_PICARD_MAX} Picard iterations "
+                                  f"(last change {change:.3g} rad, round-off {tol:.3g} rad)")
+        beyond = ~(np.abs(lat_nodes).max(axis=1) < np.radians(89.9))
+        if beyond.any():
+            k = int(np.argmax(beyond))                                  # the first knot interval beyond
+            lat_k = lat_nodes[k][np.argmax(np.abs(lat_nodes[k]))]
+            raise TrajectoryError(self.where, f"the flight reaches latitude {np.degrees(lat_k):.6g} deg near "
+                                  f"t = {self._knots[k]:.6g} s, beyond ±89.9 deg (the NED frame is singular at the "
+                                  "poles)")
         rm, rn = earth.radii(lat_nodes)
         gL = v_n[..., 0] / (rm + h_nodes)
         gl = v_n[..., 1] / ((rn + h_nodes) * np.cos(lat_nodes))
