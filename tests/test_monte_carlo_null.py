@@ -112,13 +112,39 @@ def test_linear_mean_squares_refuses_bad_arguments():
 
 
 def test_noise_factors_reproduce_a_rank_deficient_qd():
+    """Rank 2 of 6: the principal root, symmetric, with L Lᵀ = Q_d; a state without noise gets no column."""
     rng = np.random.default_rng(7)
     G = rng.standard_normal((3, 6, 2))
+    G[:, 4] = 0.0                                   # state 4: no noise at any step
     Qd = G @ G.transpose(0, 2, 1)
     L = noise_factors(Qd)
-    assert [f.shape[1] for f in L] == [2, 2, 2]
+    assert [f.shape for f in L] == [(6, 5)] * 3
+    sup = [0, 1, 2, 3, 5]
     for f, Q in zip(L, Qd):
         np.testing.assert_allclose(f @ f.T, Q, atol=1e-12 * np.abs(Q).max())
+        np.testing.assert_allclose(f[sup], f[sup].T, atol=1e-12 * np.abs(f).max())   # S = V √w Vᵀ
+        assert not f[4].any()
+
+
+def test_draws_are_continuous_in_qd_and_p0_where_eigenvalues_are_equal():
+    """Three equal eigenvalues (an isotropic sensor triad, a stop): a round-off change of Q_d or P0 changes the
+    factors, and so the draws of one seed, by round-off. An eigenvector factor turns inside the eigenspace by
+    an arbitrary rotation instead; the principal root is unique (covtool.lincov.kalman.covariance_root)."""
+    from covtool.lincov.kalman import covariance_root
+
+    rng = np.random.default_rng(3)
+    U = np.linalg.qr(rng.standard_normal((5, 5)))[0]
+    P = U @ np.diag([2.0, 1.0, 1.0, 1.0, 0.0]) @ U.T          # a triple eigenvalue and a null direction
+    dP = U @ np.diag([0.0, 1.0, -1.0, 0.5, 0.0]) @ U.T * 1e-13  # splits the triple eigenvalue, keeps the null
+    for Q, Qp in ((P, P + dP), (P, P + 1e-13 * (U[:, :4] @ np.diag([1, 2, 3, 4]) @ U[:, :4].T))):
+        S, Sp = covariance_root(Q), covariance_root(Qp)
+        np.testing.assert_allclose(S @ S.T, Q, atol=1e-14)
+        # |ΔS| ≤ |ΔP| / (2 √λ_min) on the range (λ_min = 1), ~1e-13, and √(round-off of the null eigenvalue,
+        # ~1e-16) ≈ 1e-8 along the null direction (the root is Hölder-½ there); O(1) for a rotated eigenvector
+        assert np.abs(Sp - S).max() < 1e-7
+    L1 = noise_factors(np.array([P, P]))
+    L2 = noise_factors(np.array([P, P + dP]))
+    assert np.abs(L2[1] - L1[1]).max() < 1e-7 and np.array_equal(L2[0], L1[0])
 
 
 # --------------------------------------------------------------------------

@@ -133,6 +133,46 @@ def symmetrize(P: np.ndarray) -> np.ndarray:
     return 0.5 * (P + np.swapaxes(P, -1, -2))
 
 
+def covariance_root(P: np.ndarray, support=None) -> np.ndarray:
+    """Principal square root of a PSD matrix (or stack): ``S = V diag(√w₊) Vᵀ``, ``S Sᵀ = P``.
+
+    The factor for drawing ``x = S z``, ``z ~ N(0, I)``, with covariance
+    ``P``.  Unlike an eigenvector factor ``V diag(√w)`` (whose columns are
+    fixed only up to rotations inside an eigenspace, so by round-off where
+    eigenvalues are equal: three identical sensor axes, a stop) or a
+    Cholesky factor (undefined for a singular ``P``), the principal root is
+    unique and continuous in ``P``, singular or not: a round-off change of
+    ``P`` (another BLAS, another integrator) changes the draws of one seed
+    by round-off, not to other, equivalent draws.
+
+    Parameters
+    ----------
+    P : ndarray, shape (..., n, n)
+        Symmetric PSD (symmetrised here; eigenvalues below zero, round-off,
+        are taken as zero).
+    support : array_like of int, shape (s,), optional
+        States outside which ``P`` is zero (at every matrix of the stack):
+        the root is computed on ``P[support, support]`` and only its
+        ``support`` columns are returned, so ``s`` normal numbers per draw
+        instead of ``n`` (its other columns are zero).
+
+    Returns
+    -------
+    ndarray, shape (..., n, n), or (..., n, s) with ``support``
+        ``S`` (or ``S[..., :, support]``), with ``S Sᵀ = P``.
+    """
+    P = symmetrize(np.asarray(P, float))
+    n = P.shape[-1]
+    if support is None:
+        w, V = np.linalg.eigh(P)
+        return (V * np.sqrt(np.clip(w, 0.0, None))[..., None, :]) @ np.swapaxes(V, -1, -2)
+    s = np.asarray(support, int)
+    w, V = np.linalg.eigh(P[..., s[:, None], s[None, :]])
+    out = np.zeros(P.shape[:-2] + (n, s.size))
+    out[..., s, :] = (V * np.sqrt(np.clip(w, 0.0, None))[..., None, :]) @ np.swapaxes(V, -1, -2)
+    return out
+
+
 @dataclass(frozen=True)
 class CovarianceStatus:
     """Outcome of :func:`covariance_status` for a stack of matrices.

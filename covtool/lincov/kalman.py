@@ -30,7 +30,7 @@ import numpy as np
 from covtool.errors import NumericalError
 from covtool.lincov.guard import (  # noqa: F401 - re-exported: the kernel's users import the guard from here
     PSD_TOL, SYM_TOL, OK, NONFINITE, ASYMMETRIC, NEGATIVE_VARIANCE, NOT_PSD, _CHUNK, QUATERNION_ERROR,
-    scale_groups, running_scale, symmetrize, CovarianceStatus, covariance_status, _status_chunk,
+    scale_groups, running_scale, symmetrize, covariance_root, CovarianceStatus, covariance_status, _status_chunk,
     check_covariance, locate, time_text, check_finite, check_system,
 )
 

@@ -36,7 +36,7 @@ import threading
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from covtool.lincov.kalman import symmetrize
+from covtool.lincov.kalman import covariance_root
 from covtool.nav import attitude as quat, earth
 
 __all__ = ["output_rows", "noise_factors", "linear_mean_squares"]
@@ -75,8 +75,8 @@ def output_rows(lat, h, q_nb) -> np.ndarray:
     return C
 
 
-def noise_factors(Qd, rtol: float = 1e-13) -> list:
-    """Square-root factors ``L_k`` with ``L_k L_kᵀ = Q_d,k``.
+def noise_factors(Qd) -> list:
+    """Square-root factors ``L_k`` with ``L_k L_kᵀ = Q_d,k``: principal roots, continuous in ``Q_d``.
 
     Parameters
     ----------
@@ -84,21 +84,24 @@ def noise_factors(Qd, rtol: float = 1e-13) -> list:
 
     Returns
     -------
-    list of ndarray, shape (n, r_k)
-        The eigenvector factor of each step, keeping the eigenvalues above
-        ``rtol`` of the largest (``Q_d`` of a truth model has the rank of its
-        driving noises, 19 of 58 for ``sdins58``).  Negative round-off
-        eigenvalues are dropped.
+    list of ndarray, shape (n, s)
+        The principal square root of each step's ``Q_d``
+        (:func:`covtool.lincov.kalman.covariance_root`), its columns on the
+        ``s`` states with a noise variance at some step (the others are
+        zero: 22 of 58 for ``sdins58``, whose ``Q_d`` has rank 19).  Unlike
+        an eigenvector factor it is unique where eigenvalues are equal, so
+        the draws of one seed change with ``Q_d`` continuously (by
+        round-off for a round-off change of the inputs).
     """
     Qd = np.asarray(Qd, float)
+    N = Qd.shape[0]
+    support = np.flatnonzero(np.any(np.diagonal(Qd, axis1=1, axis2=2) > 0, axis=0)) if N else np.zeros(0, int)
+    if support.size == 0:
+        return [np.zeros((Qd.shape[1], 0)) for _ in range(N)]
     # 1800 small eigenproblems: OpenBLAS's thread pool only adds contention (20x slower on a loaded machine)
     with threadpool_limits(limits=1, user_api="blas"):
-        w, V = np.linalg.eigh(0.5 * (Qd + np.swapaxes(Qd, 1, 2)))
-    out = []
-    for wk, Vk in zip(w, V):
-        keep = wk > rtol * max(float(wk[-1]), 0.0)
-        out.append(np.ascontiguousarray(Vk[:, keep] * np.sqrt(wk[keep])))
-    return out
+        S = covariance_root(Qd, support)
+    return [np.ascontiguousarray(x) for x in S]
 
 
 def _split(Phi):
@@ -248,8 +251,7 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
     Cp = np.ascontiguousarray(Cp[:, :, used], dtype=f4)
     used = slice(0, used.size) if np.array_equal(used, np.arange(used.size)) else used
     if P0 is not None:
-        w, V = np.linalg.eigh(symmetrize(np.asarray(P0, float)))
-        L0 = (V * np.sqrt(np.clip(w, 0.0, None)))[perm]
+        L0 = covariance_root(P0)[perm]                          # continuous in P0 (see noise_factors)
     names = list(cases)
     with threadpool_limits(limits=1, user_api="blas"):
         # small matrices: OpenBLAS's thread pool is many times slower than one thread on a loaded machine

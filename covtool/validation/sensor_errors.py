@@ -32,7 +32,7 @@ import math
 import numba
 import numpy as np
 
-from covtool.lincov.kalman import symmetrize
+from covtool.lincov.kalman import covariance_root
 from covtool.lincov.model.blocks import BLOCK_KINDS, gravity_sensitivity
 from covtool.lincov.model.spec import Model
 from covtool.nav import attitude as quat
@@ -67,8 +67,9 @@ def sample_states(model: Model, n_runs: int, rng=None, *, q0=None) -> np.ndarray
     """
     rng = np.random.default_rng(rng)
     P = model.initial_covariance(q0)
-    w, V = np.linalg.eigh(symmetrize(P))
-    L = V * np.sqrt(np.clip(w, 0.0, None))
+    # the principal root: unique and continuous in P (an eigenvector factor is fixed only by round-off
+    # where eigenvalues are equal, so a round-off change of P would give other, equivalent draws)
+    L = covariance_root(P)
     return rng.standard_normal((int(n_runs), model.n)) @ L.T
 
 
