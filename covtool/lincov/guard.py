@@ -160,6 +160,13 @@ def covariance_root(P: np.ndarray, support=None) -> np.ndarray:
     -------
     ndarray, shape (..., n, n), or (..., n, s) with ``support``
         ``S`` (or ``S[..., :, support]``), with ``S Sᵀ = P``.
+
+    Notes
+    -----
+    ``P`` must be finite: the callers pass covariances already checked
+    (:func:`check_system`); for a non-finite ``P`` numpy's ``eigh`` raises
+    ``LinAlgError`` or returns NaN.  Near a null direction the root is
+    Hölder-½ in ``P``: a round-off eigenvalue ``ε`` there gives ``√ε``.
     """
     P = symmetrize(np.asarray(P, float))
     n = P.shape[-1]
