@@ -281,9 +281,10 @@ class AidedRun:
     steps : ndarray of int, shape (r,)
         Recorded grid indices.
     P_truth : ndarray, shape (r, n, n)
-        Truth covariance over ``[x_INS; e]`` (posterior at update steps), eq (15)–(16).
+        Truth covariance over ``[x_INS; e]`` (posterior at update steps), eq (15)–(16);
+        its leading ``keep`` states only when :func:`propagate_aided` was given ``keep``.
     P_filter : ndarray, shape (r, n_f, n_f)
-        The filter's own covariance, eq (6a)–(8).
+        The filter's own covariance, eq (6a)–(8) (likewise).
     prior_truth, prior_filter : dict of int to ndarray
         Priors at the recorded update steps.
     gains : dict of int to ndarray, shape (n_f, m)
@@ -305,7 +306,7 @@ GUARD_BLOCK = 256
 def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f=None, record=None,
                     all_gains: bool = False, sequential: bool = False, form: str = "joseph", check: bool = True,
                     label: str = "filter", times=None, names=None, filter_names=None,
-                    system_checked: bool = False) -> AidedRun:
+                    system_checked: bool = False, keep: int | None = None) -> AidedRun:
     """Truth covariance under a filter's gains with scheduled general measurements.
 
     Parameters
@@ -342,7 +343,14 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
     label, times, names, filter_names
         For error messages.
     system_checked : bool
-        Φ, Q_d, Φ_f, Q_f were guarded by the caller.
+        Φ, Q_d, Φ_f, Q_f were guarded by the caller.  Required when they are
+        streamed (:class:`covtool.lincov.streamed.StreamedSystem`, read one
+        step at a time: each chunk is guarded when it is made).
+    keep : int, optional
+        Record only the leading ``keep`` states of the truth and of the
+        filter (the navigation block: ``keep = 10``) in ``P_truth``,
+        ``P_filter`` and the priors; default all.  Every covariance is still
+        guarded whole.
 
     Returns
     -------
@@ -379,8 +387,9 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
     rec = np.arange(N + 1) if record is None else np.unique(np.asarray(record, int))
     slot = {int(k): i for i, k in enumerate(rec)}
     by_step = {ep.step: ep for ep in epochs}
-    PT = np.full((rec.size, n, n), np.nan)
-    PF = np.full((rec.size, nf, nf), np.nan)
+    kt, kf = (n, nf) if keep is None else (min(int(keep), n), min(int(keep), nf))
+    PT = np.full((rec.size, kt, kt), np.nan)
+    PF = np.full((rec.size, kf, kf), np.nan)
     prior_t, prior_f, gains = {}, {}, {}
     guard = _Guard(label, names, filter_names, times, check)
 
@@ -388,11 +397,11 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
         if stage == "prior":
             guard.add(k, P, Pf, prior=True)
             if k in slot:
-                prior_t[k], prior_f[k] = P, Pf
+                prior_t[k], prior_f[k] = (P, Pf) if keep is None else (P[:kt, :kt].copy(), Pf[:kf, :kf].copy())
             return
         guard.add(k, P, Pf, after_update=k in by_step)
         if k in slot:
-            PT[slot[k]], PF[slot[k]] = P, Pf
+            PT[slot[k]], PF[slot[k]] = P[:kt, :kt], Pf[:kf, :kf]
         if K is not None and (all_gains or k in slot):
             gains[k] = K
 

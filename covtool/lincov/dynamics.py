@@ -199,11 +199,18 @@ class CompactNoiseSource(NoiseSource):
 
 @dataclass
 class ErrorDynamics:
-    """F(t), Q_c(t) and the noise sources of a model along a trajectory."""
+    """F(t), Q_c(t) and the noise sources of a model along a trajectory.
+
+    ``options`` are the navigation options F was built under (seed 002
+    eq (1), (4) with or without the Coriolis terms and the vertical
+    coupling): a filter built from these dynamics must declare the same
+    (:func:`covtool.lincov.reduced.build_filter` checks).
+    """
 
     names: list
     F: np.ndarray
     noise: list
+    options: "NavOptions" = None
 
     @property
     def Qc(self) -> np.ndarray:
@@ -253,10 +260,12 @@ class OptionsDynamics(ErrorDynamics):
         The model's dynamics under the default options.
     nav : ndarray, shape (N, 10, 10)
         :func:`nav_matrix` under the other options (seed 002 eq (1), (4)).
+    options : NavOptions
+        Those options (:attr:`ErrorDynamics.options`).
     """
 
-    def __init__(self, base: ErrorDynamics, nav: np.ndarray):
-        self.names, self.noise = base.names, base.noise
+    def __init__(self, base: ErrorDynamics, nav: np.ndarray, options: "NavOptions" = None):
+        self.names, self.noise, self.options = base.names, base.noise, options
         self._base, self._nav, self._F = base, nav, None
         self._qc = base.Qc
 
@@ -481,7 +490,7 @@ def error_dynamics(model: Model, ctx: Context, options: NavOptions = NavOptions(
                 if bk.sensor == "ad_reset":
                     G[:, VEL, 0] = C[:, :, k]
                 noise.append(NoiseSource(s.name, G, np.broadcast_to(np.asarray(psd, float), (N,))[:, None].copy()))
-    return ErrorDynamics(model.names, F, noise)
+    return ErrorDynamics(model.names, F, noise, options)
 
 
 def with_nav_options(dyn: ErrorDynamics, ctx: Context, options: NavOptions) -> ErrorDynamics:
@@ -509,7 +518,7 @@ def with_nav_options(dyn: ErrorDynamics, ctx: Context, options: NavOptions) -> E
     """
     if dyn_key(options) == dyn_key(None):
         return dyn
-    return OptionsDynamics(dyn, nav_matrix(ctx, options))
+    return OptionsDynamics(dyn, nav_matrix(ctx, options), options)
 
 
 def attitude_errors(P_qq: np.ndarray, q: np.ndarray) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from covtool.lincov.discretize import discretize
-from covtool.lincov.dynamics import (Context, DynamicsStream, error_dynamics, ErrorDynamics, nav_error_matrix,
+from covtool.lincov.dynamics import (Context, dyn_key, DynamicsStream, error_dynamics, ErrorDynamics, nav_error_matrix,
                                      NavOptions)
 from covtool.lincov.equivalent_noise import (absorbed_coupling, equivalent_noise_source,
                                              equivalent_white_noise, pointwise_overstatement,
@@ -166,7 +166,7 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         Δt_s of eq (11)–(13). [s]
     q0 : ndarray, shape (4,), optional
         Initial attitude (rotates the δq block of P0).
-    truth_dynamics : ErrorDynamics, optional
+    truth_dynamics : ErrorDynamics or DynamicsStream, optional
         Truth dynamics with the filter's :class:`NavOptions`; computed if omitted.
     mean_speed : float, optional
         Mean moving speed (Markov-in-distance states). [m/s]
@@ -181,6 +181,13 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
     Returns
     -------
     FilterModel
+
+    Raises
+    ------
+    ValueError
+        ``truth_dynamics`` was built under other navigation options than
+        the filter declares (its F_f would silently keep the truth's
+        Coriolis terms or vertical coupling).
 
     Notes
     -----
@@ -201,6 +208,9 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         bounds = np.unique(np.r_[np.searchsorted(t, np.arange(0.0, t[-1], zupt_interval) - 1e-9 * zupt_interval),
                                  ctx.n]).astype(int)
     dyn = truth_dynamics if truth_dynamics is not None else error_dynamics(truth, ctx, spec.options)
+    if dyn_key(getattr(dyn, "options", None)) != dyn_key(spec.options):
+        raise ValueError(f"filter {spec.name!r}: its truth dynamics were built under {dyn.options}, but the filter "
+                         f"declares {spec.options} (seed 002 eq (1), (4))")
     kidx = truth.idx(spec.kept)
     kset = set(kidx.tolist())
     dropped = [i for i in range(truth.n) if i not in kset]

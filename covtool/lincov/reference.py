@@ -24,7 +24,7 @@ from covtool.lincov.kalman import (check_covariance, check_system, covariance_st
 
 
 def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = True, label: str = "pure INS",
-              names=None, times=None, system_checked: bool = False) -> np.ndarray:
+              names=None, times=None, system_checked: bool = False, record=None) -> np.ndarray:
     """Pure propagation ``P_{k+1} = Φ_k P_k Φ_kᵀ + Q_k`` (seed 002, eq (15)).
 
     Parameters
@@ -44,10 +44,16 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
         Φ and Q_d were already guarded by the caller (:func:`check_system`,
         e.g. once for a truth shared by several runs); P0 and the history
         are still checked.
+    record : array_like of int, optional
+        Grid indices to return (default: all ``N + 1``).  Every covariance
+        is still guarded, in blocks of :data:`GUARD_STEPS`, with the same
+        running scale as the whole history's; the memory does not grow with
+        N × n² (``Phi``, ``Qd`` may be streamed,
+        :class:`covtool.lincov.streamed.StreamedSystem`).
 
     Returns
     -------
-    ndarray, shape (N+1, n, n)
+    ndarray, shape (N+1, n, n), or (len(unique(record)), n, n)
 
     Raises
     ------
@@ -59,6 +65,9 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
         check_system(label, Phi=None if system_checked else Phi, Qd=None if system_checked else Qd, P0=P0,
                      names=names, times=times)
     N, n, _ = Phi.shape
+    if record is not None:
+        return _propagate_recorded(Phi, Qd, P0, np.unique(np.asarray(record, int)), check=check, label=label,
+                                   names=names, times=times)
     out = np.empty((N + 1, n, n))
     P = out[0] = symmetrize(np.asarray(P0, float))
     with np.errstate(over="ignore", invalid="ignore"):      # a blow-up is reported by the guard below
@@ -67,6 +76,47 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
             out[k + 1] = P = symmetrize(P)
     if check:
         check_covariance(out, label, names=names, times=times, scale=running_scale(out))
+    return out
+
+
+#: covariances of a recorded pure propagation guarded at once (:func:`propagate` with ``record``)
+GUARD_STEPS = 512
+
+
+def _propagate_recorded(Phi, Qd, P0, rec, *, check, label, names, times) -> np.ndarray:
+    """:func:`propagate` keeping the steps ``rec`` only; every step guarded, in blocks."""
+    N, n, _ = Phi.shape
+    if rec.size and (rec[0] < 0 or rec[-1] > N):
+        raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
+    out = np.empty((rec.size, n, n))
+    slot = {int(k): i for i, k in enumerate(rec)}
+    block = np.empty((min(GUARD_STEPS, N + 1), n, n))
+    sigma = np.zeros(n)                                      # the running scale carried between blocks
+    t = None if times is None else np.asarray(times, float)
+
+    def flush(k0, m):
+        nonlocal sigma
+        if not check or m == 0:
+            return
+        B = block[:m]
+        scale = np.maximum(running_scale(B), sigma)
+        sigma = scale[-1]
+        check_covariance(B, label, names=names, times=None if t is None else t[k0:k0 + m], scale=scale)
+
+    P = symmetrize(np.asarray(P0, float))
+    j, k0 = 0, 0
+    with np.errstate(over="ignore", invalid="ignore"):      # a blow-up is reported by the guard
+        for k in range(N + 1):
+            if k:
+                P = symmetrize(Phi[k - 1] @ P @ Phi[k - 1].T + Qd[k - 1])
+            block[j] = P
+            if k in slot:
+                out[slot[k]] = P
+            j += 1
+            if j == block.shape[0]:
+                flush(k0, j)
+                j, k0 = 0, k + 1
+    flush(k0, j)
     return out
 
 

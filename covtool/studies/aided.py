@@ -69,16 +69,17 @@ from covtool.lincov.measurements import KINDS, Schedule, WHEN
 from covtool.lincov.measurements.base import error_state
 from covtool.lincov.reduced import build_filter
 from covtool.lincov.reference import propagate
+from covtool.lincov.streamed import ChunkPool
 from covtool.plotting.aided import aided_history_figure, aided_sweep_figure
 from covtool.results import StudyResult
 from covtool.studies.aided_sweep import _sweep_table, parse_sweep, scaled_plan
 from covtool.studies.config import MEASUREMENT_NAME
-from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_system
+from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_stream
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
-from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
-                                       steps_of)
+from covtool.studies.resources import (check_memory, HELD_CHUNKS, memory_estimate, noise_columns,
+                                       resource_provenance, steps_of)
 from covtool.studies.tables import case_validity, history_frame, summary_row
-from covtool.studies.zupt_setup import filter_cases, filters_file
+from covtool.studies.zupt_setup import filter_cases, filters_file, truth_copy
 from covtool.units import ARCMIN
 
 MEAS_KEYS = {"name", "kind", "sigma", "filter_sigma", "lever_arm", "errors", "schedule"}
@@ -86,6 +87,8 @@ SCHEDULE_KEYS = {"period", "rate", "start", "end", "when", "outages", "at"}
 ERROR_KEYS = {"sigma", "process", "tau"}
 #: a measurement with at most this many updates (survey points, stops) gets its before/after table
 SPARSE_UPDATES = 50
+#: states recorded of every run: the navigation block (what the tables and figures show)
+NAV = 10
 _NAME = MEASUREMENT_NAME                # one rule, declared with the typed [[measurement]] section
 
 
@@ -319,7 +322,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     check_error_state_names(plan, states, truth0, where)
     variants = parse_variants(fcfg, specs, states, where)
     sweep = parse_sweep(decl["sweep"], [m for m, _ in plan], where) if "sweep" in decl else None
-    est = check_memory(_memory(hdr, truth0, specs, cases, variants, states, every, fcfg.get("pure_ins", True)),
+    est = check_memory(_streamed_memory(hdr, truth0, specs, cases, variants, states, every, plan),
                        where, hdr["max_memory"], "a larger [study] dt or history_every, a shorter duration or fewer "
                        "[filters] cases")
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
@@ -347,14 +350,17 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     jac = Jacobians(nodes)                 # the measurement Jacobians: the same in every grade, filter and scale
     for g in grades:
         truth = load_truth(decl, where, base_dir, grade=g) if g["scale"] != 1.0 else truth0
-        ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
+        # streamed in time: Φ, Q_d made chunk by chunk, held for the grade's later runs while the pool has room
+        pool = ChunkPool(HELD_CHUNKS)
+        ctx, dyn, tsys = truth_stream(truth, traj, t, hdr["discretization"], pool=pool, where=where)
+        Phi, Qd = tsys.Phi, tsys.Qd
         P0 = initial_covariance(truth, nodes, where)
         names_all = list(truth.names) + [s.name for s in states]
         gl = g["name"]
         if fcfg.get("pure_ins", True):
             P = propagate(Phi, Qd, P0, label=f"{where}: {gl}: pure INS", names=truth.names, times=t,
-                          system_checked=True)
-            metrics[(gl, "pure_ins")] = _metrics(P[rec], nodes, rec)
+                          system_checked=True, record=rec)
+            metrics[(gl, "pure_ins")] = _metrics(P, nodes, rec)
             nstates[(gl, "pure_ins")] = truth.n
             del P
         built = {}
@@ -363,12 +369,12 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         for label, base, drop in runs:
             if base not in built:
                 built[base] = filter_system(specs_g[base], truth, ctx, dyn, Phi, Qd, hdr, t, nodes, ewn_dt=ewn_dt,
-                                            mean_speed=mean_speed, update_steps=all_steps, where=where)
+                                            mean_speed=mean_speed, update_steps=all_steps, where=where, pool=pool)
             fm, Phi_f, Qd_f = built[base]
             kept = [s.name for s in states if s.name not in drop]
             r, fnames, _, _ = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all,
                                          err, rec, form=specs_g[base].update, label=f"{where}: {gl}: filter {label}",
-                                         jacobians=jac)
+                                         jacobians=jac, keep=NAV)
             metrics[(gl, label)] = _metrics(r.P_truth, nodes, rec)
             if sweep is not None and not drop:     # the same filter with the swept measurement's σ scaled
                 for sc in sweep["scales"]:
@@ -376,7 +382,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                     rs = r if sc == 1.0 else filter_run(
                         fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, pairs, nodes, names_all, err, rec,
                         form=specs_g[base].update, label=f"{where}: {gl}: filter {label}, {sweep['measurement']} "
-                                                         f"{sweep['what']} x{sc:g}", jacobians=jac)[0]
+                                                         f"{sweep['what']} x{sc:g}", jacobians=jac, keep=NAV)[0]
                     swept[(gl, label, sc)] = (next(m for m, _ in pairs if m.name == sweep["measurement"]),
                                               _metrics(rs.P_truth, nodes, rec),
                                               _metrics(rs.P_filter[:, :10, :10], nodes, rec))
@@ -393,7 +399,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                                        "alt PE after [m]": after["alt_pe"][j],
                                        "azimuth before [arcmin]": before["sigma_azimuth"][j] / ARCMIN,
                                        "azimuth after [arcmin]": after["sigma_azimuth"][j] / ARCMIN})
-        del Phi, Qd, built
+        del Phi, Qd, tsys, built, pool
     elapsed = time.perf_counter() - t_start
     tr = t[rec]
     summary = _summary(metrics, claimed, nstates, tr, nodes, rec, rtimes)
@@ -425,14 +431,18 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
 
 
 def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, names_all, err, rec, *, form,
-               label, all_gains=False, P0_truth=None, jacobians=None):
+               label, all_gains=False, P0_truth=None, jacobians=None, keep=None):
     """The truth under one filter with the declared measurements (seed 002, eq (15)–(16)).
 
     ``P0_truth`` (n₀ + n_e square), if given, replaces the truth's initial
     covariance over ``[x_INS; e]`` (the Monte Carlo's conditional
     prediction); the filter and its gains do not depend on it.  ``jacobians``
     (:class:`covtool.lincov.aided.Jacobians` of ``nodes``) shares the
-    measurement Jacobians between the runs of a study.
+    measurement Jacobians between the runs of a study.  ``keep`` (the
+    navigation block, :data:`NAV`) records only the leading states
+    (:func:`covtool.lincov.aided.propagate_aided`).  ``Phi``, ``Qd``,
+    ``Phi_f``, ``Qd_f`` are whole-grid stacks or streamed
+    (:func:`filter_system`), already guarded.
 
     Returns
     -------
@@ -452,33 +462,82 @@ def filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, kept, meas_pairs, nodes, na
     err_f = error_processes([s for s in states if s.name in kept], np.diff(nodes.t))[:2]
     r = propagate_aided(Phi, Qd, P0a, Phi_f, Qd_f, Pf0, D, epochs, err=err, err_f=err_f, record=rec, form=form,
                         label=label, times=nodes.t, names=names_all, filter_names=fnames, system_checked=True,
-                        all_gains=all_gains)
+                        all_gains=all_gains, keep=keep)
     return r, fnames, D, epochs
 
 
 def filter_system(spec, truth, ctx, dyn, Phi, Qd, hdr, t, nodes, *, ewn_dt, mean_speed, update_steps,
-                  where="<study>"):
+                  where="<study>", pool=None):
     """A base filter evaluated on the grid: ``(FilterModel, Φ_f, Q_f)``.
 
-    Δt_s of seed 002, eq (11)–(13) is ``ewn_dt``; a filter equal to the
-    truth (filter A) reuses the truth's Φ, Q_d.
+    Δt_s of seed 002, eq (11)–(13) is ``ewn_dt``; the filter's F_f is the
+    truth's under the filter's own navigation options (seed 002 eq (1), (4)
+    with or without the Coriolis terms and the vertical coupling); a filter
+    equal to the truth (filter A) reuses the truth's Φ, Q_d.
+
+    Parameters
+    ----------
+    spec : FilterSpec
+    truth : Model
+    ctx : Context
+        The trajectory at the step mid-points.
+    dyn : ErrorDynamics or DynamicsStream
+        The truth's dynamics under its own options: whole-grid
+        (:func:`covtool.studies.grid.truth_system`; Φ_f, Q_f are then
+        whole-grid stacks) or streamed (:func:`covtool.studies.grid.truth_stream`;
+        Φ_f, Q_f are then a :class:`~covtool.lincov.streamed.StreamedSystem`'s,
+        made chunk by chunk and held in ``pool``).
+    Phi, Qd : ndarray, shape (N, n, n), or streamed
+        The truth's (reused by a filter equal to it).
+    pool : covtool.lincov.streamed.ChunkPool, optional
+        Budget of held chunks (streamed only).
+
+    Raises
+    ------
+    NumericalError
+        Φ_f or Q_f of a step is not finite (Q_f: symmetric, PSD); streamed,
+        when its chunk is made.
     """
+    from covtool.lincov.dynamics import DynamicsStream, dyn_key, with_nav_options
+    from covtool.lincov.streamed import StreamedSystem
+
     dt_steps = np.diff(t)
-    fm = build_filter(spec, truth, ctx, zupt_interval=ewn_dt, q0=nodes.q_nb[0], truth_dynamics=dyn,
+    what = f"{spec.path}: filter {spec.name!r}"
+    streamed = isinstance(dyn, DynamicsStream)
+    if streamed:
+        fdyn = dyn if dyn_key(spec.options) == dyn_key(dyn.options) else DynamicsStream(truth, ctx, spec.options)
+    else:
+        fdyn = with_nav_options(dyn, ctx, spec.options)
+    fm = build_filter(spec, truth, ctx, zupt_interval=ewn_dt, q0=nodes.q_nb[0], truth_dynamics=fdyn,
                       mean_speed=mean_speed, dt_steps=dt_steps, update_steps=update_steps)
-    same = (spec.discretization == hdr["discretization"] and fm.F.shape == dyn.F.shape
-            and (spec.discretization == "van_loan" or spec.taylor_order is None)
-            and np.array_equal(fm.F, dyn.F) and np.array_equal(fm.Qc, dyn.Qc))
+    if streamed:
+        same = (spec.discretization == hdr["discretization"] and truth_copy(spec, truth) and not fm.ewn_noise
+                and np.array_equal(truth.idx(spec.kept), np.arange(truth.n)))
+    else:
+        same = (spec.discretization == hdr["discretization"] and fm.F.shape == dyn.F.shape
+                and (spec.discretization == "van_loan" or spec.taylor_order is None)
+                and np.array_equal(fm.F, dyn.F) and np.array_equal(fm.Qc, dyn.Qc))
     if same:                   # the truth itself (filter A): its Φ, Q_d, not computed again
         return fm, Phi, Qd
+    if streamed:
+        def make(a, b):
+            F_f, Qc_f = fm.chunk(fdyn.chunk(a, b), a, b)
+            Phi_f, Qd_f = discretize_chunked(F_f, Qc_f, dt_steps[a:b], spec.discretization, spec.taylor_order,
+                                             what=what, times=t[a:b])
+            check_system(f"{where}: filter {spec.name}", Phi_f, Qd_f, names=fm.names, times=t[a:b + 1])
+            return Phi_f, Qd_f
+
+        fsys = StreamedSystem(make, t.size - 1, len(fm.names), pool=pool)
+        return fm, fsys.Phi, fsys.Qd
     Phi_f, Qd_f = discretize_chunked(fm.F, fm.Qc, dt_steps, spec.discretization, spec.taylor_order,
-                                     what=f"{spec.path}: filter {spec.name!r}", times=t[:-1])
+                                     what=what, times=t[:-1])
     check_system(f"{where}: filter {spec.name}", Phi_f, Qd_f, names=fm.names, times=t)
     return fm, Phi_f, Qd_f
 
 
 def _memory(hdr, truth, specs, cases, variants, states, every, pure) -> dict:
-    """Peak memory: the truth system, every base filter's system, the pure-INS history, the recorded histories."""
+    """Peak memory with whole-grid systems (the aided error budget and Monte Carlo): the truth system, every base
+    filter's system, the pure-INS history, the recorded histories."""
     steps = steps_of(hdr["duration"], hdr["dt"])
     bases = list(dict.fromkeys([*cases, *(b for b, _ in variants.values())]))
     n, ne = truth.n, len(states)
@@ -486,6 +545,49 @@ def _memory(hdr, truth, specs, cases, variants, states, every, pure) -> dict:
     recorded = sum(rec * ((n + ne) ** 2 + (specs[b].n + ne) ** 2) * 8.0 for b in bases)
     return memory_estimate(steps, n, filters=[specs[b].n for b in bases], histories=[n] if pure else [],
                            noise=noise_columns(truth), extra=recorded + 2.0 * steps * ne * 8.0)
+
+
+def _streamed_memory(hdr, truth, specs, cases, variants, states, every, plan) -> dict:
+    """Peak memory of the aided kind, which streams in time (an upper estimate).
+
+    :func:`~covtool.studies.resources.stream_memory_estimate` (one chunk of
+    every system, the discretisation workspace, the filters' builds and
+    equivalent-noise sources), plus what this kind holds over the grid:
+    the chunks the pool keeps (at most :data:`~covtool.studies.resources.HELD_CHUNKS`),
+    the measurement Jacobians (``m (10 + n_e)`` per update,
+    :class:`~covtool.lincov.aided.Jacobians`), one filter run's epochs
+    (``H``, ``H_f``, ``R``, ``R_f`` per update), the guard's block of
+    covariances, the measurement-error processes and the recorded
+    navigation blocks.  Updates are counted at each schedule's period over
+    the whole duration (an upper count: outages and ``when`` are not
+    known before the trajectory).
+    """
+    from covtool.lincov.dynamics import dyn_key
+    from covtool.lincov.aided import GUARD_BLOCK
+    from covtool.studies.resources import stream_memory_estimate
+
+    N = steps_of(hdr["duration"], hdr["dt"])
+    bases = list(dict.fromkeys([*cases, *(b for b, _ in variants.values())]))
+    n, ne = truth.n, len(states)
+    own = [specs[b] for b in bases
+           if not (truth_copy(specs[b], truth) and specs[b].discretization == hdr["discretization"])]
+    keys = {dyn_key(None)} | {dyn_key(s.options) for s in own}
+    rec = N / max(1.0, every / hdr["dt"]) + 64
+    est = stream_memory_estimate(N, n, filters=[s.n for s in own], dropped=[n - s.n for s in own],
+                                 dynamics=len(keys), noise=noise_columns(truth), records=rec, intervals=0)
+    parts = est["parts"]
+    parts.pop("kept filter transitions", None)             # the filter-order stream's, not kept here
+    per_step = 2 * n * n + sum(2 * s.n * s.n for s in own)
+    parts["held chunks"] = min(float(HELD_CHUNKS), N * per_step * 8.0)
+    nf = max([specs[b].n for b in bases] or [n])
+    updates = [(len(m.COMPONENTS), min(N + 1, hdr["duration"] / sch.period + 1) + len(sch.at)) for m, sch in plan]
+    parts["measurement Jacobians"] = sum(u * m * (10 + ne) for m, u in updates) * 8.0
+    parts["one run's epochs"] = sum(u * (m * (n + ne) + m * (nf + ne) + 2 * m * m) for m, u in updates) * 8.0
+    parts["aided guard block"] = 2 * GUARD_BLOCK * ((n + ne) ** 2 + (nf + ne) ** 2) * 8.0
+    parts["measurement-error processes"] = 4 * N * ne * 8.0
+    parts["recorded navigation blocks"] = rec * 2 * NAV * NAV * 8.0 * (len(cases) + len(variants) + 1)
+    est["bytes"] = float(sum(parts.values()))
+    return est
 
 
 def _record_steps(t, every, rtimes, outages) -> np.ndarray:

@@ -18,7 +18,7 @@ from covtool.nav import attitude as quat, earth
 from covtool.studies.resources import DISCRETIZE_CHUNK, progress_bar
 
 __all__ = [
-    "time_grid", "truth_system", "check_step_motion", "step_motion", "initial_covariance",
+    "time_grid", "truth_system", "truth_stream", "check_step_motion", "step_motion", "initial_covariance",
 ]
 
 
@@ -332,6 +332,57 @@ def truth_system(model: Model, traj, t: np.ndarray, method: str, *, options=NavO
     # guarded once here; the runs that share them are told so (system_checked)
     check_system(f"{where}: truth model {model.name!r}", Phi, Qd, names=model.names, times=t)
     return ctx, dyn, Phi, Qd
+
+
+def truth_stream(model: Model, traj, t: np.ndarray, method: str, *, pool=None, where: str = "<study>"):
+    """The truth of :func:`truth_system`, streamed in time: nothing of size N × n² is built at once.
+
+    The grid is checked against the motion first (:func:`check_step_motion`).
+
+    Parameters
+    ----------
+    model : Model
+    traj : trajectory
+    t : ndarray, shape (N+1,)
+        The grid. [s]
+    method : str
+        The study's discretisation.
+    pool : covtool.lincov.streamed.ChunkPool, optional
+        Budget of the chunks held for later runs (None: every chunk).
+    where : str
+        The study file, for messages.
+
+    Returns
+    -------
+    ctx : Context
+        Trajectory at the step mid-points.
+    dyn : covtool.lincov.dynamics.DynamicsStream
+        F, Q_c under the model's own options, chunk by chunk.
+    system : covtool.lincov.streamed.StreamedSystem
+        Φ, Q_d (``system.Phi[k]``, ``system.Qd[k]``), each chunk discretised
+        as :func:`truth_system` does (the same values) and guarded when made.
+
+    Raises
+    ------
+    NumericalError
+        When a chunk is made: Φ or Q_d of a step is not finite (Q_d:
+        symmetric, PSD), naming the study, the step's time and the state.
+    """
+    from covtool.lincov.dynamics import DynamicsStream
+    from covtool.lincov.streamed import StreamedSystem
+
+    check_step_motion(traj, t, where)
+    ctx = midpoint_context(traj, t)
+    dyn = DynamicsStream(model, ctx, NavOptions())
+    what = f"{where}: truth model {model.name!r}"
+
+    def make(a, b):
+        d = dyn.chunk(a, b)
+        Phi, Qd = discretize_chunked(d.F, d.Qc, np.diff(t[a:b + 1]), method, what=what, times=t[a:b])
+        check_system(what, Phi, Qd, names=model.names, times=t[a:b + 1])
+        return Phi, Qd
+
+    return ctx, dyn, StreamedSystem(make, t.size - 1, model.n, pool=pool)
 
 
 def initial_covariance(truth: Model, nodes, where: str) -> np.ndarray:

@@ -155,6 +155,10 @@ STREAM_CHUNK = 600
 #: equivalent-noise table (covtool.studies.zupt_setup.ZuptSetup.stream, StreamedTransitions): a 30-min study
 #: keeps all of them, a long one its first chunks and computes the others again
 KEPT_TRANSITIONS = 64 * 2**20
+#: bytes of Φ, Q_d chunks an aided study holds for its later runs (covtool.lincov.streamed.ChunkPool, one per
+#: grade): a study up to about 2 h of the 58-state truth at 1 s holds them all and discretises each step once;
+#: a longer one holds its first chunks and makes the others again for each filter
+HELD_CHUNKS = 512 * 2**20
 #: float64 per step and per equivalent-noise source held by a streamed filter: the 3 or 4 rows its
 #: dropped state drives, times up to 2 columns (interval-matched), and its PSD (CompactNoiseSource)
 _EWN_FLOATS = 10
