@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-#: steps per chunk (covtool.lincov.dynamics.STREAM_CHUNK: a multiple of the discretisation's batch)
+# steps per chunk: a multiple of the discretisation's batch, so each step is discretised as on the whole grid
 from covtool.lincov.dynamics import STREAM_CHUNK
 
 __all__ = ["ChunkPool", "StreamedSystem"]
