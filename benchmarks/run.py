@@ -5,7 +5,7 @@ Run from the repository root (not part of the test suite)::
     python benchmarks/run.py              # everything, ~2-4 min on a 2-core machine
     python benchmarks/run.py --quick      # skip the as-is flagship timing
     python benchmarks/run.py --cli --baseline /tmp/base   # [0] and [5] only, against another checkout
-    python benchmarks/run.py --long [--baseline /tmp/base] # [L] only: 6 h x 6 cases, 24 h x 20 cases
+    python benchmarks/run.py --long [--baseline /tmp/base] # [L] only: 6 h x 6 cases, 24 h x 20 cases, 24-h aided
 
 ``--baseline DIR`` is a checkout of another commit (``git archive <commit> |
 tar -x -C DIR``): the CLI runs of [0] alternate between it and this tree.
@@ -555,11 +555,13 @@ def rel_diff(a, b) -> float:
 
 
 # --------------------------------------------------------------------------
-# --long: the 6-h x 6-case flagship variant and a 24-h x 20-case study
+# --long: the 6-h x 6-case flagship variant, a 24-h x 20-case study and a 24-h aided survey
 # --------------------------------------------------------------------------
 
-#: the long variants, declared as study files (benchmarks/long/): 6 h x 6 cases and 24 h x 20 cases
-LONG = [ROOT / "benchmarks" / "long" / f"zupt_filter_order_{h}.toml" for h in ("6h", "24h")]
+#: the long variants, declared as study files (benchmarks/long/): 6 h x 6 cases and 24 h x 20 cases of the
+#: flagship, and the aided PADS-like survey over 24 h (4 filters and the pure INS)
+LONG = [ROOT / "benchmarks" / "long" / f"zupt_filter_order_{h}.toml" for h in ("6h", "24h")] + \
+    [ROOT / "benchmarks" / "long" / "aided_pads_survey_24h.toml"]
 
 
 def memory_estimate_of(tree: Path, study: Path) -> str:

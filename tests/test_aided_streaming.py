@@ -137,6 +137,14 @@ def test_build_filter_refuses_truth_dynamics_under_other_options():
                                              r"NavOptions\(coriolis=True, couple_vertical=True\), but the filter "
                                              r"declares NavOptions\(coriolis=False, couple_vertical=False\)"):
             build_filter(specs["C"], truth, ctx, zupt_interval=60.0, truth_dynamics=dyn, dt_steps=np.diff(t))
+    # and a chunk of the streamed filter refuses a chunk of the truth's own dynamics
+    fm = build_filter(specs["C"], truth, ctx, zupt_interval=60.0, dt_steps=np.diff(t),
+                      truth_dynamics=DynamicsStream(truth, ctx, specs["C"].options))
+    with pytest.raises(ValueError, match=r"filter 'C': the chunk's truth dynamics were built under "
+                                         r"NavOptions\(coriolis=True"):
+        fm.chunk(DynamicsStream(truth, ctx, NavOptions()).chunk(0, 10), 0, 10)
+    F_f, _ = fm.chunk(DynamicsStream(truth, ctx, specs["C"].options).chunk(0, 10), 0, 10)
+    assert F_f.shape == (10, 16, 16)
 
 
 @pytest.fixture(scope="module")

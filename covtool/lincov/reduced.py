@@ -142,7 +142,15 @@ class FilterModel:
         filter's options (:meth:`covtool.lincov.dynamics.DynamicsStream.chunk`);
         the equivalent noise of eq (11)–(13) is added as in
         :func:`build_filter` (same values as its whole-span ``F``, ``Qc``).
+
+        Raises
+        ------
+        ValueError
+            ``dyn`` was built under other navigation options than the filter declares.
         """
+        if dyn_key(getattr(dyn, "options", None)) != dyn_key(self.spec.options):
+            raise ValueError(f"filter {self.spec.name!r}: the chunk's truth dynamics were built under {dyn.options}, "
+                             f"but the filter declares {self.spec.options} (seed 002 eq (1), (4))")
         kidx = np.argmax(self.D, axis=0)
         F = gather(dyn.F, kidx)
         Qc = gather(dyn.Qc, kidx)
