@@ -359,7 +359,7 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
     Raises
     ------
     ValueError
-        Inconsistent sizes.
+        Inconsistent sizes, or ``keep < 1``.
     NumericalError
         The first input or covariance that is not finite, symmetric and PSD,
         with the time, the stage and the state.
@@ -387,13 +387,15 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
     rec = np.arange(N + 1) if record is None else np.unique(np.asarray(record, int))
     slot = {int(k): i for i, k in enumerate(rec)}
     by_step = {ep.step: ep for ep in epochs}
+    if keep is not None and int(keep) < 1:
+        raise ValueError(f"{label}: keep must be a positive number of states, got {keep}")
     kt, kf = (n, nf) if keep is None else (min(int(keep), n), min(int(keep), nf))
     PT = np.full((rec.size, kt, kt), np.nan)
     PF = np.full((rec.size, kf, kf), np.nan)
     prior_t, prior_f, gains = {}, {}, {}
     guard = _Guard(label, names, filter_names, times, check)
 
-    def keep(k, stage, P, Pf, K):
+    def on_state(k, stage, P, Pf, K):
         if stage == "prior":
             guard.add(k, P, Pf, prior=True)
             if k in slot:
@@ -411,7 +413,7 @@ def propagate_aided(Phi, Qd, P0, Phi_f, Qd_f, Pf0, D, epochs, *, err=None, err_f
 
     filter_loop(N, P0, Pf0, lambda k, P: _propagate(P, Phi[k], Qd[k], e_phi[k], e_qd[k]),
                 lambda k, Pf: _propagate(Pf, Phi_f[k], Qd_f[k], f_phi[k], f_qd[k]),
-                {k: _parts(ep, sequential) for k, ep in by_step.items()}, D, form, keep, fail)
+                {k: _parts(ep, sequential) for k, ep in by_step.items()}, D, form, on_state, fail)
     guard.flush()
     return AidedRun(rec, PT, PF, prior_t, prior_f, gains)
 

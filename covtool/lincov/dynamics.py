@@ -210,7 +210,7 @@ class ErrorDynamics:
     names: list
     F: np.ndarray
     noise: list
-    options: "NavOptions" = None
+    options: "NavOptions" = NavOptions()
 
     @property
     def Qc(self) -> np.ndarray:
@@ -264,7 +264,7 @@ class OptionsDynamics(ErrorDynamics):
         Those options (:attr:`ErrorDynamics.options`).
     """
 
-    def __init__(self, base: ErrorDynamics, nav: np.ndarray, options: "NavOptions" = None):
+    def __init__(self, base: ErrorDynamics, nav: np.ndarray, options: "NavOptions"):
         self.names, self.noise, self.options = base.names, base.noise, options
         self._base, self._nav, self._F = base, nav, None
         self._qc = base.Qc

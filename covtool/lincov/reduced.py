@@ -148,7 +148,7 @@ class FilterModel:
         ValueError
             ``dyn`` was built under other navigation options than the filter declares.
         """
-        if dyn_key(getattr(dyn, "options", None)) != dyn_key(self.spec.options):
+        if dyn_key(dyn.options) != dyn_key(self.spec.options):
             raise ValueError(f"filter {self.spec.name!r}: the chunk's truth dynamics were built under {dyn.options}, "
                              f"but the filter declares {self.spec.options} (seed 002 eq (1), (4))")
         kidx = np.argmax(self.D, axis=0)
@@ -216,7 +216,7 @@ def build_filter(spec: FilterSpec, truth: Model, ctx: Context, *, zupt_interval:
         bounds = np.unique(np.r_[np.searchsorted(t, np.arange(0.0, t[-1], zupt_interval) - 1e-9 * zupt_interval),
                                  ctx.n]).astype(int)
     dyn = truth_dynamics if truth_dynamics is not None else error_dynamics(truth, ctx, spec.options)
-    if dyn_key(getattr(dyn, "options", None)) != dyn_key(spec.options):
+    if dyn_key(dyn.options) != dyn_key(spec.options):
         raise ValueError(f"filter {spec.name!r}: its truth dynamics were built under {dyn.options}, but the filter "
                          f"declares {spec.options} (seed 002 eq (1), (4))")
     kidx = truth.idx(spec.kept)

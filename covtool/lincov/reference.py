@@ -24,7 +24,8 @@ from covtool.lincov.kalman import (check_covariance, check_system, covariance_st
 
 
 def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = True, label: str = "pure INS",
-              names=None, times=None, system_checked: bool = False, record=None) -> np.ndarray:
+              names=None, times=None, system_checked: bool = False, record=None, keep: int | None = None
+              ) -> np.ndarray:
     """Pure propagation ``P_{k+1} = Φ_k P_k Φ_kᵀ + Q_k`` (seed 002, eq (15)).
 
     Parameters
@@ -50,10 +51,19 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
         running scale as the whole history's; the memory does not grow with
         N × n² (``Phi``, ``Qd`` may be streamed,
         :class:`covtool.lincov.streamed.StreamedSystem`).
+    keep : int, optional
+        Return only the leading ``keep`` states (the navigation block:
+        ``keep = 10``) of the recorded steps; every covariance is still
+        guarded whole.  Implies ``record`` (default: every step).
 
     Returns
     -------
-    ndarray, shape (N+1, n, n), or (len(unique(record)), n, n)
+    ndarray, shape (N+1, n, n), or (len(unique(record)), k, k) with ``k = keep or n``
+
+    Raises
+    ------
+    ValueError
+        A record step outside ``0 … N``, or ``keep < 1``.
 
     Raises
     ------
@@ -65,9 +75,12 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
         check_system(label, Phi=None if system_checked else Phi, Qd=None if system_checked else Qd, P0=P0,
                      names=names, times=times)
     N, n, _ = Phi.shape
-    if record is not None:
-        return _propagate_recorded(Phi, Qd, P0, np.unique(np.asarray(record, int)), check=check, label=label,
-                                   names=names, times=times)
+    if record is not None or keep is not None:
+        rec = np.arange(N + 1) if record is None else np.unique(np.asarray(record, int))
+        if keep is not None and int(keep) < 1:
+            raise ValueError(f"{label}: keep must be a positive number of states, got {keep}")
+        return _propagate_recorded(Phi, Qd, P0, rec, n if keep is None else min(int(keep), n), check=check,
+                                   label=label, names=names, times=times)
     out = np.empty((N + 1, n, n))
     P = out[0] = symmetrize(np.asarray(P0, float))
     with np.errstate(over="ignore", invalid="ignore"):      # a blow-up is reported by the guard below
@@ -83,12 +96,12 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
 GUARD_STEPS = 512
 
 
-def _propagate_recorded(Phi, Qd, P0, rec, *, check, label, names, times) -> np.ndarray:
-    """:func:`propagate` keeping the steps ``rec`` only; every step guarded, in blocks."""
+def _propagate_recorded(Phi, Qd, P0, rec, k, *, check, label, names, times) -> np.ndarray:
+    """:func:`propagate` keeping the leading ``k`` states of the steps ``rec`` only; every step guarded, in blocks."""
     N, n, _ = Phi.shape
     if rec.size and (rec[0] < 0 or rec[-1] > N):
         raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
-    out = np.empty((rec.size, n, n))
+    out = np.empty((rec.size, k, k))
     slot = {int(k): i for i, k in enumerate(rec)}
     block = np.empty((min(GUARD_STEPS, N + 1), n, n))
     sigma = np.zeros(n)                                      # the running scale carried between blocks
@@ -106,16 +119,16 @@ def _propagate_recorded(Phi, Qd, P0, rec, *, check, label, names, times) -> np.n
     P = symmetrize(np.asarray(P0, float))
     j, k0 = 0, 0
     with np.errstate(over="ignore", invalid="ignore"):      # a blow-up is reported by the guard
-        for k in range(N + 1):
-            if k:
-                P = symmetrize(Phi[k - 1] @ P @ Phi[k - 1].T + Qd[k - 1])
+        for i in range(N + 1):
+            if i:
+                P = symmetrize(Phi[i - 1] @ P @ Phi[i - 1].T + Qd[i - 1])
             block[j] = P
-            if k in slot:
-                out[slot[k]] = P
+            if i in slot:
+                out[slot[i]] = P[:k, :k]
             j += 1
             if j == block.shape[0]:
                 flush(k0, j)
-                j, k0 = 0, k + 1
+                j, k0 = 0, i + 1
     flush(k0, j)
     return out
 

@@ -88,6 +88,7 @@ class _Store:
         if self.last[0] == m:
             return self.last[1]
         a, b = self.bounds(m)
+        self.last = (None, None)                              # freed before the next is made, not after
         Phi, Qd = self.make(a, b)
         Phi, Qd = np.asarray(Phi, float), np.asarray(Qd, float)
         if Phi.shape != (b - a, self.n, self.n) or Qd.shape != Phi.shape:
@@ -95,7 +96,6 @@ class _Store:
                              f"{(b - a, self.n, self.n)}")
         Phi.flags.writeable = Qd.flags.writeable = False
         self.made += 1
-        self.last = (None, None)                              # freed before it is replaced, not after
         if self.pool is None or self.pool.take(Phi.nbytes + Qd.nbytes):
             self.held[m] = (Phi, Qd)
         else:

@@ -70,6 +70,7 @@ from covtool.lincov.measurements.base import error_state
 from covtool.lincov.reduced import build_filter
 from covtool.lincov.reference import propagate
 from covtool.lincov.streamed import ChunkPool
+from covtool.nav.strapdown import NAV_STATES
 from covtool.plotting.aided import aided_history_figure, aided_sweep_figure
 from covtool.results import StudyResult
 from covtool.studies.aided_sweep import _sweep_table, parse_sweep, scaled_plan
@@ -88,7 +89,7 @@ ERROR_KEYS = {"sigma", "process", "tau"}
 #: a measurement with at most this many updates (survey points, stops) gets its before/after table
 SPARSE_UPDATES = 50
 #: states recorded of every run: the navigation block (what the tables and figures show)
-NAV = 10
+NAV = len(NAV_STATES)
 _NAME = MEASUREMENT_NAME                # one rule, declared with the typed [[measurement]] section
 
 
@@ -321,6 +322,10 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
     cases = filter_cases(fcfg, specs, ffile, where, nonempty=True)
     check_error_state_names(plan, states, truth0, where)
     variants = parse_variants(fcfg, specs, states, where)
+    for v, (b, _) in variants.items():
+        if b not in cases:
+            raise StudyFileError(f"{where}: [[filters.variant]] {v!r} base", f"{b!r} is not one of the [filters] "
+                                 f"cases ({', '.join(cases)}): a variant is tabulated against its base, which must run")
     sweep = parse_sweep(decl["sweep"], [m for m, _ in plan], where) if "sweep" in decl else None
     est = check_memory(_streamed_memory(hdr, truth0, specs, cases, variants, states, every, plan),
                        where, hdr["max_memory"], "a larger [study] dt or history_every, a shorter duration or fewer "
@@ -359,7 +364,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
         gl = g["name"]
         if fcfg.get("pure_ins", True):
             P = propagate(Phi, Qd, P0, label=f"{where}: {gl}: pure INS", names=truth.names, times=t,
-                          system_checked=True, record=rec)
+                          system_checked=True, record=rec, keep=NAV)
             metrics[(gl, "pure_ins")] = _metrics(P, nodes, rec)
             nstates[(gl, "pure_ins")] = truth.n
             del P
@@ -399,7 +404,9 @@ def run(decl: dict, *, path=None, progress: bool = False) -> StudyResult:
                                        "alt PE after [m]": after["alt_pe"][j],
                                        "azimuth before [arcmin]": before["sigma_azimuth"][j] / ARCMIN,
                                        "azimuth after [arcmin]": after["sigma_azimuth"][j] / ARCMIN})
+        # the last run's systems too: a streamed Φ_f (the truth's, for filter A) holds its grade's chunks
         del Phi, Qd, tsys, built, pool
+        fm = Phi_f = Qd_f = r = rs = None
     elapsed = time.perf_counter() - t_start
     tr = t[rec]
     summary = _summary(metrics, claimed, nstates, tr, nodes, rec, rtimes)
@@ -523,7 +530,7 @@ def filter_system(spec, truth, ctx, dyn, Phi, Qd, hdr, t, nodes, *, ewn_dt, mean
         def make(a, b):
             F_f, Qc_f = fm.chunk(fdyn.chunk(a, b), a, b)
             Phi_f, Qd_f = discretize_chunked(F_f, Qc_f, dt_steps[a:b], spec.discretization, spec.taylor_order,
-                                             what=what, times=t[a:b])
+                                             what=what, times=t[a:b], first=a)
             check_system(f"{where}: filter {spec.name}", Phi_f, Qd_f, names=fm.names, times=t[a:b + 1])
             return Phi_f, Qd_f
 

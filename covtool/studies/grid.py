@@ -225,13 +225,14 @@ SPLIT_STATES = 40
 
 
 def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="discretising", chunk=DISCRETIZE_CHUNK,
-                       what="", times=None):
+                       what="", times=None, first: int = 0):
     """Discretise in chunks (bounded memory) with a progress bar.
 
     BLAS is limited to one thread: for these 58–116-wide matrices OpenBLAS's
     thread pool was measured 3–10× slower on a loaded 2-core machine.
     ``what`` and ``times`` (start time of each step [s]) name the system
-    and the step in error messages, the step counted on the whole grid.
+    and the step in error messages, the step counted on the whole grid:
+    ``first`` is the grid step of ``F[0]`` (a chunk of a streamed grid).
 
     A system of :data:`SPLIT_STATES` states or more in :data:`SPLIT_CHUNKS`
     chunks or more is split: the second half of the chunks goes to a
@@ -277,7 +278,7 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
                     Phi[a:b], Qd[a:b] = discretize(F[a:b], Qc[a:b], dt[a:b], method, order, what=what,
                                                    times=None if times is None else times[a:b])
                 except (CovtoolError, ValueError) as e:
-                    _on_grid(e, a)
+                    _on_grid(e, first + a)
                     raise
                 if here:
                     bar.update(b - a)
@@ -357,7 +358,7 @@ def truth_stream(model: Model, traj, t: np.ndarray, method: str, *, pool=None, w
     ctx : Context
         Trajectory at the step mid-points.
     dyn : covtool.lincov.dynamics.DynamicsStream
-        F, Q_c under the model's own options, chunk by chunk.
+        F, Q_c under the default navigation options (as :func:`truth_system`'s), chunk by chunk.
     system : covtool.lincov.streamed.StreamedSystem
         Φ, Q_d (``system.Phi[k]``, ``system.Qd[k]``), each chunk discretised
         as :func:`truth_system` does (the same values) and guarded when made.
@@ -378,7 +379,7 @@ def truth_stream(model: Model, traj, t: np.ndarray, method: str, *, pool=None, w
 
     def make(a, b):
         d = dyn.chunk(a, b)
-        Phi, Qd = discretize_chunked(d.F, d.Qc, np.diff(t[a:b + 1]), method, what=what, times=t[a:b])
+        Phi, Qd = discretize_chunked(d.F, d.Qc, np.diff(t[a:b + 1]), method, what=what, times=t[a:b], first=a)
         check_system(what, Phi, Qd, names=model.names, times=t[a:b + 1])
         return Phi, Qd
 

@@ -285,7 +285,7 @@ class ZuptSetup:
         what = f"{self.where}: truth model {self.truth.name!r}"
         # through the module, as truth_system does (one place to instrument the truth's discretisation)
         Phi, Qd = _grid.discretize_chunked(dyn.F, dyn.Qc, np.diff(self.t[a:b + 1]), self.method, what=what,
-                                     times=self.t[a:b])
+                                           times=self.t[a:b], first=a)
         # guarded once here; the runs that share them are told so (system_checked)
         check_system(what, Phi, Qd, names=self.truth.names, times=self.t[a:b + 1])
         return Phi, Qd
@@ -439,7 +439,7 @@ class ZuptSetup:
         spec = fm.spec
         F_f, Qc_f = fm.chunk(dyn, a, b)
         Phi_f, Qd_f = discretize_chunked(F_f, Qc_f, np.diff(self.t[a:b + 1]), spec.discretization, spec.taylor_order,
-                                         what=f"{spec.path}: filter {name!r}", times=self.t[a:b])
+                                         what=f"{spec.path}: filter {name!r}", times=self.t[a:b], first=a)
         check_system(f"{self.where}: filter {name}", Phi_f, Qd_f, names=fm.names, times=self.t[a:b + 1])
         return Phi_f, Qd_f
 
