@@ -283,3 +283,13 @@ def test_a_variant_of_a_filter_that_does_not_run_is_refused():
                                              r"one of the \[filters\] cases \(A\): a variant is tabulated against "
                                              r"its base, which must run"):
         aided.run(d)
+
+
+def test_bad_chunk_and_keep_are_refused():
+    from covtool.lincov.aided import propagate_aided
+    make, _, _ = _counting_make()
+    with pytest.raises(ValueError, match="chunk must be a positive number of steps, got 0"):
+        StreamedSystem(make, 25, 3, chunk=0)
+    Phi, Qd, P0 = _system(n=3, N=5)
+    with pytest.raises(ValueError, match="filter x: keep must be a positive number of states, got 0"):
+        propagate_aided(Phi, Qd, P0, Phi, Qd, P0, np.eye(3), [], keep=0, label="filter x")

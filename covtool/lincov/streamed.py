@@ -136,8 +136,6 @@ class StreamedSystem:
     Phi, Qd : sequence of ndarray, shape (N, n, n)
         ``Phi[k]``, ``Qd[k]`` for an integer ``k`` (shape ``(n, n)``);
         ``.shape`` as the stacks'.  Read only.
-    made : int
-        Chunks made so far (counting those made again).
     """
 
     def __init__(self, make, n_steps: int, n: int, *, chunk: int = STREAM_CHUNK, pool: ChunkPool | None = None):
@@ -149,15 +147,8 @@ class StreamedSystem:
 
     @property
     def made(self) -> int:
+        """Chunks made so far (counting those made again)."""
         return self._store.made
-
-    def bounds(self, m: int) -> tuple[int, int]:
-        """``(a, b)`` of chunk ``m``."""
-        return self._store.bounds(m)
-
-    def part(self, m: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(Phi, Qd)`` of chunk ``m``, each shape ``(b − a, n, n)``, read only."""
-        return self._store.part(m)
 
     def step(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """``(Φ_k, Q_d,k)``, each shape ``(n, n)``.

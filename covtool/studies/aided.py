@@ -75,7 +75,8 @@ from covtool.plotting.aided import aided_history_figure, aided_sweep_figure
 from covtool.results import StudyResult
 from covtool.studies.aided_sweep import _sweep_table, parse_sweep, scaled_plan
 from covtool.studies.config import MEASUREMENT_NAME
-from covtool.studies.grid import discretize_chunked, initial_covariance, time_grid, truth_stream
+from covtool.studies.grid import (discretize_chunked, discretize_steps, initial_covariance, time_grid,
+                                  truth_stream)
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_header, study_inputs
 from covtool.studies.resources import (check_memory, HELD_CHUNKS, memory_estimate, noise_columns,
                                        resource_provenance, steps_of)
@@ -529,10 +530,8 @@ def filter_system(spec, truth, ctx, dyn, Phi, Qd, hdr, t, nodes, *, ewn_dt, mean
     if streamed:
         def make(a, b):
             F_f, Qc_f = fm.chunk(fdyn.chunk(a, b), a, b)
-            Phi_f, Qd_f = discretize_chunked(F_f, Qc_f, dt_steps[a:b], spec.discretization, spec.taylor_order,
-                                             what=what, times=t[a:b], first=a)
-            check_system(f"{where}: filter {spec.name}", Phi_f, Qd_f, names=fm.names, times=t[a:b + 1])
-            return Phi_f, Qd_f
+            return discretize_steps(F_f, Qc_f, t, a, b, spec.discretization, spec.taylor_order, what=what,
+                                    label=f"{where}: filter {spec.name}", names=fm.names)
 
         fsys = StreamedSystem(make, t.size - 1, len(fm.names), pool=pool)
         return fm, fsys.Phi, fsys.Qd

@@ -18,7 +18,7 @@ from covtool.nav import attitude as quat, earth
 from covtool.studies.resources import DISCRETIZE_CHUNK, progress_bar
 
 __all__ = [
-    "time_grid", "truth_system", "truth_stream", "check_step_motion", "step_motion", "initial_covariance",
+    "time_grid", "truth_system", "truth_stream", "discretize_steps", "check_step_motion", "step_motion", "initial_covariance",
 ]
 
 
@@ -335,6 +335,39 @@ def truth_system(model: Model, traj, t: np.ndarray, method: str, *, options=NavO
     return ctx, dyn, Phi, Qd
 
 
+def discretize_steps(F, Qc, t: np.ndarray, a: int, b: int, method: str, order=None, *, what: str, label: str,
+                     names=None):
+    """Φ, Q_d of the grid steps ``a … b−1`` from their F, Q_c, guarded: one chunk of a streamed study.
+
+    Parameters
+    ----------
+    F, Qc : ndarray, shape (b − a, n, n)
+        The steps' dynamics (seed 002 eq (1)–(5)).
+    t : ndarray, shape (N+1,)
+        The whole grid [s]; errors name the step and time on it.
+    a, b : int
+        The steps.
+    method, order
+        The discretisation (:func:`discretize_chunked`).
+    what, label : str
+        Name the system in a discretisation error and in the guard's.
+    names : sequence of str, optional
+        State names, for the guard's message.
+
+    Returns
+    -------
+    Phi, Qd : ndarray, shape (b − a, n, n)
+
+    Raises
+    ------
+    NumericalError
+        A step's F, Φ or Q_d is not finite (Q_d: symmetric, PSD), naming its grid step and time.
+    """
+    Phi, Qd = discretize_chunked(F, Qc, np.diff(t[a:b + 1]), method, order, what=what, times=t[a:b], first=a)
+    check_system(label, Phi, Qd, names=names, times=t[a:b + 1])
+    return Phi, Qd
+
+
 def truth_stream(model: Model, traj, t: np.ndarray, method: str, *, pool=None, where: str = "<study>"):
     """The truth of :func:`truth_system`, streamed in time: nothing of size N × n² is built at once.
 
@@ -379,9 +412,7 @@ def truth_stream(model: Model, traj, t: np.ndarray, method: str, *, pool=None, w
 
     def make(a, b):
         d = dyn.chunk(a, b)
-        Phi, Qd = discretize_chunked(d.F, d.Qc, np.diff(t[a:b + 1]), method, what=what, times=t[a:b], first=a)
-        check_system(what, Phi, Qd, names=model.names, times=t[a:b + 1])
-        return Phi, Qd
+        return discretize_steps(d.F, d.Qc, t, a, b, method, what=what, label=what, names=model.names)
 
     return ctx, dyn, StreamedSystem(make, t.size - 1, model.n, pool=pool)
 

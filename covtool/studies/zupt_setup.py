@@ -283,12 +283,10 @@ class ZuptSetup:
     def _discretise_truth(self, dyn, a: int, b: int):
         """Truth Φ, Q_d of the steps ``a … b−1`` from their dynamics ``dyn``, guarded (:func:`truth_system`)."""
         what = f"{self.where}: truth model {self.truth.name!r}"
-        # through the module, as truth_system does (one place to instrument the truth's discretisation)
-        Phi, Qd = _grid.discretize_chunked(dyn.F, dyn.Qc, np.diff(self.t[a:b + 1]), self.method, what=what,
-                                           times=self.t[a:b], first=a)
-        # guarded once here; the runs that share them are told so (system_checked)
-        check_system(what, Phi, Qd, names=self.truth.names, times=self.t[a:b + 1])
-        return Phi, Qd
+        # through the module, as truth_system does (one place to instrument the truth's discretisation);
+        # guarded once here, the runs that share them are told so (system_checked)
+        return _grid.discretize_steps(dyn.F, dyn.Qc, self.t, a, b, self.method, what=what, label=what,
+                                      names=self.truth.names)
 
     def release(self) -> None:
         """Free the whole-grid arrays, the filters' systems and the kept stream chunks (rebuilt on demand)."""
@@ -438,10 +436,9 @@ class ZuptSetup:
         fm, _ = self.filter_stream(name)
         spec = fm.spec
         F_f, Qc_f = fm.chunk(dyn, a, b)
-        Phi_f, Qd_f = discretize_chunked(F_f, Qc_f, np.diff(self.t[a:b + 1]), spec.discretization, spec.taylor_order,
-                                         what=f"{spec.path}: filter {name!r}", times=self.t[a:b], first=a)
-        check_system(f"{self.where}: filter {name}", Phi_f, Qd_f, names=fm.names, times=self.t[a:b + 1])
-        return Phi_f, Qd_f
+        return _grid.discretize_steps(F_f, Qc_f, self.t, a, b, spec.discretization, spec.taylor_order,
+                                      what=f"{spec.path}: filter {name!r}", label=f"{self.where}: filter {name}",
+                                      names=fm.names)
 
     def filter_transitions(self, name: str):
         """Φ_f of every step of filter ``name``: the whole-grid stack if built, else :class:`StreamedTransitions`."""
