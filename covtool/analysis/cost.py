@@ -200,7 +200,7 @@ def _autorange(timer, min_time):
         number *= 2 if t > 0.2 * min_time else 10
 
 
-def taylor_terms(F, Qc, dt) -> int:
+def taylor_terms(F, Qc, dt, *, steps=None) -> int:
     """Number of terms covtool's adaptive eq (6b)–(6d) series takes.
 
     The most over the steps of the stack, from
@@ -212,6 +212,8 @@ def taylor_terms(F, Qc, dt) -> int:
     F, Qc : ndarray, shape (N, n, n)
     dt : float or ndarray, shape (N,)
         Step lengths. [s]
+    steps : ndarray of int, shape (N,), optional
+        The grid step of each entry, named in the error (default: its index).
 
     Returns
     -------
@@ -230,7 +232,7 @@ def taylor_terms(F, Qc, dt) -> int:
     if info.squarings.any():
         k = int(np.argmax(info.squarings))
         raise InputError("taylor_order = \"auto\"",
-                         f"at step {k} (νΔt = {info.norm_dt[k]:.3g} > {discretize.THETA:g}) the adaptive series is "
+                         f"at step {k if steps is None else int(steps[k])} (νΔt = {info.norm_dt[k]:.3g} > {discretize.THETA:g}) the adaptive series is "
                          f"summed over Δt/{2 ** int(info.squarings[k])} and squared, which the one-cycle FLOP count "
                          "does not describe; give the number of terms N_t")
     return int(info.terms.max())

@@ -221,6 +221,32 @@ class System:
         Pc, Qc = compose(Phi, Qd, ev)
         return cls(np.asarray(ev), Pc, Qc)
 
+    @classmethod
+    def concat(cls, parts) -> "System":
+        """One system from consecutive ones (each starting where the previous ends: chunks in time).
+
+        Parameters
+        ----------
+        parts : sequence of System
+            ``parts[i].ev[-1] == parts[i+1].ev[0]``; the same ``n``.
+
+        Raises
+        ------
+        ValueError
+            No part, or parts that do not follow one another.
+        """
+        parts = list(parts)
+        if not parts:
+            raise ValueError("System.concat: no part")
+        for p, q in zip(parts, parts[1:]):
+            if int(p.ev[-1]) != int(q.ev[0]) or p.n != q.n:
+                raise ValueError(f"System.concat: a part ending at step {int(p.ev[-1])} ({p.n} states) is followed "
+                                 f"by one starting at step {int(q.ev[0])} ({q.n} states)")
+        if len(parts) == 1:
+            return parts[0]
+        ev = np.concatenate([parts[0].ev] + [p.ev[1:] for p in parts[1:]])
+        return cls(ev, np.concatenate([p.Phi for p in parts]), np.concatenate([p.Q for p in parts]))
+
     @cached_property
     def dynamic(self):
         """``(d, c)`` of :func:`dynamic_states` for the intervals, or None."""

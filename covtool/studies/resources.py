@@ -247,6 +247,74 @@ def stream_memory_estimate(steps: int, n: int, *, filters=(), dropped=(), dynami
     return {"bytes": float(total), "steps": N, "parts": parts, "parallel": 1}
 
 
+def composed_memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 1, noise: int | None = None,
+                             updates: int = 0, reports: int = 1, batch: int = 1, processes: int = 1,
+                             chunk: int = STREAM_CHUNK) -> dict:
+    """Peak memory of a study that composes its systems chunk by chunk and runs batches on them.
+
+    The pattern of
+    :meth:`~covtool.studies.zupt_setup.ZuptSetup.composed_truth` and
+    :meth:`~covtool.studies.zupt_setup.ZuptSetup.composed_filter` (the
+    sensitivity sweep, a ZUPT-only chunk of the trade grid): each process
+    makes one system's chunk at a time and holds the truth's and one
+    filter's systems composed on the ``K`` intervals of the event grid, and
+    one filter's batch of cases.  An upper estimate.
+
+    Parameters
+    ----------
+    steps : int
+        Propagation steps N.
+    n : int
+        Truth states.
+    filters : sequence of int
+        States of every filter with its own system (equivalent-noise sources and builds: one per filter).
+    dynamics : int
+        Truth error dynamics per chunk (one per distinct set of navigation options).
+    noise : int, optional
+        Noise-source columns of the truth model (default ``n``).
+    updates, reports : int
+        Measurement updates and report times (events of the grid).
+    batch : int
+        Cases of one filter run at once.
+    processes : int
+        Processes of one setup that each make chunks and run batches at once
+        (this one and a forked share, which reads the setup's arrays
+        copy-on-write); independent workers each with their own setup
+        multiply the whole estimate instead (:func:`scaled_estimate`).
+    chunk : int
+        Steps per chunk.
+
+    Returns
+    -------
+    dict
+        ``bytes``, ``steps``, ``parts`` and ``parallel``, as :func:`memory_estimate`.
+    """
+    N = int(steps)
+    c = n if noise is None else int(noise)
+    nf = max(filters, default=n)
+    K = int(updates) + int(reports) + int(math.ceil(N / int(chunk))) + 1
+    est = stream_memory_estimate(N, n, filters=list(filters), dropped=[n - m for m in filters],
+                                 dynamics=dynamics, noise=c, records=reports, intervals=K, chunk=chunk)
+    parts = dict(est["parts"])
+    parts.pop("kept filter transitions", None)           # composed_filter keeps none
+    L = min(int(chunk), max(N, 1))
+    p = max(1, int(processes))
+    # one system's chunk at a time beside the truth's dynamics under its options, in each process
+    parts["one chunk of F, Q_c, G, Phi, Q_d"] = p * (2 * n * n + n * c + 2 * n * n + 4 * nf * nf) * L * _F8
+    parts["one chunk of composed systems"] *= p
+    parts["discretisation workspace"] *= p
+    parts["composed systems on the events"] = p * 2 * K * (n * n + nf * nf) * _F8
+    parts["one filter's batch of cases"] = p * int(batch) * (6 * n * n + 6 * nf * nf + 3 * int(updates) * nf) * _F8
+    return {"bytes": float(sum(parts.values())), "steps": N, "parts": parts, "parallel": 1}
+
+
+def scaled_estimate(est: dict, workers: int) -> dict:
+    """``est`` for ``workers`` independent processes, each holding all of it (its ``parallel`` multiplied)."""
+    w = max(1, int(workers))
+    return {**est, "bytes": est["bytes"] * w, "parts": {k: v * w for k, v in est["parts"].items()},
+            "parallel": int(est.get("parallel", 1)) * w}
+
+
 def parse_bytes(value, where: str, error=StudyFileError) -> float:
     """A memory size in bytes: ``"6 GB"``, ``"512 MiB"`` or a bare number of bytes.
 

@@ -77,15 +77,15 @@ from covtool.analysis.metrics import first_invalid, nav_metrics
 from covtool.errors import FlaggedCaseWarning, InputError, StudyFileError, ValidityWarning
 from covtool.io.config import file_sha256, LIMITS
 from covtool.io.filters import load_filters
-from covtool.lincov.batch import events, run_batch, System
+from covtool.lincov.batch import events, run_batch
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.trade_grid import trade_figure
 from covtool.results import TradeGridResult
 from covtool.studies.grid import check_step_motion, time_grid
-from covtool.studies.inputs import (load_trajectory, load_truth, study_config, study_header, study_inputs,
-                                    trajectory_csv_sha256, UNSCALED_KINDS)  # noqa: F401  (UNSCALED_KINDS: re-export)
-from covtool.studies.resources import (check_memory, memory_estimate, noise_columns, resource_provenance,
-                                       run_in_chunks, steps_of, store_checks)
+from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_config, study_header,
+                                    study_inputs, trajectory_csv_sha256, UNSCALED_KINDS)  # noqa: F401  (UNSCALED_KINDS: re-export)
+from covtool.studies.resources import (check_memory, composed_memory_estimate, memory_estimate, noise_columns,
+                                       resource_provenance, run_in_chunks, scaled_estimate, steps_of, store_checks)
 from covtool.studies.tables import summary_row
 from covtool.studies.zupt_setup import filter_cases, filter_dynamics, filters_file, setup, zupt_schedule
 from covtool.units import ARCMIN, FT
@@ -141,6 +141,7 @@ class TradePlan:
         # parsed once (or given by run_study); every chunk's configuration is varied from it
         cfg = self.config = config if config is not None else study_config(decl, where)
         self.hdr = study_header(cfg, where)
+        self.report_times = output_options(cfg, where, self.hdr["duration"])[1]
         raw_grid = decl.get("grid", {}) if isinstance(decl, dict) else {}
         self.intervals = list(cfg.grid.zupt_interval)
         self.interval_text = list(raw_grid.get("zupt_interval") or [f"{s / 60:g} min" for s in self.intervals])
@@ -225,19 +226,30 @@ class TradePlan:
     def memory(self, workers: int) -> dict:
         """Peak memory of the grid: one (grade, interval) system per worker at a time.
 
-        A chunk builds the truth and every filter system on the full grid
-        and runs each filter's cases in one batch (per case the truth and
-        filter covariances and the gains of every update).
+        A ZUPT-only chunk makes the truth's and each filter's systems chunk
+        by chunk in time, composed on the events
+        (:func:`~covtool.studies.resources.composed_memory_estimate`); a
+        chunk with an aiding mix builds them on the full grid
+        (:func:`~covtool.studies.resources.memory_estimate`).  Each runs a
+        filter's cases in one batch (per case the truth and filter
+        covariances and the gains of every update).
         """
         steps = steps_of(self.hdr["duration"], self.hdr["dt"])
         n = self.n_truth
         per = len(self.sigmas) * len(self.p0_scales) * len(self.q_scales) * len(self.r_scales)
         nf = max(self.states.values())
         updates = max(self.updates.values(), default=0)
+        parallel = max(1, min(workers, len(self.chunks)))
+        streamed = composed_memory_estimate(steps, n, filters=list(self.states.values()), dynamics=self.dynamics,
+                                            noise=noise_columns(self.truth_decl), updates=updates,
+                                            reports=len(self.report_times), batch=per)
+        streamed = scaled_estimate(streamed, parallel)
+        if not any(a["measurement"] for a in self.aidings):
+            return streamed
         extra = per * (6 * n * n + 6 * nf * nf + 3 * updates * nf) * 8
-        return memory_estimate(steps, n, filters=list(self.states.values()), dynamics=self.dynamics,
-                               noise=noise_columns(self.truth_decl),
-                               extra=extra, parallel=max(1, min(workers, len(self.chunks))))
+        whole = memory_estimate(steps, n, filters=list(self.states.values()), dynamics=self.dynamics,
+                                noise=noise_columns(self.truth_decl), extra=extra, parallel=parallel)
+        return whole if whole["bytes"] >= streamed["bytes"] else streamed
 
     def manifest(self, decl: dict) -> dict:
         """What identifies this sweep for a resumed run (its fingerprint is the plan key).
@@ -284,8 +296,12 @@ def compute_chunk(task: dict) -> dict:
     S = setup(task["config"], path=path, grade=task["grade"])
     t = S.t
     rec = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
-    ev = events(t.size - 1, S.update_steps, rec)
-    truth = System.from_steps(S.Phi, S.Qd, ev)
+    aiding = task.get("aiding") or {"measurement": []}
+    # ZUPTs only: the truth's and the filters' Φ, Q_d are made chunk by chunk in time and composed on the
+    # events (ZuptSetup.composed_truth, composed_filter), none of size N x n^2; an aiding mix propagates on
+    # the whole grid (covtool.studies.aided_trade)
+    ev = S.stream_grid(events(t.size - 1, S.update_steps, rec))
+    truth = None if aiding["measurement"] else S.composed_truth(ev)
     nodes = S.nodes
     t_setup = time.perf_counter() - t0
     t_filters = t_engine = 0.0
@@ -294,16 +310,14 @@ def compute_chunk(task: dict) -> dict:
         by_filter.setdefault(c["filter"], []).append(c)
     rows, reused = {}, []
     eye = np.eye(S.H.shape[0])
-    aiding = task.get("aiding") or {"measurement": []}
     for f, cs in by_filter.items():
         a = time.perf_counter()
         if aiding["measurement"]:          # ZUPTs plus an aiding mix: the aided engine, one run per case
             _aided_rows(S, f, cs, aiding, rec, task, rows)
             t_engine += time.perf_counter() - a
             continue
-        fm, Phi_f, Qd_f, same = S.filter_system(f)
+        fm, filt, same = S.composed_filter(f, ev, truth=truth)
         spec = S.specs[f]
-        filt = truth if same else System.from_steps(Phi_f, Qd_f, ev)
         if same:
             reused.append(f)
         b = time.perf_counter()

@@ -76,12 +76,12 @@ from covtool.analysis.sensitivity import (fit_loglog, LogLogFit, PARAMETERS, run
                                           sensitivity_figures, sweep_cases)
 from covtool.errors import FlaggedCaseWarning, StudyFileError
 from covtool.io.config import boolean, check_keys, choice, integer, LIMITS, names, number, table
-from covtool.lincov.batch import events, System
+from covtool.lincov.batch import events
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.sensitivity import fig8_figure
 from covtool.results import ZuptSensitivityResult
 from covtool.studies.inputs import length_unit, LENGTH_UNITS, study_inputs
-from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
+from covtool.studies.resources import composed_memory_estimate, noise_columns, progress_bar, resource_provenance
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
 from covtool.forked import can_split, Forked
@@ -156,9 +156,24 @@ def cost_options(cfg: dict, where: str) -> dict:
     return {"measure": measure, "repeats": rep, "taylor_order": order, "paper_seconds": dict(paper)}
 
 
-def _memory(steps, truth, filters, dynamics):
-    """A sweep holds the setup (truth and every filter system) and only report-time results."""
-    return memory_estimate(steps, truth.n, filters=filters, dynamics=dynamics, noise=noise_columns(truth))
+def _memory(n_cases: int):
+    """What a sweep of ``n_cases`` cases per filter holds at its peak (an upper estimate).
+
+    The truth's and the filters' systems are made chunk by chunk and composed
+    on the events (:meth:`~covtool.studies.zupt_setup.ZuptSetup.composed_filter`)
+    in this process and the forked one
+    (:func:`~covtool.studies.resources.composed_memory_estimate`).
+    """
+
+    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0, distinct=None,
+               updates=0, reports=1):
+        own = list(filters if distinct is None else distinct)
+        return composed_memory_estimate(steps, truth.n, filters=own, dynamics=dynamics, noise=noise_columns(truth),
+                                        updates=updates, reports=reports, batch=n_cases, processes=2)
+
+    memory.records = True           # setup() passes the record and interval counts, and the updates
+    memory.updates = True
+    return memory
 
 
 def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSensitivityResult:
@@ -171,8 +186,9 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
         raise StudyFileError(f"{where}: [filters] pure_ins", "not used by a zupt_sensitivity study; remove it")
     timing = {}
     tic = time.perf_counter()
+    cases = sweep_cases(sw["parameters"], sw["scales"])
     S = setup(decl if config is None else config, path=path, progress=progress, extra_sections=("sweep", "cost"),
-              memory=_memory)
+              memory=_memory(cases.n_cases))
     timing["setup (trajectory, truth Phi/Qd)"] = time.perf_counter() - tic
     for k in co["paper_seconds"]:
         if k not in S.specs:
@@ -181,11 +197,12 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
     t = S.t
     N = t.size - 1
     rec = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
-    ev = events(N, S.update_steps, rec)
+    # the events (ZUPTs, report times) and the stream's chunk boundaries: the truth's and every filter's
+    # Φ, Q_d exist one chunk at a time, composed on these events as they are made (ZuptSetup.composed_truth)
+    ev = S.stream_grid(events(N, S.update_steps, rec))
     tic = time.perf_counter()
-    truth_sys = System.from_steps(S.Phi, S.Qd, ev)
+    truth_sys = S.composed_truth(ev)
     timing["compose truth"] = time.perf_counter() - tic
-    cases = sweep_cases(sw["parameters"], sw["scales"])
     B = cases.n_cases
     results, fmodels, reused, statuses = {}, {}, {}, {}
     # summed over the filters, in whichever process each ran (CPU-like: more than the wall time when forked)
@@ -411,10 +428,12 @@ def _sweep_filters(S, names, *, sw, co, truth_sys, ev, rec, cases, where, bar=No
     out = {}
     for c in names:
         tic = time.perf_counter()
-        fm, Phi_f, Qd_f, reused_c = S.filter_system(c, sw["discretization"])
-        tac = time.perf_counter()
-        filt = truth_sys if reused_c else System.from_steps(Phi_f, Qd_f, ev)
-        tuc = time.perf_counter()
+        # Φ_f, Q_f made and composed chunk by chunk (the model's and the composition's seconds together);
+        # the cost inputs are gathered from the same chunks' F_f, Q_c,f
+        scan = _CostScan(S, S.specs[c], co)
+        fm, filt, reused_c = S.composed_filter(c, ev, sw["discretization"], truth=truth_sys,
+                                               on_chunk=scan if scan.needed else None)
+        tac = tuc = time.perf_counter()
         res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
                         S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update,
                         label=f"{where}: sweep of filter {c}", names=S.truth.names, filter_names=fm.names,
@@ -423,39 +442,61 @@ def _sweep_filters(S, names, *, sw, co, truth_sys, ev, rec, cases, where, bar=No
         mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
         mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
         metrics = ({k: v.reshape(B, nr) for k, v in mt.items()}, {k: v.reshape(B, nr) for k, v in mf.items()})
-        out[c] = (fm, reused_c, metrics, res.status, (tac - tic, tuc - tac, toc - tuc), _cost_inputs(S, fm, co))
+        out[c] = (fm, reused_c, metrics, res.status, (tac - tic, tuc - tac, toc - tuc), scan.inputs())
         if bar is not None:
             bar.update(1)
     return out
 
 
-def _cost_inputs(S, fm, co) -> tuple[int, int]:
-    """``(order, step)`` of :func:`_cost` for one filter: the series terms N_t and the step timed.
+class _CostScan:
+    """The inputs of :func:`_cost` for one filter, gathered chunk by chunk (``on_chunk`` of
+    :meth:`~covtool.studies.zupt_setup.ZuptSetup.composed_filter`).
 
     ``order``: the declared Taylor order, or (``taylor_order = "auto"``) the
     most terms the adaptive eq (6b)–(6d) series takes on every
-    :data:`TAYLOR_STRIDE`-th step; ``step``: the step of the largest
-    ``‖F_f‖₁`` (the cycle timed, :func:`covtool.analysis.cost.time_cycle`).
+    :data:`TAYLOR_STRIDE`-th grid step; ``step``: the first step of the
+    largest ``‖F_f‖₁`` (the cycle timed, :func:`covtool.analysis.cost.time_cycle`),
+    with its F_f and Q_c,f.  The same values as over the whole-grid stacks.
     """
-    if co["taylor_order"] == "auto":
-        order = fm.spec.taylor_order or taylor_terms(fm.F[::TAYLOR_STRIDE], fm.Qc[::TAYLOR_STRIDE],
-                                                          np.diff(S.t)[::TAYLOR_STRIDE])
-    else:
-        order = co["taylor_order"]
-    k = int(np.argmax(np.linalg.norm(fm.F, 1, axis=(1, 2)))) if co["measure"] else 0
-    return int(order), k
+
+    def __init__(self, S, spec, co):
+        self.declared = spec.taylor_order if co["taylor_order"] == "auto" else co["taylor_order"]
+        self.auto = co["taylor_order"] == "auto" and not spec.taylor_order
+        self.measure = co["measure"]
+        self.needed = self.auto or self.measure
+        self.dt = np.diff(S.t)
+        self.terms, self.norm, self.step, self.F, self.Qc = 0, -np.inf, 0, None, None
+
+    def __call__(self, a: int, F: np.ndarray, Qc: np.ndarray) -> None:
+        L = F.shape[0]
+        if self.auto:
+            first = (-a) % TAYLOR_STRIDE                      # the stride counted from step 0 of the grid
+            if first < L:
+                sl = slice(first, L, TAYLOR_STRIDE)
+                self.terms = max(self.terms, taylor_terms(F[sl], Qc[sl], self.dt[a:a + L][sl],
+                                                          steps=np.arange(a + first, a + L, TAYLOR_STRIDE)))
+        if self.measure:
+            norms = np.linalg.norm(F, 1, axis=(1, 2))
+            j = int(np.argmax(norms))
+            if norms[j] > self.norm:                          # strictly: the first largest, as argmax over the grid
+                self.norm, self.step, self.F, self.Qc = float(norms[j]), a + j, F[j].copy(), Qc[j].copy()
+
+    def inputs(self) -> tuple:
+        """``(order, step, F_f[step], Q_c,f[step])`` (the last two None when the cycle is not timed)."""
+        return int(self.terms if self.auto else self.declared), self.step, self.F, self.Qc
 
 
-def _cost(S, fmodels, co, inputs=None) -> dict:
+def _cost(S, fmodels, co, inputs) -> dict:
+    """Table 4 inputs per filter: FLOPs of one on-board cycle and its measured time (``inputs``: :class:`_CostScan`)."""
     m = S.H.shape[0]
     out = {}
     for c, fm in fmodels.items():
         n = fm.spec.n
-        order, k = inputs[c] if inputs is not None else _cost_inputs(S, fm, co)
+        order, k, Fk, Qk = inputs[c]
         fl = cycle_flops(n, m, order, fm.spec.update)
         sec = np.nan
         if co["measure"]:
-            sec = time_cycle(fm.F[k], fm.Qc[k], float(S.t[k + 1] - S.t[k]), fm.P0, zupt_matrices(fm.names),
+            sec = time_cycle(Fk, Qk, float(S.t[k + 1] - S.t[k]), fm.P0, zupt_matrices(fm.names),
                              S.filter_R(c), order, fm.spec.update, repeats=co["repeats"], min_time=CYCLE_MIN_TIME)
         out[c] = {"n": n, "m": m, "order": order, "form": fm.spec.update, "flops": fl, "seconds": sec,
                   "flops2": cycle_flops(n, m, 2, fm.spec.update)["total"],

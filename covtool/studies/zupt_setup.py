@@ -373,13 +373,7 @@ class ZuptSetup:
         not grow with the duration.  Where the whole-grid arrays are already
         built (a study that also needs them) they are sliced instead.
         """
-        ev = np.asarray(ev, int)
-        N = self.t.size - 1
-        for a in range(0, N, int(chunk)):
-            b = min(N, a + int(chunk))
-            cev = ev[(ev >= a) & (ev <= b)]
-            if cev[0] != a or cev[-1] != b:
-                raise ValueError(f"the event grid lacks the chunk boundaries {a}, {b} (use stream_grid)")
+        for a, b, cev in self._chunks(ev, chunk):
             dyns = {}
 
             def dyn_of(options):
@@ -416,6 +410,93 @@ class ZuptSetup:
                 shared.append((key, fsys[c]))
             yield tsys, fsys
 
+    def _chunks(self, ev, chunk: int = STREAM_CHUNK):
+        """``(a, b, cev)`` of every chunk of :meth:`stream`: its steps ``a … b−1`` and the events in ``[a, b]``.
+
+        Raises
+        ------
+        ValueError
+            ``ev`` lacks a chunk boundary (:meth:`stream_grid` adds them).
+        """
+        ev = np.asarray(ev, int)
+        N = self.t.size - 1
+        for a in range(0, N, int(chunk)):
+            b = min(N, a + int(chunk))
+            cev = ev[(ev >= a) & (ev <= b)]
+            if cev[0] != a or cev[-1] != b:
+                raise ValueError(f"the event grid lacks the chunk boundaries {a}, {b} (use stream_grid)")
+            yield a, b, cev
+
+    def composed_truth(self, ev, *, chunk: int = STREAM_CHUNK) -> System:
+        """The truth's system composed on the event grid ``ev``, built chunk by chunk in time.
+
+        Parameters
+        ----------
+        ev : ndarray of int
+            Event grid holding the chunk boundaries (:meth:`stream_grid`).
+
+        Returns
+        -------
+        covtool.lincov.batch.System
+            Φ, Q over each interval of ``ev``, shape (K, n, n): the same
+            products as :meth:`stream` yields, joined (:meth:`System.concat`).
+
+        Notes
+        -----
+        The truth's F, Q_c, Φ and Q_d (seed 002, eq (6b)–(6d)) exist for one
+        chunk at a time: memory is set by the events, not by duration × n².
+        """
+        return System.concat(tsys for tsys, _ in self.stream(ev, (), chunk=chunk))
+
+    def composed_filter(self, name: str, ev, discretization: str | None = None, *, truth: System | None = None,
+                        on_chunk=None, chunk: int = STREAM_CHUNK):
+        """``(FilterModel, System, reused)`` of a declared filter on the event grid ``ev``, chunk by chunk.
+
+        Parameters
+        ----------
+        name : str
+            Declared filter.
+        ev : ndarray of int
+            Event grid holding the chunk boundaries (:meth:`stream_grid`).
+        discretization : {None, "declared", "taylor", "van_loan"}
+            Override of the filter's declared discretisation (sweeps).
+        truth : System, optional
+            The truth's system on ``ev`` (:meth:`composed_truth`), returned
+            for a filter that reuses it; composed here if needed and omitted.
+        on_chunk : callable, optional
+            ``on_chunk(a, F_f, Q_cf)`` with the filter's F_f and Q_c,f of
+            the steps ``a …`` (shape (L, n_f, n_f); seed 002, eq (11)–(13)),
+            for each chunk in turn (the truth's own for a reused filter).
+
+        Returns
+        -------
+        fm : covtool.lincov.reduced.FilterModel
+            Without F, Q_c over the grid (:meth:`filter_stream`), its spec
+            carrying the discretisation used.
+        system : covtool.lincov.batch.System
+            Φ_f, Q_f composed on ``ev``.
+        reused : bool
+            The filter's Φ_f, Q_f are the truth's (``system`` is ``truth``).
+        """
+        fm, reused = self.filter_stream(name)
+        if discretization not in (None, "declared"):
+            spec = dataclasses.replace(fm.spec, discretization=discretization)
+            fm = dataclasses.replace(fm, spec=spec)
+            reused = reused and truth_copy(spec, self.truth, self.filter_truth)
+        if reused:
+            if on_chunk is not None:
+                for a, b, _ in self._chunks(ev, chunk):
+                    dyn = self.dynamics_stream(None).chunk(a, b)
+                    on_chunk(a, dyn.F, dyn.Qc)
+            return fm, (truth if truth is not None else self.composed_truth(ev, chunk=chunk)), True
+        parts = []
+        for a, b, cev in self._chunks(ev, chunk):
+            Phi_f, Qd_f = self._discretise_filter(name, self.dynamics_stream(fm.spec.options).chunk(a, b), a, b,
+                                                  spec=fm.spec, on_chunk=on_chunk)
+            parts.append(System(cev, *compose(Phi_f, Qd_f, cev - a)))
+            del Phi_f, Qd_f
+        return fm, System.concat(parts), False
+
     def _keep(self, key, a: int, Phi_f: np.ndarray) -> None:
         """Hold Φ_f of the chunk from step ``a`` (read only) while the kept chunks stay within the budget.
 
@@ -431,11 +512,17 @@ class ZuptSetup:
         """Φ_f the stream kept for system ``key`` over the chunk from step ``a`` (:meth:`_keep`), or None."""
         return next((P for k, a_, P in self._kept if a_ == a and k == key), None)
 
-    def _discretise_filter(self, name: str, dyn, a: int, b: int):
-        """Φ_f, Q_f of filter ``name`` over the steps ``a … b−1`` from the chunk's truth dynamics, guarded."""
+    def _discretise_filter(self, name: str, dyn, a: int, b: int, *, spec=None, on_chunk=None):
+        """Φ_f, Q_f of filter ``name`` over the steps ``a … b−1`` from the chunk's truth dynamics, guarded.
+
+        ``spec`` overrides the filter's discretisation (:meth:`composed_filter`); ``on_chunk(a, F_f, Q_cf)``
+        sees the chunk's F_f, Q_c,f before they are discretised.
+        """
         fm, _ = self.filter_stream(name)
-        spec = fm.spec
+        spec = fm.spec if spec is None else spec
         F_f, Qc_f = fm.chunk(dyn, a, b)
+        if on_chunk is not None:
+            on_chunk(a, F_f, Qc_f)
         return _grid.discretize_steps(F_f, Qc_f, self.t, a, b, spec.discretization, spec.taylor_order,
                                       what=f"{spec.path}: filter {name!r}", label=f"{self.where}: filter {name}",
                                       names=fm.names)
@@ -617,6 +704,8 @@ def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=
                 if not truth_copy(specs[c], truth, ftruth) and system_key(specs[c]) not in keys:
                     keys.append(system_key(specs[c]))
             kw["distinct"] = [k.n for k in keys]            # streamed: one system per distinct key
+            if getattr(memory, "updates", False):
+                kw["updates"], kw["reports"] = zupt_update_count(zo, hdr["duration"]), len(rtimes)
         est = check_memory(memory(steps, truth, [specs[c].n for c in cases],
                                   filter_dynamics(specs, cases, ftruth is not truth), **kw),
                            where, hdr["max_memory"], shrink)
