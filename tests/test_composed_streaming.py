@@ -268,3 +268,53 @@ def test_sensitivity_memory_estimate_bounds_the_measured_peak(monkeypatch):
     est = _bytes(r.provenance["estimated_peak_memory"])
     assert 0 < peak <= est <= 4.0 * peak, (peak, est)
     assert STREAM_CHUNK < r.setup.t.size
+
+
+def test_budget_noise_composed_in_chunks_equals_the_whole_grid_composition():
+    """An error budget over 21 min (three chunks): each source's noise, composed chunk by chunk, equals
+    compose_noise over the whole grid's Φ and F on the same events (≤ 1e-12 of each matrix's largest entry),
+    and the truth's composed system is the whole grid's."""
+    import covtool
+    from covtool.analysis.budget import budget_sources
+    from covtool.lincov.noise import compose_noise
+
+    d = tomllib.loads((ROOT / "studies" / "error_budget.toml").read_text())
+    d["filters"].pop("file")
+    d["study"]["duration"] = "21 min"
+    d["filters"]["cases"] = ["pure_ins", "D"]
+    d["output"] = {"history_every": "60 s", "report_times": ["21 min"]}
+    r = covtool.run_study(d)
+    S, ev = r.setup, r.truth_system.ev
+    assert {600, 1200} <= set(ev.tolist())
+    sources, factors = budget_sources(S.truth, S.dyn.noise, S.nodes.q_nb[0], S.R, resolution="block")
+    assert [s.name for s in sources] == r.source_order
+    whole = compose_noise(S.Phi, S.dyn.F, factors, np.diff(S.t), ev)
+    assert r.noise.shape == whole.shape
+    assert all(_close(r.noise[j], whole[j], 1e-12) for j in range(whole.shape[0]))
+    ref = System.from_steps(S.Phi, S.Qd, ev)
+    assert _close(r.truth_system.Phi, ref.Phi, 1e-12) and _close(r.truth_system.Q, ref.Q, 1e-12)
+
+
+def test_long_budget_fits_the_memory_check():
+    """A 24-h budget (30-s records): its per-source noise grows with the records only; composed in chunks it
+    needs under 8 GB, where the whole-grid systems alone needed over 24 GiB."""
+    from covtool.io.filters import load_filters
+    from covtool.studies import error_budget as eb
+    from covtool.studies.inputs import load_truth, study_config
+    from covtool.studies.resources import memory_estimate, noise_columns
+    from covtool.studies.zupt_setup import filter_dynamics, filters_file
+
+    d = tomllib.loads((ROOT / "studies" / "error_budget.toml").read_text())
+    d["filters"].pop("file")
+    d["study"]["duration"] = "24 h"
+    d["output"]["report_times"] = ["24 h"]
+    d["trajectory"].update(cycles=288, distance="720 km")
+    where = "<budget>"
+    cfg = study_config({**d, "filters": {**d["filters"], "cases": ["A", "B1", "D"]}}, where)
+    truth = load_truth(cfg, where, ROOT / "studies")
+    specs = load_filters(filters_file(cfg.filters, where, ROOT / "studies"), truth)
+    sizes, dyn = [specs[c].n for c in ("A", "B1", "D")], filter_dynamics(specs, ["A", "B1", "D"])
+    est = eb._memory(d, where, "block", True)(86400, truth, sizes, dyn)
+    whole = memory_estimate(86400, truth.n, filters=sizes, dynamics=dyn, noise=noise_columns(truth))
+    assert est["bytes"] < 8e9 and whole["bytes"] > 24 * 2**30
+    assert est["parts"]["per-source composed noise"] > 0.5 * est["bytes"]

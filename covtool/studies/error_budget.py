@@ -66,7 +66,8 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.budget import budget_figure, top_sources
 from covtool.results import ErrorBudgetResult
 from covtool.studies.inputs import length_unit, study_header, study_inputs
-from covtool.studies.resources import memory_estimate, noise_columns, progress_bar, resource_provenance
+from covtool.studies.resources import (composed_memory_estimate, noise_columns, progress_bar, resource_provenance,
+                                       STREAM_CHUNK)
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN, FT
@@ -119,7 +120,14 @@ def budget_cases(decl: dict, where: str) -> tuple[list | None, bool]:
 
 
 def _memory(decl: dict, where: str, resolution: str, pure: bool):
-    """What a budget holds: the setup, and per source its noise composed over the event grid (J, K, n, n)."""
+    """What a budget holds: per source its noise composed over the event grid (J, K, n, n), and the systems.
+
+    The truth's and the filters' systems and the per-source noise are made
+    chunk by chunk in time and composed on the events, in this process and
+    the forked one (:func:`~covtool.studies.resources.composed_memory_estimate`);
+    the per-source stacks grow with the records (the history spacing), not
+    with the steps.
+    """
     from covtool.studies.inputs import output_options
     from covtool.studies.zupt_setup import zupt_options, zupt_update_count
 
@@ -129,11 +137,15 @@ def _memory(decl: dict, where: str, resolution: str, pure: bool):
         every, rtimes = output_options(decl, where, hdr["duration"])
         updates = zupt_update_count(zupt_options(decl.get("zupt", {}), where, hdr["dt"], hdr["duration"]),
                                     hdr["duration"])
-        events = min(steps, updates + int(hdr["duration"] / every) + len(rtimes) + 2)
+        events = min(steps, updates + int(hdr["duration"] / every) + len(rtimes) + 2 + steps // STREAM_CHUNK + 1)
         sources = n + 4 if resolution == "state" else 24          # noise sources + initial errors
-        # compose_noise's stack and its running sum, then one case's per-source covariances
-        extra = 2 * sources * events * n * n * 8 + 3 * sources * n * n * 8
-        return memory_estimate(steps, n, filters=filters, dynamics=dynamics, extra=extra, noise=noise_columns(truth))
+        est = composed_memory_estimate(steps, n, filters=filters, dynamics=dynamics, noise=noise_columns(truth),
+                                       updates=updates, reports=events - updates, processes=2)
+        # the per-source noise of every chunk and their concatenation (compose_noise), then one case's
+        # per-source covariances in each process
+        parts = {**est["parts"], "per-source composed noise": 2 * sources * events * n * n * 8,
+                 "per-source covariances": 2 * 3 * sources * n * n * 8}
+        return {**est, "bytes": float(sum(parts.values())), "parts": parts}
     return memory
 
 
@@ -163,10 +175,22 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     truth_model, t, nodes = S.truth, S.t, S.nodes
     N = t.size - 1
     rec = record_steps(t, S.every, S.report_times)
-    ev = events(N, S.update_steps, rec)
-    truth = System.from_steps(S.Phi, S.Qd, ev)
-    sources, factors = budget_sources(truth_model, S.dyn.noise, nodes.q_nb[0], S.R, resolution=opts["resolution"])
-    Qn = compose_noise(S.Phi, S.dyn.F, factors, np.diff(t), ev)
+    # the events with the stream's chunk boundaries: the truth's Φ, Q_d and each source's noise are made
+    # and composed one chunk at a time (ZuptSetup.composed_truth), nothing of size N x n^2 held
+    ev = S.stream_grid(events(N, S.update_steps, rec))
+    dt = np.diff(t)
+    found, Qparts = [], []
+
+    def per_source(a, cev, dyn, Phi):
+        sources, factors = budget_sources(truth_model, dyn.noise, nodes.q_nb[0], S.R, resolution=opts["resolution"])
+        if not found:
+            found.append((sources, factors))
+        Qparts.append(compose_noise(Phi, dyn.F, factors, dt[a:a + Phi.shape[0]], cev - a))
+
+    truth = S.composed_truth(ev, on_chunk=per_source)
+    sources, factors = found[0]
+    Qn = np.concatenate(Qparts, axis=1) if len(Qparts) > 1 else Qparts[0]
+    Qparts.clear()
     q_check = _composed_noise_check(Qn, truth.Q)
     lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
 
@@ -264,8 +288,7 @@ def case_budget(S, case: str, truth: System, sources: list, Qn: np.ndarray, rec,
                         label=f"{S.where}: pure INS (nominal run)", names=names, times=t)
         return run_budget(truth, src, Qn, P0, S.H, S.R, None, None, [], rec,
                           label=f"{S.where}: pure INS error budget", names=names, times=t), nom.P_truth[0]
-    fm, Phi_f, Qd_f = S.filter_model(case)
-    filt = System.from_steps(Phi_f, Qd_f, truth.ev)
+    fm, filt, _ = S.composed_filter(case, truth.ev, truth=truth)       # chunk by chunk in time
     nom = run_batch(truth, P0[None], S.H, S.R, fm.D, S.update_steps, rec, filt=filt, Pf0=fm.P0[None],
                     Hf=zupt_matrices(fm.names), Rf=S.filter_R(case)[None], form=S.specs[case].update,
                     label=f"{S.where}: filter {case} (nominal run)", names=names, filter_names=fm.names, times=t)

@@ -373,7 +373,7 @@ class ZuptSetup:
         not grow with the duration.  Where the whole-grid arrays are already
         built (a study that also needs them) they are sliced instead.
         """
-        for a, b, cev in self._chunks(ev, chunk):
+        for a, b, cev in self.chunks(ev, chunk):
             dyns = {}
 
             def dyn_of(options):
@@ -382,10 +382,7 @@ class ZuptSetup:
                     dyns[key] = self.dynamics_stream(options).chunk(a, b)
                 return dyns[key]
 
-            if self._Phi is not None:
-                Phi, Qd = self._Phi[a:b], self._Qd[a:b]
-            else:
-                Phi, Qd = self._discretise_truth(dyn_of(None), a, b)
+            Phi, Qd = self._truth_chunk(a, b, dyn_of)
             tsys = System(cev, *compose(Phi, Qd, cev - a))
             del Phi, Qd
             fsys, shared = {}, []
@@ -410,7 +407,7 @@ class ZuptSetup:
                 shared.append((key, fsys[c]))
             yield tsys, fsys
 
-    def _chunks(self, ev, chunk: int = STREAM_CHUNK):
+    def chunks(self, ev, chunk: int = STREAM_CHUNK):
         """``(a, b, cev)`` of every chunk of :meth:`stream`: its steps ``a … b−1`` and the events in ``[a, b]``.
 
         Raises
@@ -427,13 +424,24 @@ class ZuptSetup:
                 raise ValueError(f"the event grid lacks the chunk boundaries {a}, {b} (use stream_grid)")
             yield a, b, cev
 
-    def composed_truth(self, ev, *, chunk: int = STREAM_CHUNK) -> System:
+    def _truth_chunk(self, a: int, b: int, dyn_of):
+        """The truth's Φ, Q_d of the steps ``a … b−1``: sliced from the whole grid if built, else made from
+        ``dyn_of(None)`` (the chunk's dynamics) and guarded."""
+        if self._Phi is not None:
+            return self._Phi[a:b], self._Qd[a:b]
+        return self._discretise_truth(dyn_of(None), a, b)
+
+    def composed_truth(self, ev, *, chunk: int = STREAM_CHUNK, on_chunk=None) -> System:
         """The truth's system composed on the event grid ``ev``, built chunk by chunk in time.
 
         Parameters
         ----------
         ev : ndarray of int
             Event grid holding the chunk boundaries (:meth:`stream_grid`).
+        on_chunk : callable, optional
+            ``on_chunk(a, cev, dyn, Phi)`` for each chunk in turn: its first
+            step, its events, its truth dynamics (F, Q_c and the noise
+            sources of the steps ``a …``) and its Φ, shape (L, n, n).
 
         Returns
         -------
@@ -446,7 +454,21 @@ class ZuptSetup:
         The truth's F, Q_c, Φ and Q_d (seed 002, eq (6b)–(6d)) exist for one
         chunk at a time: memory is set by the events, not by duration × n².
         """
-        return System.concat(tsys for tsys, _ in self.stream(ev, (), chunk=chunk))
+        parts = []
+        for a, b, cev in self.chunks(ev, chunk):
+            dyn = []
+
+            def dyn_of(_options=None):
+                if not dyn:
+                    dyn.append(self.dynamics_stream(None).chunk(a, b))
+                return dyn[0]
+
+            Phi, Qd = self._truth_chunk(a, b, dyn_of)
+            parts.append(System(cev, *compose(Phi, Qd, cev - a)))
+            if on_chunk is not None:
+                on_chunk(a, cev, dyn_of(), Phi)
+            del Phi, Qd
+        return System.concat(parts)
 
     def composed_filter(self, name: str, ev, discretization: str | None = None, *, truth: System | None = None,
                         on_chunk=None, chunk: int = STREAM_CHUNK):
@@ -485,12 +507,12 @@ class ZuptSetup:
             reused = reused and truth_copy(spec, self.truth, self.filter_truth)
         if reused:
             if on_chunk is not None:
-                for a, b, _ in self._chunks(ev, chunk):
+                for a, b, _ in self.chunks(ev, chunk):
                     dyn = self.dynamics_stream(None).chunk(a, b)
                     on_chunk(a, dyn.F, dyn.Qc)
             return fm, (truth if truth is not None else self.composed_truth(ev, chunk=chunk)), True
         parts = []
-        for a, b, cev in self._chunks(ev, chunk):
+        for a, b, cev in self.chunks(ev, chunk):
             Phi_f, Qd_f = self._discretise_filter(name, self.dynamics_stream(fm.spec.options).chunk(a, b), a, b,
                                                   spec=fm.spec, on_chunk=on_chunk)
             parts.append(System(cev, *compose(Phi_f, Qd_f, cev - a)))
