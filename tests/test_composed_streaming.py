@@ -318,3 +318,50 @@ def test_long_budget_fits_the_memory_check():
     whole = memory_estimate(86400, truth.n, filters=sizes, dynamics=dyn, noise=noise_columns(truth))
     assert est["bytes"] < 8e9 and whole["bytes"] > 24 * 2**30
     assert est["parts"]["per-source composed noise"] > 0.5 * est["bytes"]
+
+
+def test_compact_noise_source_steps_equal_the_full_source():
+    """A chunk of a compact equivalent-noise source is the full source's chunk (G expanded, the same PSD)."""
+    from covtool.lincov.dynamics import NoiseSource
+
+    rng = np.random.default_rng(5)
+    G = np.zeros((9, 6, 2))
+    G[:, [1, 4], :] = rng.normal(size=(9, 2, 2))
+    full = NoiseSource("x", G, rng.uniform(1, 2, size=(9, 2)))
+    for src in (full, full.compact()):
+        c = src.steps(3, 7)
+        assert np.array_equal(c.G, G[3:7]) and np.array_equal(c.psd, full.psd[3:7])
+
+
+def _sweep_decl(duration):
+    d = tomllib.loads((ROOT / "studies" / "misalignment_sweep.toml").read_text())
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["study"]["duration"] = duration
+    d["output"]["report_times"] = [duration]
+    return d
+
+
+def test_magnitude_sweep_is_checked_against_the_memory_limit():
+    """The magnitude sweep had no memory check (a 24-h sweep started whatever the limit); now refused in one
+    line before anything is built, and its 24-h estimate stays under 6 GB (composed in chunks)."""
+    import covtool
+    from covtool.errors import StudyFileError
+    from covtool.io.filters import load_filters
+    from covtool.studies import magnitude_sweep as ms
+    from covtool.studies.inputs import load_truth, study_config
+    from covtool.studies.zupt_setup import filter_dynamics, filters_file
+
+    d = _sweep_decl("11 min")
+    d["study"]["max_memory"] = "1 MB"
+    with pytest.raises(StudyFileError, match=r"\[study\].*needs about .* of memory"):
+        covtool.run_study(d)
+    day = _sweep_decl("24 h")
+    day["trajectory"].update(cycles=288, distance="720 km")
+    where = "<sweep>"
+    cfg = study_config(day, where)
+    truth = load_truth(cfg, where, ROOT / "studies")
+    specs = load_filters(filters_file(cfg.filters, where, ROOT / "studies"), truth)
+    cases = list(day["filters"]["cases"])
+    est = ms._memory(day, where)(86400, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases),
+                                 updates=288, reports=1)
+    assert 1e9 < est["bytes"] < 6e9

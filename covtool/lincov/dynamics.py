@@ -146,6 +146,10 @@ class NoiseSource:
         G = self.G[a:b]
         Qc += (G * self.psd[a:b, None, :]) @ np.swapaxes(G, 1, 2)
 
+    def steps(self, a: int, b: int) -> "NoiseSource":
+        """The source over the steps ``a … b−1``: ``G`` of shape ``(b−a, n, k)``, ``psd`` ``(b−a, k)``."""
+        return NoiseSource(self.name, self.G[a:b], self.psd[a:b])
+
     def compact(self) -> "NoiseSource":
         """The same source holding only the rows of ``G`` that are not zero (:class:`CompactNoiseSource`)."""
         rows = np.flatnonzero(np.any(np.asarray(self.G) != 0, axis=(0, 2)))
@@ -192,6 +196,10 @@ class CompactNoiseSource(NoiseSource):
         Gr = self.G_rows[a:b]
         r = self.rows
         Qc[:, r[:, None], r[None, :]] += (Gr * self.psd[a:b, None, :]) @ np.swapaxes(Gr, 1, 2)
+
+    def steps(self, a: int, b: int) -> NoiseSource:
+        """The source over the steps ``a … b−1``, its full ``G`` (shape ``(b−a, n, k)``) expanded."""
+        return NoiseSource(self.name, self._expand(a, b), self.psd[a:b])
 
     def compact(self) -> "CompactNoiseSource":
         return self

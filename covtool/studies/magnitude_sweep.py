@@ -60,7 +60,8 @@ from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transitio
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.magnitude_sweep import sweep_figure
 from covtool.results import MagnitudeSweepResult
-from covtool.studies.resources import progress_bar
+from covtool.studies.resources import (composed_memory_estimate, noise_columns, progress_bar,
+                                       STREAM_CHUNK)
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN, FT, si_unit
 
@@ -119,11 +120,43 @@ def sweep_options(decl: dict, where: str, truth) -> dict:
     return {"groups": out, "threshold": float(thr)}
 
 
+def _memory(decl: dict, where: str):
+    """What a magnitude sweep holds at its peak (an upper estimate, checked before anything is built).
+
+    The truth's and each filter's systems and per-source noises are made
+    chunk by chunk and composed on the events
+    (:func:`~covtool.studies.resources.composed_memory_estimate`); the
+    composed per-source noise stacks (every noise source of the truth and of
+    the largest filter, on the ``K`` intervals) and one filter's batch of
+    members are added.
+    """
+
+    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0, distinct=None,
+               updates=0, reports=1):
+        groups = sweep_options(decl, where, truth)["groups"]
+        B = sum(len(g["values"]) for g in groups)
+        swept = len({nm for g in groups for nm in g["states"]})
+        n, nf, nmin = truth.n, max(filters, default=truth.n), min(filters, default=truth.n)
+        est = composed_memory_estimate(steps, n, filters=list(filters), dynamics=dynamics,
+                                       noise=noise_columns(truth), updates=updates, reports=reports, batch=B)
+        K = int(updates) + int(reports) + int(steps) // STREAM_CHUNK + 2
+        # composed per-source noise: "rest" and each swept state's source (truth), and in the filter also an
+        # equivalent noise per dropped state; every chunk's and their concatenation
+        Jt, Jf = 1 + swept, 1 + swept + (n - nmin)
+        parts = {**est["parts"], "per-source composed noise": 2 * K * (Jt * n * n + Jf * nf * nf) * 8}
+        return {**est, "bytes": float(sum(parts.values())), "parts": parts}
+
+    memory.records = True
+    memory.updates = True
+    return memory
+
+
 def run(decl: dict, *, path=None, progress: bool = False, config=None) -> MagnitudeSweepResult:
     """Run a magnitude sweep; see the module docstring."""
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
-    S = setup(decl if config is None else config, path=path, progress=progress, extra_sections=("sweep",))
+    S = setup(decl if config is None else config, path=path, progress=progress, extra_sections=("sweep",),
+              memory=_memory(decl, where))
     opts = sweep_options(decl, where, S.truth)
     if "A" not in S.cases:
         raise StudyFileError(f"{where}: [filters] cases", "a magnitude sweep needs filter \"A\" (the optimal "
@@ -132,8 +165,9 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
     N = t.size - 1
     dt = np.diff(t)
     rep = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
-    ev = events(N, S.update_steps, rep)
-    tsys = System.from_steps(S.Phi, S.Qd, ev)
+    # the events with the stream's chunk boundaries: Φ, Q_d, F and the noise sources exist one chunk at a
+    # time, each source's noise composed on these events as it is made (nothing of size N x n^2 held)
+    ev = S.stream_grid(events(N, S.update_steps, rep))
     ix = truth.index
     sig = np.array([s.sigma for s in truth.states])
     # members: (group, value); scale of each truth state's sigma per member
@@ -151,36 +185,57 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
     P0s = scale[:, :, None] * S.P0[None] * scale[:, None, :]
     swept = sorted({i for g in opts["groups"] for i in (ix[n] for n in g["states"])})
     names_sw = {truth.states[i].name for i in swept}
-    own = [src for src in S.dyn.noise if src.name in names_sw]
-    rest = [src for src in S.dyn.noise if src.name not in names_sw]
     allrows = np.arange(truth.n)
-    tfac = [restricted_noise("rest", rest, allrows)] + [restricted_noise(src.name, [src], allrows) for src in own]
-    Qt = compose_noise(S.Phi, S.dyn.F, tfac, dt, ev)
-    tcoef = np.ones((B, len(tfac)))
-    for k, src in enumerate(own, start=1):
-        tcoef[:, k] = scale[:, ix[src.name]] ** 2
-    truth_Q = CombinedNoise([(Qt[k], allrows) for k in range(len(tfac))], tcoef, truth.n)
+    own_names, Qt_parts = [], []
+
+    def truth_noise(a, cev, dyn, Phi):
+        own = [src for src in dyn.noise if src.name in names_sw]
+        rest = [src for src in dyn.noise if src.name not in names_sw]
+        if not own_names:
+            own_names.extend(src.name for src in own)
+        tfac = [restricted_noise("rest", rest, allrows)] + [restricted_noise(src.name, [src], allrows)
+                                                             for src in own]
+        Qt_parts.append(compose_noise(Phi, dyn.F, tfac, dt[a:a + Phi.shape[0]], cev - a))
+
+    tsys = S.composed_truth(ev, on_chunk=truth_noise)
+    Qt = np.concatenate(Qt_parts, axis=1)
+    Qt_parts.clear()
+    tcoef = np.ones((B, Qt.shape[0]))
+    for k, nm in enumerate(own_names, start=1):
+        tcoef[:, k] = scale[:, ix[nm]] ** 2
+    truth_Q = CombinedNoise([(Qt[k], allrows) for k in range(Qt.shape[0])], tcoef, truth.n)
     rows = []
     results = {}
     with progress_bar(len(S.cases), "filters", progress) as bar:
         for name in S.cases:
-            fm, Phi_f, _ = S.filter_model(name)
+            fm, _ = S.filter_stream(name)
             kidx = truth.idx(fm.names)
-            dyn = S.options_dynamics(fm.spec.options)
-            fown = [src for src in dyn.noise if src.name in names_sw]
-            frest = [src for src in dyn.noise if src.name not in names_sw]
-            fac = [restricted_noise("rest", frest, kidx)] + [restricted_noise(src.name, [src], kidx) for src in fown]
-            coef_idx = [None] + [ix[src.name] for src in fown]
-            for src in fm.ewn_noise:
-                fac.append(restricted_noise(f"ewn {src.name}", [src], np.arange(src.G.shape[1])))
-                coef_idx.append(ix[src.name])
-            QF = compose_noise(Phi_f, fm.F, fac, dt, ev)
-            fcoef = np.ones((B, len(fac)))
+            nf = len(kidx)
+            fac_of, QF_parts, T_parts = [], [], []
+            for a, b, cev in S.chunks(ev):
+                dyn = S.dynamics_stream(fm.spec.options).chunk(a, b)
+                fown = [src for src in dyn.noise if src.name in names_sw]
+                frest = [src for src in dyn.noise if src.name not in names_sw]
+                fac = [restricted_noise("rest", frest, kidx)] + [restricted_noise(src.name, [src], kidx)
+                                                                 for src in fown]
+                coef_idx = [None] + [ix[src.name] for src in fown]
+                for src in fm.ewn_noise:
+                    fac.append(restricted_noise(f"ewn {src.name}", [src.steps(a, b)], np.arange(nf)))
+                    coef_idx.append(ix[src.name])
+                seen = []
+                Phi_f, _ = S._discretise_filter(name, dyn, a, b, on_chunk=lambda a_, F_f, Qc_f: seen.append(F_f))
+                QF_parts.append(compose_noise(Phi_f, seen[0], fac, dt[a:b], cev - a))
+                T_parts.append(compose_transition(Phi_f, cev - a))
+                fac_of.append(coef_idx)
+                del Phi_f
+            coef_idx = fac_of[0]
+            QF = np.concatenate(QF_parts, axis=1)
+            del QF_parts
+            fcoef = np.ones((B, len(coef_idx)))
             for k, i in enumerate(coef_idx):
                 if i is not None:
                     fcoef[:, k] = scale[:, i] ** 2
-            nf = len(kidx)
-            filt_Q = CombinedNoise([(QF[k], np.arange(nf)) for k in range(len(fac))], fcoef, nf)
+            filt_Q = CombinedNoise([(QF[k], np.arange(nf)) for k in range(len(coef_idx))], fcoef, nf)
             # filter P0: kept states scale like the truth's; absorbed ("matched") parts with their source
             P0n = fm.P0 - sum((sig[ix[nm]] ** 2 * np.outer(a, a) for nm, a in fm.ewn_absorb.items()),
                               np.zeros((nf, nf)))
@@ -188,7 +243,8 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
             Pf0 = sk[:, :, None] * P0n[None] * sk[:, None, :]
             for nm, a in fm.ewn_absorb.items():
                 Pf0 += (scale[:, ix[nm]] * sig[ix[nm]])[:, None, None] ** 2 * np.outer(a, a)[None]
-            fsys = System(ev, compose_transition(Phi_f, ev), np.zeros((len(ev) - 1, 0, 0)))
+            fsys = System(ev, np.concatenate(T_parts), np.zeros((len(ev) - 1, 0, 0)))
+            del T_parts
             res = run_batch(tsys, P0s, S.H, S.R, fm.D, S.update_steps, rep, filt=fsys, Pf0=Pf0,
                             Hf=zupt_matrices(fm.names), Rf=S.filter_R(name)[None], filter_Q=filt_Q,
                             truth_Q=truth_Q, form=fm.spec.update)
