@@ -158,8 +158,13 @@ class PureInsResult(_Navigation, StudyResult):
         :func:`covtool.analysis.metrics.nav_metrics` (SI).
     length_unit : {"ft", "m"}
         Unit of lengths in the figures (``[output] units``).
+    history : CovarianceHistory
+        The 10 navigation states (seed 002 eq (14)) at every step of ``times``.
     truth_history : CovarianceHistory
-        Every truth state (the full model) over ``times``.
+        Every truth state (the full model) at the record steps: every
+        ``[output] history_every``, the report times, the start and the
+        end (every step without ``history_every``), so that its memory
+        grows with the records, not with duration × n².
     """
 
     history: "CovarianceHistory | None" = None

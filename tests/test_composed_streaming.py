@@ -365,3 +365,59 @@ def test_magnitude_sweep_is_checked_against_the_memory_limit():
     est = ms._memory(day, where)(86400, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases),
                                  updates=288, reports=1)
     assert 1e9 < est["bytes"] < 6e9
+
+
+def test_recorded_propagation_also_returns_every_steps_navigation_block():
+    """propagate(record=, all_steps=10): the full P at the records and the leading block of every step,
+    both the whole history's; all_steps < 1 refused."""
+    from covtool.lincov.reference import propagate
+
+    rng = np.random.default_rng(11)
+    N, n = 40, 12
+    Phi = np.eye(n) + 0.05 * rng.normal(size=(N, n, n))
+    A = rng.normal(size=(N, n, n))
+    Qd = 1e-3 * A @ np.swapaxes(A, 1, 2)
+    P0 = np.eye(n)
+    whole = propagate(Phi, Qd, P0)
+    rec = [0, 7, 21, 40]
+    P, nav = propagate(Phi, Qd, P0, record=rec, all_steps=10)
+    assert np.array_equal(P, whole[rec]) and np.array_equal(nav, whole[:, :10, :10])
+    with pytest.raises(ValueError, match="all_steps must be a positive number"):
+        propagate(Phi, Qd, P0, all_steps=0)
+
+
+def test_pure_ins_streams_and_keeps_the_full_model_at_the_records_only():
+    """The pure-INS kind in chunks (21 min, three chunks): the full 58-state P at the records equals the
+    whole-grid propagation's (≤ 1e-12), the navigation history has every step, and the 24-h estimate
+    no longer grows with duration × n² (under 2 GB; the whole grid needed 12.9 GB)."""
+    import covtool
+    from covtool.lincov.reference import propagate
+    from covtool.studies.grid import initial_covariance, time_grid, truth_system
+    from covtool.studies.inputs import load_trajectory, load_truth, study_config, study_header
+
+    path = ROOT / "studies" / "pure_ins_land_vehicle.toml"
+    d = tomllib.loads(path.read_text())
+    d["study"]["duration"] = "21 min"
+    d["output"] = {"history_every": "60 s", "report_times": ["10 min", "21 min"]}
+    r = covtool.run_study(d)
+    assert r.truth_history.P.shape == (22, 58, 58) and r.history.P.shape == (1261, 10, 10)
+    cfg = study_config(d, "<s>")
+    hdr = study_header(cfg, "<s>")
+    truth = load_truth(cfg, "<s>", None)
+    traj = load_trajectory(cfg, "<s>", None, hdr["dt"], hdr["duration"])
+    t = time_grid(hdr["duration"], hdr["dt"])
+    _, _, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"])
+    ref = propagate(Phi, Qd, initial_covariance(truth, traj.sample(t), "<s>"))
+    rec = np.flatnonzero(np.isin(t, r.truth_history.times))
+    assert rec.size == 22 and _close(r.truth_history.P, ref[rec], 1e-12)
+    assert _close(r.history.P, ref[:, :10, :10], 1e-12)
+    day = tomllib.loads(path.read_text())
+    day["study"]["duration"] = "24 h"
+    day["output"]["report_times"] = ["24 h"]
+    day["study"]["max_memory"] = "10 MB"                      # refused before anything is built
+    day["trajectory"].update(cycles=288, distance="720 km")
+    from covtool.errors import StudyFileError
+    with pytest.raises(StudyFileError, match="needs about") as err:
+        covtool.run_study(day)
+    size = str(err.value).split("needs about", 1)[1].split(" of memory", 1)[0].strip()
+    assert 0.5e9 < _bytes(size) < 2e9, size

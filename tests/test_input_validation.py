@@ -545,8 +545,14 @@ def test_trade_grid_fields(mutate, match):
 # ---------------------------------------------------------------------------
 
 def static_day(kind="pure_ins"):
-    d = pure_decl("24 h")
-    d["trajectory"] = {"builtin": "static", "duration": "24 h", "lat": "36 deg", "lon": "127 deg", "h": "60 m"}
+    """A 72-h, 1-s pure INS at rest recording the full 58-state covariance at every step (history_every = dt).
+
+    The pure INS streams in time (Φ, Q_d one chunk at a time); what grows with the duration is the history
+    it was asked for: 259 201 × 58² doubles, 6.98 GB.
+    """
+    d = pure_decl("72 h")
+    d["trajectory"] = {"builtin": "static", "duration": "72 h", "lat": "36 deg", "lon": "127 deg", "h": "60 m"}
+    d["output"]["history_every"] = "1 s"
     return d
 
 
@@ -559,17 +565,18 @@ def _gb(msg):
 def test_a_study_too_large_for_the_memory_limit_is_refused_before_computing():
     """Before: a 24-h, 1-s study under a 6 GB limit died after 33 s with a numpy MemoryError traceback.
 
-    The arrays it would hold: truth F, Q_c, Φ, Q_d and the covariance
-    history P, each 86 400 × 58² doubles (2.33 GB): 11.6 GB at least.
+    Now streamed, a pure INS holds the history it records: at every step of 72 h, 259 201 × 58² doubles
+    (6.98 GB), beside the trajectory (800 doubles a step) and one chunk.
     """
     d = static_day()
     d["study"]["max_memory"] = "6 GB"
-    with pytest.raises(StudyFileError, match=r"<study>: \[study\]: needs about [\d.]+ GB of memory \(86,400 steps; "
+    with pytest.raises(StudyFileError, match=r"<study>: \[study\]: needs about [\d.]+ GB of memory \(259,200 steps; "
                                              r".*\), more than the 6 GB \[study\] max_memory; shrink it with a larger "
-                                             r"\[study\] dt or a shorter duration") as exc:
+                                             r"\[study\] dt, a shorter duration or a larger \[output\] "
+                                             r"history_every") as exc:
         covtool.run_study(d)
-    floor = 5 * 86400 * 58**2 * 8
-    assert floor <= _gb(str(exc.value)) <= 1.25 * floor
+    floor = 259201 * 58**2 * 8
+    assert floor <= _gb(str(exc.value)) <= 1.4 * floor
 
 
 def test_memory_limit_from_the_environment(monkeypatch):

@@ -24,8 +24,8 @@ from covtool.lincov.kalman import (check_covariance, check_system, covariance_st
 
 
 def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = True, label: str = "pure INS",
-              names=None, times=None, system_checked: bool = False, record=None, keep: int | None = None
-              ) -> np.ndarray:
+              names=None, times=None, system_checked: bool = False, record=None, keep: int | None = None,
+              all_steps: int | None = None):
     """Pure propagation ``P_{k+1} = Φ_k P_k Φ_kᵀ + Q_k`` (seed 002, eq (15)).
 
     Parameters
@@ -55,15 +55,20 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
         Return only the leading ``keep`` states (the navigation block:
         ``keep = 10``) of the recorded steps; every covariance is still
         guarded whole.  Implies ``record`` (default: every step).
+    all_steps : int, optional
+        Also return the leading ``all_steps`` states of *every* step (the
+        navigation block, ``all_steps = 10``, for metrics at every step
+        beside a full covariance at the record steps).  Implies ``record``.
 
     Returns
     -------
     ndarray, shape (N+1, n, n), or (len(unique(record)), k, k) with ``k = keep or n``
+        With ``all_steps``: that array and the ``(N+1, all_steps, all_steps)`` one.
 
     Raises
     ------
     ValueError
-        A record step outside ``0 … N``, or ``keep < 1``.
+        A record step outside ``0 … N``, or ``keep`` or ``all_steps`` below 1.
 
     Raises
     ------
@@ -75,12 +80,15 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
         check_system(label, Phi=None if system_checked else Phi, Qd=None if system_checked else Qd, P0=P0,
                      names=names, times=times)
     N, n, _ = Phi.shape
-    if record is not None or keep is not None:
+    if record is not None or keep is not None or all_steps is not None:
         rec = np.arange(N + 1) if record is None else np.unique(np.asarray(record, int))
-        if keep is not None and int(keep) < 1:
-            raise ValueError(f"{label}: keep must be a positive number of states, got {keep}")
-        return _propagate_recorded(Phi, Qd, P0, rec, n if keep is None else min(int(keep), n), check=check,
-                                   label=label, names=names, times=times)
+        for what, v in (("keep", keep), ("all_steps", all_steps)):
+            if v is not None and int(v) < 1:
+                raise ValueError(f"{label}: {what} must be a positive number of states, got {v}")
+        out, every = _propagate_recorded(Phi, Qd, P0, rec, n if keep is None else min(int(keep), n),
+                                         None if all_steps is None else min(int(all_steps), n), check=check,
+                                         label=label, names=names, times=times)
+        return out if all_steps is None else (out, every)
     out = np.empty((N + 1, n, n))
     P = out[0] = symmetrize(np.asarray(P0, float))
     with np.errstate(over="ignore", invalid="ignore"):      # a blow-up is reported by the guard below
@@ -96,12 +104,14 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
 GUARD_STEPS = 512
 
 
-def _propagate_recorded(Phi, Qd, P0, rec, k, *, check, label, names, times) -> np.ndarray:
-    """:func:`propagate` keeping the leading ``k`` states of the steps ``rec`` only; every step guarded, in blocks."""
+def _propagate_recorded(Phi, Qd, P0, rec, k, k_all, *, check, label, names, times):
+    """:func:`propagate` keeping the leading ``k`` states of the steps ``rec`` (and the leading ``k_all`` of
+    every step, unless None); every step guarded, in blocks.  Returns ``(out, every)``."""
     N, n, _ = Phi.shape
     if rec.size and (rec[0] < 0 or rec[-1] > N):
         raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
     out = np.empty((rec.size, k, k))
+    every = None if k_all is None else np.empty((N + 1, k_all, k_all))
     slot = {int(k): i for i, k in enumerate(rec)}
     block = np.empty((min(GUARD_STEPS, N + 1), n, n))
     sigma = np.zeros(n)                                      # the running scale carried between blocks
@@ -125,12 +135,14 @@ def _propagate_recorded(Phi, Qd, P0, rec, k, *, check, label, names, times) -> n
             block[j] = P
             if i in slot:
                 out[slot[i]] = P[:k, :k]
+            if every is not None:
+                every[i] = P[:k_all, :k_all]
             j += 1
             if j == block.shape[0]:
                 flush(k0, j)
                 j, k0 = 0, i + 1
     flush(k0, j)
-    return out
+    return out, every
 
 
 @dataclass

@@ -60,7 +60,7 @@ from covtool.results import ErrorBudgetResult
 from covtool.studies.aided import (_measurement_table, _memory, check_error_state_names, filter_run,
                                    filter_system, measurement_steps, parse_measurements)
 from covtool.studies.error_budget import (_residuals, _source_table, _tables, budget_cases, budget_charts,
-                                          budget_options, PURE, record_steps)
+                                          budget_options, PURE, report_record_steps)
 from covtool.studies.grid import initial_covariance, time_grid, truth_system
 from covtool.studies.inputs import (length_unit, load_trajectory, load_truth, output_options, study_header,
                                     study_inputs)
@@ -107,7 +107,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     nodes = traj.sample(t)
     steps, all_steps = measurement_steps(plan, t, nodes, where)   # every schedule, before any computation
     ewn_dt = float(t[-1]) / all_steps.size
-    rec = record_steps(t, every, rtimes)
+    rec = report_record_steps(t, every, rtimes)
     moving = t[-1] - sum(max(0.0, min(b, t[-1]) - max(a, 0.0)) for a, b in traj.stationary)
     mean_speed = float(nodes.distance[-1] / moving) if moving > 0 else None
     meas_pairs = list(zip([m for m, _ in plan], steps))

@@ -65,6 +65,7 @@ from covtool.forked import Forked
 from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.budget import budget_figure, top_sources
 from covtool.results import ErrorBudgetResult
+from covtool.studies.grid import record_steps
 from covtool.studies.inputs import length_unit, study_header, study_inputs
 from covtool.studies.resources import (composed_memory_estimate, noise_columns, progress_bar, resource_provenance,
                                        STREAM_CHUNK)
@@ -149,12 +150,10 @@ def _memory(decl: dict, where: str, resolution: str, pure: bool):
     return memory
 
 
-def record_steps(t: np.ndarray, every: float, report_times) -> np.ndarray:
-    """Record steps: every ``every`` s, the report times and the end."""
-    k = np.round(t / every)
-    on = np.flatnonzero(np.isclose(t, k * every))
-    rep = [int(np.argmin(np.abs(t - tr))) for tr in report_times]
-    return np.unique(np.r_[on, rep, t.size - 1]).astype(int)
+def report_record_steps(t: np.ndarray, every: float, report_times) -> np.ndarray:
+    """Record steps of a budget: every ``every`` s, the report times, the start and the end
+    (:func:`covtool.studies.grid.record_steps`)."""
+    return record_steps(t, every, [int(np.argmin(np.abs(t - tr))) for tr in report_times])
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
@@ -174,7 +173,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     cases = ([PURE] if want_pure else []) + list(S.cases)
     truth_model, t, nodes = S.truth, S.t, S.nodes
     N = t.size - 1
-    rec = record_steps(t, S.every, S.report_times)
+    rec = report_record_steps(t, S.every, S.report_times)
     # the events with the stream's chunk boundaries: the truth's Φ, Q_d and each source's noise are made
     # and composed one chunk at a time (ZuptSetup.composed_truth), nothing of size N x n^2 held
     ev = S.stream_grid(events(N, S.update_steps, rec))

@@ -453,3 +453,30 @@ def initial_covariance(truth: Model, nodes, where: str) -> np.ndarray:
                              f"{truth.name!r} is outside the linear error model's domain: "
                              + text.replace(" from t = 0.0 min", "") + sig)
     return P0
+
+
+def record_steps(t: np.ndarray, every: float | None, report_steps) -> np.ndarray:
+    """Grid indices a study records: the history spacing, the report steps, the first and the last.
+
+    Parameters
+    ----------
+    t : ndarray, shape (N+1,)
+        Time grid. [s]
+    every : float or None
+        ``[output] history_every`` [s]; None or 0 records every step.
+    report_steps : iterable of int
+
+    Returns
+    -------
+    ndarray of int, increasing
+        The steps :func:`covtool.studies.tables.history_frame` writes (the
+        multiples of ``every`` and the last) and the report steps.
+    """
+    if every:
+        k = np.round(t / every)
+        sel = np.isclose(t, k * every)
+    else:
+        sel = np.ones(t.shape, bool)
+    sel[[0, -1]] = True
+    sel[np.asarray(list(report_steps), int)] = True
+    return np.flatnonzero(sel)

@@ -47,6 +47,7 @@ from covtool.plotting.zupt_filter_order import impact_figure
 from covtool.lincov.history import CovarianceHistory
 from covtool.plotting.navigation import error_history_figure
 from covtool.results import ZuptFilterOrderResult
+from covtool.studies.grid import record_steps  # noqa: F401  (also imported from here: benchmarks, tests)
 from covtool.studies.inputs import length_unit, study_inputs
 from covtool.studies.resources import progress_bar, resource_provenance
 from covtool.studies.tables import case_validity, history_frame, summary_row
@@ -201,33 +202,6 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
     result.figures |= {"fig6_horizontal_cep": partial(error_history_figure, result, "horizontal"),
                        "fig7_altitude_pe": partial(error_history_figure, result, "altitude")}
     return result
-
-
-def record_steps(t: np.ndarray, every: float | None, report_steps) -> np.ndarray:
-    """Grid indices the flagship records: the history spacing, the report steps, the first and the last.
-
-    Parameters
-    ----------
-    t : ndarray, shape (N+1,)
-        Time grid. [s]
-    every : float or None
-        ``[output] history_every`` [s]; None or 0 records every step.
-    report_steps : iterable of int
-
-    Returns
-    -------
-    ndarray of int, increasing
-        The steps :func:`covtool.studies.tables.history_frame` writes (the
-        multiples of ``every`` and the last) and the report steps.
-    """
-    if every:
-        k = np.round(t / every)
-        sel = np.isclose(t, k * every)
-    else:
-        sel = np.ones(t.shape, bool)
-    sel[[0, -1]] = True
-    sel[np.asarray(list(report_steps), int)] = True
-    return np.flatnonzero(sel)
 
 
 def equivalent_noise_table(S: ZuptSetup, fmodels: dict) -> pd.DataFrame:
