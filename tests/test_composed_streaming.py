@@ -421,3 +421,25 @@ def test_pure_ins_streams_and_keeps_the_full_model_at_the_records_only():
         covtool.run_study(day)
     size = str(err.value).split("needs about", 1)[1].split(" of memory", 1)[0].strip()
     assert 0.5e9 < _bytes(size) < 2e9, size
+
+
+def test_composed_filters_share_one_system_per_key_and_feed_every_callback():
+    """Filters that differ only in R_f share one composed system (the same object); every filter's on_chunk
+    sees its F_f chunk by chunk, the twin's and the reused filter's too, equal to the whole-grid F_f."""
+    from covtool.studies.zupt_setup import setup
+
+    d = _decl(cases=("A", "B1", "B1_lo"))
+    d["filters"]["file"] = [str(ROOT / "models" / "filters" / "zupt_filters.toml"),
+                            str(ROOT / "benchmarks" / "long" / "long_filters.toml")]
+    S2 = setup(d, path=FLAGSHIP)
+    N = S2.t.size - 1
+    ev = S2.stream_grid(events(N, S2.update_steps, [N]))
+    seen = {c: [] for c in ("A", "B1", "B1_lo")}
+    out = S2.composed_filters(["A", "B1", "B1_lo"], ev,
+                              on_chunk={c: (lambda a, F, Q, c=c: seen[c].append((a, F.copy()))) for c in seen})
+    assert out["B1"][1] is out["B1_lo"][1] and out["A"][2] and not out["B1"][2]
+    for c in seen:
+        assert [a for a, _ in seen[c]] == [0, 600, 1200]
+        F = np.concatenate([F for _, F in seen[c]])
+        whole = S2.filter_build(c).F
+        assert np.array_equal(F, whole), c

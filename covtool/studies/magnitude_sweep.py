@@ -55,6 +55,7 @@ from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, quantity
 from covtool.lincov.batch import events, run_batch, System
+from covtool.lincov.dynamics import dyn_key
 from covtool.lincov.impact import check_members
 from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transition, restricted_noise
 from covtool.lincov.reduced import zupt_matrices
@@ -206,28 +207,38 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
     truth_Q = CombinedNoise([(Qt[k], allrows) for k in range(Qt.shape[0])], tcoef, truth.n)
     rows = []
     results = {}
+    # every filter's Φ_f and per-source noise, chunk by chunk: the chunks outer, so that the truth's dynamics
+    # of a chunk under each set of navigation options are built once for all the filters of those options
+    fms = {name: S.filter_stream(name)[0] for name in S.cases}
+    acc = {name: ([], [], []) for name in S.cases}          # per chunk: coefficient rows, Q_f parts, Φ_f parts
+    for a, b, cev in S.chunks(ev):
+        dyns = {}
+        for name, fm in fms.items():
+            key = dyn_key(fm.spec.options)
+            if key not in dyns:
+                dyns[key] = S.dynamics_stream(fm.spec.options).chunk(a, b)
+            dyn = dyns[key]
+            kidx = truth.idx(fm.names)
+            fown = [src for src in dyn.noise if src.name in names_sw]
+            frest = [src for src in dyn.noise if src.name not in names_sw]
+            fac = [restricted_noise("rest", frest, kidx)] + [restricted_noise(src.name, [src], kidx)
+                                                             for src in fown]
+            coef_idx = [None] + [ix[src.name] for src in fown]
+            for src in fm.ewn_noise:
+                fac.append(restricted_noise(f"ewn {src.name}", [src.steps(a, b)], np.arange(len(kidx))))
+                coef_idx.append(ix[src.name])
+            seen = []
+            Phi_f, _ = S._discretise_filter(name, dyn, a, b, on_chunk=lambda a_, F_f, Qc_f: seen.append(F_f))
+            acc[name][0].append(coef_idx)
+            acc[name][1].append(compose_noise(Phi_f, seen[0], fac, dt[a:b], cev - a))
+            acc[name][2].append(compose_transition(Phi_f, cev - a))
+            del Phi_f
     with progress_bar(len(S.cases), "filters", progress) as bar:
         for name in S.cases:
-            fm, _ = S.filter_stream(name)
+            fm = fms[name]
             kidx = truth.idx(fm.names)
             nf = len(kidx)
-            fac_of, QF_parts, T_parts = [], [], []
-            for a, b, cev in S.chunks(ev):
-                dyn = S.dynamics_stream(fm.spec.options).chunk(a, b)
-                fown = [src for src in dyn.noise if src.name in names_sw]
-                frest = [src for src in dyn.noise if src.name not in names_sw]
-                fac = [restricted_noise("rest", frest, kidx)] + [restricted_noise(src.name, [src], kidx)
-                                                                 for src in fown]
-                coef_idx = [None] + [ix[src.name] for src in fown]
-                for src in fm.ewn_noise:
-                    fac.append(restricted_noise(f"ewn {src.name}", [src.steps(a, b)], np.arange(nf)))
-                    coef_idx.append(ix[src.name])
-                seen = []
-                Phi_f, _ = S._discretise_filter(name, dyn, a, b, on_chunk=lambda a_, F_f, Qc_f: seen.append(F_f))
-                QF_parts.append(compose_noise(Phi_f, seen[0], fac, dt[a:b], cev - a))
-                T_parts.append(compose_transition(Phi_f, cev - a))
-                fac_of.append(coef_idx)
-                del Phi_f
+            fac_of, QF_parts, T_parts = acc.pop(name)
             coef_idx = fac_of[0]
             QF = np.concatenate(QF_parts, axis=1)
             del QF_parts

@@ -309,6 +309,8 @@ def compute_chunk(task: dict) -> dict:
     for c in task["cases"]:
         by_filter.setdefault(c["filter"], []).append(c)
     rows, reused = {}, []
+    # the ZUPT-only filters' systems together, chunk by chunk (one truth dynamics per chunk and options)
+    systems = S.composed_filters(list(by_filter), ev, truth=truth) if truth is not None else {}
     eye = np.eye(S.H.shape[0])
     for f, cs in by_filter.items():
         a = time.perf_counter()
@@ -316,7 +318,7 @@ def compute_chunk(task: dict) -> dict:
             _aided_rows(S, f, cs, aiding, rec, task, rows)
             t_engine += time.perf_counter() - a
             continue
-        fm, filt, same = S.composed_filter(f, ev, truth=truth)
+        fm, filt, same = systems[f]
         spec = S.specs[f]
         if same:
             reused.append(f)

@@ -426,13 +426,17 @@ def _sweep_filters(S, names, *, sw, co, truth_sys, ev, rec, cases, where, bar=No
         return np.broadcast_to(a, (B,) + a.shape).reshape((B * nr,) + a.shape[1:])
 
     out = {}
+    # every filter's Φ_f, Q_f made and composed chunk by chunk, together (the models' and the compositions'
+    # seconds shared evenly); the cost inputs are gathered from the same chunks' F_f, Q_c,f
+    tic = time.perf_counter()
+    scans = {c: _CostScan(S, S.specs[c], co) for c in names}
+    systems = S.composed_filters(names, ev, sw["discretization"], truth=truth_sys,
+                                 on_chunk={c: v for c, v in scans.items() if v.needed})
+    t_model = (time.perf_counter() - tic) / max(1, len(names))
     for c in names:
-        tic = time.perf_counter()
-        # Φ_f, Q_f made and composed chunk by chunk (the model's and the composition's seconds together);
-        # the cost inputs are gathered from the same chunks' F_f, Q_c,f
-        scan = _CostScan(S, S.specs[c], co)
-        fm, filt, reused_c = S.composed_filter(c, ev, sw["discretization"], truth=truth_sys,
-                                               on_chunk=scan if scan.needed else None)
+        scan = scans[c]
+        fm, filt, reused_c = systems[c]
+        tic = time.perf_counter() - t_model
         tac = tuc = time.perf_counter()
         res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
                         S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update,

@@ -472,52 +472,98 @@ class ZuptSetup:
 
     def composed_filter(self, name: str, ev, discretization: str | None = None, *, truth: System | None = None,
                         on_chunk=None, chunk: int = STREAM_CHUNK):
-        """``(FilterModel, System, reused)`` of a declared filter on the event grid ``ev``, chunk by chunk.
+        """``(FilterModel, System, reused)`` of one declared filter on the event grid ``ev``, chunk by chunk.
+
+        :meth:`composed_filters` of ``[name]``; ``on_chunk(a, F_f, Q_cf)`` is
+        that filter's callback.
+        """
+        cb = None if on_chunk is None else {name: on_chunk}
+        return self.composed_filters([name], ev, discretization, truth=truth, on_chunk=cb, chunk=chunk)[name]
+
+    def composed_filters(self, names, ev, discretization: str | None = None, *, truth: System | None = None,
+                         on_chunk: dict | None = None, chunk: int = STREAM_CHUNK) -> dict:
+        """``{name: (FilterModel, System, reused)}`` of declared filters on the event grid ``ev``, chunk by chunk.
+
+        The chunks are the outer loop: the truth's dynamics of a chunk under
+        each set of navigation options are built once for every filter of
+        those options, and filters that differ only in what the update
+        assumes (:func:`system_key`: R_f, the update form) share one system.
 
         Parameters
         ----------
-        name : str
-            Declared filter.
+        names : sequence of str
+            Declared filters.
         ev : ndarray of int
             Event grid holding the chunk boundaries (:meth:`stream_grid`).
         discretization : {None, "declared", "taylor", "van_loan"}
-            Override of the filter's declared discretisation (sweeps).
+            Override of the filters' declared discretisation (sweeps).
         truth : System, optional
             The truth's system on ``ev`` (:meth:`composed_truth`), returned
             for a filter that reuses it; composed here if needed and omitted.
-        on_chunk : callable, optional
-            ``on_chunk(a, F_f, Q_cf)`` with the filter's F_f and Q_c,f of
-            the steps ``a …`` (shape (L, n_f, n_f); seed 002, eq (11)–(13)),
-            for each chunk in turn (the truth's own for a reused filter).
+        on_chunk : dict of str to callable, optional
+            Per filter, ``on_chunk[name](a, F_f, Q_cf)`` with its F_f and
+            Q_c,f of the steps ``a …`` (shape (L, n_f, n_f); seed 002,
+            eq (11)–(13)), for each chunk in turn (the truth's own for a
+            reused filter).
 
         Returns
         -------
-        fm : covtool.lincov.reduced.FilterModel
-            Without F, Q_c over the grid (:meth:`filter_stream`), its spec
-            carrying the discretisation used.
-        system : covtool.lincov.batch.System
-            Φ_f, Q_f composed on ``ev``.
-        reused : bool
-            The filter's Φ_f, Q_f are the truth's (``system`` is ``truth``).
+        dict of str to tuple
+            ``fm``: the :class:`~covtool.lincov.reduced.FilterModel` without
+            F, Q_c over the grid (:meth:`filter_stream`), its spec carrying
+            the discretisation used; ``system``: Φ_f, Q_f composed on
+            ``ev``; ``reused``: its Φ_f, Q_f are the truth's (``system`` is
+            ``truth``).
         """
-        fm, reused = self.filter_stream(name)
-        if discretization not in (None, "declared"):
-            spec = dataclasses.replace(fm.spec, discretization=discretization)
-            fm = dataclasses.replace(fm, spec=spec)
-            reused = reused and truth_copy(spec, self.truth, self.filter_truth)
-        if reused:
-            if on_chunk is not None:
-                for a, b, _ in self.chunks(ev, chunk):
-                    dyn = self.dynamics_stream(None).chunk(a, b)
-                    on_chunk(a, dyn.F, dyn.Qc)
-            return fm, (truth if truth is not None else self.composed_truth(ev, chunk=chunk)), True
-        parts = []
-        for a, b, cev in self.chunks(ev, chunk):
-            Phi_f, Qd_f = self._discretise_filter(name, self.dynamics_stream(fm.spec.options).chunk(a, b), a, b,
-                                                  spec=fm.spec, on_chunk=on_chunk)
-            parts.append(System(cev, *compose(Phi_f, Qd_f, cev - a)))
-            del Phi_f, Qd_f
-        return fm, System.concat(parts), False
+        on_chunk = on_chunk or {}
+        models = {}
+        for name in names:
+            fm, reused = self.filter_stream(name)
+            if discretization not in (None, "declared"):
+                spec = dataclasses.replace(fm.spec, discretization=discretization)
+                fm = dataclasses.replace(fm, spec=spec)
+                reused = reused and truth_copy(spec, self.truth, self.filter_truth)
+            models[name] = (fm, reused)
+        own = [c for c in names if not models[c][1]]
+        # one system per key (the first filter of it makes it), the others of the key share it
+        # (specs hold dicts: compared, not hashed)
+        keys = []
+        maker = {}
+        for c in own:
+            key = system_key(models[c][0].spec)
+            first = next((m for k, m in keys if k == key), None)
+            if first is None:
+                keys.append((key, c))
+            maker[c] = first or c
+        parts = {c: [] for c in own if maker[c] == c}
+        watched = [c for c in names if c in on_chunk and (models[c][1] or maker[c] != c)]
+        if own or watched:
+            for a, b, cev in self.chunks(ev, chunk):
+                dyns = {}
+
+                def dyn_of(options):
+                    key = self._stream_key(options)
+                    if key not in dyns:
+                        dyns[key] = self.dynamics_stream(options).chunk(a, b)
+                    return dyns[key]
+
+                for c in parts:
+                    fm = models[c][0]
+                    Phi_f, Qd_f = self._discretise_filter(c, dyn_of(fm.spec.options), a, b, spec=fm.spec,
+                                                          on_chunk=on_chunk.get(c))
+                    parts[c].append(System(cev, *compose(Phi_f, Qd_f, cev - a)))
+                    del Phi_f, Qd_f
+                for c in watched:                        # a reused filter, or one whose system another made
+                    fm, reused = models[c]
+                    if reused:
+                        d = dyn_of(None)
+                        on_chunk[c](a, d.F, d.Qc)
+                    else:
+                        on_chunk[c](a, *fm.chunk(dyn_of(fm.spec.options), a, b))
+        if any(r for _, r in models.values()) and truth is None:
+            truth = self.composed_truth(ev, chunk=chunk)
+        systems = {c: System.concat(p) for c, p in parts.items()}
+        return {c: (fm, truth if reused else systems[maker[c]], reused) for c, (fm, reused) in models.items()}
 
     def _keep(self, key, a: int, Phi_f: np.ndarray) -> None:
         """Hold Φ_f of the chunk from step ``a`` (read only) while the kept chunks stay within the budget.
