@@ -16,7 +16,13 @@ Two ways to get the systems (seed 002, eq (6b)–(6d)):
   :data:`~covtool.lincov.dynamics.STREAM_CHUNK` steps, so that memory is set
   by the cases and the history spacing, not by duration × n²
   (:class:`~covtool.lincov.batch.BatchRun` carries every case's P and P_f
-  across the chunks).  The filter-order study streams.
+  across the chunks).  The filter-order study streams;
+* composed chunk by chunk: :meth:`ZuptSetup.composed_truth` and
+  :meth:`ZuptSetup.composed_filters` make the same chunks and keep only
+  their composition on the event grid (:class:`~covtool.lincov.batch.System`
+  over the whole time, a few matrices per event), for the kinds that run
+  batches of cases on composed systems: the sensitivity sweep, the ZUPT
+  error budget, the trade grid's ZUPT-only chunks and the magnitude sweep.
 """
 
 from __future__ import annotations
