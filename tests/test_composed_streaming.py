@@ -270,10 +270,18 @@ def test_sensitivity_memory_estimate_bounds_the_measured_peak(monkeypatch):
     assert STREAM_CHUNK < r.setup.t.size
 
 
-def test_budget_noise_composed_in_chunks_equals_the_whole_grid_composition():
+#: a route whose last chunk (steps 1200-1260) is at rest throughout: its distance-driven gravity noise is zero
+#: there, so a chunk's own list of noise sources would lack them (found in review: the budget and the
+#: magnitude sweep then failed to join their chunks)
+AT_REST_LAST = {"builtin": "land_vehicle", "cycles": 6, "period": "210 s", "stop_duration": "60 s",
+                "distance": "10 km"}
+
+
+@pytest.mark.parametrize("route", ["shipped", "at rest in the last chunk"])
+def test_budget_noise_composed_in_chunks_equals_the_whole_grid_composition(route):
     """An error budget over 21 min (three chunks): each source's noise, composed chunk by chunk, equals
     compose_noise over the whole grid's Φ and F on the same events (≤ 1e-12 of each matrix's largest entry),
-    and the truth's composed system is the whole grid's."""
+    and the truth's composed system is the whole grid's; also when a chunk is at rest (the same sources)."""
     import covtool
     from covtool.analysis.budget import budget_sources
     from covtool.lincov.noise import compose_noise
@@ -283,6 +291,9 @@ def test_budget_noise_composed_in_chunks_equals_the_whole_grid_composition():
     d["study"]["duration"] = "21 min"
     d["filters"]["cases"] = ["pure_ins", "D"]
     d["output"] = {"history_every": "60 s", "report_times": ["21 min"]}
+    if route != "shipped":
+        d["trajectory"] = dict(AT_REST_LAST)
+        d["zupt"]["interval"] = "210 s"
     r = covtool.run_study(d)
     S, ev = r.setup, r.truth_system.ev
     assert {600, 1200} <= set(ev.tolist())
@@ -443,3 +454,70 @@ def test_composed_filters_share_one_system_per_key_and_feed_every_callback():
         F = np.concatenate([F for _, F in seen[c]])
         whole = S2.filter_build(c).F
         assert np.array_equal(F, whole), c
+
+
+def test_a_chunk_at_rest_keeps_the_whole_spans_noise_sources():
+    """DynamicsStream: the chunk at rest has the gravity sources too, at zero PSD; the others equal the whole
+    grid's sources; and the magnitude sweep on that route equals the one on the whole grid's sources."""
+    from covtool.lincov.dynamics import DynamicsStream, error_dynamics
+    from covtool.studies.zupt_setup import setup
+
+    d = _decl()
+    d["trajectory"] = dict(AT_REST_LAST)
+    d["zupt"]["interval"] = "210 s"
+    S3 = setup(d, path=FLAGSHIP)
+    whole = error_dynamics(S3.truth, S3.ctx)
+    stream = DynamicsStream(S3.truth, S3.ctx)
+    rest = stream.chunk(1200, 1260)
+    assert np.all(S3.ctx.speed[1200:1260] == 0)
+    assert [x.name for x in rest.noise] == [x.name for x in whole.noise]
+    assert any(x.name.startswith("grav") for x in whole.noise)
+    for x, w in zip(rest.noise, whole.noise):
+        assert np.array_equal(x.G, w.G[1200:1260]) and np.array_equal(x.psd, w.psd[1200:1260])
+    assert np.array_equal(rest.Qc, whole.Qc[1200:1260])
+    # without the whole span's list, the chunk alone has fewer sources
+    assert len(error_dynamics(S3.truth, S3.ctx.slice(1200, 1260)).noise) < len(whole.noise)
+
+
+def test_magnitude_sweep_on_a_route_at_rest_in_its_last_chunk_equals_a_flagship_run():
+    """The sweep's member at the declared magnitude (gravity deflections 5 arcsec in sdins58: distance-driven
+    noise, zero in the chunk at rest) equals the flagship's run of the same filter on the same route
+    (rel ≤ 1e-8)."""
+    import covtool
+
+    d = _sweep_decl("21 min")
+    d["trajectory"] = dict(AT_REST_LAST)
+    d["zupt"]["interval"] = "210 s"
+    d["filters"]["cases"] = ["A", "D"]
+    d["sweep"]["values"] = ["5 arcsec", "10 arcsec"]
+    d["sweep"]["group"] = [{"name": "gravity deflections", "states": ["grav_xi", "grav_eta"]}]
+    r = covtool.run_study(d)
+    f = _decl(cases=("A", "D"))
+    f["trajectory"] = dict(AT_REST_LAST)
+    f["zupt"]["interval"] = "210 s"
+    ref = covtool.run_study(f).summary.set_index("case")
+    sw = r.tables["sweep"]
+    for c in ("A", "D"):
+        row = sw[(sw["magnitude"] == "5 arcsec") & (sw["filter"] == c)].iloc[0]
+        assert row["CEP [ft]"] == pytest.approx(ref.loc[c, "CEP [ft]"], rel=1e-8), c
+        assert row["alt PE [ft]"] == pytest.approx(ref.loc[c, "alt PE [ft]"], rel=1e-8), c
+
+
+def test_magnitude_sweep_estimate_bounds_its_measured_peak():
+    """A 21-min magnitude sweep of three filters: traced peak ≤ its recorded estimate ≤ 6 × the peak (2.3× measured)."""
+    import tracemalloc
+
+    import covtool
+
+    d = _sweep_decl("21 min")
+    d["filters"]["cases"] = ["A", "B1", "D"]
+    covtool.run_study(d)                              # modules imported on first use, not counted
+    tracemalloc.start()
+    try:
+        base = tracemalloc.get_traced_memory()[0]
+        r = covtool.run_study(d)
+        peak = tracemalloc.get_traced_memory()[1] - base
+    finally:
+        tracemalloc.stop()
+    est = _bytes(r.provenance["estimated_peak_memory"])
+    assert 0 < peak <= est <= 6.0 * peak, (peak, est)

@@ -332,6 +332,8 @@ class DynamicsStream:
     def __init__(self, model: Model, ctx: Context, options: "NavOptions" = None, chunk: int = STREAM_CHUNK):
         self.model, self.ctx, self.options, self.chunk_steps = model, ctx, options or NavOptions(), int(chunk)
         self.names = model.names
+        # the whole span's noise sources, in every chunk (a chunk at rest has its distance-driven ones at zero)
+        self.sources = noise_source_names(model, ctx)
 
     @property
     def n_steps(self) -> int:
@@ -344,7 +346,7 @@ class DynamicsStream:
 
     def chunk(self, a: int, b: int) -> "ErrorDynamics":
         """F, Q_c and the noise sources of the steps ``a … b−1``."""
-        return error_dynamics(self.model, self.ctx.slice(a, b), self.options)
+        return error_dynamics(self.model, self.ctx.slice(a, b), self.options, sources=self.sources)
 
     def columns(self, rows, cols) -> np.ndarray:
         """``F[rows, cols]`` over the whole span, column-major: shape ``(len(cols), len(rows), N)``.
@@ -433,7 +435,18 @@ def nav_matrix(ctx: Context, options: NavOptions = NavOptions()) -> np.ndarray:
     return F
 
 
-def error_dynamics(model: Model, ctx: Context, options: NavOptions = NavOptions()) -> ErrorDynamics:
+def noise_source_names(model: Model, ctx: Context) -> frozenset:
+    """Names of the noise sources :func:`error_dynamics` builds along ``ctx``: those with a PSD above zero
+    somewhere (ARW, VRW, and each state's driving noise; a distance-driven one is zero at rest)."""
+    names = {nm for nm, q in (("arw", model.arw), ("vrw", model.vrw)) if q > 0}
+    for s in model.states:
+        if s.kind != "navigation" and np.any(np.asarray(s.psd(ctx.speed)) > 0):
+            names.add(s.name)
+    return frozenset(names)
+
+
+def error_dynamics(model: Model, ctx: Context, options: NavOptions = NavOptions(), *,
+                   sources: frozenset | None = None) -> ErrorDynamics:
     """Build F(t) and the noise sources of ``model`` along ``ctx``.
 
     Parameters
@@ -444,23 +457,29 @@ def error_dynamics(model: Model, ctx: Context, options: NavOptions = NavOptions(
         Trajectory samples (usually the mid-points of the propagation steps).
     options : NavOptions
         Simplifications of the navigation block (filters B2, B3).
+    sources : frozenset of str, optional
+        The noise sources to build (:func:`noise_source_names` of a longer
+        span: a chunk of a stream keeps the whole span's list, a source
+        that is zero over the chunk included with a zero PSD); default:
+        those with a PSD above zero somewhere along ``ctx``.
 
     Returns
     -------
     ErrorDynamics
         ``F`` of shape ``(N, n, n)`` and the list of :class:`NoiseSource`.
     """
+    names = noise_source_names(model, ctx) if sources is None else sources
     N, n = ctx.n, model.n
     F = np.zeros((N, n, n))
     F[:, :10, :10] = nav_matrix(ctx, options)
     noise: list[NoiseSource] = []
     halfQ = 0.5 * quat.Q_matrix(ctx.q)                     # (N,4,3)
     C = ctx.C
-    if model.arw > 0:
+    if "arw" in names:
         G = np.zeros((N, n, 3))
         G[:, I_Q, :] = halfQ
         noise.append(NoiseSource("arw", G, np.full((N, 3), model.arw**2)))
-    if model.vrw > 0:
+    if "vrw" in names:
         G = np.zeros((N, n, 3))
         G[:, VEL, :] = C
         noise.append(NoiseSource("vrw", G, np.full((N, 3), model.vrw**2)))
@@ -492,7 +511,7 @@ def error_dynamics(model: Model, ctx: Context, options: NavOptions = NavOptions(
             elif s.process == "markov_distance":
                 F[:, i, i] = -ctx.speed / s.distance
             psd = s.psd(ctx.speed)
-            if np.any(np.asarray(psd) > 0):
+            if s.name in names:
                 G = np.zeros((N, n, 1))
                 G[:, i, 0] = 1.0
                 if bk.sensor == "ad_reset":

@@ -62,7 +62,7 @@ from covtool.lincov.reduced import zupt_matrices
 from covtool.plotting.magnitude_sweep import sweep_figure
 from covtool.results import MagnitudeSweepResult
 from covtool.studies.resources import (composed_memory_estimate, noise_columns, progress_bar,
-                                       STREAM_CHUNK)
+                                       resource_provenance, STREAM_CHUNK)
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN, FT, si_unit
 
@@ -295,7 +295,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
     provenance = {"truth_model": truth.name, "truth_model_file": truth.path, "truth_model_sha256": truth.sha256,
                   "filter_file": ", ".join(map(str, S.filter_files)), "zupt_updates": int(len(S.update_steps)),
                   "threshold CEP / A": opts["threshold"], "members per filter": B,
-                  "compute_seconds": f"{elapsed:.2f}"}
+                  **resource_provenance(S.resources), "compute_seconds": f"{elapsed:.2f}"}
     result = MagnitudeSweepResult(
         name=S.hdr["name"], kind="magnitude_sweep", tables={"summary": thresholds, "sweep": sweep},
         resolved={**decl, "study": {**decl["study"], "name": S.hdr["name"]}}, provenance=provenance, charts=charts,

@@ -299,11 +299,14 @@ def composed_memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 
     parts.pop("kept filter transitions", None)           # composed_filter keeps none
     L = min(int(chunk), max(N, 1))
     p = max(1, int(processes))
-    # one system's chunk at a time beside the truth's dynamics under its options, in each process
-    parts["one chunk of F, Q_c, G, Phi, Q_d"] = p * (2 * n * n + n * c + 2 * n * n + 4 * nf * nf) * L * _F8
+    # one system's chunk at a time beside the chunk's truth dynamics under each set of options
+    # (ZuptSetup.composed_filters), in each process
+    parts["one chunk of F, Q_c, G, Phi, Q_d"] = p * (dynamics * (2 * n * n + n * c) + 2 * n * n + 4 * nf * nf) \
+        * L * _F8
     parts["one chunk of composed systems"] *= p
     parts["discretisation workspace"] *= p
-    parts["composed systems on the events"] = p * 2 * K * (n * n + nf * nf) * _F8
+    # the truth's system and every filter's, held together (composed_filters returns them at once)
+    parts["composed systems on the events"] = p * 2 * K * (n * n + sum(m * m for m in filters)) * _F8
     parts["one filter's batch of cases"] = p * int(batch) * (6 * n * n + 6 * nf * nf + 3 * int(updates) * nf) * _F8
     return {"bytes": float(sum(parts.values())), "steps": N, "parts": parts, "parallel": 1}
 
