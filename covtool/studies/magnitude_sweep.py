@@ -55,7 +55,6 @@ from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, quantity
 from covtool.lincov.batch import events, run_batch, System
-from covtool.lincov.dynamics import dyn_key
 from covtool.lincov.impact import check_members
 from covtool.lincov.noise import CombinedNoise, compose_noise, compose_transition, restricted_noise
 from covtool.lincov.reduced import zupt_matrices
@@ -212,12 +211,9 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
     fms = {name: S.filter_stream(name)[0] for name in S.cases}
     acc = {name: ([], [], []) for name in S.cases}          # per chunk: coefficient rows, Q_f parts, Φ_f parts
     for a, b, cev in S.chunks(ev):
-        dyns = {}
+        dyn_of = S.chunk_dynamics(a, b)
         for name, fm in fms.items():
-            key = dyn_key(fm.spec.options)
-            if key not in dyns:
-                dyns[key] = S.dynamics_stream(fm.spec.options).chunk(a, b)
-            dyn = dyns[key]
+            dyn = dyn_of(fm.spec.options)
             kidx = truth.idx(fm.names)
             fown = [src for src in dyn.noise if src.name in names_sw]
             frest = [src for src in dyn.noise if src.name not in names_sw]

@@ -254,11 +254,12 @@ def composed_memory_estimate(steps: int, n: int, *, filters=(), dynamics: int = 
 
     The pattern of
     :meth:`~covtool.studies.zupt_setup.ZuptSetup.composed_truth` and
-    :meth:`~covtool.studies.zupt_setup.ZuptSetup.composed_filter` (the
-    sensitivity sweep, a ZUPT-only chunk of the trade grid): each process
-    makes one system's chunk at a time and holds the truth's and one
+    :meth:`~covtool.studies.zupt_setup.ZuptSetup.composed_filters` (the
+    sensitivity sweep, the ZUPT error budget, a ZUPT-only chunk of the
+    trade grid, the magnitude sweep): each process makes one system's chunk
+    at a time beside the chunk's truth dynamics, holds the truth's and every
     filter's systems composed on the ``K`` intervals of the event grid, and
-    one filter's batch of cases.  An upper estimate.
+    runs one filter's batch of cases.  An upper estimate.
 
     Parameters
     ----------

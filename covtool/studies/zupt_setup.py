@@ -380,14 +380,7 @@ class ZuptSetup:
         built (a study that also needs them) they are sliced instead.
         """
         for a, b, cev in self.chunks(ev, chunk):
-            dyns = {}
-
-            def dyn_of(options):
-                key = self._stream_key(options)
-                if key not in dyns:
-                    dyns[key] = self.dynamics_stream(options).chunk(a, b)
-                return dyns[key]
-
+            dyn_of = self.chunk_dynamics(a, b)
             Phi, Qd = self._truth_chunk(a, b, dyn_of)
             tsys = System(cev, *compose(Phi, Qd, cev - a))
             del Phi, Qd
@@ -437,6 +430,19 @@ class ZuptSetup:
             return self._Phi[a:b], self._Qd[a:b]
         return self._discretise_truth(dyn_of(None), a, b)
 
+    def chunk_dynamics(self, a: int, b: int):
+        """``dyn_of(options)``: the truth's dynamics of the steps ``a … b−1`` under ``options`` (None: its own),
+        built on first use and shared by every system of those options in the chunk."""
+        dyns = {}
+
+        def dyn_of(options=None):
+            key = self._stream_key(options)
+            if key not in dyns:
+                dyns[key] = self.dynamics_stream(options).chunk(a, b)
+            return dyns[key]
+
+        return dyn_of
+
     def composed_truth(self, ev, *, chunk: int = STREAM_CHUNK, on_chunk=None) -> System:
         """The truth's system composed on the event grid ``ev``, built chunk by chunk in time.
 
@@ -462,17 +468,11 @@ class ZuptSetup:
         """
         parts = []
         for a, b, cev in self.chunks(ev, chunk):
-            dyn = []
-
-            def dyn_of(_options=None):
-                if not dyn:
-                    dyn.append(self.dynamics_stream(None).chunk(a, b))
-                return dyn[0]
-
+            dyn_of = self.chunk_dynamics(a, b)
             Phi, Qd = self._truth_chunk(a, b, dyn_of)
             parts.append(System(cev, *compose(Phi, Qd, cev - a)))
             if on_chunk is not None:
-                on_chunk(a, cev, dyn_of(), Phi)
+                on_chunk(a, cev, dyn_of(None), Phi)
             del Phi, Qd
         return System.concat(parts)
 
@@ -545,14 +545,7 @@ class ZuptSetup:
         watched = [c for c in names if c in on_chunk and (models[c][1] or maker[c] != c)]
         if own or watched:
             for a, b, cev in self.chunks(ev, chunk):
-                dyns = {}
-
-                def dyn_of(options):
-                    key = self._stream_key(options)
-                    if key not in dyns:
-                        dyns[key] = self.dynamics_stream(options).chunk(a, b)
-                    return dyns[key]
-
+                dyn_of = self.chunk_dynamics(a, b)
                 for c in parts:
                     fm = models[c][0]
                     Phi_f, Qd_f = self._discretise_filter(c, dyn_of(fm.spec.options), a, b, spec=fm.spec,
