@@ -22,7 +22,9 @@ from covtool.lincov.dynamics import STREAM_CHUNK
 from covtool.lincov.reduced import zupt_matrices
 from covtool.lincov.reference import propagate_with_filter
 from covtool.studies.grid import discretize_chunked
+from covtool.studies.resources import parse_bytes
 from covtool.units import FT
+from memory_peaks import recorded_estimate, traced_peak
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
@@ -235,19 +237,12 @@ def test_long_sensitivity_fits_the_memory_check():
     assert est["parts"]["one chunk of F, Q_c, G, Phi, Q_d"] == est30["parts"]["one chunk of F, Q_c, G, Phi, Q_d"]
 
 
-def _bytes(text):
-    x, unit = text.split()
-    return float(x) * {"kB": 1e3, "MB": 1e6, "GB": 1e9, "TB": 1e12}[unit]
-
-
 def test_sensitivity_memory_estimate_bounds_the_measured_peak(monkeypatch):
     """A 40-min sweep of three filters in one process: peak ≤ estimate ≤ 4 × peak (tracemalloc).
 
     The estimate counts the chunk parts of two processes (this one and the forked share); here the sweep
     runs in one, so up to a factor 4 is allowed.
     """
-    import tracemalloc
-
     from covtool.studies import zupt_sensitivity as zs
 
     monkeypatch.setattr(zs, "can_split", lambda: False)
@@ -258,14 +253,8 @@ def test_sensitivity_memory_estimate_bounds_the_measured_peak(monkeypatch):
     d["filters"] = {"file": str(ROOT / "models" / "filters" / "zupt_filters.toml"), "cases": ["A", "B1", "D"]}
     d["sweep"].update({"scales": {"from": 0.1, "to": 10, "per_decade": 2}, "fit_degree": 2})
     d["cost"]["measure"] = False
-    tracemalloc.start()
-    try:
-        base = tracemalloc.get_traced_memory()[0]
-        r = zs.run(d, path=SENS)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
-    est = _bytes(r.provenance["estimated_peak_memory"])
+    r, peak = traced_peak(lambda: zs.run(d, path=SENS))
+    est = recorded_estimate(r)
     assert 0 < peak <= est <= 4.0 * peak, (peak, est)
     assert STREAM_CHUNK < r.setup.t.size
 
@@ -431,7 +420,7 @@ def test_pure_ins_streams_and_keeps_the_full_model_at_the_records_only():
     with pytest.raises(StudyFileError, match="needs about") as err:
         covtool.run_study(day)
     size = str(err.value).split("needs about", 1)[1].split(" of memory", 1)[0].strip()
-    assert 0.5e9 < _bytes(size) < 2e9, size
+    assert 0.5e9 < parse_bytes(size, "estimate") < 2e9, size
 
 
 def test_composed_filters_share_one_system_per_key_and_feed_every_callback():
@@ -505,19 +494,10 @@ def test_magnitude_sweep_on_a_route_at_rest_in_its_last_chunk_equals_a_flagship_
 
 def test_magnitude_sweep_estimate_bounds_its_measured_peak():
     """A 21-min magnitude sweep of three filters: traced peak ≤ its recorded estimate ≤ 6 × the peak (2.3× measured)."""
-    import tracemalloc
-
     import covtool
 
     d = _sweep_decl("21 min")
     d["filters"]["cases"] = ["A", "B1", "D"]
-    covtool.run_study(d)                              # modules imported on first use, not counted
-    tracemalloc.start()
-    try:
-        base = tracemalloc.get_traced_memory()[0]
-        r = covtool.run_study(d)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
-    est = _bytes(r.provenance["estimated_peak_memory"])
+    r, peak = traced_peak(lambda: covtool.run_study(d), warm=True)   # first-use imports not counted
+    est = recorded_estimate(r)
     assert 0 < peak <= est <= 6.0 * peak, (peak, est)

@@ -617,16 +617,8 @@ def test_machine_limit_refuses_with_the_estimate_under_ulimit(tmp_path):
 def _peak(decl):
     """Traced peak of a study's run, the modules it imports on first use already imported (not its arrays)."""
     import copy
-    import tracemalloc
-    covtool.run_study(copy.deepcopy(decl))
-    tracemalloc.start()
-    try:
-        base = tracemalloc.get_traced_memory()[0]
-        r = covtool.run_study(decl)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
-    return r, peak
+    from memory_peaks import traced_peak
+    return traced_peak(lambda: covtool.run_study(copy.deepcopy(decl)), warm=True)
 
 
 @pytest.mark.parametrize("make", [lambda: pure_decl("12 min"), lambda: order_decl(("A", "B3", "D"), "6 min")])

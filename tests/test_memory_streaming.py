@@ -18,6 +18,7 @@ from covtool.lincov.dynamics import CompactNoiseSource, error_dynamics, NoiseSou
 from covtool.lincov.reduced import zupt_matrices
 from covtool.lincov.reference import propagate_with_filter
 from covtool.nav.attitude import attitude_error_matrix
+from memory_peaks import recorded_estimate, traced_peak
 
 ROOT = Path(__file__).resolve().parents[1]
 FLAGSHIP = ROOT / "studies" / "zupt_filter_order.toml"
@@ -236,11 +237,6 @@ def test_long_studies_fit_the_memory_check():
     assert day["bytes"] < 4e9 and day_whole["bytes"] > 24 * 2**30
 
 
-def _bytes(text):
-    x, unit = text.split()
-    return float(x) * {"kB": 1e3, "MB": 1e6, "GB": 1e9, "TB": 1e12}[unit]
-
-
 def test_stream_memory_estimate_follows_the_measured_peak():
     """A 40-min, 6-case streamed study: the estimate bounds the measured peak, within a factor 3.
 
@@ -251,18 +247,10 @@ def test_stream_memory_estimate_follows_the_measured_peak():
     chunk array as live at once, so it must be an upper bound, and not by
     more than a factor 3.
     """
-    import tracemalloc
-
     import covtool
     d = _decl("40 min", ("A", "B1", "B2", "B3", "C", "D"))
     d["output"]["history_every"] = "10 s"
     d["trajectory"] = {"builtin": "land_vehicle", "cycles": 8, "distance": "20 km"}     # the flagship's speed
-    tracemalloc.start()
-    try:
-        base = tracemalloc.get_traced_memory()[0]
-        r = covtool.run_study(d)
-        peak = tracemalloc.get_traced_memory()[1] - base
-    finally:
-        tracemalloc.stop()
-    est = _bytes(r.provenance["estimated_peak_memory"])
+    r, peak = traced_peak(lambda: covtool.run_study(d))
+    est = recorded_estimate(r)
     assert 0 < peak <= est <= 3.0 * peak, (peak, est)

@@ -43,6 +43,7 @@ from covtool.studies.inputs import (length_unit, load_trajectory, load_truth, ou
 from covtool.studies.resources import (check_memory, noise_columns, resource_provenance, steps_of,
                                        stream_memory_estimate)
 from covtool.studies.tables import case_validity, history_frame, summary_row
+from covtool.studies.zupt_setup import history_records
 
 
 def run(decl: dict, *, path=None, progress: bool = False, config=None) -> PureInsResult:
@@ -59,7 +60,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> PureIn
     t0 = time.perf_counter()
     truth = load_truth(cfg, where, base_dir)
     N = steps_of(hdr["duration"], hdr["dt"])
-    records = N + 1 if not every else min(N + 1, int(N * hdr["dt"] / every) + 2 + len(rtimes))
+    records = history_records(N, hdr["dt"], every, rtimes, 0)[0]
     est = stream_memory_estimate(N, truth.n, histories=[truth.n], noise=noise_columns(truth), records=records,
                                  intervals=0)
     # the navigation block of every step and the metrics of it (a few (N+1, 10, 10) stacks)

@@ -206,7 +206,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
     B = cases.n_cases
     results, fmodels, reused, statuses = {}, {}, {}, {}
     # summed over the filters, in whichever process each ran (CPU-like: more than the wall time when forked)
-    timing.update({"filter models": 0.0, "compose filters": 0.0, "batched runs": 0.0})
+    timing.update({"filter systems (made and composed chunk by chunk)": 0.0, "batched runs": 0.0})
 
     sweep = partial(_sweep_filters, S, sw=sw, co=co, truth_sys=truth_sys, ev=ev, rec=rec, cases=cases, where=where)
     # the filters' builds and sweeps are independent: a forked process takes about half of them while
@@ -221,7 +221,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptSe
     cost_inputs = {}
     for c in S.cases:                                        # in the declared order
         fmodels[c], reused[c], results[c], statuses[c], dts, cost_inputs[c] = done[c]
-        for key, dt_ in zip(("filter models", "compose filters", "batched runs"), dts):
+        for key, dt_ in zip(("filter systems (made and composed chunk by chunk)", "batched runs"), dts):
             timing[key] += dt_
     t_sweep, c_sweep = time.perf_counter() - t_start, time.process_time() - c_start
 
@@ -415,9 +415,9 @@ def _sweep_filters(S, names, *, sw, co, truth_sys, ev, rec, cases, where, bar=No
     -------
     dict of str to tuple
         Per filter ``(FilterModel, reused, (truth metrics, filter metrics),
-        status, (model, compose, sweep seconds), cost inputs)``; the
+        status, (filter systems, sweep seconds), cost inputs)``; the
         metrics are arrays of shape (B, n_report), the cost inputs those of
-        :func:`_cost` (:func:`_cost_inputs`).
+        :func:`_cost` (:meth:`_CostScan.inputs`).
     """
     B, nr, t, nodes = cases.n_cases, len(rec), S.t, S.nodes
     lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
@@ -436,8 +436,7 @@ def _sweep_filters(S, names, *, sw, co, truth_sys, ev, rec, cases, where, bar=No
     for c in names:
         scan = scans[c]
         fm, filt, reused_c = systems[c]
-        tic = time.perf_counter() - t_model
-        tac = tuc = time.perf_counter()
+        tic = time.perf_counter()
         res = run_sweep(truth_sys, S.P0, S.H, S.R, fm.D, filt, fm.P0, zupt_matrices(fm.names),
                         S.filter_R(c), cases, S.update_steps, rec, form=fm.spec.update,
                         label=f"{where}: sweep of filter {c}", names=S.truth.names, filter_names=fm.names,
@@ -446,7 +445,7 @@ def _sweep_filters(S, names, *, sw, co, truth_sys, ev, rec, cases, where, bar=No
         mt = nav_metrics(res.P_truth.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
         mf = nav_metrics(res.P_filter.reshape(B * nr, 10, 10), rep(lat), rep(h), rep(q))
         metrics = ({k: v.reshape(B, nr) for k, v in mt.items()}, {k: v.reshape(B, nr) for k, v in mf.items()})
-        out[c] = (fm, reused_c, metrics, res.status, (tac - tic, tuc - tac, toc - tuc), scan.inputs())
+        out[c] = (fm, reused_c, metrics, res.status, (t_model, toc - tic), scan.inputs())
         if bar is not None:
             bar.update(1)
     return out
