@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from covtool.analysis.budget import aided_sources, MEASUREMENT, MEASUREMENT_ERROR, run_aided_budget
+from covtool.analysis.budget import aided_sources, grid_noise, MEASUREMENT, MEASUREMENT_ERROR, run_aided_budget
 from covtool.errors import StudyFileError
 from covtool.lincov.aided import augment, build_epochs, error_processes, propagate_aided
 from covtool.lincov.dynamics import Context, error_dynamics, NoiseSource
@@ -77,7 +77,7 @@ def fix_budget():
     run = propagate_aided(Phi, Qd, P0a, Phi, Qd, P0a, D, epochs, err=err, err_f=err, times=t, names=names,
                           filter_names=names, all_gains=True)
     sources, factors = aided_sources(truth, noise, traj.q_nb[0], bias, ["fix"])
-    br = run_aided_budget(Phi, F, factors, np.diff(t), sources, bias, ["fix"], D, epochs, run.gains, [k - 1, k],
+    br = run_aided_budget(Phi, grid_noise(F, factors), np.diff(t), sources, bias, ["fix"], D, epochs, run.gains, [k - 1, k],
                           err=err, keep=slice(None), names=names, times=t)
     return dict(truth=truth, run=run, br=br, H=epochs[0].H, R=epochs[0].R, k=k, sources=sources, bias=bias)
 
@@ -159,7 +159,7 @@ def test_reduced_filter_sources_sum_to_the_nominal_run(S):
     sources, factors = aided_sources(S.truth, S.dyn.noise, S.nodes.q_nb[0], states, ["gps", "gpsv"])
     kinds = [s.kind for s in sources]
     assert kinds.count(MEASUREMENT_ERROR) == 3 and kinds.count(MEASUREMENT) == 2
-    br = run_aided_budget(S.Phi, S.dyn.F, factors, dt, sources, states, ["gps", "gpsv"], D, epochs, run.gains,
+    br = run_aided_budget(S.Phi, grid_noise(S.dyn.F, factors), dt, sources, states, ["gps", "gpsv"], D, epochs, run.gains,
                           rec, err=err, names=names, times=S.t)
     assert rel(br.P.sum(axis=0), run.P_truth[:, :10, :10]) <= 1e-9
     # the dropped gps_D and the kept gps_N both matter after the first fix; nothing measurement-made before it
@@ -262,3 +262,109 @@ def test_budget_members_refuse_a_missing_gain_and_name_a_bad_source(fix_budget):
         budget_members(Phi, P0s, np.eye(n), [], {}, qd=zero_q, r_weights=np.zeros((2, 1)), meas_names=["fix"],
                        record=[0], keep=np.arange(10), label="b", members=["good", "bad"])
     assert br.P.shape[0] == len(f["sources"])
+
+
+# ---------------------------------------------------------------------------
+# streamed in time: the same numbers as on the whole grid, memory bounded
+
+
+def _whole_grid_budget(d):
+    """The budget of ``d``'s filter and pure INS on whole-grid stacks (the kind's path before it streamed)."""
+    from covtool.analysis.budget import aided_sources as sources_of
+    from covtool.io.filters import load_filters
+    from covtool.lincov.aided import Jacobians
+    from covtool.studies.aided import filter_run, filter_system, measurement_steps, parse_measurements
+    from covtool.studies.error_budget import report_record_steps
+    from covtool.studies.grid import time_grid, truth_system
+    from covtool.studies.inputs import load_trajectory, study_header, output_options
+
+    hdr = study_header(d, "<study>")
+    every, rtimes = output_options(d, "<study>", hdr["duration"])
+    plan, states = parse_measurements(d["measurement"], "<study>")
+    mnames = [m.name for m, _ in plan]
+    truth = load_truth(d, "<study>", None)
+    spec = load_filters(d["filters"]["file"], truth)["B1"]
+    traj = load_trajectory(d, "<study>", None, hdr["dt"], hdr["duration"])
+    t = time_grid(hdr["duration"], hdr["dt"], "<study>")
+    nodes = traj.sample(t)
+    steps, all_steps = measurement_steps(plan, t, nodes, "<study>")
+    rec = report_record_steps(t, every, rtimes)
+    moving = t[-1] - sum(max(0.0, min(b, t[-1]) - max(a, 0.0)) for a, b in traj.stationary)
+    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], where="<study>")
+    P0 = initial_covariance(truth, nodes, "<study>")
+    names_all = list(truth.names) + [s.name for s in states]
+    err = error_processes(states, np.diff(t))[:2]
+    sources, factors = sources_of(truth, dyn.noise, nodes.q_nb[0], states, mnames)
+    noise = grid_noise(dyn.F, factors)
+    fm, Phi_f, Qd_f = filter_system(spec, truth, ctx, dyn, Phi, Qd, hdr, t, nodes, ewn_dt=float(t[-1]) / all_steps.size,
+                                    mean_speed=float(nodes.distance[-1] / moving), update_steps=all_steps)
+    r, _, D, epochs = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, [s.name for s in states],
+                                 list(zip([m for m, _ in plan], steps)), nodes, names_all, err, rec,
+                                 form=spec.update, label="B1", all_gains=True, jacobians=Jacobians(nodes))
+    pure = [s for s in sources if s.kind not in (MEASUREMENT, MEASUREMENT_ERROR)]
+    return {"pure_ins": run_aided_budget(Phi, noise, np.diff(t), pure, [], mnames, np.zeros((truth.n, 0)), [], {},
+                                         rec).P,
+            "B1": run_aided_budget(Phi, noise, np.diff(t), sources, states, mnames, D, epochs, r.gains, rec,
+                                   err=err).P}
+
+
+def test_streamed_budget_equals_the_whole_grid_budget():
+    """21 min (three stream chunks, 20 budget chunks): every contribution as on whole-grid stacks (≤ 1e-12 of σ_i σ_j)."""
+    d = budget_decl("21 min")
+    d["trajectory"] = {"builtin": "land_vehicle", "cycles": 5, "distance": "12.5 km"}
+    r = run_budget_study(d)
+    ref = _whole_grid_budget(d)
+    for c in ("pure_ins", "B1"):
+        got, want = r.runs[c].P, ref[c]
+        assert got.shape == want.shape and r.runs[c].record_steps[-1] == 1260
+        total = want.sum(axis=0)
+        d_ = np.sqrt(np.abs(np.einsum("kii->ki", total)))
+        scale = d_[:, None, :, None] * d_[:, None, None, :]
+        assert np.max(np.abs(got - want)) <= 1e-12 * np.max(scale), c
+        assert np.max(np.abs(got - want) / np.where(scale[0] > 0, scale[0], 1.0)) <= 1e-12, c
+
+
+def test_budget_refuses_noise_whose_factors_change(fix_budget):
+    """A ``noise`` whose second span has other factors (a source lost at rest) is refused, naming the steps."""
+    truth, traj, t, Phi, Qd, F, noise, P0 = static_case(200.0)
+    sources, factors = aided_sources(truth, noise, traj.q_nb[0], [], [])
+    whole = grid_noise(F, factors)
+
+    def lossy(a, b):
+        F_, f = whole(a, b)
+        return F_, f if a == 0 else f[:-1]
+
+    pure = [s for s in sources if s.kind not in (MEASUREMENT, MEASUREMENT_ERROR)]
+    with pytest.raises(ValueError, match=r"^b: the noise factors of steps 64 … 127 are not those of the first steps"):
+        run_aided_budget(Phi, lossy, np.diff(t), pure, [], [], np.zeros((truth.n, 0)), [], {}, [t.size - 1],
+                         label="b")
+
+
+def test_budget_memory_estimate_bounds_its_peak_and_long_runs_fit():
+    """A 21-min budget: traced peak ≤ its recorded estimate ≤ 6 × the peak; 24 h is estimated under 5 GB.
+
+    That is under a third of the whole-grid estimate of the same 24-h study (the aided kind's for whole-grid
+    systems, 15.5 GB, which did not even count the per-source Q_d): what remains grows with the duration
+    only as N × n (the filter build, the trajectory) and as the records (the contributions themselves).
+    """
+    from memory_peaks import recorded_estimate, traced_peak
+
+    from covtool.io.filters import load_filters
+    from covtool.studies import aided_budget
+    from covtool.studies.aided import _memory as whole_grid_memory, parse_measurements
+    from covtool.studies.inputs import output_options, study_header
+
+    d = budget_decl("21 min")
+    d["trajectory"] = {"builtin": "land_vehicle", "cycles": 5, "distance": "12.5 km"}
+    r, peak = traced_peak(lambda: run_budget_study(d), warm=True)
+    est = recorded_estimate(r)
+    assert 0 < peak <= est <= 6.0 * peak, (peak, est)
+    d = budget_decl("24 h")
+    hdr = study_header(d, "<study>")
+    every, _ = output_options(d, "<study>", hdr["duration"])
+    plan, states = parse_measurements(d["measurement"], "<study>")
+    truth = load_truth(d, "<study>", None)
+    specs = load_filters(d["filters"]["file"], truth)
+    long = aided_budget._memory(hdr, truth, specs, ["pure_ins", "B1"], states, every, plan)["bytes"]
+    whole = whole_grid_memory(hdr, truth, specs, ["B1"], {}, states, every, True)["bytes"]
+    assert long < 5e9 and 3.0 * long < whole, (long, whole)

@@ -435,7 +435,28 @@ def aided_sources(model, noise, q0, states, measurements, *, resolution: str = "
     return sources, factors
 
 
-def run_aided_budget(Phi, F, factors, dt, sources, states, measurements, D, epochs, gains, record, *,
+def grid_noise(F, factors):
+    """The ``noise`` of :func:`run_aided_budget` from whole-grid stacks: ``noise(a, b)`` slices them.
+
+    Parameters
+    ----------
+    F : ndarray, shape (N, n₀, n₀)
+        INS truth dynamics matrix.
+    factors : list of NoiseSource
+        Their ``G`` of shape (N, n₀, k), ``psd`` of shape (N, k).
+
+    Returns
+    -------
+    callable
+        ``noise(a, b) -> (F[a:b], factors over the steps a … b−1)``.
+    """
+    def noise(a, b):
+        return F[a:b], [NoiseSource(f.name, f.G[a:b], f.psd[a:b]) for f in factors]
+
+    return noise
+
+
+def run_aided_budget(Phi, noise, dt, sources, states, measurements, D, epochs, gains, record, *,
                      err=None, keep=slice(0, 10), label: str = "error budget", names=None,
                      times=None, chunk: int = 64) -> BudgetRun:
     """Every source of an aided run alone, under the nominal gains.
@@ -447,12 +468,18 @@ def run_aided_budget(Phi, F, factors, dt, sources, states, measurements, D, epoc
 
     Parameters
     ----------
-    Phi, F : ndarray, shape (N, n₀, n₀)
-        INS truth transition and dynamics matrix.
-    factors : list of NoiseSource
-        Noise factors (:func:`aided_sources`); their per-step ``Q_d`` are
-        computed chunk by chunk (:func:`covtool.lincov.discretize.per_source`,
-        the exact Van Loan integral).
+    Phi : ndarray, shape (N, n₀, n₀), or a streamed stack
+        INS truth transition, read one step at a time (``Phi[k]``: a
+        :class:`~covtool.lincov.streamed.StreamedSystem`'s serves).
+    noise : callable
+        ``noise(a, b) -> (F, factors)``: the INS truth's dynamics matrix,
+        shape ``(b − a, n₀, n₀)``, and its noise factors
+        (:func:`aided_sources`, the same names and columns for every span)
+        over the steps ``a … b−1``; called once per ``chunk`` steps, in
+        order, so F and the factors are never held over the grid.  Their
+        per-step ``Q_d`` are the exact Van Loan integral
+        (:func:`covtool.lincov.discretize.per_source`).  :func:`grid_noise`
+        makes one from whole-grid stacks.
     dt : ndarray, shape (N,)
         Step lengths. [s]
     sources : list of Source
@@ -486,6 +513,9 @@ def run_aided_budget(Phi, F, factors, dt, sources, states, measurements, D, epoc
     NumericalError
         A contribution is not finite, symmetric or PSD (the cross piece
         may be indefinite), naming the source, time and state.
+    ValueError
+        ``noise`` gives factors other than those of its first span (names
+        or columns), or spans of another length.
     """
     from covtool.lincov.aided import budget_members
     from covtool.lincov.discretize.sources import per_source
@@ -498,12 +528,11 @@ def run_aided_budget(Phi, F, factors, dt, sources, states, measurements, D, epoc
     ew = np.zeros((B, ne))
     rw = np.zeros((B, len(measurements)))
     enames = [s.name for s in states]
-    member = np.full(len(factors), -1)
+    layout = None                                   # the factors' names and columns, from the first span
+    member = None
     for b, s in enumerate(sources):
         if s.P0 is not None:
             P0s[b, :n0, :n0] = s.P0
-        if s.noise is not None:
-            member[s.noise] = b
         if s.kind == MEASUREMENT_ERROR:
             i = enames.index(s.states[0])
             P0s[b, n0 + i, n0 + i] = states[i].sigma**2
@@ -511,21 +540,37 @@ def run_aided_budget(Phi, F, factors, dt, sources, states, measurements, D, epoc
         elif s.kind == MEASUREMENT:
             rw[b, list(measurements).index(s.name[:-len(" noise (R)")])] = 1.0
     dt = np.broadcast_to(np.asarray(dt, float), (N,))
-    if factors:
-        G = np.concatenate([f.G for f in factors], axis=2)
-        psd_ = np.concatenate([f.psd for f in factors], axis=1)
-        starts = np.r_[0, np.cumsum([f.G.shape[2] for f in factors])[:-1]]
     cache = {"a": -1, "Q": None}
 
     def qd(k):
-        out = np.zeros((B, n0, n0))
-        if not factors:
-            return out
+        nonlocal layout, member
         a = (k // chunk) * chunk
         if cache["a"] != a:
             b = min(N, a + chunk)
-            cache["a"], cache["Q"] = a, per_source(F[a:b], G[a:b], psd_[a:b], dt[a:b], groups=starts,
-                                                   what=f"{label}: per-source Q_d")
+            F, factors = noise(a, b)
+            here = [(f.name, f.G.shape[2]) for f in factors]
+            if layout is None:
+                layout = here
+                member = np.full(len(factors), -1)
+                for m, s in enumerate(sources):
+                    if s.noise is not None:
+                        member[s.noise] = m
+            elif here != layout:
+                raise ValueError(f"{label}: the noise factors of steps {a} … {b - 1} are not those of the first "
+                                 "steps (names or columns differ)")
+            if np.shape(F)[0] != b - a or any(f.G.shape[0] != b - a for f in factors):
+                raise ValueError(f"{label}: noise({a}, {b}) gave spans of another length than {b - a} steps")
+            if factors:
+                G = np.concatenate([f.G for f in factors], axis=2)
+                psd_ = np.concatenate([f.psd for f in factors], axis=1)
+                starts = np.r_[0, np.cumsum([f.G.shape[2] for f in factors])[:-1]]
+                Q = per_source(F, G, psd_, dt[a:b], groups=starts, what=f"{label}: per-source Q_d")
+            else:
+                Q = None
+            cache["a"], cache["Q"] = a, Q
+        out = np.zeros((B, n0, n0))
+        if cache["Q"] is None:
+            return out
         Qj = cache["Q"][k - a]                                     # (J, n0, n0)
         used = member >= 0
         out[member[used]] = Qj[used]

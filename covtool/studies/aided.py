@@ -542,7 +542,7 @@ def filter_system(spec, truth, ctx, dyn, Phi, Qd, hdr, t, nodes, *, ewn_dt, mean
 
 
 def _memory(hdr, truth, specs, cases, variants, states, every, pure) -> dict:
-    """Peak memory with whole-grid systems (the aided error budget and Monte Carlo): the truth system, every base
+    """Peak memory with whole-grid systems (the aided Monte Carlo): the truth system, every base
     filter's system, the pure-INS history, the recorded histories."""
     steps = steps_of(hdr["duration"], hdr["dt"])
     bases = list(dict.fromkeys([*cases, *(b for b, _ in variants.values())]))

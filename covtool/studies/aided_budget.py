@@ -48,7 +48,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from covtool.analysis.budget import (aided_sources, MEASUREMENT, MEASUREMENT_ERROR, nav_variances,
-                                     run_aided_budget)
+                                     noise_factors, run_aided_budget)
+from covtool.lincov.streamed import ChunkPool
 from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, table
@@ -57,14 +58,14 @@ from covtool.lincov.aided import error_processes, Jacobians
 from covtool.lincov.reference import propagate
 from covtool.plotting.budget import budget_figure
 from covtool.results import ErrorBudgetResult
-from covtool.studies.aided import (_measurement_table, _memory, check_error_state_names, filter_run,
-                                   filter_system, measurement_steps, parse_measurements)
+from covtool.studies.aided import (_measurement_table, _streamed_memory, check_error_state_names, filter_run,
+                                   filter_system, measurement_steps, NAV, parse_measurements)
 from covtool.studies.error_budget import (_residuals, _source_table, _tables, budget_cases, budget_charts,
                                           budget_options, PURE, report_record_steps)
-from covtool.studies.grid import initial_covariance, time_grid, truth_system
+from covtool.studies.grid import initial_covariance, time_grid, truth_stream
 from covtool.studies.inputs import (length_unit, load_trajectory, load_truth, output_options, study_header,
                                     study_inputs)
-from covtool.studies.resources import check_memory, resource_provenance
+from covtool.studies.resources import check_memory, HELD_CHUNKS, noise_columns, resource_provenance, steps_of
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import filter_cases, filters_file
 
@@ -100,7 +101,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     specs = load_filters(ffile, truth)
     cases = filter_cases({**fcfg, "cases": fcases} if fcases is not None else fcfg, specs, ffile, where)
     check_error_state_names(plan, states, truth, where)
-    est = check_memory(_memory(hdr, truth, specs, cases, {}, states, every, want_pure), where, hdr["max_memory"],
+    est = check_memory(_memory(hdr, truth, specs, cases, states, every, plan), where, hdr["max_memory"],
                        "a larger [study] dt or history_every, a shorter duration or fewer [filters] cases")
     traj = load_trajectory(decl, where, base_dir, hdr["dt"], hdr["duration"])
     t = time_grid(hdr["duration"], hdr["dt"], where)
@@ -113,11 +114,23 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     meas_pairs = list(zip([m for m, _ in plan], steps))
     dt_steps = np.diff(t)
 
-    ctx, dyn, Phi, Qd = truth_system(truth, traj, t, hdr["discretization"], progress=progress, where=where)
+    # streamed in time (as the aided kind): Φ, Q_d made chunk by chunk and held for the later cases while the
+    # pool has room; F and the noise factors made per budget chunk (run_aided_budget), never over the grid
+    pool = ChunkPool(HELD_CHUNKS)
+    ctx, dyn, tsys = truth_stream(truth, traj, t, hdr["discretization"], pool=pool, where=where)
+    Phi, Qd = tsys.Phi, tsys.Qd
     P0 = initial_covariance(truth, nodes, where)
     names_all = list(truth.names) + [s.name for s in states]
     err = error_processes(states, dt_steps)[:2]
-    sources, factors = aided_sources(truth, dyn.noise, nodes.q_nb[0], states, mnames,
+    q0 = nodes.q_nb[0]
+
+    def noise(a, b):
+        """F and the noise factors of the steps a … b−1 (aided_sources' factors: the stream gives every span
+        the whole span's sources, so every span has the same factors)."""
+        d = dyn.chunk(a, b)
+        return d.F, noise_factors(truth, d.noise, opts["resolution"])
+
+    sources, factors = aided_sources(truth, dyn.chunk(0, min(1, t.size - 1)).noise, q0, states, mnames,
                                      resolution=opts["resolution"])
     lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
     runs, var, nominal, residuals, first = {}, {}, {}, {}, {}
@@ -127,20 +140,20 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
         if c == PURE:                      # no update: the measurements' sources are zero, left out
             src = [s for s in sources if s.kind not in (MEASUREMENT, MEASUREMENT_ERROR)]
             nominal[c] = propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names, times=t,
-                                   system_checked=True)[rec][:, :10, :10]
-            runs[c] = run_aided_budget(Phi, dyn.F, factors, dt_steps, src, [], mnames,
+                                   system_checked=True, record=rec, keep=NAV)
+            runs[c] = run_aided_budget(Phi, noise, dt_steps, src, [], mnames,
                                        np.zeros((truth.n, 0)), [], {}, rec, label=label, names=truth.names,
-                                       times=t)
+                                       times=t, chunk=BUDGET_CHUNK)
         else:
             fm, Phi_f, Qd_f = filter_system(specs[c], truth, ctx, dyn, Phi, Qd, hdr, t, nodes, ewn_dt=ewn_dt,
-                                            mean_speed=mean_speed, update_steps=all_steps, where=where)
+                                            mean_speed=mean_speed, update_steps=all_steps, where=where, pool=pool)
             r, _, D, epochs = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, [s.name for s in states],
                                          meas_pairs, nodes, names_all, err, rec, form=specs[c].update,
                                          label=f"{where}: filter {c} (nominal run)", all_gains=True,
-                                         jacobians=jac)
+                                         jacobians=jac, keep=NAV)
             nominal[c] = r.P_truth[:, :10, :10]
-            runs[c] = run_aided_budget(Phi, dyn.F, factors, dt_steps, sources, states, mnames, D, epochs, r.gains,
-                                       rec, err=err, label=label, names=names_all, times=t)
+            runs[c] = run_aided_budget(Phi, noise, dt_steps, sources, states, mnames, D, epochs, r.gains,
+                                       rec, err=err, label=label, names=names_all, times=t, chunk=BUDGET_CHUNK)
             del r, Phi_f, Qd_f
         var[c] = nav_variances(runs[c].P, lat, h, q)
         residuals[c] = _residuals(runs[c], nominal[c], lat, h, q)
@@ -171,3 +184,37 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
         source_order=[s.name for s in sources], top=opts["top"])
     result.figures = {f"budget_{c}": partial(budget_figure, result, c) for c in cases}
     return result
+
+
+#: steps whose per-source Q_d a budget run holds at once (:func:`covtool.analysis.budget.run_aided_budget`'s ``chunk``)
+BUDGET_CHUNK = 64
+
+
+def _memory(hdr, truth, specs, cases, states, every, plan) -> dict:
+    """Peak memory of an error budget with measurements, which streams in time (an upper estimate).
+
+    The aided kind's streamed estimate (:func:`covtool.studies.aided._streamed_memory`:
+    one chunk of every system, the held chunks, the Jacobians, one run's
+    epochs) plus what a budget adds: the nominal run's gain at every
+    update, the members' covariances (one per source, ``4 B (n + n_e)²``
+    with the products of an update), the per-source ``Q_d`` of one budget
+    chunk and its series (:func:`covtool.lincov.discretize.per_source`: about
+    25 terms of ``n × k`` per step) and the recorded contributions.  The
+    sources are counted from above: one per state and noise column, one per
+    measurement.
+    """
+    N = steps_of(hdr["duration"], hdr["dt"])
+    filters = [c for c in cases if c != PURE]
+    est = _streamed_memory(hdr, truth, specs, filters, {}, states, every, plan)
+    parts = est["parts"]
+    n, ne, k = truth.n, len(states), noise_columns(truth)
+    sources = n + k + ne + len(plan)
+    rec = N / max(1.0, every / hdr["dt"]) + 64
+    nf = max([specs[c].n for c in filters] or [n])
+    updates = sum(len(m.COMPONENTS) * (min(N + 1, hdr["duration"] / sch.period + 1) + len(sch.at)) for m, sch in plan)
+    parts["nominal gains"] = updates * (nf + ne) * 8.0
+    parts["budget members"] = 4 * sources * (n + ne) ** 2 * 8.0
+    parts["per-source Q_d of a budget chunk"] = BUDGET_CHUNK * (2 * k * n * n + 3 * 25 * n * k) * 8.0
+    parts["recorded contributions"] = 2 * sources * rec * NAV * NAV * 8.0
+    est["bytes"] = float(sum(parts.values()))
+    return est
