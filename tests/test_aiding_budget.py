@@ -309,14 +309,13 @@ def _whole_grid_budget(d):
 
 
 def test_streamed_budget_equals_the_whole_grid_budget():
-    """21 min (three stream chunks, 20 budget chunks): every contribution as on whole-grid stacks (≤ 1e-12 of σ_i σ_j)."""
-    d = budget_decl("21 min")
-    d["trajectory"] = {"builtin": "land_vehicle", "cycles": 5, "distance": "12.5 km"}
+    """12 min (two stream chunks, 12 budget chunks): every contribution as on whole-grid stacks (≤ 1e-12 of σ_i σ_j)."""
+    d = budget_decl("12 min")
     r = run_budget_study(d)
     ref = _whole_grid_budget(d)
     for c in ("pure_ins", "B1"):
         got, want = r.runs[c].P, ref[c]
-        assert got.shape == want.shape and r.runs[c].record_steps[-1] == 1260
+        assert got.shape == want.shape and r.runs[c].record_steps[-1] == 720
         total = want.sum(axis=0)
         d_ = np.sqrt(np.abs(np.einsum("kii->ki", total)))
         scale = d_[:, None, :, None] * d_[:, None, None, :]
@@ -341,7 +340,7 @@ def test_budget_refuses_noise_whose_factors_change(fix_budget):
 
 
 def test_budget_memory_estimate_bounds_its_peak_and_long_runs_fit():
-    """A 21-min budget: traced peak ≤ its recorded estimate ≤ 6 × the peak; 24 h is estimated under 5 GB.
+    """A 12-min budget: traced peak ≤ its recorded estimate ≤ 6 × the peak; 24 h is estimated under 5 GB.
 
     That is under a third of the whole-grid estimate of the same 24-h study (the aided kind's for whole-grid
     systems, 15.5 GB, which did not even count the per-source Q_d): what remains grows with the duration
@@ -354,8 +353,7 @@ def test_budget_memory_estimate_bounds_its_peak_and_long_runs_fit():
     from covtool.studies.aided import _memory as whole_grid_memory, parse_measurements
     from covtool.studies.inputs import output_options, study_header
 
-    d = budget_decl("21 min")
-    d["trajectory"] = {"builtin": "land_vehicle", "cycles": 5, "distance": "12.5 km"}
+    d = budget_decl("12 min")
     r, peak = traced_peak(lambda: run_budget_study(d), warm=True)
     est = recorded_estimate(r)
     assert 0 < peak <= est <= 6.0 * peak, (peak, est)

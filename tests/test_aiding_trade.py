@@ -137,3 +137,80 @@ def _with(change):
 def test_bad_aiding_axis_is_one_line(change, match):
     with pytest.raises(StudyFileError, match=match):
         TradePlan(_with(change), None)
+
+
+# ---------------------------------------------------------------------------
+# an aiding mix streams in time: the whole-grid numbers, memory bounded
+
+
+def _long_decl(duration="12 min", filters=("A", "B1", "D")):
+    d = decl(filters=filters)
+    d["study"]["duration"] = duration
+    d["output"] = {"report_times": ["10 min", duration]}
+    return d
+
+
+def test_streamed_aiding_mix_equals_the_whole_grid_runs():
+    """12 min (two stream chunks), filters A (the truth's own system), B1 and D (own options), Q × 1 and × 3:
+    trade_cases' navigation blocks equal propagate_aided on whole-grid stacks (≤ 1e-12 of σ_i σ_j)."""
+    from covtool.lincov.aided import augment, build_epochs, error_processes, Jacobians, propagate_aided
+    from covtool.lincov.measurements import Zupt
+    from covtool.lincov.streamed import ScaledSteps
+    from covtool.studies.aided import parse_measurement
+
+    d = _long_decl()
+    plan = TradePlan(d, None)
+    chunk = next(c for c in plan.chunks if c["aiding"]["measurement"])
+    S = setup(chunk["config"], grade=chunk["grade"])
+    rec = sorted({int(np.argmin(np.abs(S.t - x))) for x in S.report_times})
+    meas = [parse_measurement(m, i, "t") for i, m in enumerate(chunk["aiding"]["measurement"])]
+    states = [s for m, _ in meas for s in m.states]
+    names_all = list(S.truth.names) + [s.name for s in states]
+    err = error_processes(states, np.diff(S.t))[:2]
+    for f in ("A", "B1", "D"):
+        cs = [c for c in chunk["cases"] if c["filter"] == f]
+        got = trade_cases(S, f, cs, chunk["aiding"], rec, "test")
+        assert S.streamed_system().Phi.shape[0] == S.t.size - 1 > 600
+        fm, Phi_f, Qd_f, _ = S.filter_system(f)                 # whole grid (built after the streamed runs)
+        P0a, Pf_e, D = augment(S.P0, fm.D, states, [s.name for s in states])
+        fnames = list(fm.names) + [s.name for s in states]
+        for c, (PT, PF, st) in zip(cs, got):
+            assert st == "ok"
+            sig = float(c["_sigma"])
+            fsig = sig if S.specs[f].zupt_sigma is None else float(S.specs[f].zupt_sigma)
+            z = Zupt(name="zupt", sigma=np.full(3, sig), filter_sigma=np.full(3, fsig))
+            pairs = [(z, S.update_steps)] + [(m, sch.steps(S.t, S.nodes)) for m, sch in meas]
+            Pf0 = np.zeros((len(fnames),) * 2)
+            Pf0[:fm.P0.shape[0], :fm.P0.shape[0]], Pf0[fm.P0.shape[0]:, fm.P0.shape[0]:] = fm.P0, Pf_e
+            q = float(c["Q scale"])
+            ref = propagate_aided(S.Phi, S.Qd, P0a, Phi_f, Qd_f * q, Pf0, D,
+                                  build_epochs(pairs, S.nodes, names_all, fnames, jacobians=Jacobians(S.nodes)),
+                                  err=err, err_f=(err[0], err[1] * q), record=rec, form=S.specs[f].update,
+                                  times=S.t, names=names_all, filter_names=fnames)
+            for a, b in ((PT, ref.P_truth[:, :10, :10]), (PF, ref.P_filter[:, :10, :10])):
+                s_ = np.sqrt(np.abs(np.einsum("kii->ki", b)))
+                s_[:, 6:10] = s_[:, 6:10].max(axis=1, keepdims=True)
+                assert np.max(np.abs(a - b) / (s_[:, :, None] * s_[:, None, :])) <= 1e-12, (f, c["case"])
+        assert ScaledSteps(S.streamed_system(f).Qd, 3.0)[5].tolist() == (3.0 * S.streamed_system(f).Qd[5]).tolist()
+
+
+def test_aiding_mix_memory_estimate_bounds_its_peak():
+    """A 12-min grid of filters A and D with an aiding mix, in one process: traced peak ≤ the estimate ≤ 6 × the peak."""
+    from memory_peaks import traced_peak
+
+    d = _long_decl(filters=("A", "D"))
+    d["grid"]["aiding"] = ["odo"]
+    plan = TradePlan(d, None)
+    est = plan.memory(1)["bytes"]
+    _, peak = traced_peak(lambda: run(d), warm=True)
+    assert 0 < peak <= est <= 6.0 * peak, (peak, est)
+    # 24 h of the same grid: under a third of what whole-grid systems need (the estimate before it streamed)
+    from covtool.studies.resources import memory_estimate, noise_columns, steps_of
+
+    d = _long_decl("24 h")
+    d["grid"]["aiding"] = ["odo"]
+    plan = TradePlan(d, None)
+    whole = memory_estimate(steps_of(86400.0, 1.0), plan.n_truth, filters=list(plan.states.values()),
+                            dynamics=plan.dynamics, noise=noise_columns(plan.truth_decl))["bytes"]
+    long = plan.memory(1)["bytes"]
+    assert long < 5e9 and 3.0 * long < whole, (long, whole)

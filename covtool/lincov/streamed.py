@@ -25,7 +25,7 @@ import numpy as np
 # steps per chunk: a multiple of the discretisation's batch, so each step is discretised as on the whole grid
 from covtool.lincov.dynamics import STREAM_CHUNK
 
-__all__ = ["ChunkPool", "StreamedSystem"]
+__all__ = ["ChunkPool", "ScaledSteps", "StreamedSystem"]
 
 
 class ChunkPool:
@@ -159,3 +159,29 @@ class StreamedSystem:
             ``k`` outside ``0 … N−1``.
         """
         return self._store.step(k)
+
+
+class ScaledSteps:
+    """``obj[k] = scale · steps[k]``: a stack read one step at a time, scaled on read (no copy of the stack).
+
+    For a filter's ``Q_f × q`` (a trade grid's Q scale) over a streamed
+    ``Q_f`` (:class:`StreamedSystem`), or a whole-grid one.
+
+    Parameters
+    ----------
+    steps : sequence of ndarray, shape (N, n, n)
+        Read as ``steps[k]`` (an integer ``k``).
+    scale : float
+    """
+
+    def __init__(self, steps, scale: float):
+        self._steps, self.scale = steps, float(scale)
+        self.shape = tuple(steps.shape)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, k):
+        if isinstance(k, (slice, tuple, list, np.ndarray)):
+            raise TypeError("a scaled stack is read one step at a time (obj[k], k an integer)")
+        return self._steps[int(k)] * self.scale

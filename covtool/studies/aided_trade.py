@@ -19,7 +19,8 @@ import numpy as np
 from covtool.errors import NumericalError, StudyFileError
 from covtool.io.config import check_keys, require, string, table
 from covtool.lincov.aided import augment, build_epochs, error_processes, Jacobians, propagate_aided
-from covtool.studies.aided import parse_measurement
+from covtool.lincov.streamed import ScaledSteps
+from covtool.studies.aided import NAV, parse_measurement
 
 def parse_aiding(decl: dict, axis, where: str) -> list:
     """``[grid] aiding = [...]`` and the ``[[aiding]]`` tables -> one entry per axis value.
@@ -129,7 +130,10 @@ def trade_cases(S, f: str, cases: list, aiding: dict, rec, label: str) -> list:
     states = [s for m, _ in plan for s in m.states]
     names_all = list(S.truth.names) + [s.name for s in states]
     steps = [sch.steps(S.t, S.nodes) for _, sch in plan]
-    fm, Phi_f, Qd_f, _ = S.filter_system(f)
+    # streamed in time: the truth's and the filter's Φ, Q_d made chunk by chunk, held for the next cases and
+    # filters while the setup's pool has room (ZuptSetup.streamed_system); F and Q_c never over the grid
+    truth, fsys = S.streamed_system(), S.streamed_system(f)
+    fm = S.filter_stream(f)[0]
     spec = S.specs[f]
     dt = np.diff(S.t)
     err = error_processes(states, dt)[:2]
@@ -152,10 +156,10 @@ def trade_cases(S, f: str, cases: list, aiding: dict, rec, label: str) -> list:
         q = float(c["Q scale"])
         epochs = build_epochs(pairs, S.nodes, names_all, fnames, jacobians=jac)
         try:
-            run_ = propagate_aided(S.Phi, S.Qd, P0a, Phi_f, Qd_f if q == 1.0 else Qd_f * q, Pf0, D, epochs, err=err,
-                                   err_f=(err[0], err[1] * q), record=rec, form=spec.update,
+            run_ = propagate_aided(truth.Phi, truth.Qd, P0a, fsys.Phi, fsys.Qd if q == 1.0 else ScaledSteps(fsys.Qd, q),
+                                   Pf0, D, epochs, err=err, err_f=(err[0], err[1] * q), record=rec, form=spec.update,
                                    label=f"{label}: case {c['case']}", times=S.t, names=names_all,
-                                   filter_names=fnames, system_checked=True)
+                                   filter_names=fnames, system_checked=True, keep=NAV)
         except NumericalError as exc:
             nan = np.full((len(rec), 10, 10), np.nan)
             out.append((nan, nan, str(exc)))

@@ -84,7 +84,7 @@ from covtool.results import TradeGridResult
 from covtool.studies.grid import check_step_motion, time_grid
 from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_config, study_header,
                                     study_inputs, trajectory_csv_sha256, UNSCALED_KINDS)  # noqa: F401  (UNSCALED_KINDS: re-export)
-from covtool.studies.resources import (check_memory, composed_memory_estimate, memory_estimate, noise_columns,
+from covtool.studies.resources import (check_memory, composed_memory_estimate, HELD_CHUNKS, noise_columns,
                                        resource_provenance, run_in_chunks, scaled_estimate, steps_of, store_checks)
 from covtool.studies.tables import summary_row
 from covtool.studies.zupt_setup import filter_cases, filter_dynamics, filters_file, setup, zupt_schedule
@@ -228,28 +228,60 @@ class TradePlan:
 
         A ZUPT-only chunk makes the truth's and each filter's systems chunk
         by chunk in time, composed on the events
-        (:func:`~covtool.studies.resources.composed_memory_estimate`); a
-        chunk with an aiding mix builds them on the full grid
-        (:func:`~covtool.studies.resources.memory_estimate`).  Each runs a
-        filter's cases in one batch (per case the truth and filter
-        covariances and the gains of every update).
+        (:func:`~covtool.studies.resources.composed_memory_estimate`), and
+        runs a filter's cases in one batch (per case the truth and filter
+        covariances and the gains of every update).  A chunk with an aiding
+        mix streams too (:meth:`~covtool.studies.zupt_setup.ZuptSetup.streamed_system`):
+        on top of one chunk of every system it holds the chunks its pool
+        keeps (at most :data:`~covtool.studies.resources.HELD_CHUNKS`), the
+        mix's measurement Jacobians, one run's epochs, the aided guard's
+        block and the measurement-error processes (:meth:`_aided_memory`).
         """
         steps = steps_of(self.hdr["duration"], self.hdr["dt"])
         n = self.n_truth
         per = len(self.sigmas) * len(self.p0_scales) * len(self.q_scales) * len(self.r_scales)
-        nf = max(self.states.values())
         updates = max(self.updates.values(), default=0)
         parallel = max(1, min(workers, len(self.chunks)))
         streamed = composed_memory_estimate(steps, n, filters=list(self.states.values()), dynamics=self.dynamics,
                                             noise=noise_columns(self.truth_decl), updates=updates,
                                             reports=len(self.report_times), batch=per)
-        streamed = scaled_estimate(streamed, parallel)
-        if not any(a["measurement"] for a in self.aidings):
-            return streamed
-        extra = per * (6 * n * n + 6 * nf * nf + 3 * updates * nf) * 8
-        whole = memory_estimate(steps, n, filters=list(self.states.values()), dynamics=self.dynamics,
-                                noise=noise_columns(self.truth_decl), extra=extra, parallel=parallel)
-        return whole if whole["bytes"] >= streamed["bytes"] else streamed
+        if any(a["measurement"] for a in self.aidings):
+            parts = streamed["parts"]
+            parts.update(max((self._aided_memory(a, steps, updates) for a in self.aidings if a["measurement"]),
+                             key=lambda d: sum(d.values())))
+            streamed["bytes"] = float(sum(parts.values()))
+        return scaled_estimate(streamed, parallel)
+
+    def _aided_memory(self, aiding: dict, steps: int, zupt_updates: int) -> dict:
+        """What one worker holds for an aiding mix beyond the ZUPT-only chunk's parts (bytes per part).
+
+        The held chunks of the truth's and every filter's system, and per
+        run (the cases run one at a time) the measurement Jacobians
+        (``m (10 + n_e)`` per update), the epochs (``H``, ``H_f``, ``R``,
+        ``R_f``), the aided guard's block and the measurement-error
+        processes (the runs record the navigation block at the report times
+        only, their priors and gains there too).  Updates are
+        counted at each schedule's period over the whole duration (an upper
+        count), the ZUPTs' as scheduled.
+        """
+        from covtool.lincov.aided import GUARD_BLOCK
+        from covtool.studies.aided import parse_measurement
+
+        n = self.n_truth
+        nfs = list(self.states.values())
+        nf = max(nfs)
+        plan = [parse_measurement(m, i, f"{self.where}: [[aiding]] {aiding['name']!r}")
+                for i, m in enumerate(aiding["measurement"])]
+        ne = sum(len(m.states) for m, _ in plan)
+        rows = [(3, zupt_updates)] + [(len(m.COMPONENTS), min(steps + 1, self.hdr["duration"] / sch.period + 1)
+                                       + len(sch.at)) for m, sch in plan]
+        per_step = 2 * n * n + sum(2 * k * k for k in nfs)
+        return {"held chunks (aiding mix)": min(float(HELD_CHUNKS), steps * per_step * 8.0),
+                "measurement Jacobians (aiding mix)": sum(u * m * (10 + ne) for m, u in rows) * 8.0,
+                "one run's epochs (aiding mix)": sum(u * (m * (n + ne) + m * (nf + ne) + 2 * m * m)
+                                                     for m, u in rows) * 8.0,
+                "aided guard block": 2 * GUARD_BLOCK * ((n + ne) ** 2 + (nf + ne) ** 2) * 8.0,
+                "measurement-error processes": 4 * steps * ne * 8.0}
 
     def manifest(self, decl: dict) -> dict:
         """What identifies this sweep for a resumed run (its fingerprint is the plan key).

@@ -406,6 +406,61 @@ class ZuptSetup:
                 shared.append((key, fsys[c]))
             yield tsys, fsys
 
+    def streamed_system(self, name: str | None = None):
+        """Φ, Q_d of the truth (``name`` None) or of a declared filter for step-by-step consumers, made a chunk at a time.
+
+        For runs that walk the grid one step at a time (the aided engine,
+        :func:`covtool.lincov.aided.propagate_aided`: a trade grid's aiding
+        mixes).  Each chunk of :data:`STREAM_CHUNK` steps is made from the
+        chunk's truth dynamics and guarded as :meth:`stream` makes it (the
+        same values as the whole-grid stacks, sliced where those are built),
+        and held while the setup's pool of
+        :data:`~covtool.studies.resources.HELD_CHUNKS` has room.  A filter
+        that reuses the truth's system (:meth:`filter_stream`) gets the
+        truth's.  Cached per name.
+
+        Parameters
+        ----------
+        name : str, optional
+            Declared filter; None: the truth.
+
+        Returns
+        -------
+        covtool.lincov.streamed.StreamedSystem
+            ``.Phi[k]``, ``.Qd[k]``, shape ``(n, n)`` (the filter's states).
+
+        Raises
+        ------
+        NumericalError
+            When a chunk is made: Φ or Q_d of a step is not finite (Q_d:
+            symmetric, PSD), naming the step's time and the state.
+        """
+        from covtool.lincov.streamed import ChunkPool, StreamedSystem
+        from covtool.studies.resources import HELD_CHUNKS
+
+        if name is not None and self.filter_stream(name)[1]:
+            name = None                                        # the truth's own system
+        key = ("streamed system", name)
+        if key not in self._dyn_cache:
+            pool = self._dyn_cache.setdefault(("streamed pool",), ChunkPool(HELD_CHUNKS))
+            N = self.t.size - 1
+            if name is None:
+                def make(a, b):
+                    return self._truth_chunk(a, b, self.chunk_dynamics(a, b))
+
+                n = self.truth.n
+            else:
+                fm = self.filter_stream(name)[0]
+
+                def make(a, b):
+                    if (name, None) in self._filters:        # the whole grid is built: sliced
+                        return self._filters[(name, None)][1][a:b], self._filters[(name, None)][2][a:b]
+                    return self._discretise_filter(name, self.chunk_dynamics(a, b)(fm.spec.options), a, b)
+
+                n = len(fm.names)
+            self._dyn_cache[key] = StreamedSystem(make, N, n, pool=pool)
+        return self._dyn_cache[key]
+
     def chunks(self, ev, chunk: int = STREAM_CHUNK):
         """``(a, b, cev)`` of every chunk of :meth:`stream`: its steps ``a … b−1`` and the events in ``[a, b]``.
 
