@@ -65,7 +65,8 @@ from covtool.studies.error_budget import (_residuals, _source_table, _tables, bu
 from covtool.studies.grid import initial_covariance, time_grid, truth_stream
 from covtool.studies.inputs import (length_unit, load_trajectory, load_truth, output_options, study_header,
                                     study_inputs)
-from covtool.studies.resources import check_memory, HELD_CHUNKS, noise_columns, resource_provenance, steps_of
+from covtool.studies.resources import (check_memory, HELD_CHUNKS, noise_columns, progress_bar, resource_provenance,
+                                       steps_of)
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import filter_cases, filters_file
 
@@ -135,29 +136,33 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
     runs, var, nominal, residuals, first = {}, {}, {}, {}, {}
     jac = Jacobians(nodes)                 # the measurement Jacobians, shared by every case
-    for c in ([PURE] if want_pure else []) + list(cases):
-        label = f"{where}: {'pure INS' if c == PURE else 'filter ' + c} error budget"
-        if c == PURE:                      # no update: the measurements' sources are zero, left out
-            src = [s for s in sources if s.kind not in (MEASUREMENT, MEASUREMENT_ERROR)]
-            nominal[c] = propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names, times=t,
-                                   system_checked=True, record=rec, keep=NAV)
-            runs[c] = run_aided_budget(Phi, noise, dt_steps, src, [], mnames,
-                                       np.zeros((truth.n, 0)), [], {}, rec, label=label, names=truth.names,
-                                       times=t, chunk=BUDGET_CHUNK)
-        else:
-            fm, Phi_f, Qd_f = filter_system(specs[c], truth, ctx, dyn, Phi, Qd, hdr, t, nodes, ewn_dt=ewn_dt,
-                                            mean_speed=mean_speed, update_steps=all_steps, where=where, pool=pool)
-            r, _, D, epochs = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, [s.name for s in states],
-                                         meas_pairs, nodes, names_all, err, rec, form=specs[c].update,
-                                         label=f"{where}: filter {c} (nominal run)", all_gains=True,
-                                         jacobians=jac, keep=NAV)
-            nominal[c] = r.P_truth[:, :10, :10]
-            runs[c] = run_aided_budget(Phi, noise, dt_steps, sources, states, mnames, D, epochs, r.gains,
-                                       rec, err=err, label=label, names=names_all, times=t, chunk=BUDGET_CHUNK)
-            del r, Phi_f, Qd_f
-        var[c] = nav_variances(runs[c].P, lat, h, q)
-        residuals[c] = _residuals(runs[c], nominal[c], lat, h, q)
-        first[c] = case_validity(c, nav_metrics(nominal[c], lat, h, q), t[rec])
+    # a discretisation chunk at a time, inside the runs: the bar counts the cases (each a nominal run and its budget)
+    order = ([PURE] if want_pure else []) + list(cases)
+    with progress_bar(len(order), "budget cases", progress) as bar:
+        for c in order:
+            label = f"{where}: {'pure INS' if c == PURE else 'filter ' + c} error budget"
+            if c == PURE:                      # no update: the measurements' sources are zero, left out
+                src = [s for s in sources if s.kind not in (MEASUREMENT, MEASUREMENT_ERROR)]
+                nominal[c] = propagate(Phi, Qd, P0, label=f"{where}: pure INS", names=truth.names, times=t,
+                                       system_checked=True, record=rec, keep=NAV)
+                runs[c] = run_aided_budget(Phi, noise, dt_steps, src, [], mnames,
+                                           np.zeros((truth.n, 0)), [], {}, rec, label=label, names=truth.names,
+                                           times=t, chunk=BUDGET_CHUNK)
+            else:
+                fm, Phi_f, Qd_f = filter_system(specs[c], truth, ctx, dyn, Phi, Qd, hdr, t, nodes, ewn_dt=ewn_dt,
+                                                mean_speed=mean_speed, update_steps=all_steps, where=where, pool=pool)
+                r, _, D, epochs = filter_run(fm, Phi, Qd, Phi_f, Qd_f, P0, states, [s.name for s in states],
+                                             meas_pairs, nodes, names_all, err, rec, form=specs[c].update,
+                                             label=f"{where}: filter {c} (nominal run)", all_gains=True,
+                                             jacobians=jac, keep=NAV)
+                nominal[c] = r.P_truth[:, :10, :10]
+                runs[c] = run_aided_budget(Phi, noise, dt_steps, sources, states, mnames, D, epochs, r.gains,
+                                           rec, err=err, label=label, names=names_all, times=t, chunk=BUDGET_CHUNK)
+                del r, Phi_f, Qd_f
+            var[c] = nav_variances(runs[c].P, lat, h, q)
+            residuals[c] = _residuals(runs[c], nominal[c], lat, h, q)
+            first[c] = case_validity(c, nav_metrics(nominal[c], lat, h, q), t[rec])
+            bar.update(1)
     elapsed = time.perf_counter() - t_start
     cases = list(runs)
     tables = _tables(cases, runs, var, nominal, residuals, t, rec,
