@@ -54,6 +54,18 @@ class NumericalError(CovtoolError, ArithmeticError):
     """
 
 
+class SystemCheckError(NumericalError):
+    """Φ or Q_d of a step failed its guard when it was made on demand (a streamed system's chunk).
+
+    Raised by :class:`covtool.lincov.streamed.StreamedSystem` for the
+    :class:`NumericalError` of its ``make``, with the same message (the
+    system, the step's time and the state).  The runs that read a streamed
+    system let it through unchanged: it is not a failure of the run's own
+    covariances (a gain, a flagged case) but of the model, so it stops the
+    study as a whole-grid system's guard would have before the run.
+    """
+
+
 class CovtoolWarning(UserWarning):
     """Base class of the warnings a study run gives; the CLI prints each on one line."""
 

@@ -161,7 +161,8 @@ def test_streamed_aiding_mix_equals_the_whole_grid_runs():
     d = _long_decl()
     plan = TradePlan(d, None)
     chunk = next(c for c in plan.chunks if c["aiding"]["measurement"])
-    S = setup(chunk["config"], grade=chunk["grade"])
+    St = setup(chunk["config"], grade=chunk["grade"])             # streamed only
+    S = setup(chunk["config"], grade=chunk["grade"])              # the whole-grid reference
     rec = sorted({int(np.argmin(np.abs(S.t - x))) for x in S.report_times})
     meas = [parse_measurement(m, i, "t") for i, m in enumerate(chunk["aiding"]["measurement"])]
     states = [s for m, _ in meas for s in m.states]
@@ -169,9 +170,10 @@ def test_streamed_aiding_mix_equals_the_whole_grid_runs():
     err = error_processes(states, np.diff(S.t))[:2]
     for f in ("A", "B1", "D"):
         cs = [c for c in chunk["cases"] if c["filter"] == f]
-        got = trade_cases(S, f, cs, chunk["aiding"], rec, "test")
-        assert S.streamed_system().Phi.shape[0] == S.t.size - 1 > 600
-        fm, Phi_f, Qd_f, _ = S.filter_system(f)                 # whole grid (built after the streamed runs)
+        got = trade_cases(St, f, cs, chunk["aiding"], rec, "test")
+        assert St._Phi is None and (f, None) not in St._filters   # nothing over the whole grid
+        assert St.streamed_system().Phi.shape[0] == St.t.size - 1 > 600
+        fm, Phi_f, Qd_f, _ = S.filter_system(f)
         P0a, Pf_e, D = augment(S.P0, fm.D, states, [s.name for s in states])
         fnames = list(fm.names) + [s.name for s in states]
         for c, (PT, PF, st) in zip(cs, got):
@@ -191,7 +193,8 @@ def test_streamed_aiding_mix_equals_the_whole_grid_runs():
                 s_ = np.sqrt(np.abs(np.einsum("kii->ki", b)))
                 s_[:, 6:10] = s_[:, 6:10].max(axis=1, keepdims=True)
                 assert np.max(np.abs(a - b) / (s_[:, :, None] * s_[:, None, :])) <= 1e-12, (f, c["case"])
-        assert ScaledSteps(S.streamed_system(f).Qd, 3.0)[5].tolist() == (3.0 * S.streamed_system(f).Qd[5]).tolist()
+        assert ScaledSteps(St.streamed_system(f).Qd, 3.0)[5].tolist() == (3.0 * St.streamed_system(f).Qd[5]).tolist()
+    assert St.streamed_system("A") is St.streamed_system()              # filter A reads the truth's own system
 
 
 def test_aiding_mix_memory_estimate_bounds_its_peak():
@@ -214,3 +217,28 @@ def test_aiding_mix_memory_estimate_bounds_its_peak():
                             dynamics=plan.dynamics, noise=noise_columns(plan.truth_decl))["bytes"]
     long = plan.memory(1)["bytes"]
     assert long < 5e9 and 3.0 * long < whole, (long, whole)
+
+
+@pytest.mark.parametrize("target", ["truth model 'sdins58'", "filter B1"])
+def test_a_bad_streamed_chunk_stops_the_grid_naming_its_step(monkeypatch, target):
+    """A NaN in Q_d at t = 700 s of the truth's or B1's system (made in the second chunk, inside the runs):
+    the grid stops with the guard's own message, as on the whole grid; not a flagged case, no "gain at" prefix."""
+    from covtool.errors import SystemCheckError
+    from covtool.studies import grid
+
+    made = grid.discretize_chunked
+
+    def broken(F, Qc, dt, method, order=None, **kw):
+        Phi, Qd = made(F, Qc, dt, method, order, **kw)
+        i = np.flatnonzero(np.isclose(kw.get("times", np.zeros(0)), 700.0))
+        if i.size and target.split()[-1].strip("'") in kw.get("what", ""):
+            Qd = np.array(Qd)
+            Qd[i[0], 3, 3] = np.nan
+        return Phi, Qd
+
+    monkeypatch.setattr(grid, "discretize_chunked", broken)
+    d = _long_decl(filters=("B1",))
+    d["grid"]["aiding"] = ["odo"]
+    with pytest.raises(SystemCheckError, match=rf"^<study>: {target}: Q_d of the step at t = 700\.0 s \(11\.7 min\): "
+                                               r"covariance has a non-finite entry \(nan\) in state 'dvN'$"):
+        run(d)

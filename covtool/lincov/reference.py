@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from covtool.errors import NumericalError
+from covtool.errors import NumericalError, SystemCheckError
 from covtool.lincov.kalman import (check_covariance, check_system, covariance_status, filter_update,
                                    kalman_gain, running_scale, scale_groups, symmetrize, time_text,
                                    truth_update)
@@ -374,6 +374,8 @@ def filter_loop(N: int, P0, Pf0, step_truth, step_filter, updates: dict, D, form
                 if k < N:
                     P = symmetrize(step_truth(k, P))
                     Pf = symmetrize(step_filter(k, Pf))
+    except SystemCheckError:
+        raise                                   # a streamed system's own guard: its message names the step
     except NumericalError as exc:
         on_fail(k, exc)
         raise

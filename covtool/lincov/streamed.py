@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from covtool.errors import NumericalError, SystemCheckError
 # steps per chunk: a multiple of the discretisation's batch, so each step is discretised as on the whole grid
 from covtool.lincov.dynamics import STREAM_CHUNK
 
@@ -89,7 +90,13 @@ class _Store:
             return self.last[1]
         a, b = self.bounds(m)
         self.last = (None, None)                              # freed before the next is made, not after
-        Phi, Qd = self.make(a, b)
+        try:
+            Phi, Qd = self.make(a, b)
+        except SystemCheckError:
+            raise
+        except NumericalError as exc:
+            # the model's own failure, not the reading run's: passed through the runs unchanged
+            raise SystemCheckError(str(exc)) from None
         Phi, Qd = np.asarray(Phi, float), np.asarray(Qd, float)
         if Phi.shape != (b - a, self.n, self.n) or Qd.shape != Phi.shape:
             raise ValueError(f"make({a}, {b}) gave Φ {Phi.shape} and Q_d {Qd.shape}, expected "
@@ -121,7 +128,9 @@ class StreamedSystem:
     make : callable
         ``make(a, b) -> (Phi, Qd)``, each shape ``(b − a, n, n)``: the steps
         ``a … b−1``, discretised and guarded (it raises
-        :class:`~covtool.errors.NumericalError` for a bad step, naming it).
+        :class:`~covtool.errors.NumericalError` for a bad step, naming it;
+        a read raises it again as :class:`~covtool.errors.SystemCheckError`,
+        which the runs pass through unchanged).
     n_steps : int
         ``N``.
     n : int
@@ -170,8 +179,14 @@ class ScaledSteps:
     Parameters
     ----------
     steps : sequence of ndarray, shape (N, n, n)
-        Read as ``steps[k]`` (an integer ``k``).
+        Read as ``steps[k]`` (an integer ``k``); has ``.shape``.
     scale : float
+        The factor each step's matrix is multiplied by on read.
+
+    Raises
+    ------
+    TypeError
+        On a read by slice or index array (one step at a time only).
     """
 
     def __init__(self, steps, scale: float):

@@ -569,7 +569,6 @@ def _streamed_memory(hdr, truth, specs, cases, variants, states, every, plan) ->
     known before the trajectory).
     """
     from covtool.lincov.dynamics import dyn_key
-    from covtool.lincov.aided import GUARD_BLOCK
     from covtool.studies.resources import stream_memory_estimate
 
     N = steps_of(hdr["duration"], hdr["dt"])
@@ -583,17 +582,66 @@ def _streamed_memory(hdr, truth, specs, cases, variants, states, every, plan) ->
                                  dynamics=len(keys), noise=noise_columns(truth), records=rec, intervals=0)
     parts = est["parts"]
     parts.pop("kept filter transitions", None)             # the filter-order stream's, not kept here
-    per_step = 2 * n * n + sum(2 * s.n * s.n for s in own)
-    parts["held chunks"] = min(float(HELD_CHUNKS), N * per_step * 8.0)
-    nf = max([specs[b].n for b in bases] or [n])
-    updates = [(len(m.COMPONENTS), min(N + 1, hdr["duration"] / sch.period + 1) + len(sch.at)) for m, sch in plan]
-    parts["measurement Jacobians"] = sum(u * m * (10 + ne) for m, u in updates) * 8.0
-    parts["one run's epochs"] = sum(u * (m * (n + ne) + m * (nf + ne) + 2 * m * m) for m, u in updates) * 8.0
-    parts["aided guard block"] = 2 * GUARD_BLOCK * ((n + ne) ** 2 + (nf + ne) ** 2) * 8.0
-    parts["measurement-error processes"] = 4 * N * ne * 8.0
+    parts.update(aided_run_memory(N, n, [s.n for s in own], max([specs[b].n for b in bases] or [n]), ne,
+                                  update_rows(plan, N, hdr["duration"])))
     parts["recorded navigation blocks"] = rec * 2 * NAV * NAV * 8.0 * (len(cases) + len(variants) + 1)
     est["bytes"] = float(sum(parts.values()))
     return est
+
+
+def update_rows(plan, steps: int, duration: float) -> list:
+    """``(m, u)`` per measurement of ``plan``: its rows per update and an upper count of its updates.
+
+    Counted at the schedule's period over the whole ``duration`` (outages
+    and ``when`` are not known before the trajectory), plus its ``at`` times,
+    at most one per grid index (``steps + 1``).
+    """
+    return [(len(m.COMPONENTS), min(steps + 1, duration / sch.period + 1) + len(sch.at)) for m, sch in plan]
+
+
+def aided_run_memory(steps: int, n: int, filters, nf: int, ne: int, rows) -> dict:
+    """What the aided engine holds beyond one chunk of every system (bytes per part), an upper estimate.
+
+    The one home of these terms (the aided kind, its error budget and the
+    trade grid's aiding mixes):
+
+    * the chunks a study's :class:`~covtool.lincov.streamed.ChunkPool` holds:
+      the truth's and each streamed filter's Φ, Q_d, at most
+      :data:`~covtool.studies.resources.HELD_CHUNKS`;
+    * the measurement Jacobians, ``m (10 + n_e)`` per update
+      (:class:`~covtool.lincov.aided.Jacobians`);
+    * one run's epochs: ``H``, ``H_f``, ``R`` and ``R_f`` per update;
+    * the guard's block of truth and filter covariances
+      (:data:`~covtool.lincov.aided.GUARD_BLOCK`);
+    * the measurement-error processes (four ``(N, n_e)`` arrays).
+
+    Parameters
+    ----------
+    steps : int
+        Grid steps ``N``.
+    n : int
+        INS truth states.
+    filters : sequence of int
+        States of each filter system streamed besides the truth's.
+    nf : int
+        The largest filter's INS states.
+    ne : int
+        Measurement-error states.
+    rows : list of (int, float)
+        :func:`update_rows` (and any other measurement's, as ``(m, u)``).
+
+    Returns
+    -------
+    dict of str to float
+    """
+    from covtool.lincov.aided import GUARD_BLOCK
+
+    per_step = 2 * n * n + sum(2 * k * k for k in filters)
+    return {"held chunks": min(float(HELD_CHUNKS), steps * per_step * 8.0),
+            "measurement Jacobians": sum(u * m * (10 + ne) for m, u in rows) * 8.0,
+            "one run's epochs": sum(u * (m * (n + ne) + m * (nf + ne) + 2 * m * m) for m, u in rows) * 8.0,
+            "aided guard block": 2 * GUARD_BLOCK * ((n + ne) ** 2 + (nf + ne) ** 2) * 8.0,
+            "measurement-error processes": 4 * steps * ne * 8.0}
 
 
 def _record_steps(t, every, rtimes, outages) -> np.ndarray:

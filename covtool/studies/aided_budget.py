@@ -49,17 +49,17 @@ import numpy as np
 
 from covtool.analysis.budget import (aided_sources, MEASUREMENT, MEASUREMENT_ERROR, nav_variances,
                                      noise_factors, run_aided_budget)
-from covtool.lincov.streamed import ChunkPool
 from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
 from covtool.io.config import check_keys, table
 from covtool.io.filters import load_filters
 from covtool.lincov.aided import error_processes, Jacobians
+from covtool.lincov.streamed import ChunkPool
 from covtool.lincov.reference import propagate
 from covtool.plotting.budget import budget_figure
 from covtool.results import ErrorBudgetResult
 from covtool.studies.aided import (_measurement_table, _streamed_memory, check_error_state_names, filter_run,
-                                   filter_system, measurement_steps, NAV, parse_measurements)
+                                   filter_system, measurement_steps, NAV, parse_measurements, update_rows)
 from covtool.studies.error_budget import (_residuals, _source_table, _tables, budget_cases, budget_charts,
                                           budget_options, PURE, report_record_steps)
 from covtool.studies.grid import initial_covariance, time_grid, truth_stream
@@ -69,6 +69,10 @@ from covtool.studies.resources import (check_memory, HELD_CHUNKS, noise_columns,
                                        steps_of)
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import filter_cases, filters_file
+
+
+#: steps whose per-source Q_d a budget run holds at once (:func:`covtool.analysis.budget.run_aided_budget`'s ``chunk``)
+BUDGET_CHUNK = 64
 
 
 def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
@@ -131,7 +135,7 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
         d = dyn.chunk(a, b)
         return d.F, noise_factors(truth, d.noise, opts["resolution"])
 
-    sources, factors = aided_sources(truth, dyn.chunk(0, min(1, t.size - 1)).noise, q0, states, mnames,
+    sources, factors = aided_sources(truth, dyn.chunk(0, 1).noise, q0, states, mnames,
                                      resolution=opts["resolution"])
     lat, h, q = nodes.lat[rec], nodes.h[rec], nodes.q_nb[rec]
     runs, var, nominal, residuals, first = {}, {}, {}, {}, {}
@@ -191,10 +195,6 @@ def run(decl: dict, *, path=None, progress: bool = False) -> ErrorBudgetResult:
     return result
 
 
-#: steps whose per-source Q_d a budget run holds at once (:func:`covtool.analysis.budget.run_aided_budget`'s ``chunk``)
-BUDGET_CHUNK = 64
-
-
 def _memory(hdr, truth, specs, cases, states, every, plan) -> dict:
     """Peak memory of an error budget with measurements, which streams in time (an upper estimate).
 
@@ -216,8 +216,7 @@ def _memory(hdr, truth, specs, cases, states, every, plan) -> dict:
     sources = n + k + ne + len(plan)
     rec = N / max(1.0, every / hdr["dt"]) + 64
     nf = max([specs[c].n for c in filters] or [n])
-    updates = sum(len(m.COMPONENTS) * (min(N + 1, hdr["duration"] / sch.period + 1) + len(sch.at)) for m, sch in plan)
-    parts["nominal gains"] = updates * (nf + ne) * 8.0
+    parts["nominal gains"] = sum(m * u for m, u in update_rows(plan, N, hdr["duration"])) * (nf + ne) * 8.0
     parts["budget members"] = 4 * sources * (n + ne) ** 2 * 8.0
     parts["per-source Q_d of a budget chunk"] = BUDGET_CHUNK * (2 * k * n * n + 3 * 25 * n * k) * 8.0
     parts["recorded contributions"] = 2 * sources * rec * NAV * NAV * 8.0

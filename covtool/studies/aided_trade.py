@@ -16,7 +16,7 @@ import dataclasses
 
 import numpy as np
 
-from covtool.errors import NumericalError, StudyFileError
+from covtool.errors import NumericalError, StudyFileError, SystemCheckError
 from covtool.io.config import check_keys, require, string, table
 from covtool.lincov.aided import augment, build_epochs, error_processes, Jacobians, propagate_aided
 from covtool.lincov.streamed import ScaledSteps
@@ -160,6 +160,8 @@ def trade_cases(S, f: str, cases: list, aiding: dict, rec, label: str) -> list:
                                    Pf0, D, epochs, err=err, err_f=(err[0], err[1] * q), record=rec, form=spec.update,
                                    label=f"{label}: case {c['case']}", times=S.t, names=names_all,
                                    filter_names=fnames, system_checked=True, keep=NAV)
+        except SystemCheckError:
+            raise                          # the model's own Φ or Q_d: the study stops, as on the whole grid
         except NumericalError as exc:
             nan = np.full((len(rec), 10, 10), np.nan)
             out.append((nan, nan, str(exc)))

@@ -84,7 +84,7 @@ from covtool.results import TradeGridResult
 from covtool.studies.grid import check_step_motion, time_grid
 from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_config, study_header,
                                     study_inputs, trajectory_csv_sha256, UNSCALED_KINDS)  # noqa: F401  (UNSCALED_KINDS: re-export)
-from covtool.studies.resources import (check_memory, composed_memory_estimate, HELD_CHUNKS, noise_columns,
+from covtool.studies.resources import (check_memory, composed_memory_estimate, noise_columns,
                                        resource_provenance, run_in_chunks, scaled_estimate, steps_of, store_checks)
 from covtool.studies.tables import summary_row
 from covtool.studies.zupt_setup import filter_cases, filter_dynamics, filters_file, setup, zupt_schedule
@@ -255,33 +255,19 @@ class TradePlan:
     def _aided_memory(self, aiding: dict, steps: int, zupt_updates: int) -> dict:
         """What one worker holds for an aiding mix beyond the ZUPT-only chunk's parts (bytes per part).
 
-        The held chunks of the truth's and every filter's system, and per
-        run (the cases run one at a time) the measurement Jacobians
-        (``m (10 + n_e)`` per update), the epochs (``H``, ``H_f``, ``R``,
-        ``R_f``), the aided guard's block and the measurement-error
-        processes (the runs record the navigation block at the report times
-        only, their priors and gains there too).  Updates are
-        counted at each schedule's period over the whole duration (an upper
-        count), the ZUPTs' as scheduled.
+        :func:`covtool.studies.aided.aided_run_memory` for the truth and
+        every filter streamed, the mix's measurements and the ZUPTs (as
+        scheduled); the cases run one at a time and record the navigation
+        block at the report times only (their priors and gains there too).
         """
-        from covtool.lincov.aided import GUARD_BLOCK
-        from covtool.studies.aided import parse_measurement
+        from covtool.studies.aided import aided_run_memory, parse_measurement, update_rows
 
-        n = self.n_truth
-        nfs = list(self.states.values())
-        nf = max(nfs)
         plan = [parse_measurement(m, i, f"{self.where}: [[aiding]] {aiding['name']!r}")
                 for i, m in enumerate(aiding["measurement"])]
-        ne = sum(len(m.states) for m, _ in plan)
-        rows = [(3, zupt_updates)] + [(len(m.COMPONENTS), min(steps + 1, self.hdr["duration"] / sch.period + 1)
-                                       + len(sch.at)) for m, sch in plan]
-        per_step = 2 * n * n + sum(2 * k * k for k in nfs)
-        return {"held chunks (aiding mix)": min(float(HELD_CHUNKS), steps * per_step * 8.0),
-                "measurement Jacobians (aiding mix)": sum(u * m * (10 + ne) for m, u in rows) * 8.0,
-                "one run's epochs (aiding mix)": sum(u * (m * (n + ne) + m * (nf + ne) + 2 * m * m)
-                                                     for m, u in rows) * 8.0,
-                "aided guard block": 2 * GUARD_BLOCK * ((n + ne) ** 2 + (nf + ne) ** 2) * 8.0,
-                "measurement-error processes": 4 * steps * ne * 8.0}
+        nfs = list(self.states.values())
+        rows = [(3, zupt_updates)] + update_rows(plan, steps, self.hdr["duration"])
+        parts = aided_run_memory(steps, self.n_truth, nfs, max(nfs), sum(len(m.states) for m, _ in plan), rows)
+        return {f"{k} (aiding mix)": v for k, v in parts.items()}
 
     def manifest(self, decl: dict) -> dict:
         """What identifies this sweep for a resumed run (its fingerprint is the plan key).
@@ -330,8 +316,8 @@ def compute_chunk(task: dict) -> dict:
     rec = sorted({int(np.argmin(np.abs(t - tr))) for tr in S.report_times})
     aiding = task.get("aiding") or {"measurement": []}
     # ZUPTs only: the truth's and the filters' Φ, Q_d are made chunk by chunk in time and composed on the
-    # events (ZuptSetup.composed_truth, composed_filter), none of size N x n^2; an aiding mix propagates on
-    # the whole grid (covtool.studies.aided_trade)
+    # events (ZuptSetup.composed_truth, composed_filter), none of size N x n^2; an aiding mix reads them
+    # step by step, made chunk by chunk too (ZuptSetup.streamed_system, covtool.studies.aided_trade)
     ev = S.stream_grid(events(t.size - 1, S.update_steps, rec))
     truth = None if aiding["measurement"] else S.composed_truth(ev)
     nodes = S.nodes

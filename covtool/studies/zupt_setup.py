@@ -22,7 +22,11 @@ Two ways to get the systems (seed 002, eq (6b)–(6d)):
   their composition on the event grid (:class:`~covtool.lincov.batch.System`
   over the whole time, a few matrices per event), for the kinds that run
   batches of cases on composed systems: the sensitivity sweep, the ZUPT
-  error budget, the trade grid's ZUPT-only chunks and the magnitude sweep.
+  error budget, the trade grid's ZUPT-only chunks and the magnitude sweep;
+* streamed for step-by-step runs: :meth:`ZuptSetup.streamed_system` gives
+  ``Phi[k]``, ``Qd[k]`` made a chunk at a time (a
+  :class:`~covtool.lincov.streamed.StreamedSystem`), for the aided engine
+  of the trade grid's aiding mixes.
 """
 
 from __future__ import annotations
@@ -412,12 +416,14 @@ class ZuptSetup:
         For runs that walk the grid one step at a time (the aided engine,
         :func:`covtool.lincov.aided.propagate_aided`: a trade grid's aiding
         mixes).  Each chunk of :data:`STREAM_CHUNK` steps is made from the
-        chunk's truth dynamics and guarded as :meth:`stream` makes it (the
-        same values as the whole-grid stacks, sliced where those are built),
-        and held while the setup's pool of
-        :data:`~covtool.studies.resources.HELD_CHUNKS` has room.  A filter
-        that reuses the truth's system (:meth:`filter_stream`) gets the
-        truth's.  Cached per name.
+        chunk's truth dynamics (built once per chunk for every system that
+        reads it) and guarded as :meth:`stream` makes it: the same values as
+        the whole-grid stacks, which are served as they are where already
+        built.  Chunks are held while the setup's pool of
+        :data:`~covtool.studies.resources.HELD_CHUNKS` has room; beyond it,
+        every run makes them again.  A filter that reuses the truth's system
+        (:meth:`filter_stream`) gets the truth's, and filters that differ
+        only in the update (:func:`system_key`) share one.  Cached.
 
         Parameters
         ----------
@@ -426,40 +432,58 @@ class ZuptSetup:
 
         Returns
         -------
-        covtool.lincov.streamed.StreamedSystem
-            ``.Phi[k]``, ``.Qd[k]``, shape ``(n, n)`` (the filter's states).
+        covtool.lincov.streamed.StreamedSystem or types.SimpleNamespace
+            ``.Phi[k]``, ``.Qd[k]``, shape ``(n, n)`` (the filter's states),
+            and ``.shape``-carrying stacks (``Phi.shape == (N, n, n)``).
 
         Raises
         ------
-        NumericalError
-            When a chunk is made: Φ or Q_d of a step is not finite (Q_d:
-            symmetric, PSD), naming the step's time and the state.
+        SystemCheckError
+            On the read that makes a chunk: Φ or Q_d of a step is not finite
+            (Q_d: symmetric, PSD), naming the system, the step's time and the
+            state (:class:`~covtool.errors.NumericalError`).
         """
+        from types import SimpleNamespace
+
         from covtool.lincov.streamed import ChunkPool, StreamedSystem
         from covtool.studies.resources import HELD_CHUNKS
 
-        if name is not None and self.filter_stream(name)[1]:
-            name = None                                        # the truth's own system
-        key = ("streamed system", name)
-        if key not in self._dyn_cache:
-            pool = self._dyn_cache.setdefault(("streamed pool",), ChunkPool(HELD_CHUNKS))
-            N = self.t.size - 1
-            if name is None:
-                def make(a, b):
-                    return self._truth_chunk(a, b, self.chunk_dynamics(a, b))
+        reused = name is not None and self.filter_stream(name)[1]
+        if name is None or reused:
+            if self._Phi is not None:
+                return SimpleNamespace(Phi=self._Phi, Qd=self._Qd)
+            key = None
+        else:
+            if (name, None) in self._filters:
+                _, Phi_f, Qd_f, _ = self._filters[(name, None)]
+                return SimpleNamespace(Phi=Phi_f, Qd=Qd_f)
+            fm = self.filter_stream(name)[0]
+            key = system_key(fm.spec)                          # compared by equality (it holds a dict)
+        made = self._dyn_cache.setdefault(("streamed systems",), [])
+        found = next((v for k, v in made if k == key), None)
+        if found is not None:
+            return found
+        pool = self._dyn_cache.setdefault(("streamed pool",), ChunkPool(HELD_CHUNKS))
+        if key is None:
+            def make(a, b):
+                return self._truth_chunk(a, b, self._streamed_dynamics(a, b))
 
-                n = self.truth.n
-            else:
-                fm = self.filter_stream(name)[0]
+            n = self.truth.n
+        else:
+            def make(a, b):
+                return self._discretise_filter(name, self._streamed_dynamics(a, b)(fm.spec.options), a, b)
 
-                def make(a, b):
-                    if (name, None) in self._filters:        # the whole grid is built: sliced
-                        return self._filters[(name, None)][1][a:b], self._filters[(name, None)][2][a:b]
-                    return self._discretise_filter(name, self.chunk_dynamics(a, b)(fm.spec.options), a, b)
+            n = len(fm.names)
+        made.append((key, StreamedSystem(make, self.t.size - 1, n, pool=pool)))
+        return made[-1][1]
 
-                n = len(fm.names)
-            self._dyn_cache[key] = StreamedSystem(make, N, n, pool=pool)
-        return self._dyn_cache[key]
+    def _streamed_dynamics(self, a: int, b: int):
+        """:meth:`chunk_dynamics` of the steps ``a … b−1``, kept for the next system made over the same chunk."""
+        last = self._dyn_cache.get(("streamed dynamics",))
+        if last is None or last[:2] != (a, b):
+            last = (a, b, self.chunk_dynamics(a, b))
+            self._dyn_cache[("streamed dynamics",)] = last
+        return last[2]
 
     def chunks(self, ev, chunk: int = STREAM_CHUNK):
         """``(a, b, cev)`` of every chunk of :meth:`stream`: its steps ``a … b−1`` and the events in ``[a, b]``.
