@@ -55,6 +55,36 @@ def _release_blas() -> None:
             _ACTIVE["limiter"] = None
 
 
+#: the signals a forked child takes only inside its guard (:func:`_hold_signals`)
+HELD_SIGNALS = ("SIGINT", "SIGTERM")
+
+
+def _hold_signals():
+    """Block :data:`HELD_SIGNALS` in this thread; return the mask to restore (None where it cannot be done).
+
+    Around ``os.fork``: the child inherits the block, so a signal sent to it
+    before it reaches its ``try`` (the parent stopping a server it has just
+    started, Ctrl-C to the process group) waits until :func:`_release_signals`
+    inside the guard, where whatever its handler raises ends the child, never
+    the parent's code.  The parent's own signals wait for the few
+    microseconds of the fork and are then taken as usual.
+    """
+    import signal
+
+    if not hasattr(signal, "pthread_sigmask"):
+        return None
+    sigs = {getattr(signal, name) for name in HELD_SIGNALS if hasattr(signal, name)}
+    return signal.pthread_sigmask(signal.SIG_BLOCK, sigs)
+
+
+def _release_signals(mask) -> None:
+    """Restore the signal mask :func:`_hold_signals` returned (a signal held meanwhile is taken now)."""
+    if mask is not None:
+        import signal
+
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
+
+
 def _tracing() -> bool:
     import sys
 
@@ -116,9 +146,14 @@ class Forked:
         self._mfd = _result_memory() if busy else None      # where the child puts the result's large arrays
         if busy:
             _one_blas_thread()                              # this process and the child: one BLAS thread each
+        # SIGINT and SIGTERM are held back across the fork: the child takes them only inside its guard (a
+        # handler that raises, as the command line's does, would otherwise unwind the child through this
+        # process's callers: found as a figure server stopped at once that returned 143 from main())
+        held = _hold_signals()
         try:
             pid = os.fork()
         except OSError:
+            _release_signals(held)
             if busy:
                 _release_blas()
             for fd in (r, w, life_r, life_w):
@@ -128,6 +163,7 @@ class Forked:
         if pid == 0:                                        # the child: run, report, leave without cleanup
             code = 0
             try:
+                _release_signals(held)                      # a signal held since the fork is taken here
                 os.close(r)
                 os.close(life_w)
                 _watch_parent(life_r)
@@ -140,6 +176,7 @@ class Forked:
                     view = view[os.write(w, view):]
             finally:
                 os._exit(code)
+        _release_signals(held)
         os.close(w)
         os.close(life_r)
         self.pid, self._fd, self._life = pid, r, life_w

@@ -9,6 +9,8 @@ process, an error raised while drawing must reach the caller as itself
 from __future__ import annotations
 
 import os
+import signal
+import time
 
 import numpy as np
 import pandas as pd
@@ -227,3 +229,49 @@ def test_forked_children_and_their_parent_use_one_blas_thread_until_the_last_is_
         c = Forked(_blas_threads)
         c.cancel()
         assert _blas_threads() == before
+
+
+class _Unwound(BaseException):
+    """Raised by the test's signal handler (as the command line's handler raises Interrupted)."""
+
+
+@pytest.mark.skipif(not hasattr(os, "fork") or not hasattr(signal, "pthread_sigmask"), reason="POSIX fork")
+@pytest.mark.parametrize("waiting", [False, True])
+def test_a_signal_before_the_child_reaches_its_guard_never_unwinds_the_parent_code(tmp_path, monkeypatch, waiting):
+    """SIGTERM at the child's first instruction after the fork (a figure server stopped at once, under load).
+
+    With a raising handler (the command line's ``_on_signal``) the child used to unwind through the parent's
+    callers: under xdist it returned 143 from ``main()`` and went on running tests (INTERNALERROR).  Now the
+    signal waits until the child's guard: the child ends there, the caller's code runs in the parent only.
+    """
+    import covtool.forked as fk
+
+    parent = os.getpid()
+    marker = tmp_path / "escaped"
+    real_fork = os.fork
+
+    def fork_then_signal():
+        pid = real_fork()
+        if pid == 0:
+            os.kill(os.getpid(), signal.SIGTERM)          # delivered now unless held across the fork
+        return pid
+
+    def on_term(signum, frame):
+        raise _Unwound()
+
+    old = signal.signal(signal.SIGTERM, on_term)
+    monkeypatch.setattr(fk.os, "fork", fork_then_signal)
+    try:
+        try:
+            job = (fk.Forked.waiting if waiting else fk.Forked)(time.sleep, 0.01)
+        except _Unwound:
+            if os.getpid() != parent:                     # the child unwound into this test: record it, leave
+                marker.write_text("the child ran the caller's code")
+                os._exit(99)
+            raise
+        with pytest.raises((RuntimeError, _Unwound)):     # the child ended in its guard: no value
+            job.result()
+    finally:
+        monkeypatch.undo()
+        signal.signal(signal.SIGTERM, old)
+    assert os.getpid() == parent and not marker.exists()
