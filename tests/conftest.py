@@ -65,3 +65,27 @@ def forking():
         pytest.skip("needs os.fork and two cores")
     assert can_split(), (f"this process does not fork: threads {[t.name for t in threading.enumerate()]}, "
                          f"forked children running {_ACTIVE['children']}, tracemalloc tracing {_tracing()}")
+
+
+@pytest.fixture
+def nan_in_qd(monkeypatch):
+    """``nan_in_qd(system, t)``: a NaN in Q_d (state ``dvN``) of the step at time ``t`` of the systems made by
+    :func:`covtool.studies.grid.discretize_chunked` whose label names ``system`` ("sdins58", "B1")."""
+    import numpy as np
+
+    from covtool.studies import grid
+
+    made = grid.discretize_chunked
+
+    def arm(system: str, t: float):
+        def broken(F, Qc, dt, method, order=None, **kw):
+            Phi, Qd = made(F, Qc, dt, method, order, **kw)
+            i = np.flatnonzero(np.isclose(kw.get("times", np.zeros(0)), t))
+            if i.size and system in kw.get("what", ""):
+                Qd = np.array(Qd)
+                Qd[i[0], 3, 3] = np.nan
+            return Phi, Qd
+
+        monkeypatch.setattr(grid, "discretize_chunked", broken)
+
+    return arm

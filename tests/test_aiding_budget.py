@@ -369,23 +369,12 @@ def test_budget_memory_estimate_bounds_its_peak_and_long_runs_fit():
 
 
 @pytest.mark.parametrize("target", ["truth model 'sdins58'", "filter B1"])
-def test_a_bad_streamed_chunk_names_its_own_step(monkeypatch, target):
+def test_a_bad_streamed_chunk_names_its_own_step(nan_in_qd, target):
     """A NaN in Q_d at t = 700 s of the truth's or B1's system, made in the budget's second chunk: the guard's
     own message (the system, 700 s, the state), not wrapped as a failed gain at the update before it."""
     from covtool.errors import SystemCheckError
-    from covtool.studies import grid
 
-    made = grid.discretize_chunked
-
-    def broken(F, Qc, dt, method, order=None, **kw):
-        Phi, Qd = made(F, Qc, dt, method, order, **kw)
-        i = np.flatnonzero(np.isclose(kw.get("times", np.zeros(0)), 700.0))
-        if i.size and target.split()[-1].strip("'") in kw.get("what", ""):
-            Qd = np.array(Qd)
-            Qd[i[0], 3, 3] = np.nan
-        return Phi, Qd
-
-    monkeypatch.setattr(grid, "discretize_chunked", broken)
+    nan_in_qd(target.split()[-1].strip("'"), 700.0)
     with pytest.raises(SystemCheckError, match=rf"^<study>: {target}: Q_d of the step at t = 700\.0 s \(11\.7 min\): "
                                                r"covariance has a non-finite entry \(nan\) in state 'dvN'$"):
         run_budget_study(budget_decl("12 min"))

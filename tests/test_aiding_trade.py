@@ -220,23 +220,12 @@ def test_aiding_mix_memory_estimate_bounds_its_peak():
 
 
 @pytest.mark.parametrize("target", ["truth model 'sdins58'", "filter B1"])
-def test_a_bad_streamed_chunk_stops_the_grid_naming_its_step(monkeypatch, target):
+def test_a_bad_streamed_chunk_stops_the_grid_naming_its_step(nan_in_qd, target):
     """A NaN in Q_d at t = 700 s of the truth's or B1's system (made in the second chunk, inside the runs):
     the grid stops with the guard's own message, as on the whole grid; not a flagged case, no "gain at" prefix."""
     from covtool.errors import SystemCheckError
-    from covtool.studies import grid
 
-    made = grid.discretize_chunked
-
-    def broken(F, Qc, dt, method, order=None, **kw):
-        Phi, Qd = made(F, Qc, dt, method, order, **kw)
-        i = np.flatnonzero(np.isclose(kw.get("times", np.zeros(0)), 700.0))
-        if i.size and target.split()[-1].strip("'") in kw.get("what", ""):
-            Qd = np.array(Qd)
-            Qd[i[0], 3, 3] = np.nan
-        return Phi, Qd
-
-    monkeypatch.setattr(grid, "discretize_chunked", broken)
+    nan_in_qd(target.split()[-1].strip("'"), 700.0)
     d = _long_decl(filters=("B1",))
     d["grid"]["aiding"] = ["odo"]
     with pytest.raises(SystemCheckError, match=rf"^<study>: {target}: Q_d of the step at t = 700\.0 s \(11\.7 min\): "
