@@ -378,3 +378,29 @@ def test_a_bad_streamed_chunk_names_its_own_step(nan_in_qd, target):
     with pytest.raises(SystemCheckError, match=rf"^<study>: {target}: Q_d of the step at t = 700\.0 s \(11\.7 min\): "
                                                r"covariance has a non-finite entry \(nan\) in state 'dvN'$"):
         run_budget_study(budget_decl("12 min"))
+
+
+def test_budget_refuses_noise_spans_of_another_length():
+    """A ``noise`` that gives another number of steps than asked is refused, naming the span."""
+    truth, traj, t, Phi, Qd, F, noise, P0 = static_case(200.0)
+    sources, factors = aided_sources(truth, noise, traj.q_nb[0], [], [])
+    whole = grid_noise(F, factors)
+
+    def short(a, b):
+        F_, f = whole(a, b)
+        return (F_[:-1], f) if a == 64 else (F_, f)
+
+    pure = [s for s in sources if s.kind not in (MEASUREMENT, MEASUREMENT_ERROR)]
+    with pytest.raises(ValueError, match=r"^b: noise\(64, 128\) gave spans of another length than 64 steps$"):
+        run_aided_budget(Phi, short, np.diff(t), pure, [], [], np.zeros((truth.n, 0)), [], {}, [t.size - 1],
+                         label="b")
+
+
+def test_scaled_steps_read_one_step_at_a_time():
+    from covtool.lincov.streamed import ScaledSteps
+
+    Q = np.arange(8.0).reshape(2, 2, 2)
+    s = ScaledSteps(Q, 2.5)
+    assert s.shape == (2, 2, 2) and len(s) == 2 and np.array_equal(s[1], 2.5 * Q[1])
+    with pytest.raises(TypeError, match=r"^a scaled stack is read one step at a time"):
+        s[0:1]
