@@ -291,3 +291,58 @@ def test_put_back_block_follows_the_filters_model_under_a_truth_override(tmp_pat
     b = r.variants.index((BACK, "acc_markov"))
     np.testing.assert_allclose(_metrics(S, r.P[b, -1]), _metrics(S, _reference(S, "B1_markov")), rtol=1e-7)
     np.testing.assert_allclose(_metrics(S, r.P[0, -1]), _metrics(S, _reference(S, "B1")), rtol=1e-8)
+
+
+def test_streamed_impact_holds_nothing_over_the_grid_and_equals_the_held_one(S):
+    """A setup that holds no whole-grid system (a long flagship's layout): the impact makes each chunk's
+    truth and filter systems itself (11 min: two chunks of 600 steps), builds nothing of size N × n², and
+    gives the members of the setup that holds them (whose nominal member is the step-by-step reference's,
+    test above) to round-off; its nominal member equals the reference on its own too."""
+    from covtool.studies.zupt_setup import setup
+
+    N = S.t.size - 1
+    S.Phi, S.filter_model("D")                                  # the whole-grid systems, sliced by the impact
+    held = impact_run(S, "D", [N])
+    fresh = setup(tomllib.loads(tomli_w_dumps(S)), path=FLAGSHIP)
+    streamed = impact_run(fresh, "D", [N])
+    assert fresh._Phi is None and fresh._dyn is None and not fresh._filters
+    assert streamed.variants == held.variants
+    # (the held setup's cache may hold compositions from other filters' runs: equal to round-off)
+    np.testing.assert_allclose(streamed.P, held.P, rtol=1e-12, atol=1e-14 * np.abs(held.P).max())
+    assert streamed.noise_check < 1e-10
+    np.testing.assert_allclose(_metrics(S, streamed.P[0, -1]), _metrics(S, _reference(S, "D")), rtol=1e-8)
+
+
+def tomli_w_dumps(S):
+    """The module fixture's declaration (11 min, filters A, B1, C, D, D_bias) as TOML text."""
+    import tomli_w
+
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "11 min"
+    d["output"]["report_times"] = ["11 min"]
+    d["filters"]["file"] = str(S.filter_file)
+    d["filters"]["cases"] = list(S.cases)
+    return tomli_w.dumps(d)
+
+
+def test_flagship_streamed_layout_equals_the_whole_grid_one(monkeypatch):
+    """Above WHOLE_GRID_BYTES the flagship holds no whole-grid system: both of its processes stream the impact
+    (and the cases) chunk by chunk.  21 min (three chunks, B1 forked, D here): the same summary and impact
+    table as the whole-grid layout, to 1e-12; the estimate it records says which layout ran."""
+    import covtool.studies.zupt_setup as zs
+
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "21 min"
+    d["output"]["report_times"] = ["10 min", "21 min"]
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["filters"]["cases"] = ["A", "B1", "D"]
+    whole = covtool.run_study(d)
+    monkeypatch.setattr(zs, "WHOLE_GRID_BYTES", 0.0)
+    streamed = covtool.run_study(d)
+    for name in ("impact", "summary"):
+        a, b = whole.tables[name], streamed.tables[name]
+        assert a.shape == b.shape and list(a.columns) == list(b.columns)
+        num = a.select_dtypes("number").columns
+        np.testing.assert_allclose(b[num].to_numpy(float), a[num].to_numpy(float), rtol=1e-12, atol=0)
+    assert set(streamed.tables["impact"]["filter"]) == {"B1", "D"}
+    assert whole.provenance["estimated_peak_memory"] != streamed.provenance["estimated_peak_memory"]

@@ -580,20 +580,20 @@ def test_a_study_too_large_for_the_memory_limit_is_refused_before_computing():
 
 
 def test_memory_limit_from_the_environment(monkeypatch):
-    monkeypatch.setenv("COVTOOL_MAX_MEMORY", "6 GB")
+    monkeypatch.setenv("COVTOOL_MAX_MEMORY", "2 GB")
     d = order_decl(("B1", "D"), duration="24 h")
     d["trajectory"] = {"builtin": "land_vehicle", "cycles": 288}   # 288 x 5 min = 24 h
-    with pytest.raises(StudyFileError, match=r"needs about [\d.]+ GB .* more than the 6 GB COVTOOL_MAX_MEMORY; "
+    with pytest.raises(StudyFileError, match=r"needs about [\d.]+ GB .* more than the 2 GB COVTOOL_MAX_MEMORY; "
                                              r"shrink it with a larger \[study\] dt, a shorter duration or fewer "
                                              r"\[filters\] cases") as exc:
         covtool.run_study(d)
-    # truth F, Q_c, Φ, Q_d; the truth's F, Q_c once more with D's navigation options (decoupled vertical, no
-    # Coriolis); B1 (22 states) and D (10) F, Q_c, Φ, Q_d: 86 400 steps of doubles; the dropped-state impact
-    # table adds the truth transition under a filter's options and its per-step exponentials (2 N 58²); the
-    # histories are navigation blocks at the 10 s history spacing (N/10 · 4 · 10², negligible)
+    # streamed in time, the dropped-state impact table too: B1's couplings F_kept,· gathered over the grid for
+    # eq (11)-(13) (N · 22 · 58 doubles) must be held; the whole grid's truth F, Q_c, Φ, Q_d, the truth's F
+    # under D's options, B1's and D's F, Q_c, Φ, Q_d and the impact's transition copies (2 N 58²) are not
     N = 86400
-    floor = 8 * N * (4 * 58**2 + 2 * 58**2 + 4 * (22**2 + 10**2) + 2 * 58**2)
-    assert floor <= _gb(str(exc.value)) <= 1.25 * floor
+    floor = 8 * N * 22 * 58
+    whole = 8 * N * (4 * 58**2 + 2 * 58**2 + 4 * (22**2 + 10**2) + 2 * 58**2)
+    assert floor <= _gb(str(exc.value)) <= whole / 3
 
 
 def test_machine_limit_refuses_with_the_estimate_under_ulimit(tmp_path):

@@ -7,6 +7,7 @@ N × n², and its memory estimate must follow a measured peak.
 
 from __future__ import annotations
 
+import copy
 import tomllib
 from pathlib import Path
 
@@ -223,18 +224,26 @@ def _order_estimate(path):
         if not truth_copy(specs[c], truth, ftruth) and system_key(specs[c]) not in keys:
             keys.append(system_key(specs[c]))
     args = (N, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases))
-    kw = dict(records=rec, intervals=K, shared=shared)
-    return (order_memory(True, False)(*args, distinct=[k.n for k in keys], **kw),
-            order_memory(True, True)(*args, **kw))
+    kw = dict(records=rec, intervals=K, shared=shared, distinct=[k.n for k in keys],
+              updates=zupt_update_count(zo, hdr["duration"]), reports=len(rtimes))
+    return order_memory(True, False)(*args, **kw), order_memory(True, True)(*args, **kw)
 
 
-def test_long_studies_fit_the_memory_check():
-    """Whole grid: 6 h × 6 cases needs ~6.9 GB and 24 h × 20 cases more than 24 GB (refused); streamed ~1.0 and ~4 GB."""
-    six, six_whole = _order_estimate(ROOT / "benchmarks" / "long" / "zupt_filter_order_6h.toml")
-    day, day_whole = _order_estimate(ROOT / "benchmarks" / "long" / "zupt_filter_order_24h.toml")
+def test_long_studies_fit_the_memory_check(monkeypatch):
+    """Streamed, with the dropped-state impact table in both of its processes: 6 h × 6 cases ~1.7 GB, 24 h × 20
+    cases ~5.5 GB (~1.1 and ~4 GB without it); over the whole grid they needed ~7 GB and more than 24 GB (refused)."""
+    import covtool.studies.zupt_setup as zs
+
+    six, six_imp = _order_estimate(ROOT / "benchmarks" / "long" / "zupt_filter_order_6h.toml")
+    day, day_imp = _order_estimate(ROOT / "benchmarks" / "long" / "zupt_filter_order_24h.toml")
     assert six["steps"] == 21600 and day["steps"] == 86400
-    assert six["bytes"] < 1.1e9 and six_whole["bytes"] > 6e9
-    assert day["bytes"] < 4e9 and day_whole["bytes"] > 24 * 2**30
+    assert six["layout"] == six_imp["layout"] == day_imp["layout"] == "streamed"
+    assert six["bytes"] < 1.1e9 and six_imp["bytes"] < 2e9
+    assert day["bytes"] < 4e9 and day_imp["bytes"] < 6e9
+    monkeypatch.setattr(zs, "WHOLE_GRID_BYTES", float("inf"))             # the impact's systems over the grid
+    six_whole, day_whole = (_order_estimate(ROOT / "benchmarks" / "long" / f)[1]
+                            for f in ("zupt_filter_order_6h.toml", "zupt_filter_order_24h.toml"))
+    assert six_whole["layout"] == "whole grid" and six_whole["bytes"] > 6e9 and day_whole["bytes"] > 24 * 2**30
 
 
 def test_stream_memory_estimate_follows_the_measured_peak():
@@ -254,3 +263,19 @@ def test_stream_memory_estimate_follows_the_measured_peak():
     r, peak = traced_peak(lambda: covtool.run_study(d))
     est = recorded_estimate(r)
     assert 0 < peak <= est <= 3.0 * peak, (peak, est)
+
+
+def test_streamed_impact_estimate_bounds_the_traced_peak(monkeypatch):
+    """The flagship with its dropped-state impact table in the streamed layout (21 min, three chunks): the
+    estimate bounds the traced peak (under tracemalloc the forked share runs in this process, one after the
+    other; the estimate counts both processes' chunks at once), and not by more than a factor 5."""
+    import covtool
+    import covtool.studies.zupt_setup as zs
+    from memory_peaks import recorded_estimate, traced_peak
+
+    monkeypatch.setattr(zs, "WHOLE_GRID_BYTES", 0.0)
+    d = _decl("21 min", ("A", "B1", "D"), impact=("B1", "D"))
+    r, peak = traced_peak(lambda: covtool.run_study(copy.deepcopy(d)), warm=True)
+    est = recorded_estimate(r)
+    assert set(r.tables["impact"]["filter"]) == {"B1", "D"}
+    assert 0 < peak <= est <= 5.0 * peak, (peak, est)

@@ -20,9 +20,14 @@ covariance and zero gain, and the kept block of the transition is exactly the
 reduced filter's own: the embedding changes nothing but the bookkeeping.  The
 members differ only in P_f(0) and in the filter noise, which is linear in its
 sources and therefore composed once per source (:func:`covtool.lincov.noise.compose_noise`)
-and summed per member.  Filters with the same navigation options share the
-truth transition, its composition over the event grid, and every source
-composed on the states it reaches (:class:`covtool.lincov.noise.ComposedCache`,
+and summed per member.
+
+The compositions stream in time (:func:`impact_runs`): one chunk of
+:data:`~covtool.lincov.dynamics.STREAM_CHUNK` steps at a time, each composed on
+its own events (the ZUPTs, the records and the chunk boundaries) and joined,
+so memory is set by the events, not by duration × n².  Filters with the same
+navigation options share each chunk's truth transition under them, and every
+source composed on the states it reaches (:class:`covtool.lincov.noise.ComposedCache`,
 kept on the study setup): filters C and D take most of theirs from B3's run.
 
 Pure numeric core: a :class:`~covtool.studies.zupt_setup.ZuptSetup` in, arrays out.
@@ -37,8 +42,9 @@ import numpy as np
 from covtool.lincov.batch import events, run_batch, System
 from covtool.lincov.discretize import van_loan
 from covtool.lincov.stacks import gather
-from covtool.lincov.noise import (CombinedNoise, ComposedCache, compose_noise, compose_scan, compose_transition,
-                                  restricted_noise)
+from covtool.lincov.reduced import system_key
+from covtool.lincov.noise import CombinedNoise, ComposedCache, compose_noise, compose_scan, compose_transition, \
+    restricted_noise
 
 
 #: steps discretised at once by :func:`_transition` (bounds its workspace)
@@ -78,26 +84,268 @@ def dropped_blocks(truth, kept) -> list[str]:
     return [b for b in truth.block_names() if any(s.block == b and s.name not in ks for s in truth.states)]
 
 
-def _transition(dyn, dt):
-    """Φ = e^{FΔt} per step (the truth F under the filter's options), by :func:`covtool.lincov.discretize.van_loan`.
+def _transition(F, dt):
+    """Φ = e^{FΔt} per step of ``F`` (the truth's F under a filter's options), by :func:`covtool.lincov.discretize.van_loan`.
 
-    ``dyn`` (:class:`~covtool.lincov.dynamics.ErrorDynamics`) gives F one
-    chunk of steps at a time (:meth:`~covtool.lincov.dynamics.ErrorDynamics.F_steps`):
-    the whole F under the options is never built.  Returns shape (N, n, n).
+    ``F`` has shape (L, n, n) (one chunk of steps), ``dt`` shape (L,);
+    discretised :data:`TRANSITION_CHUNK` steps at a time (bounds the
+    workspace).  Returns shape (L, n, n).
     """
     dt = np.asarray(dt, float)
-    N, n = dt.shape[0], len(dyn.names)
-    out = np.empty((N, n, n))
+    L, n = F.shape[0], F.shape[1]
+    out = np.empty((L, n, n))
     zero = np.zeros((n, n))
-    for a in range(0, N, TRANSITION_CHUNK):
-        b = min(N, a + TRANSITION_CHUNK)
-        out[a:b] = van_loan(dyn.F_steps(a, b), zero, dt[a:b],
-                            what="impact: Φ under the filter's navigation options")[0]
+    for a in range(0, L, TRANSITION_CHUNK):
+        b = min(L, a + TRANSITION_CHUNK)
+        out[a:b] = van_loan(F[a:b], zero, dt[a:b], what="impact: Φ under the filter's navigation options")[0]
     return out
 
 
-def impact_run(S, name: str, record_steps, *, truth_system: System | None = None) -> ImpactRun:
-    """All variants of one reduced filter in one batched pass.
+class _FilterImpact:
+    """One reduced filter's variants: the structure once, the compositions chunk by chunk in time.
+
+    The components of the members' filter noise (module notes) are each
+    composed over the event intervals of one chunk at a time
+    (:meth:`add_chunk`) and joined in time by :meth:`finish`, which runs
+    every member in one batched pass.  Nothing of size N × n² is held.
+    """
+
+    def __init__(self, S, name: str):
+        truth = S.truth
+        self.name = name
+        self.fm = fm = S.filter_stream(name)[0]
+        self.spec = fm.spec
+        self.kidx = kidx = truth.idx(fm.names)
+        self.kset = set(kidx.tolist())
+        self.blocks = blocks = dropped_blocks(truth, fm.names)
+        self.block_states = {b: [i for i, s in enumerate(truth.states) if s.block == b] for b in blocks}
+        state_block = {s.name: s.block for s in truth.states}
+        self.state_block = state_block
+        # the equivalent noises live in the filter's space (rows = its kept states in order), not the truth's
+        self.ewn_of = {b: [src for src in fm.ewn_noise if state_block[src.name] == b] for b in blocks}
+        self.ewn_blocks = [b for b in blocks if self.ewn_of[b]]
+        # a dropped block's own driving noise, by source name (the same sources in every chunk)
+        stream = S.dynamics_stream(self.spec.options)
+        names = {b: {truth.states[i].name for i in self.block_states[b]} for b in blocks}
+        self.own_names = {b: [nm for nm in sorted(stream.sources) if nm in names[b]] for b in blocks}
+        self.noisy = [b for b in blocks if self.own_names[b]]
+        e, m = len(self.ewn_blocks), len(self.noisy)
+        self.ci_ewn = {b: 1 + k for k, b in enumerate(self.ewn_blocks)}
+        self.ci_own_kept = {b: 1 + e + k for k, b in enumerate(self.noisy)}
+        self.ci_own_full = {b: 1 + e + m + k for k, b in enumerate(self.noisy)}
+        self.own_rows = {b: np.array(sorted(self.kset | set(self.block_states[b]))) for b in self.noisy}
+        self.parts = [[] for _ in range(1 + e + 2 * m)]      # per component: its composed noise per chunk
+        self.transitions = []                                 # the embedded filter's Φ per chunk's intervals
+        self.noise_check = 0.0
+
+    def add_chunk(self, a: int, cev, dyn, Phi_pad, dt, cache, system, Phi_c, ref):
+        """Compose the chunk's noise components and transition over its event intervals.
+
+        Parameters
+        ----------
+        a : int
+            First grid step of the chunk.
+        cev : ndarray of int
+            The chunk's events (grid steps, ``cev[0] == a``).
+        dyn : covtool.lincov.dynamics.ErrorDynamics
+            The chunk's truth dynamics under the filter's options (its own
+            model's: :meth:`~covtool.studies.zupt_setup.ZuptSetup.chunk_dynamics`).
+        Phi_pad : ndarray, shape (L, n, n)
+            e^{FΔt} of those dynamics per step.
+        dt : ndarray, shape (L,)
+        cache : ComposedCache
+        system : hashable
+            Names ``Phi_pad`` and ``dyn`` for ``cache`` (with the chunk).
+        Phi_c : ndarray, shape (K_c, n, n) or None
+            ``Phi_pad`` composed over the chunk's intervals, if already at hand.
+        ref : tuple of ndarray
+            The filter's own Φ_f, Q_f of the chunk's steps (the noise check).
+        """
+        ev = np.asarray(cev, int) - a
+        kidx, kset = self.kidx, self.kset
+        bs = self.block_states
+        shared = dict(cache=cache, system=system)
+        own = {b: [src for src in dyn.noise if src.name in set(self.own_names[b])] for b in self.noisy}
+        PhiX = gather(Phi_pad, kidx)
+        FX = gather(dyn.F, kidx)
+        factors = [restricted_noise("kept", dyn.noise, kidx)]
+        factors += [restricted_noise(f"ewn {b}", [src.steps(a, a + len(dt)) for src in self.ewn_of[b]],
+                                     np.arange(len(kidx))) for b in self.ewn_blocks]
+        factors += [restricted_noise(f"noise {b} on kept", own[b], kidx) for b in self.noisy]
+        QX = compose_noise(PhiX, FX, factors, dt, ev, rows=kidx, **shared)
+        for c in range(len(factors)):
+            self.parts[c].append(QX[c])
+        # every noisy block's own noise on (kept ∪ that block): in one pass over the union of those rows
+        # when no noisy block drives another (no kept state drives a dropped one, F_dropped,kept = 0), for
+        # then each source's composed noise on the union is its noise on (kept ∪ its block) bordered by
+        # zeros; else one pass per block
+        noisy = self.noisy
+        apart = all(not np.any(gather(dyn.F, bs[c], bs[b])) and not np.any(gather(Phi_pad, bs[c], bs[b]))
+                    for b in noisy for c in noisy if c != b)
+        for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
+            urows = np.array(sorted(kset.union(*(bs[b] for b in group))))
+            Qu = compose_noise(gather(Phi_pad, urows), gather(dyn.F, urows),
+                               [restricted_noise(f"noise {b}", own[b], urows) for b in group], dt, ev,
+                               rows=urows, **shared)
+            for j, b in enumerate(group):
+                sub = np.searchsorted(urows, self.own_rows[b])
+                self.parts[self.ci_own_full[b]].append(Qu[j][:, sub[:, None], sub[None, :]])
+        # the summed sources against the filter's own composed Q_f
+        Qf = compose_scan(ref[0], ref[1], ev)[1]
+        tot = QX[0] + sum(QX[self.ci_ewn[b]] for b in self.ewn_blocks)
+        d = np.sqrt(np.clip(np.einsum("kii->ki", Qf), 0, None))
+        den = d[:, :, None] * d[:, None, :]
+        m = den > 0
+        if m.any():
+            self.noise_check = max(self.noise_check, float((np.abs(tot - Qf)[m] / den[m]).max()))
+        self.transitions.append(compose_transition(Phi_pad, ev) if Phi_c is None else Phi_c)
+
+    def finish(self, S, truth_system, record_steps) -> ImpactRun:
+        """Every member run against ``truth_system`` (composed on the same events) in one batched pass."""
+        truth, fm, spec, kidx = S.truth, self.fm, self.spec, self.kidx
+        n = truth.n
+        state_block = self.state_block
+        rows = [kidx] * (1 + len(self.ewn_blocks) + len(self.noisy)) + [self.own_rows[b] for b in self.noisy]
+        components = [(np.concatenate(p, axis=0), r) for p, r in zip(self.parts, rows)]
+        self.parts = None
+        P0t = S.P0
+        P0f = np.zeros((n, n))
+        P0f[np.ix_(kidx, kidx)] = fm.P0
+        nk = len(kidx)
+        absorb = {b: sum((truth.states[truth.index[nm]].sigma ** 2 * np.outer(a, a)
+                          for nm, a in fm.ewn_absorb.items() if state_block[nm] == b), np.zeros((nk, nk)))
+                  for b in self.blocks}
+
+        def embed(M):
+            out = np.zeros((n, n))
+            out[np.ix_(kidx, kidx)] = M
+            return out
+
+        all_absorb = embed(sum(absorb.values(), np.zeros((nk, nk))))
+        variants, P0s, coefs = [], [], []
+
+        def member(variant, block, P0, coef):
+            variants.append((variant, block))
+            P0s.append(P0)
+            c = np.zeros(len(components))
+            for k, v in coef.items():
+                c[k] += v
+            coefs.append(c)
+
+        ci_ewn, ci_own_kept, ci_own_full = self.ci_ewn, self.ci_own_kept, self.ci_own_full
+        base = {0: 1.0}
+        member(NOMINAL, None, P0f, {**base, **{ci_ewn[b]: 1.0 for b in self.ewn_blocks}})
+        member(NONE, None, P0f - all_absorb, base)
+        for b in self.blocks:
+            only = dict(base)
+            if b in ci_ewn:
+                only[ci_ewn[b]] = 1.0
+            member(ONLY, b, P0f - all_absorb + embed(absorb[b]), only)
+            back = {**base, **{ci_ewn[x]: 1.0 for x in self.ewn_blocks if x != b}}
+            if b in ci_own_full:
+                back[ci_own_kept[b]] = back.get(ci_own_kept[b], 0.0) - 1.0
+                back[ci_own_full[b]] = 1.0
+            P = P0f - embed(absorb[b])
+            bi = np.array(self.block_states[b])
+            P[np.ix_(bi, bi)] = P0t[np.ix_(bi, bi)]
+            if not spec.P0_sigma:
+                P[np.ix_(bi, kidx)] = P0t[np.ix_(bi, kidx)]
+                P[np.ix_(kidx, bi)] = P0t[np.ix_(kidx, bi)]
+            member(BACK, b, P, back)
+        ev = truth_system.ev
+        filt = System(ev, np.concatenate(self.transitions, axis=0), np.zeros((len(ev) - 1, 0, 0)))
+        self.transitions = None
+        fQ = CombinedNoise(components, np.array(coefs), n)
+        res = run_batch(truth_system, P0t, S.H, S.R, np.eye(n), S.update_steps, record_steps, filt=filt,
+                        Pf0=np.array(P0s), Hf=S.H, Rf=S.filter_R(self.name)[None], filter_Q=fQ, form=spec.update)
+        check_members(res.P_truth, S.nodes.q_nb[res.record_steps], S.t[res.record_steps],
+                      [f"impact: filter {self.name}: {v}" + (f" ({b})" if b else "") for v, b in variants])
+        return ImpactRun(self.name, variants, res.record_steps, res.P_truth, self.noise_check)
+
+
+def impact_runs(S, names, record_steps) -> list[ImpactRun]:
+    """All variants of each reduced filter, streamed in time: one pass over the grid's chunks.
+
+    Parameters
+    ----------
+    S : covtool.studies.zupt_setup.ZuptSetup
+    names : sequence of str
+        Declared filters that drop truth states.
+    record_steps : array_like of int
+        Grid steps at which the truth covariance is recorded.
+
+    Returns
+    -------
+    list of ImpactRun
+        In the order of ``names``.
+
+    Raises
+    ------
+    covtool.errors.NumericalError
+        A chunk's Φ or Q_d is not finite (Q_d: symmetric, PSD), or a
+        member's recorded covariance is not (naming the filter, the member
+        and the time).
+
+    Notes
+    -----
+    The events are the ZUPTs, the records and the chunk boundaries of
+    :meth:`~covtool.studies.zupt_setup.ZuptSetup.stream`; each chunk of
+    :data:`~covtool.lincov.dynamics.STREAM_CHUNK` steps is discretised and
+    composed on its own events (the truth's Φ, Q_d sliced from the whole
+    grid where a study holds it), so that memory is set by the events, not
+    by duration × n².  In each chunk the truth's F under each set of
+    navigation options and its transition are made once for every filter
+    of those options, and a source composed on the states it reaches is
+    shared between them (:class:`covtool.lincov.noise.ComposedCache`, kept
+    on the study setup): filters C and D take most of theirs from B3's.
+    """
+    from covtool.lincov.batch import compose
+    from covtool.lincov.dynamics import dyn_key
+
+    if not names:
+        return []
+    N = S.t.size - 1
+    rec = np.asarray(record_steps, int)
+    ev = S.stream_grid(events(N, S.update_steps, rec))
+    dt = np.diff(S.t)
+    plans = [_FilterImpact(S, name) for name in names]
+    cache = S._dyn_cache.setdefault(("impact noise",), ComposedCache())
+    truth_parts = []
+    for a, b, cev in S.chunks(ev):
+        dyn_of = S.chunk_dynamics(a, b)
+        Phi_t, Qd_t = S._truth_chunk(a, b, dyn_of)
+        tpart = System(cev, *compose(Phi_t, Qd_t, cev - a))
+        truth_parts.append(tpart)
+        transitions, refs = {}, []
+        for plan in plans:
+            options = plan.spec.options
+            skey = S._stream_key(options)
+            own = skey == ("stream", "truth") and S.method == "van_loan"     # the truth's own e^{FΔt}, of these F
+            dyn = dyn_of(options)
+            if own:
+                Phi_pad, Phi_c = Phi_t, tpart.Phi
+            else:
+                if skey not in transitions:
+                    transitions[skey] = _transition(dyn.F, dt[a:b])
+                Phi_pad, Phi_c = transitions[skey], None
+            # the filter's own Φ_f, Q_f (twins share them): sliced from the whole grid if held, else made
+            key = system_key(plan.spec)
+            ref = next((v for k, v in refs if k == key), None)
+            if ref is None:
+                whole = S._filters.get((plan.name, None))
+                ref = (whole[1][a:b], whole[2][a:b]) if whole is not None else \
+                    S._discretise_filter(plan.name, dyn, a, b)
+                refs.append((key, ref))
+            system = ("impact transition", dyn_key(options), skey, own, a, b)
+            plan.add_chunk(a, cev, dyn, Phi_pad, dt[a:b], cache, system, Phi_c, ref)
+        del Phi_t, Qd_t, transitions, refs
+    tsys = System.concat(truth_parts)
+    del truth_parts
+    return [plan.finish(S, tsys, rec) for plan in plans]
+
+
+def impact_run(S, name: str, record_steps) -> ImpactRun:
+    """All variants of one reduced filter in one batched pass (:func:`impact_runs` of ``[name]``).
 
     Parameters
     ----------
@@ -106,143 +354,12 @@ def impact_run(S, name: str, record_steps, *, truth_system: System | None = None
         A declared filter that drops truth states.
     record_steps : array_like of int
         Grid steps at which the truth covariance is recorded.
-    truth_system : covtool.lincov.batch.System, optional
-        The truth composed on ``events(N, S.update_steps, record_steps)``
-        (shared between filters; built if omitted).
 
     Returns
     -------
     ImpactRun
     """
-    from covtool.lincov.dynamics import dyn_key
-
-    truth = S.truth
-    fm, Phi_f, Qd_f = S.filter_model(name)
-    spec = fm.spec
-    n = truth.n
-    N = S.t.size - 1
-    dt = np.diff(S.t)
-    rec = np.asarray(record_steps, int)
-    ev = events(N, S.update_steps, rec)
-    if truth_system is None:
-        truth_system = System.from_steps(S.Phi, S.Qd, ev)
-    dyn = S.options_dynamics(spec.options)
-    tkey = ("impact transition", dyn_key(spec.options))
-    if dyn is S.dyn and S.hdr["discretization"] == "van_loan":
-        Phi_pad = S.Phi                                   # the truth's own e^{FΔt}, of these very F
-    else:
-        # filters that share navigation options share this transition: computed once per study
-        if tkey not in S._dyn_cache:
-            S._dyn_cache[tkey] = _transition(dyn, dt)
-        Phi_pad = S._dyn_cache[tkey]
-    # so do the sources' composed noises: a source composed on the states it reaches is the same in
-    # every filter of these options that holds them (the kept navigation states, a dropped block's own)
-    cache = S._dyn_cache.setdefault(("impact noise",), ComposedCache())
-    shared = dict(cache=cache, system=(tkey, Phi_pad is S.Phi, ev.tobytes()))
-    kidx = truth.idx(fm.names)
-    kset = set(kidx.tolist())
-    blocks = dropped_blocks(truth, fm.names)
-    block_states = {b: [i for i, s in enumerate(truth.states) if s.block == b] for b in blocks}
-    state_block = {s.name: s.block for s in truth.states}
-    # --- filter-noise components in the filter's own space
-    PhiX = gather(Phi_pad, kidx)
-    FX = dyn.F_block(kidx)
-    factors = [restricted_noise("kept", dyn.noise, kidx)]
-    ewn_of = {b: [src for src in fm.ewn_noise if state_block[src.name] == b] for b in blocks}
-    ewn_blocks = [b for b in blocks if ewn_of[b]]
-    # the equivalent noises already live in the filter's space (rows = its kept states in order),
-    # not the truth's: restricting them by kidx was right only while the kept states led the truth
-    factors += [restricted_noise(f"ewn {b}", ewn_of[b], np.arange(len(kidx))) for b in ewn_blocks]
-    own_noise = {b: [src for src in dyn.noise if src.name in {truth.states[i].name for i in block_states[b]}]
-                 for b in blocks}
-    noisy = [b for b in blocks if own_noise[b]]
-    factors += [restricted_noise(f"noise {b} on kept", own_noise[b], kidx) for b in noisy]
-    QX = compose_noise(PhiX, FX, factors, dt, ev, rows=kidx, **shared)
-    components = [(QX[c], kidx) for c in range(len(factors))]
-    ci_kept, ci_ewn = 0, {b: 1 + k for k, b in enumerate(ewn_blocks)}
-    ci_own_kept = {b: 1 + len(ewn_blocks) + k for k, b in enumerate(noisy)}
-    ci_own_full = {}
-    # every noisy block's own noise on (kept ∪ that block): in one pass over the union of those rows
-    # when no noisy block drives another (no kept state drives a dropped one, F_dropped,kept = 0), for
-    # then each source's composed noise on the union is its noise on (kept ∪ its block) bordered by
-    # zeros; else one pass per block
-    apart = all(not np.any(dyn.F_block(block_states[c], block_states[b]))
-                and not np.any(gather(Phi_pad, block_states[c], block_states[b]))
-                for b in noisy for c in noisy if c != b)
-    for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
-        urows = np.array(sorted(kset.union(*(block_states[b] for b in group))))
-        Qu = compose_noise(gather(Phi_pad, urows), dyn.F_block(urows),
-                           [restricted_noise(f"noise {b}", own_noise[b], urows) for b in group], dt, ev,
-                           rows=urows, **shared)
-        for j, b in enumerate(group):
-            rows = np.array(sorted(kset | set(block_states[b])))
-            sub = np.searchsorted(urows, rows)
-            ci_own_full[b] = len(components)
-            components.append((Qu[j][:, sub[:, None], sub[None, :]], rows))
-    # the summed sources against the filter's own composed Q_f
-    ref = compose_scan(Phi_f, Qd_f, ev)[1]
-    tot = QX[0] + sum(QX[ci_ewn[b]] for b in ewn_blocks)
-    d = np.sqrt(np.clip(np.einsum("kii->ki", ref), 0, None))
-    den = d[:, :, None] * d[:, None, :]
-    m = den > 0
-    noise_check = float((np.abs(tot - ref)[m] / den[m]).max()) if m.any() else 0.0
-    # --- members
-    P0t = S.P0
-    P0f = np.zeros((n, n))
-    P0f[np.ix_(kidx, kidx)] = fm.P0
-    absorb = {b: sum((truth.states[truth.index[nm]].sigma ** 2 * np.outer(a, a)
-                      for nm, a in fm.ewn_absorb.items() if state_block[nm] == b), np.zeros((len(kidx),) * 2))
-              for b in blocks}
-
-    def embed(M):
-        out = np.zeros((n, n))
-        out[np.ix_(kidx, kidx)] = M
-        return out
-
-    all_absorb = embed(sum(absorb.values(), np.zeros((len(kidx),) * 2)))
-    variants, P0s, coefs = [], [], []
-
-    def member(variant, block, P0, coef):
-        variants.append((variant, block))
-        P0s.append(P0)
-        c = np.zeros(len(components))
-        for k, v in coef.items():
-            c[k] += v
-        coefs.append(c)
-
-    base = {ci_kept: 1.0}
-    member(NOMINAL, None, P0f, {**base, **{ci_ewn[b]: 1.0 for b in ewn_blocks}})
-    member(NONE, None, P0f - all_absorb, base)
-    for b in blocks:
-        only = dict(base)
-        if b in ci_ewn:
-            only[ci_ewn[b]] = 1.0
-        member(ONLY, b, P0f - all_absorb + embed(absorb[b]), only)
-        back = {**base, **{ci_ewn[x]: 1.0 for x in ewn_blocks if x != b}}
-        if b in ci_own_full:
-            back[ci_own_kept[b]] = back.get(ci_own_kept[b], 0.0) - 1.0
-            back[ci_own_full[b]] = 1.0
-        P = P0f - embed(absorb[b])
-        bi = np.array(block_states[b])
-        P[np.ix_(bi, bi)] = P0t[np.ix_(bi, bi)]
-        if not spec.P0_sigma:
-            P[np.ix_(bi, kidx)] = P0t[np.ix_(bi, kidx)]
-            P[np.ix_(kidx, bi)] = P0t[np.ix_(kidx, bi)]
-        member(BACK, b, P, back)
-    # the embedded filters of one transition share its composition over the event grid
-    ckey = ("impact composed transition", shared["system"])
-    if ckey not in S._dyn_cache:
-        # under the truth's own options that is the truth's composed transition, already at hand
-        same = Phi_pad is S.Phi and np.array_equal(truth_system.ev, ev)
-        S._dyn_cache[ckey] = truth_system.Phi if same else compose_transition(Phi_pad, ev)
-    Phi_c = S._dyn_cache[ckey]
-    filt = System(ev, Phi_c, np.zeros((len(ev) - 1, 0, 0)))
-    fQ = CombinedNoise(components, np.array(coefs), n)
-    res = run_batch(truth_system, P0t, S.H, S.R, np.eye(n), S.update_steps, rec, filt=filt,
-                    Pf0=np.array(P0s), Hf=S.H, Rf=S.filter_R(name)[None], filter_Q=fQ, form=spec.update)
-    check_members(res.P_truth, S.nodes.q_nb[res.record_steps], S.t[res.record_steps],
-                  [f"impact: filter {name}: {v}" + (f" ({b})" if b else "") for v, b in variants])
-    return ImpactRun(name, variants, res.record_steps, res.P_truth, noise_check)
+    return impact_runs(S, [name], record_steps)[0]
 
 
 def check_members(P: np.ndarray, q: np.ndarray, t: np.ndarray, labels) -> None:

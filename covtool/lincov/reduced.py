@@ -13,6 +13,7 @@ Pure numeric core: models and arrays in, arrays out.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -85,6 +86,14 @@ class FilterSpec:
     @property
     def n(self) -> int:
         return len(self.kept)
+
+
+def system_key(spec: FilterSpec) -> FilterSpec:
+    """``spec`` without what only the update uses (name, R_f, update form, texts).
+
+    Equal keys: equal F_f, Q_c,f, P_f(0) and D (one system serves both).
+    """
+    return dataclasses.replace(spec, name="", zupt_sigma=None, update="joseph", description="", path="", decl={})
 
 
 @dataclass

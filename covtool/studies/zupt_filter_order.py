@@ -81,20 +81,24 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
     ev = S.stream_grid(events(t.size - 1, upd, rec))
     where = S.where
     # the dropped-state impact (independent of the cases' runs) is shared with a forked process: it computes
-    # its part while this one propagates the cases, then this one computes the rest; both need the
-    # whole-grid systems, built first (the stream then slices them)
+    # its part while this one propagates the cases, then this one computes the rest.  Both read the truth's
+    # and the filters' systems chunk by chunk: over the whole grid, built first, where they fit
+    # (order_memory's layout; the stream then slices them), else each process makes its own chunks
     imp_job, imp_own = None, []
     if imp_filters:
         imp_forked, imp_own = impact_shares(S, imp_filters)
+        whole = S.resources.get("layout", "whole grid") == "whole grid"
         if imp_forked:
-            # the forked share's systems first (and the truth's, which every share reads), so that its process
-            # starts while this one builds the other filters
-            S.Phi
-            for c in imp_forked:
-                S.filter_model(c)
+            if whole:
+                # the forked share's systems first (and the truth's, which every share reads), so that its
+                # process starts while this one builds the other filters
+                S.Phi
+                for c in imp_forked:
+                    S.filter_model(c)
             imp_job = Forked(impact_runs, S, imp_forked)
-        for c in cases:
-            S.filter_model(c)
+        if whole:
+            for c in cases:
+                S.filter_model(c)
     # every case (and the pure INS) advances chunk by chunk in time, carrying its full P and P_f across
     # the chunks: F, Q_c, Φ, Q_d and their composition exist for one chunk at a time (ZuptSetup.stream)
     pure_run = None
@@ -303,15 +307,12 @@ def impact_shares(S: ZuptSetup, names: list) -> tuple[list, list]:
 
 
 def impact_runs(S: ZuptSetup, names: list) -> tuple[list, float]:
-    """:func:`covtool.lincov.impact.impact_run` of each filter against one shared truth, and the seconds taken."""
-    from covtool.lincov.batch import System, events
-    from covtool.lincov.impact import impact_run
+    """:func:`covtool.lincov.impact.impact_runs` of the filters at the report times, and the seconds taken."""
+    from covtool.lincov.impact import impact_runs as runs
 
     t0 = time.perf_counter()
-    N = S.t.size - 1
     rep = sorted({int(np.argmin(np.abs(S.t - tr))) for tr in S.report_times})
-    truth_sys = System.from_steps(S.Phi, S.Qd, events(N, S.update_steps, rep))
-    out = [impact_run(S, name, rep, truth_system=truth_sys) for name in names]
+    out = runs(S, names, rep) if names else []
     return out, time.perf_counter() - t0
 
 

@@ -47,7 +47,7 @@ from covtool.lincov.model.spec import Model
 from covtool.lincov.reduced import FilterSpec
 from covtool.nav.trajectory.core import Trajectory
 from covtool.lincov.kalman import check_system
-from covtool.lincov.reduced import build_filter, zupt_matrices
+from covtool.lincov.reduced import build_filter, system_key, zupt_matrices  # noqa: F401 (system_key: also from here)
 from covtool.studies import grid as _grid
 from covtool.studies.grid import (check_step_motion, discretize_chunked, initial_covariance, midpoint_context,
                                   time_grid)
@@ -916,52 +916,94 @@ class StreamedTransitions:
         return self._cache[m][k - m * self.chunk]
 
 
+#: bytes up to which a filter-order study with the dropped-state impact table holds its systems over the whole
+#: grid (its estimate, :func:`order_memory`): made once, before the impact's process is forked, and read by both
+#: (about 55 min of the flagship at 1 s); beyond, every chunk is made where it is read (:meth:`ZuptSetup.stream`,
+#: :func:`covtool.lincov.impact.impact_runs`), the truth's in both processes
+WHOLE_GRID_BYTES = 2**30
+
+
 def order_memory(pure: bool, impact: bool = True):
     """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter).
 
-    Without the dropped-state impact table the study streams in time
-    (:meth:`ZuptSetup.stream`, :func:`~covtool.studies.resources.stream_memory_estimate`);
-    with it the whole-grid systems are held, as below.
+    The study streams in time (:meth:`ZuptSetup.stream`,
+    :func:`~covtool.studies.resources.stream_memory_estimate`), except one
+    with the dropped-state impact table (``impact``) whose whole-grid
+    systems fit :data:`WHOLE_GRID_BYTES`: it holds them (below), so that the
+    truth is discretised once for both of its processes.  The returned
+    dict's ``layout`` says which (``"whole grid"`` or ``"streamed"``).
 
     The histories are navigation blocks (10 × 10) at the record steps
     (``records``: the history spacing and the report times); the truth's
     system composed on the event grid (``intervals``: the records and the
-    ZUPTs) is held throughout, one filter's at a time.  With the
-    dropped-state impact table (``impact``) it also holds, per filter in
-    turn, the truth transition under the filter's options and the
-    per-source noise series.
+    ZUPTs) is held throughout, one filter's at a time.  The impact table
+    holds, per filter, the truth transition under the filter's options and
+    the per-source noise series: over the whole grid, or one chunk of them
+    in each of the two processes, with every noise component composed over
+    the event grid (:func:`covtool.lincov.impact.impact_runs`).
     """
 
-    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0, distinct=None):
+    def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0, distinct=None,
+               updates=None, reports=None):
         n = truth.n
         hist = [min(n, 10)] * ((1 if pure else 0) + 2 * len(filters))
         own = sorted(filters)[:len(filters) - shared] if shared else filters
-        if not (impact and any(nf < n for nf in filters)):
-            # streamed in time (ZuptSetup.stream): one chunk of every distinct system (filters that differ
-            # only in R_f or the update form share one), the equivalent-noise sources and the histories;
-            # a filter of m states drops n - m truth states
-            own = own if distinct is None else distinct
-            return stream_memory_estimate(steps, n, filters=own, dropped=[n - m for m in own], dynamics=dynamics,
-                                          histories=hist, noise=noise_columns(truth), records=records,
-                                          intervals=intervals)
-        # the per-source series runs on each source's reach set (covtool.lincov.noise), mostly the 10
-        # navigation states: its stacks stay far below COMPOSE_WORKSPACE, the two transition copies dominate
-        extra = 2 * int(steps) * n * n * 8 if impact and any(nf < n for nf in filters) else 0.0
-        # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more
-        return memory_estimate(steps, n, filters=own, dynamics=dynamics, histories=hist,
-                               noise=noise_columns(truth), extra=extra, records=records,
-                               composed=[n] + ([max(filters)] if filters else []), intervals=intervals,
-                               extra_late=True)
+        reduced = [m for m in filters if m < n] if impact else []
+        if reduced:
+            # the per-source series runs on each source's reach set (covtool.lincov.noise), mostly the 10
+            # navigation states: its stacks stay far below COMPOSE_WORKSPACE, the two transition copies dominate
+            # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more
+            whole = memory_estimate(steps, n, filters=own, dynamics=dynamics, histories=hist,
+                                    noise=noise_columns(truth), extra=2 * int(steps) * n * n * 8, records=records,
+                                    composed=[n] + ([max(filters)] if filters else []), intervals=intervals,
+                                    extra_late=True)
+            if whole["bytes"] <= WHOLE_GRID_BYTES:
+                return {**whole, "layout": "whole grid"}
+        # streamed in time (ZuptSetup.stream): one chunk of every distinct system (filters that differ
+        # only in R_f or the update form share one), the equivalent-noise sources and the histories;
+        # a filter of m states drops n - m truth states
+        own = own if distinct is None else distinct
+        est = stream_memory_estimate(steps, n, filters=own, dropped=[n - m for m in own], dynamics=dynamics,
+                                     histories=hist, noise=noise_columns(truth), records=records,
+                                     intervals=intervals)
+        if reduced:
+            K = None if updates is None else int(updates) + int(reports or 0)
+            est["parts"].update(impact_stream_memory(steps, truth, reduced, dynamics, intervals if K is None else K))
+            est["bytes"] = float(sum(est["parts"].values()))
+        return {**est, "layout": "streamed"}
     memory.records = True           # setup() passes the record and interval counts
+    memory.updates = True           # and the update and report counts (the impact's events)
     return memory
 
 
-def system_key(spec: FilterSpec) -> FilterSpec:
-    """``spec`` without what only the update uses (name, R_f, update form, texts).
+def impact_stream_memory(steps: int, truth: Model, filters, dynamics: int, events=None) -> dict:
+    """Parts (label -> bytes) of the dropped-state impact streamed in time, in both of its processes.
 
-    Equal keys: equal F_f, Q_c,f, P_f(0) and D (one system serves both).
+    Per process (the forked one and this one, :func:`covtool.studies.zupt_filter_order.impact_shares`):
+    one chunk of the truth's Φ, Q_d, of F, G and the transition under each set of navigation options, and
+    of the gathers of the filters' and the put-back blocks' rows; the per-source series workspace
+    (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).  Over the event grid (``events``: the ZUPTs and the
+    report times, default every step; plus the chunk boundaries): the truth's composed system and, per
+    filter of ``m`` states, every noise component: one for the kept states and two per dropped block on
+    them (``m²``), one per dropped block on the kept states and the largest block.
     """
-    return dataclasses.replace(spec, name="", zupt_sigma=None, update="joseph", description="", path="", decl={})
+    from covtool.lincov.noise import COMPOSE_WORKSPACE
+    from covtool.studies.resources import STREAM_CHUNK
+
+    n, N = truth.n, int(steps)
+    L = min(STREAM_CHUNK, max(N, 1))
+    c = noise_columns(truth)
+    K = min(N, (N if events is None else int(events)) + N // STREAM_CHUNK + 2)
+    sizes = {}
+    for st in truth.states:
+        sizes[st.block] = sizes.get(st.block, 0) + 1
+    big = max(sizes.values(), default=0)
+    blocks = [min(len(sizes), n - m) for m in filters]
+    comp = sum((1 + 2 * nb) * m * m + nb * min(n, m + big) ** 2 for m, nb in zip(filters, blocks)) * K
+    return {"impact: one chunk of Phi, Q_d, F, G and gathers (2 processes)":
+            2 * ((6 + 2 * dynamics) * L * n * n + dynamics * L * n * c) * 8,
+            "impact: per-source series workspace (2 processes)": 2 * COMPOSE_WORKSPACE,
+            "impact: composed noise components and truth": (comp + 2 * K * n * n) * 8}
 
 
 def truth_copy(spec: FilterSpec, truth: Model, ftruth: Model | None = None) -> bool:
