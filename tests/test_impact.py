@@ -198,19 +198,19 @@ def test_filters_of_one_option_set_share_compositions_without_changing_the_table
 
 
 def test_impact_shares_keep_option_groups_together_and_balance_the_processes():
-    """B1 | B2 | B3, C, D (three navigation-option sets), costs 1.0 | 1.3 | 1.7 (IMPACT_COST), and 7 propagated
-    runs (1.05) here: forking B1 and B3, C, D (2.7 against 1.3 + 1.05) leaves the smallest gap (0.35; B1 and
-    B2: 0.45)."""
+    """B1 | B2 | B3, C, D (three navigation-option sets), costs 1.0 | 1.3 | 1.7 (IMPACT_COST); this process also
+    propagates 7 runs (1.05) and makes the 5 reduced filters' systems (1.5): forking B2 and B3, C, D (3.0
+    against 1.0 + 2.55) leaves the smallest gap (0.55; B1 and B3, C, D: 1.15; all three: 1.45)."""
     from covtool.studies.zupt_filter_order import impact_shares
     from covtool.studies.zupt_setup import setup
     d = tomllib.loads(FLAGSHIP.read_text())
     d["study"]["duration"] = "6 min"
     d["output"]["report_times"] = ["6 min"]
     S6 = setup(d, path=FLAGSHIP)
-    assert impact_shares(S6, ["B1", "B2", "B3", "C", "D"]) == (["B1", "B3", "C", "D"], ["B2"])
-    assert impact_shares(S6, ["B1", "B2"]) == (["B2"], ["B1"])          # 1.3 against 1.0 + 1.05
+    assert impact_shares(S6, ["B1", "B2", "B3", "C", "D"]) == (["B2", "B3", "C", "D"], ["B1"])
+    assert impact_shares(S6, ["B1", "B2"]) == (["B1", "B2"], [])          # 2.3 against 2.55
     assert impact_shares(S6, ["B3", "C", "D"]) == (["B3", "C", "D"], [])          # one group: not split
-    assert impact_shares(S6, ["C", "B1"]) == (["C"], ["B1"])
+    assert impact_shares(S6, ["C", "B1"]) == (["C", "B1"], [])
     assert impact_shares(S6, []) == ([], [])
 
 
@@ -346,3 +346,23 @@ def test_flagship_streamed_layout_equals_the_whole_grid_one(monkeypatch):
         np.testing.assert_allclose(b[num].to_numpy(float), a[num].to_numpy(float), rtol=1e-12, atol=0)
     assert set(streamed.tables["impact"]["filter"]) == {"B1", "D"}
     assert whole.provenance["estimated_peak_memory"] != streamed.provenance["estimated_peak_memory"]
+
+
+def test_a_deferred_noise_check_is_made_from_the_filters_own_system(S):
+    """A forked share that does not hold its filter's Φ_f, Q_f leaves the noise check NaN (own_systems=False);
+    check_filter_noise makes it from the whole-grid system: the summed per-source filter noise equals the
+    filter's own composed Q_f to round-off, as the check made chunk by chunk finds; a wrong total is caught."""
+    from covtool.lincov.impact import check_filter_noise, impact_runs
+    from covtool.studies.zupt_setup import setup
+
+    N = S.t.size - 1
+    fresh = setup(tomllib.loads(tomli_w_dumps(S)), path=FLAGSHIP)
+    deferred = impact_runs(fresh, ["B1"], [N], own_systems=False)[0]
+    assert np.isnan(deferred.noise_check) and not fresh._filters
+    inline = impact_runs(fresh, ["B1"], [N])[0]
+    assert 0 <= inline.noise_check < 1e-10
+    _, Phi_f, Qd_f = S.filter_model("B1")
+    assert 0 <= check_filter_noise(deferred, Phi_f, Qd_f).noise_check < 1e-10
+    np.testing.assert_array_equal(deferred.P, inline.P)
+    deferred.noise_total[-1] *= 1.01                           # 1 % more noise in the last interval
+    assert check_filter_noise(deferred, Phi_f, Qd_f).noise_check == pytest.approx(0.01, rel=0.05)

@@ -68,7 +68,14 @@ class ImpactRun:
         Truth navigation covariance per member.
     noise_check : float
         Largest relative difference between the summed per-source filter
-        noise and the filter's own composed ``Q_f`` (the nominal member).
+        noise and the filter's own composed ``Q_f`` (the nominal member),
+        relative to ``√(Q_f,ii Q_f,jj)``; NaN until checked
+        (:func:`check_filter_noise`).
+    events : ndarray of int, shape (K+1,)
+        The event grid the noise was composed on.
+    noise_total : ndarray, shape (K, n_f, n_f)
+        That summed filter noise over each interval of ``events`` (the
+        filter's kept states).
     """
 
     filter: str
@@ -76,6 +83,38 @@ class ImpactRun:
     record_steps: np.ndarray
     P: np.ndarray
     noise_check: float
+    events: np.ndarray | None = None
+    noise_total: np.ndarray | None = None
+
+
+def check_filter_noise(run: ImpactRun, Phi_f, Qd_f) -> ImpactRun:
+    """Set ``run.noise_check`` against the filter's own Φ_f, Q_f (seed 002 eq (6b)–(6d), (11)–(13)).
+
+    Parameters
+    ----------
+    run : ImpactRun
+        With its ``events`` and ``noise_total``.
+    Phi_f, Qd_f : ndarray, shape (N, n_f, n_f)
+        The filter's own discretisation over the grid (or any object whose
+        slices ``[a:b]`` give it), composed here on ``run.events``.
+
+    Returns
+    -------
+    ImpactRun
+        ``run``, its ``noise_check`` set (the largest over the intervals,
+        relative to ``√(Q_f,ii Q_f,jj)``).
+    """
+    Qf = compose_scan(Phi_f, Qd_f, run.events)[1]
+    run.noise_check = _noise_difference(run.noise_total, Qf)
+    return run
+
+
+def _noise_difference(tot: np.ndarray, Qf: np.ndarray) -> float:
+    """Largest ``|tot − Q_f|_ij / √(Q_f,ii Q_f,jj)`` over the intervals (0 where Q_f has no variance)."""
+    d = np.sqrt(np.clip(np.einsum("kii->ki", Qf), 0, None))
+    den = d[:, :, None] * d[:, None, :]
+    m = den > 0
+    return float((np.abs(tot - Qf)[m] / den[m]).max()) if m.any() else 0.0
 
 
 def dropped_blocks(truth, kept) -> list[str]:
@@ -136,6 +175,7 @@ class _FilterImpact:
         self.own_rows = {b: np.array(sorted(self.kset | set(self.block_states[b]))) for b in self.noisy}
         self.parts = [[] for _ in range(1 + e + 2 * m)]      # per component: its composed noise per chunk
         self.transitions = []                                 # the embedded filter's Φ per chunk's intervals
+        self.totals = []                                      # its summed own noise per chunk's intervals
         self.noise_check = 0.0
 
     def add_chunk(self, a: int, cev, dyn, Phi_pad, dt, cache, system, Phi_c, ref):
@@ -158,8 +198,9 @@ class _FilterImpact:
             Names ``Phi_pad`` and ``dyn`` for ``cache`` (with the chunk).
         Phi_c : ndarray, shape (K_c, n, n) or None
             ``Phi_pad`` composed over the chunk's intervals, if already at hand.
-        ref : tuple of ndarray
-            The filter's own Φ_f, Q_f of the chunk's steps (the noise check).
+        ref : tuple of ndarray, or None
+            The filter's own Φ_f, Q_f of the chunk's steps (the noise check);
+            None: checked later (:func:`check_filter_noise`).
         """
         ev = np.asarray(cev, int) - a
         kidx, kset = self.kidx, self.kset
@@ -191,13 +232,12 @@ class _FilterImpact:
                 sub = np.searchsorted(urows, self.own_rows[b])
                 self.parts[self.ci_own_full[b]].append(Qu[j][:, sub[:, None], sub[None, :]])
         # the summed sources against the filter's own composed Q_f
-        Qf = compose_scan(ref[0], ref[1], ev)[1]
         tot = QX[0] + sum(QX[self.ci_ewn[b]] for b in self.ewn_blocks)
-        d = np.sqrt(np.clip(np.einsum("kii->ki", Qf), 0, None))
-        den = d[:, :, None] * d[:, None, :]
-        m = den > 0
-        if m.any():
-            self.noise_check = max(self.noise_check, float((np.abs(tot - Qf)[m] / den[m]).max()))
+        self.totals.append(tot)
+        if ref is None:
+            self.noise_check = np.nan
+        elif not np.isnan(self.noise_check):
+            self.noise_check = max(self.noise_check, _noise_difference(tot, compose_scan(ref[0], ref[1], ev)[1]))
         self.transitions.append(compose_transition(Phi_pad, ev) if Phi_c is None else Phi_c)
 
     def finish(self, S, truth_system, record_steps) -> ImpactRun:
@@ -260,10 +300,11 @@ class _FilterImpact:
                         Pf0=np.array(P0s), Hf=S.H, Rf=S.filter_R(self.name)[None], filter_Q=fQ, form=spec.update)
         check_members(res.P_truth, S.nodes.q_nb[res.record_steps], S.t[res.record_steps],
                       [f"impact: filter {self.name}: {v}" + (f" ({b})" if b else "") for v, b in variants])
-        return ImpactRun(self.name, variants, res.record_steps, res.P_truth, self.noise_check)
+        return ImpactRun(self.name, variants, res.record_steps, res.P_truth, self.noise_check, ev,
+                         np.concatenate(self.totals, axis=0))
 
 
-def impact_runs(S, names, record_steps) -> list[ImpactRun]:
+def impact_runs(S, names, record_steps, *, own_systems: bool = True) -> list[ImpactRun]:
     """All variants of each reduced filter, streamed in time: one pass over the grid's chunks.
 
     Parameters
@@ -273,6 +314,11 @@ def impact_runs(S, names, record_steps) -> list[ImpactRun]:
         Declared filters that drop truth states.
     record_steps : array_like of int
         Grid steps at which the truth covariance is recorded.
+    own_systems : bool
+        Each filter's own Φ_f, Q_f for its noise check are sliced from the
+        whole grid where ``S`` holds them, else made chunk by chunk; False:
+        not made, the check is left to :func:`check_filter_noise` (a
+        forked share whose parent holds them, ``noise_check`` NaN until then).
 
     Returns
     -------
@@ -334,7 +380,7 @@ def impact_runs(S, names, record_steps) -> list[ImpactRun]:
             if ref is None:
                 whole = S._filters.get((plan.name, None))
                 ref = (whole[1][a:b], whole[2][a:b]) if whole is not None else \
-                    S._discretise_filter(plan.name, dyn, a, b)
+                    S._discretise_filter(plan.name, dyn, a, b) if own_systems else None
                 refs.append((key, ref))
             system = ("impact transition", dyn_key(options), skey, own, a, b)
             plan.add_chunk(a, cev, dyn, Phi_pad, dt[a:b], cache, system, Phi_c, ref)

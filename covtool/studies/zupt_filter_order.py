@@ -40,6 +40,7 @@ from covtool.analysis.metrics import nav_metrics
 from covtool.errors import StudyFileError
 from covtool.forked import Forked
 from covtool.io.config import check_keys
+from covtool.lincov.impact import check_filter_noise
 from covtool.lincov.kalman import running_scale
 from covtool.lincov.reduced import ewn_navigation_effect, zupt_matrices
 from covtool.lincov.batch import BatchRun, events
@@ -81,24 +82,22 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
     ev = S.stream_grid(events(t.size - 1, upd, rec))
     where = S.where
     # the dropped-state impact (independent of the cases' runs) is shared with a forked process: it computes
-    # its part while this one propagates the cases, then this one computes the rest.  Both read the truth's
-    # and the filters' systems chunk by chunk: over the whole grid, built first, where they fit
-    # (order_memory's layout; the stream then slices them), else each process makes its own chunks
+    # its part while this one builds the filters and propagates the cases, then this one computes the rest.
+    # Both read the truth's and the filters' systems chunk by chunk: over the whole grid where they fit
+    # (order_memory's layout: the truth's built first, split between the two cores, and inherited; the stream
+    # then slices them), else each process makes its own chunks.  The forked share leaves its filters' noise
+    # checks to this process, which holds their systems (whole grid), or makes them itself (streamed)
     imp_job, imp_own = None, []
+    whole = S.resources.get("layout", "whole grid") == "whole grid"
     if imp_filters:
         imp_forked, imp_own = impact_shares(S, imp_filters)
-        whole = S.resources.get("layout", "whole grid") == "whole grid"
         if imp_forked:
             if whole:
-                # the forked share's systems first (and the truth's, which every share reads), so that its
-                # process starts while this one builds the other filters
                 S.Phi
-                for c in imp_forked:
-                    S.filter_model(c)
-            imp_job = Forked(impact_runs, S, imp_forked)
-        if whole:
-            for c in cases:
-                S.filter_model(c)
+            imp_job = Forked(impact_runs, S, imp_forked, own_systems=not whole)
+    if imp_filters and whole:
+        for c in cases:
+            S.filter_model(c)
     # every case (and the pure INS) advances chunk by chunk in time, carrying its full P and P_f across
     # the chunks: F, Q_c, Φ, Q_d and their composition exist for one chunk at a time (ZuptSetup.stream)
     pure_run = None
@@ -174,6 +173,9 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
         with progress_bar(len(imp_filters), "dropped-state impact", progress) as bar:
             own, t_own = impact_runs(S, imp_own) if imp_own else ([], 0.0)
             forked, t_imp = imp_job.result() if imp_job is not None else ([], 0.0)
+            for r in forked:
+                if np.isnan(r.noise_check):                  # its filter's own Φ_f, Q_f are held here
+                    check_filter_noise(r, *S.filter_model(r.filter)[1:])
             by_name = dict(zip([n for n in imp_filters if n not in imp_own], forked)) | dict(zip(imp_own, own))
             imp_runs, t_imp = [by_name[n] for n in imp_filters], t_imp + t_own
             tables["impact"] = impact_table(S, imp_filters, metrics, bar, runs=imp_runs, record_steps=rec)
@@ -258,12 +260,15 @@ def impact_filters(decl: dict, S: ZuptSetup) -> list[str]:
     return list(fl)
 
 
-#: relative cost of one filter's impact run (:func:`covtool.lincov.impact.impact_run`), in units of a filter
+#: relative cost of one filter's impact run (:func:`covtool.lincov.impact.impact_runs`), in units of a filter
 #: under the truth's navigation options: under other options it also discretises the truth transition under
 #: them (+0.3); a further member of its options group takes most of its noise from the first (0.2); this
-#: process also propagates each case and the pure INS (0.15 each).  Measured on the flagship's CLI
-#: timeline: B1 0.40 s, B2 0.45 s, then B3 0.54 s, C 0.11 s, D 0.09 s; propagation 0.40 s for 7 runs.
-IMPACT_COST = {"filter": 1.0, "own transition": 0.3, "further member": 0.2, "propagated run": 0.15}
+#: process also propagates each case and the pure INS (0.15 each) and makes each reduced case's system
+#: (0.3; a streamed forked share makes its own filters' systems for their noise checks too).  Measured on
+#: the flagship's CLI timeline (3 December): B1 0.54 s, B2 0.66 s, B3, C, D 0.92 s; the propagation and the
+#: equivalent-noise table 0.48 s for 7 runs; the five reduced filters' systems 0.8 s.
+IMPACT_COST = {"filter": 1.0, "own transition": 0.3, "further member": 0.2, "propagated run": 0.15,
+               "filter system": 0.3}
 
 
 def impact_shares(S: ZuptSetup, names: list) -> tuple[list, list]:
@@ -271,12 +276,13 @@ def impact_shares(S: ZuptSetup, names: list) -> tuple[list, list]:
 
     Filters with the same navigation options share the truth transition
     under those options and most composed noise sources
-    (:func:`covtool.lincov.impact.impact_run`), so they stay together.
+    (:func:`covtool.lincov.impact.impact_runs`), so they stay together.
     The groups are split so that the two processes finish together: the
     forked share's cost as close as possible to this process's, which
-    also propagates the cases (:data:`IMPACT_COST`; ties go to the
-    smaller forked share, then to the earlier groups).  A speed measure
-    only: the table is the same for any split.
+    also propagates the cases and makes their systems
+    (:data:`IMPACT_COST`; ties go to the smaller forked share, then to the
+    earlier groups).  A speed measure only: the table is the same for any
+    split.
     """
     from itertools import combinations
 
@@ -287,10 +293,13 @@ def impact_shares(S: ZuptSetup, names: list) -> tuple[list, list]:
         groups.setdefault(dyn_key(S.specs[n].options), []).append(n)
     truth_key = dyn_key(None)                             # the truth's own options: its Φ serves
     c = IMPACT_COST
+    streamed = S.resources.get("layout", "whole grid") != "whole grid"
     cost = [c["filter"] + (c["own transition"] if k != truth_key else 0.0) + c["further member"] * (len(g) - 1)
             for k, g in groups.items()]
+    forked_extra = [c["filter system"] * len(g) if streamed else 0.0 for g in groups.values()]
+    reduced = sum(1 for k in S.cases if S.specs[k].n < S.truth.n)
     runs = len(S.cases) + 1                               # the cases and (by default) the pure INS
-    total, prop = sum(cost), c["propagated run"] * runs
+    total, here = sum(cost), c["propagated run"] * runs + c["filter system"] * reduced
     G = list(groups.values())
     best, choice = None, ()
     if len(G) <= 12:                                      # every subset (2^12 at most); else in order
@@ -298,21 +307,21 @@ def impact_shares(S: ZuptSetup, names: list) -> tuple[list, list]:
     else:
         subsets = (tuple(range(r)) for r in range(len(G) + 1))
     for sub in subsets:
-        f = sum(cost[i] for i in sub)
-        gap = abs(f - (total - f + prop))
+        f = sum(cost[i] + forked_extra[i] for i in sub)
+        gap = abs(f - (total - sum(cost[i] for i in sub) + here))
         if best is None or gap < best - 1e-12:
             best, choice = gap, sub
     forked = [n for i in sorted(choice) for n in G[i]]
     return forked, [n for n in names if n not in forked]
 
 
-def impact_runs(S: ZuptSetup, names: list) -> tuple[list, float]:
+def impact_runs(S: ZuptSetup, names: list, own_systems: bool = True) -> tuple[list, float]:
     """:func:`covtool.lincov.impact.impact_runs` of the filters at the report times, and the seconds taken."""
     from covtool.lincov.impact import impact_runs as runs
 
     t0 = time.perf_counter()
     rep = sorted({int(np.argmin(np.abs(S.t - tr))) for tr in S.report_times})
-    out = runs(S, names, rep) if names else []
+    out = runs(S, names, rep, own_systems=own_systems) if names else []
     return out, time.perf_counter() - t0
 
 
