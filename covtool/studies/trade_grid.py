@@ -83,7 +83,7 @@ from covtool.plotting.trade_grid import trade_figure
 from covtool.results import TradeGridResult
 from covtool.studies.grid import check_step_motion, time_grid
 from covtool.studies.inputs import (load_trajectory, load_truth, output_options, study_config, study_header,
-                                    study_inputs, trajectory_csv_sha256, UNSCALED_KINDS)  # noqa: F401  (UNSCALED_KINDS: re-export)
+                                    study_inputs, trajectory_csv_sha256)
 from covtool.studies.resources import (check_memory, composed_memory_estimate, noise_columns,
                                        resource_provenance, run_in_chunks, scaled_estimate, steps_of, store_checks)
 from covtool.studies.tables import summary_row

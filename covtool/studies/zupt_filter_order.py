@@ -61,8 +61,9 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
     t_start = time.perf_counter()
     pure = (decl.get("filters") or {}).get("pure_ins", True) if isinstance(decl.get("filters", {}), dict) else True
     imp = decl.get("impact")
+    listed = imp.get("filters") if isinstance(imp, dict) else None          # validated below (impact_filters)
     S = setup(decl if config is None else config, path=path, progress=progress, extra_sections=("impact",),
-              memory=order_memory(pure is not False, not (isinstance(imp, dict) and imp.get("filters") == [])))
+              memory=order_memory(pure is not False, len(listed) if isinstance(listed, list) else True))
     imp_filters = impact_filters(decl, S)
     hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth
     P0, H, R, upd = S.P0, S.H, S.R, S.update_steps

@@ -923,8 +923,11 @@ class StreamedTransitions:
 WHOLE_GRID_BYTES = 2**30
 
 
-def order_memory(pure: bool, impact: bool = True):
+def order_memory(pure: bool, impact: bool | int = True):
     """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter).
+
+    ``impact``: the study has a dropped-state impact table (True: of every reduced case; an integer: of that
+    many, counted as the largest reduced cases; False or 0: none).
 
     The study streams in time (:meth:`ZuptSetup.stream`,
     :func:`~covtool.studies.resources.stream_memory_estimate`), except one
@@ -948,7 +951,9 @@ def order_memory(pure: bool, impact: bool = True):
         n = truth.n
         hist = [min(n, 10)] * ((1 if pure else 0) + 2 * len(filters))
         own = sorted(filters)[:len(filters) - shared] if shared else filters
-        reduced = [m for m in filters if m < n] if impact else []
+        reduced = sorted((m for m in filters if m < n), reverse=True) if impact else []
+        if impact is not True and not isinstance(impact, bool):
+            reduced = reduced[:int(impact)]
         if reduced:
             # the per-source series runs on each source's reach set (covtool.lincov.noise), mostly the 10
             # navigation states: its stacks stay far below COMPOSE_WORKSPACE, the two transition copies dominate
