@@ -279,3 +279,15 @@ def test_streamed_impact_estimate_bounds_the_traced_peak(monkeypatch):
     est = recorded_estimate(r)
     assert set(r.tables["impact"]["filter"]) == {"B1", "D"}
     assert 0 < peak <= est <= 5.0 * peak, (peak, est)
+
+
+def test_the_estimate_counts_the_listed_impact_filters():
+    """[impact] filters = ["B1", "C", "D"] of the 24-h study's 19 reduced cases: the estimate lies between no
+    impact table and one for every reduced case, and grows with the count."""
+    from covtool.studies.zupt_setup import setup, order_memory
+
+    path = ROOT / "benchmarks" / "long" / "zupt_filter_order_24h.toml"
+    decl = tomllib.loads(path.read_text())
+    none, one, three, every = (setup(copy.deepcopy(decl), path=path, memory=order_memory(True, k)).resources["bytes"]
+                               for k in (0, 1, 3, True))
+    assert none < one < three < every
