@@ -366,3 +366,37 @@ def test_a_deferred_noise_check_is_made_from_the_filters_own_system(S):
     np.testing.assert_array_equal(deferred.P, inline.P)
     deferred.noise_total[-1] *= 1.01                           # 1 % more noise in the last interval
     assert check_filter_noise(deferred, Phi_f, Qd_f).noise_check == pytest.approx(0.01, rel=0.05)
+
+
+@pytest.mark.parametrize("order", [["C", "B1", "D"], ["D", "B2", "B1", "B3", "C"], ["B3", "B1"]])
+def test_impact_rows_belong_to_their_filter_in_any_listed_order(order):
+    """``[impact] filters`` in an order that interleaves the navigation-option groups (the forked share returns
+    its runs grouped): each filter's rows are its own -- its nominal member is its own case's summary, its
+    blocks are the ones it drops.  Found in review: B1's rows carried D's (both the old and the new split)."""
+    d = tomllib.loads(FLAGSHIP.read_text())
+    d["study"]["duration"] = "11 min"
+    d["output"]["report_times"] = ["11 min"]
+    d["filters"]["file"] = str(ROOT / "models" / "filters" / "zupt_filters.toml")
+    d["filters"]["cases"] = ["A", "B1", "B2", "B3", "C", "D"]
+    d["impact"] = {"filters": order}
+    r = covtool.run_study(d)
+    imp = r.tables["impact"]
+    summ = r.summary.set_index("case")
+    assert list(dict.fromkeys(imp["filter"])) == order
+    from covtool.studies.zupt_setup import setup
+    S11 = setup(d, path=FLAGSHIP)
+    for name in order:
+        rows = imp[imp["filter"] == name]
+        nom = rows[rows["variant"] == NOMINAL].iloc[0]
+        assert nom["CEP [ft]"] == pytest.approx(summ.loc[name, "CEP [ft]"], rel=1e-8), name
+        assert nom["alt PE [ft]"] == pytest.approx(summ.loc[name, "alt PE [ft]"], rel=1e-8), name
+        assert list(rows.loc[rows["variant"] == BACK, "block"]) == dropped_blocks(S11.truth, S11.specs[name].kept)
+
+
+def test_impact_table_refuses_runs_of_other_filters(S):
+    from covtool.studies.zupt_filter_order import impact_table
+
+    N = S.t.size - 1
+    runs = [impact_run(S, "B1", [N]), impact_run(S, "D", [N])]
+    with pytest.raises(ValueError, match=r"impact_table: runs of \['B1', 'D'\] for the filters \['D', 'B1'\]"):
+        impact_table(S, ["D", "B1"], {}, runs=runs)

@@ -177,7 +177,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
             for r in forked:
                 if np.isnan(r.noise_check):                  # its filter's own Φ_f, Q_f are held here
                     check_filter_noise(r, *S.filter_model(r.filter)[1:])
-            by_name = dict(zip([n for n in imp_filters if n not in imp_own], forked)) | dict(zip(imp_own, own))
+            by_name = {r.filter: r for r in forked + own}    # each run names its filter (the shares' own order)
             imp_runs, t_imp = [by_name[n] for n in imp_filters], t_imp + t_own
             tables["impact"] = impact_table(S, imp_filters, metrics, bar, runs=imp_runs, record_steps=rec)
     provenance = {**study_inputs(path, decl, truth, ffile), "truth_model": truth.name,
@@ -329,15 +329,23 @@ def impact_runs(S: ZuptSetup, names: list, own_systems: bool = True) -> tuple[li
 def impact_table(S: ZuptSetup, names: list, metrics: dict, bar=None, *, runs=None, record_steps=None) -> pd.DataFrame:
     """The ``impact`` sheet: every reduced filter × dropped block (D'Appolito state deletion).
 
-    For each filter (:func:`covtool.lincov.impact.impact_run`, one batched pass
-    per filter against one shared truth) and report time: the true CEP,
-    altitude PE and azimuth of the nominal filter, without equivalent
-    noise, with eq (11)–(13) noise from each dropped block alone, and with
-    each dropped block put back as filter states; ratios to the nominal
-    and to filter A when it is in the run.
+    For each filter (:func:`covtool.lincov.impact.impact_runs`: its members
+    in one batched pass against the truth, streamed in time) and report
+    time: the true CEP, altitude PE and azimuth of the nominal filter,
+    without equivalent noise, with eq (11)–(13) noise from each dropped
+    block alone, and with each dropped block put back as filter states;
+    ratios to the nominal and to filter A when it is in the run.  ``runs``
+    (one per name, in the order of ``names``) are computed if omitted.
+
+    Raises
+    ------
+    ValueError
+        A run of ``runs`` is not the filter of its place in ``names``.
     """
     if runs is None:
         runs = impact_runs(S, names)[0]
+    if [r.filter for r in runs] != list(names):
+        raise ValueError(f"impact_table: runs of {[r.filter for r in runs]} for the filters {list(names)}")
     nodes = S.nodes
     rows = []
     for name, r in zip(names, runs):
