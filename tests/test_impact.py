@@ -75,10 +75,6 @@ def test_nominal_member_is_the_declared_filter(S, name):
     assert r.variants[0] == (NOMINAL, None) and r.variants[1] == (NONE, None)
     np.testing.assert_allclose(_metrics(S, r.P[0, -1]), _metrics(S, _reference(S, name)), rtol=1e-8)
     assert r.noise_check < 1e-10          # Σ per-block composed noise = the filter's own Q_f
-    dyn = S.options_dynamics(S.specs[name].options)
-    if dyn is not S.dyn:
-        # the truth's F under the filter's options is read in runs of steps and sub-blocks, never built whole
-        assert dyn._F is None
 
 
 def test_block_put_back_equals_the_filter_that_keeps_it(S):
@@ -234,26 +230,28 @@ def test_impact_split_between_processes_equals_one_process(tmp_path):
     np.testing.assert_allclose(split[num].to_numpy(float), one[num].to_numpy(float), rtol=1e-12)
 
 
-def test_impact_builds_the_filters_own_dynamics_when_not_cached(S):
-    """A filter built elsewhere (another process) leaves no dynamics here: the impact builds its own.
-
-    D assumes no Coriolis and no vertical coupling; taking the truth's F for
-    it instead (the fallback this replaced) moves its members' covariance.
-    """
-    from covtool.lincov.dynamics import dyn_key
+def test_impact_reads_no_whole_grid_dynamics(S, monkeypatch):
+    """The impact makes each chunk's truth F under the filter's own options itself (D: no Coriolis terms,
+    vertical channel decoupled): on a setup that holds nothing, reading the whole-grid truth dynamics, the
+    options' whole-grid F or a filter's whole-grid system fails, and the run still gives the members of the
+    setup that holds them (to round-off) -- whose put-back member is the independently declared D_bias
+    (test_block_put_back_equals_the_filter_that_keeps_it)."""
+    from covtool.studies.zupt_setup import setup, ZuptSetup
 
     N = S.t.size - 1
-    spec = S.specs["D"]
-    assert dyn_key(spec.options) != dyn_key(None)
-    first = impact_run(S, "D", [N])
-    for key in [k for k in S._dyn_cache if dyn_key(spec.options) in (k, k[1:] if len(k) > 1 else None)]:
-        del S._dyn_cache[key]
-    assert dyn_key(spec.options) not in S._dyn_cache
-    again = impact_run(S, "D", [N])
-    assert again.variants == first.variants
-    np.testing.assert_array_equal(again.P, first.P)
-    assert S.options_dynamics(spec.options) is S._dyn_cache[dyn_key(spec.options)]
-    assert not np.array_equal(S.options_dynamics(spec.options).F, S.dyn.F)
+    fresh = setup(tomllib.loads(tomli_w_dumps(S)), path=FLAGSHIP)
+
+    def refuse(*_a, **_k):
+        raise AssertionError("a whole-grid array was built")
+
+    monkeypatch.setattr(ZuptSetup, "options_dynamics", refuse)
+    monkeypatch.setattr(ZuptSetup, "filter_system", refuse)
+    monkeypatch.setattr(ZuptSetup, "_whole_truth", refuse)
+    monkeypatch.setattr(ZuptSetup, "dyn", property(refuse))
+    streamed = impact_run(fresh, "D", [N])
+    monkeypatch.undo()
+    held = impact_run(S, "D", [N])
+    np.testing.assert_allclose(streamed.P, held.P, rtol=1e-12, atol=1e-14 * np.abs(held.P).max())
 
 
 EXTRA_MARKOV = '''
@@ -400,3 +398,26 @@ def test_impact_table_refuses_runs_of_other_filters(S):
     runs = [impact_run(S, "B1", [N]), impact_run(S, "D", [N])]
     with pytest.raises(ValueError, match=r"impact_table: runs of \['B1', 'D'\] for the filters \['D', 'B1'\]"):
         impact_table(S, ["D", "B1"], {}, runs=runs)
+
+
+def test_a_non_finite_transition_under_the_filters_options_names_the_impact_the_filter_and_the_step(S, monkeypatch):
+    """A NaN in the truth's F under D's options at grid step 640 (t = 640 s, in the second chunk): the impact's
+    transition refuses it in one line naming the study, the impact, the filter, the grid step and its time."""
+    from covtool.errors import NumericalError
+    from covtool.lincov import dynamics
+    from covtool.studies.zupt_setup import setup
+
+    N = S.t.size - 1
+    fresh = setup(tomllib.loads(tomli_w_dumps(S)), path=FLAGSHIP)
+    real = dynamics.DynamicsStream.chunk
+
+    def chunk(self, a, b):
+        d = real(self, a, b)
+        if dynamics.dyn_key(self.options) == dynamics.dyn_key(fresh.specs["D"].options) and a <= 640 < b:
+            d.F[640 - a, 3, 4] = np.nan
+        return d
+
+    monkeypatch.setattr(dynamics.DynamicsStream, "chunk", chunk)
+    with pytest.raises(NumericalError, match=r"zupt_filter_order.toml: impact: filter D: truth Φ under its "
+                                             r"navigation options: step 640 \(t = 640 s, Δt = 1 s\)"):
+        impact_run(fresh, "D", [N])

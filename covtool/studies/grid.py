@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import re
-
 from dataclasses import dataclass
 
 import numpy as np
@@ -11,6 +9,7 @@ import numpy as np
 from covtool.analysis.metrics import first_invalid, nav_metrics, validity_text
 from covtool.errors import CovtoolError, StudyFileError
 from covtool.lincov.discretize import discretize
+from covtool.lincov.discretize.steps import on_grid
 from covtool.lincov.dynamics import Context, error_dynamics, NavOptions
 from covtool.lincov.kalman import check_covariance, check_system
 from covtool.lincov.model.spec import Model
@@ -278,7 +277,7 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
                     Phi[a:b], Qd[a:b] = discretize(F[a:b], Qc[a:b], dt[a:b], method, order, what=what,
                                                    times=None if times is None else times[a:b])
                 except (CovtoolError, ValueError) as e:
-                    _on_grid(e, first + a)
+                    on_grid(e, first + a)
                     raise
                 if here:
                     bar.update(b - a)
@@ -290,26 +289,6 @@ def discretize_chunked(F, Qc, dt, method, order=None, *, progress=False, desc="d
         else:
             run(starts)
     return Phi, Qd
-
-
-def _on_grid(e: Exception, first: int) -> None:
-    """Renumber, in place, the steps ``e`` names from a chunk starting at step ``first`` to the whole grid.
-
-    A discretisation error names its step as ``step k (t = …`` within its
-    input (:func:`covtool.lincov.discretize.steps.repeated_steps` keeps the
-    caller's numbering); every such mention in the message (its ``args``,
-    and an :class:`~covtool.errors.InputError`'s ``problem``) is shifted
-    by ``first``.  Nothing else is changed; the error keeps its traceback.
-    """
-    if not first:
-        return
-
-    def shift(text):
-        return re.sub(r"\bstep (\d+) \(", lambda m: f"step {int(m.group(1)) + first} (", text)
-
-    e.args = tuple(shift(a) if isinstance(a, str) else a for a in e.args)
-    if isinstance(getattr(e, "problem", None), str):
-        e.problem = shift(e.problem)
 
 
 def truth_system(model: Model, traj, t: np.ndarray, method: str, *, options=NavOptions(), progress=False,

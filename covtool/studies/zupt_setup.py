@@ -52,8 +52,8 @@ from covtool.studies import grid as _grid
 from covtool.studies.grid import (check_step_motion, discretize_chunked, initial_covariance, midpoint_context,
                                   time_grid)
 from covtool.studies.inputs import load_trajectory, load_truth, output_options, study_config, study_header
-from covtool.studies.resources import (check_memory, KEPT_TRANSITIONS, memory_estimate, noise_columns, steps_of,
-                                       stream_memory_estimate)
+from covtool.studies.resources import (check_memory, KEPT_TRANSITIONS, memory_estimate, memory_limit, noise_columns,
+                                       steps_of, stream_memory_estimate)
 
 
 def zupt_options(cfg, where: str, dt: float, duration: float) -> dict:
@@ -852,6 +852,8 @@ def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=
             kw["distinct"] = [k.n for k in keys]            # streamed: one system per distinct key
             if getattr(memory, "updates", False):
                 kw["updates"], kw["reports"] = zupt_update_count(zo, hdr["duration"]), len(rtimes)
+            if getattr(memory, "limit", False):
+                kw["max_memory"] = hdr["max_memory"]
         est = check_memory(memory(steps, truth, [specs[c].n for c in cases],
                                   filter_dynamics(specs, cases, ftruth is not truth), **kw),
                            where, hdr["max_memory"], shrink)
@@ -917,10 +919,11 @@ class StreamedTransitions:
 
 
 #: bytes up to which a filter-order study with the dropped-state impact table holds its systems over the whole
-#: grid (its estimate, :func:`order_memory`): made once, before the impact's process is forked, and read by both
-#: (about 55 min of the flagship at 1 s); beyond, every chunk is made where it is read (:meth:`ZuptSetup.stream`,
-#: :func:`covtool.lincov.impact.impact_runs`), the truth's in both processes
-WHOLE_GRID_BYTES = 2**30
+#: grid (its estimate, :func:`order_memory`, also within the memory limit): made once, before the impact's
+#: process is forked, and read by both (up to about an hour of the flagship at 1 s; its 30 min are 8 % faster
+#: than streamed, at 0.57 against 0.33 GB peak RSS); beyond, every chunk is made where it is read
+#: (:meth:`ZuptSetup.stream`, :func:`covtool.lincov.impact.impact_runs`), the truth's in both processes
+WHOLE_GRID_BYTES = 1.5 * 2**30
 
 
 def order_memory(pure: bool, impact: bool | int = True):
@@ -932,37 +935,47 @@ def order_memory(pure: bool, impact: bool | int = True):
     The study streams in time (:meth:`ZuptSetup.stream`,
     :func:`~covtool.studies.resources.stream_memory_estimate`), except one
     with the dropped-state impact table (``impact``) whose whole-grid
-    systems fit :data:`WHOLE_GRID_BYTES`: it holds them (below), so that the
-    truth is discretised once for both of its processes.  The returned
+    systems fit :data:`WHOLE_GRID_BYTES` and the memory limit
+    (``max_memory``, :func:`~covtool.studies.resources.memory_limit`): it
+    holds them (:func:`~covtool.studies.resources.memory_estimate`), so that
+    the truth is discretised once for both of its processes.  The returned
     dict's ``layout`` says which (``"whole grid"`` or ``"streamed"``).
 
     The histories are navigation blocks (10 × 10) at the record steps
     (``records``: the history spacing and the report times); the truth's
     system composed on the event grid (``intervals``: the records and the
     ZUPTs) is held throughout, one filter's at a time.  The impact table
-    holds, per filter, the truth transition under the filter's options and
-    the per-source noise series: over the whole grid, or one chunk of them
-    in each of the two processes, with every noise component composed over
-    the event grid (:func:`covtool.lincov.impact.impact_runs`).
+    works on one chunk of its systems at a time in each of its two
+    processes and holds every noise component composed over its event
+    grid (``updates`` and ``reports``; :func:`impact_stream_memory`), in
+    either layout.
     """
 
     def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0, distinct=None,
-               updates=None, reports=None):
+               updates=None, reports=None, max_memory=None):
         n = truth.n
         hist = [min(n, 10)] * ((1 if pure else 0) + 2 * len(filters))
         own = sorted(filters)[:len(filters) - shared] if shared else filters
         reduced = sorted((m for m in filters if m < n), reverse=True) if impact else []
         if impact is not True and not isinstance(impact, bool):
             reduced = reduced[:int(impact)]
+        K = None if updates is None else int(updates) + int(reports or 0)
+
+        def impact_parts(whole):
+            return impact_stream_memory(steps, truth, reduced, dynamics, intervals if K is None else K,
+                                        whole=whole) if reduced else {}
+
         if reduced:
-            # the per-source series runs on each source's reach set (covtool.lincov.noise), mostly the 10
-            # navigation states: its stacks stay far below COMPOSE_WORKSPACE, the two transition copies dominate
-            # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more
+            # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more; the
+            # impact's two processes work on one chunk at a time besides (impact_stream_memory)
             whole = memory_estimate(steps, n, filters=own, dynamics=dynamics, histories=hist,
-                                    noise=noise_columns(truth), extra=2 * int(steps) * n * n * 8, records=records,
-                                    composed=[n] + ([max(filters)] if filters else []), intervals=intervals,
-                                    extra_late=True)
-            if whole["bytes"] <= WHOLE_GRID_BYTES:
+                                    noise=noise_columns(truth), records=records,
+                                    composed=[n] + ([max(filters)] if filters else []), intervals=intervals)
+            extra = impact_parts(True)
+            whole["parts"].update(extra)
+            whole["bytes"] += float(sum(extra.values()))
+            # held only where it fits both WHOLE_GRID_BYTES and the memory limit (else the streamed layout may)
+            if whole["bytes"] <= min(WHOLE_GRID_BYTES, memory_limit(max_memory)[0]):
                 return {**whole, "layout": "whole grid"}
         # streamed in time (ZuptSetup.stream): one chunk of every distinct system (filters that differ
         # only in R_f or the update form share one), the equivalent-noise sources and the histories;
@@ -972,25 +985,45 @@ def order_memory(pure: bool, impact: bool | int = True):
                                      histories=hist, noise=noise_columns(truth), records=records,
                                      intervals=intervals)
         if reduced:
-            K = None if updates is None else int(updates) + int(reports or 0)
-            est["parts"].update(impact_stream_memory(steps, truth, reduced, dynamics, intervals if K is None else K))
+            est["parts"].update(impact_parts(False))
             est["bytes"] = float(sum(est["parts"].values()))
         return {**est, "layout": "streamed"}
     memory.records = True           # setup() passes the record and interval counts
     memory.updates = True           # and the update and report counts (the impact's events)
+    memory.limit = True             # and [study] max_memory (the layout must fit the limit)
     return memory
 
 
-def impact_stream_memory(steps: int, truth: Model, filters, dynamics: int, events=None) -> dict:
-    """Parts (label -> bytes) of the dropped-state impact streamed in time, in both of its processes.
+def impact_stream_memory(steps: int, truth: Model, filters, dynamics: int, events=None, *,
+                         whole: bool = False) -> dict:
+    """Parts (label -> bytes) of the dropped-state impact table, streamed in time in its two processes.
 
-    Per process (the forked one and this one, :func:`covtool.studies.zupt_filter_order.impact_shares`):
-    one chunk of the truth's Φ, Q_d, of F, G and the transition under each set of navigation options, and
-    of the gathers of the filters' and the put-back blocks' rows; the per-source series workspace
-    (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).  Over the event grid (``events``: the ZUPTs and the
-    report times, default every step; plus the chunk boundaries): the truth's composed system and, per
-    filter of ``m`` states, every noise component: one for the kept states and two per dropped block on
-    them (``m²``), one per dropped block on the kept states and the largest block.
+    Parameters
+    ----------
+    steps : int
+        Propagation steps N.
+    truth : Model
+    filters : sequence of int
+        States of each filter of the table.
+    dynamics : int
+        Sets of navigation options among the truth and the filters (each filter's set is built in the
+        process that runs it).
+    events : int, optional
+        ZUPTs and report times (default every step); the chunk boundaries are added.
+    whole : bool
+        The study holds the truth's and the filters' systems over the whole grid (sliced, not made).
+
+    Returns
+    -------
+    dict
+        Per chunk (:data:`~covtool.studies.resources.STREAM_CHUNK` steps): F and G under each set of options
+        and its transition (each in one of the processes), and in each process the gathers of Φ and F on a
+        filter's kept states and on (kept ∪ the largest block) and the per-source series workspace
+        (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`); streamed, also the truth's Φ, Q_d, F, Q_c and G
+        and the filters' own Φ_f, Q_f (the noise check) in each process.  Over the event grid: the truth's
+        composed system and, per filter of ``m`` states, every noise component (one for the kept states
+        and two per dropped block on them, ``m²``; one per dropped block on the kept states and the
+        largest block).
     """
     from covtool.lincov.noise import COMPOSE_WORKSPACE
     from covtool.studies.resources import STREAM_CHUNK
@@ -1005,8 +1038,12 @@ def impact_stream_memory(steps: int, truth: Model, filters, dynamics: int, event
     big = max(sizes.values(), default=0)
     blocks = [min(len(sizes), n - m) for m in filters]
     comp = sum((1 + 2 * nb) * m * m + nb * min(n, m + big) ** 2 for m, nb in zip(filters, blocks)) * K
-    return {"impact: one chunk of Phi, Q_d, F, G and gathers (2 processes)":
-            2 * ((6 + 2 * dynamics) * L * n * n + dynamics * L * n * c) * 8,
+    m = max(filters, default=0)
+    u = min(n, m + big)
+    chunk = dynamics * (2 * n * n + n * c) * L + 2 * 2 * L * (m * m + u * u)
+    if not whole:
+        chunk += 2 * (4 * n * n + n * c) * L + dynamics * n * n * L + 2 * 4 * L * m * m
+    return {"impact: one chunk of F, G, transitions and gathers (2 processes)": chunk * 8,
             "impact: per-source series workspace (2 processes)": 2 * COMPOSE_WORKSPACE,
             "impact: composed noise components and truth": (comp + 2 * K * n * n) * 8}
 

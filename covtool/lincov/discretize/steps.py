@@ -8,6 +8,8 @@ check (correlation scaling) of every exact ``Q_d`` of Van Loan's integral
 """
 from __future__ import annotations
 
+import re
+
 from dataclasses import dataclass
 
 import numpy as np
@@ -193,3 +195,23 @@ def _chol_ok(A):
 def _expand_phi_qd(out, inv):
     Phi, Qd, inf = out
     return Phi[inv], Qd[inv], StepInfo(inf.terms[inv], inf.squarings[inv], inf.norm_dt[inv])
+
+
+def on_grid(e: Exception, first: int) -> None:
+    """Renumber, in place, the steps ``e`` names from a chunk starting at step ``first`` to the whole grid.
+
+    A discretisation error names its step as ``step k (t = …`` within its
+    input (:func:`covtool.lincov.discretize.steps.repeated_steps` keeps the
+    caller's numbering); every such mention in the message (its ``args``,
+    and an :class:`~covtool.errors.InputError`'s ``problem``) is shifted
+    by ``first``.  Nothing else is changed; the error keeps its traceback.
+    """
+    if not first:
+        return
+
+    def shift(text):
+        return re.sub(r"\bstep (\d+) \(", lambda m: f"step {int(m.group(1)) + first} (", text)
+
+    e.args = tuple(shift(a) if isinstance(a, str) else a for a in e.args)
+    if isinstance(getattr(e, "problem", None), str):
+        e.problem = shift(e.problem)
