@@ -45,7 +45,7 @@ from covtool.lincov.discretize import van_loan
 from covtool.lincov.discretize.steps import on_grid
 from covtool.lincov.stacks import gather
 from covtool.lincov.reduced import system_key
-from covtool.lincov.noise import CombinedNoise, ComposedCache, compose_noise, compose_scan, compose_transition, \
+from covtool.lincov.noise import CombinedNoise, compose_noise, compose_scan, compose_transition, \
     restricted_noise
 
 
@@ -369,36 +369,34 @@ def impact_runs(S, names, record_steps, *, own_systems: bool = True) -> list[Imp
     ev = S.stream_grid(events(N, S.update_steps, rec))
     dt = np.diff(S.t)
     plans = [_FilterImpact(S, name) for name in names]
-    cache = S._dyn_cache.setdefault(("impact noise",), ComposedCache())
+    cache = S.composed_cache()
     truth_parts = []
     for a, b, cev in S.chunks(ev):
         dyn_of = S.chunk_dynamics(a, b)
-        Phi_t, Qd_t = S._truth_chunk(a, b, dyn_of)
+        Phi_t, Qd_t = S.truth_chunk(a, b, dyn_of)
         tpart = System(cev, *compose(Phi_t, Qd_t, cev - a))
         truth_parts.append(tpart)
         transitions, refs = {}, []
         for plan in plans:
             options = plan.spec.options
-            skey = S._stream_key(options)
-            own = skey == ("stream", "truth") and S.method == "van_loan"     # the truth's own e^{FΔt}, of these F
+            own = S.truth_transition_serves(options)        # the truth's own e^{FΔt}, of these very F
             dyn = dyn_of(options)
+            okey = dyn_key(options)
             if own:
                 Phi_pad, Phi_c = Phi_t, tpart.Phi
             else:
-                if skey not in transitions:
-                    transitions[skey] = _transition(dyn.F, dt[a:b], times=S.t[a:b], first=a,
+                if okey not in transitions:
+                    transitions[okey] = _transition(dyn.F, dt[a:b], times=S.t[a:b], first=a,
                                                     what=f"{S.where}: impact: filter {plan.name}: truth Φ under "
                                                          f"its navigation options")
-                Phi_pad, Phi_c = transitions[skey], None
-            # the filter's own Φ_f, Q_f (twins share them): sliced from the whole grid if held, else made
+                Phi_pad, Phi_c = transitions[okey], None
+            # the filter's own Φ_f, Q_f for its noise check (twins share them)
             key = system_key(plan.spec)
-            ref = next((v for k, v in refs if k == key), None)
-            if ref is None:
-                whole = S._filters.get((plan.name, None))
-                ref = (whole[1][a:b], whole[2][a:b]) if whole is not None else \
-                    S._discretise_filter(plan.name, dyn, a, b) if own_systems else None
+            found = [v for k, v in refs if k == key]
+            ref = found[0] if found else S.filter_chunk(plan.name, a, b, dyn_of, make=own_systems)
+            if not found:
                 refs.append((key, ref))
-            system = ("impact transition", dyn_key(options), skey, own, a, b)
+            system = ("impact transition", okey, own, a, b)
             plan.add_chunk(a, cev, dyn, Phi_pad, dt[a:b], cache, system, Phi_c, ref)
         del Phi_t, Qd_t, transitions, refs
     tsys = System.concat(truth_parts)

@@ -385,7 +385,7 @@ class ZuptSetup:
         """
         for a, b, cev in self.chunks(ev, chunk):
             dyn_of = self.chunk_dynamics(a, b)
-            Phi, Qd = self._truth_chunk(a, b, dyn_of)
+            Phi, Qd = self.truth_chunk(a, b, dyn_of)
             tsys = System(cev, *compose(Phi, Qd, cev - a))
             del Phi, Qd
             fsys, shared = {}, []
@@ -399,13 +399,9 @@ class ZuptSetup:
                 if twin is not None and (c, None) not in self._filters:
                     fsys[c] = twin                           # the same F_f, Q_c,f (filter_stream)
                     continue
-                if (c, None) in self._filters:
-                    _, Phi_f, Qd_f, _ = self._filters[(c, None)]
-                    Phi_f, Qd_f = Phi_f[a:b], Qd_f[a:b]
-                else:
-                    Phi_f, Qd_f = self._discretise_filter(c, dyn_of(fm.spec.options), a, b)
-                    if fm.spec.n < self.truth.n:
-                        self._keep(key, a, Phi_f)             # for the equivalent-noise table
+                Phi_f, Qd_f = self.filter_chunk(c, a, b, dyn_of)
+                if (c, None) not in self._filters and fm.spec.n < self.truth.n:
+                    self._keep(key, a, Phi_f)                 # for the equivalent-noise table
                 fsys[c] = System(cev, *compose(Phi_f, Qd_f, cev - a))
                 shared.append((key, fsys[c]))
             yield tsys, fsys
@@ -466,7 +462,7 @@ class ZuptSetup:
         pool = self._dyn_cache.setdefault(("streamed pool",), ChunkPool(HELD_CHUNKS))
         if key is None:
             def make(a, b):
-                return self._truth_chunk(a, b, self._streamed_dynamics(a, b))
+                return self.truth_chunk(a, b, self._streamed_dynamics(a, b))
 
             n = self.truth.n
         else:
@@ -502,12 +498,56 @@ class ZuptSetup:
                 raise ValueError(f"the event grid lacks the chunk boundaries {a}, {b} (use stream_grid)")
             yield a, b, cev
 
-    def _truth_chunk(self, a: int, b: int, dyn_of):
-        """The truth's Φ, Q_d of the steps ``a … b−1``: sliced from the whole grid if built, else made from
-        ``dyn_of(None)`` (the chunk's dynamics) and guarded."""
+    def truth_chunk(self, a: int, b: int, dyn_of):
+        """The truth's Φ, Q_d of the steps ``a … b−1``, shape (b − a, n, n).
+
+        Sliced from the whole grid if built, else made from ``dyn_of(None)``
+        (the chunk's dynamics, :meth:`chunk_dynamics`) and guarded.
+
+        Raises
+        ------
+        NumericalError
+            A step's Φ or Q_d is not finite (Q_d: symmetric, PSD), naming the grid step and its time.
+        """
         if self._Phi is not None:
             return self._Phi[a:b], self._Qd[a:b]
         return self._discretise_truth(dyn_of(None), a, b)
+
+
+    def filter_chunk(self, name: str, a: int, b: int, dyn_of, *, make: bool = True):
+        """Filter ``name``'s own Φ_f, Q_f of the steps ``a … b−1``, shape (b − a, n_f, n_f), or None.
+
+        Sliced from the whole-grid system if built (:meth:`filter_system`), else made from the chunk's
+        truth dynamics under the filter's options (``dyn_of``, :meth:`chunk_dynamics`) and guarded, or,
+        with ``make`` False, None.
+
+        Raises
+        ------
+        NumericalError
+            A step's Φ_f or Q_f is not finite (Q_f: symmetric, PSD), naming the filter, the grid step and its time.
+        """
+        whole = self._filters.get((name, None))
+        if whole is not None:
+            return whole[1][a:b], whole[2][a:b]
+        if not make:
+            return None
+        return self._discretise_filter(name, dyn_of(self.filter_stream(name)[0].spec.options), a, b)
+
+    def truth_transition_serves(self, options) -> bool:
+        """Whether the truth's own Φ is e^{FΔt} of the filters' model under ``options``.
+
+        True for the truth's own options when the filters' model is the truth
+        and the study discretises it exactly (``van_loan``): then the truth's
+        Φ serves as the transition under those options (the dropped-state
+        impact), else it must be discretised from that F.
+        """
+        return self._stream_key(options) == ("stream", "truth") and self.method == "van_loan"
+
+    def composed_cache(self):
+        """The study's :class:`covtool.lincov.noise.ComposedCache` (per-source compositions shared between calls)."""
+        from covtool.lincov.noise import ComposedCache
+
+        return self._dyn_cache.setdefault(("impact noise",), ComposedCache())
 
     def chunk_dynamics(self, a: int, b: int):
         """``dyn_of(options)``: the truth's dynamics of the steps ``a … b−1`` under ``options`` (None: its own),
@@ -548,7 +588,7 @@ class ZuptSetup:
         parts = []
         for a, b, cev in self.chunks(ev, chunk):
             dyn_of = self.chunk_dynamics(a, b)
-            Phi, Qd = self._truth_chunk(a, b, dyn_of)
+            Phi, Qd = self.truth_chunk(a, b, dyn_of)
             parts.append(System(cev, *compose(Phi, Qd, cev - a)))
             if on_chunk is not None:
                 on_chunk(a, cev, dyn_of(None), Phi)
