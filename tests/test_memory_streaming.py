@@ -200,7 +200,7 @@ def test_chunk_constants_agree():
     assert GUARD_CHUNK == _CHUNK
 
 
-def _order_estimate(path):
+def _order_estimate(path, impact=True):
     from covtool.io.filters import load_filters
     from covtool.studies.inputs import load_truth, output_options, study_config, study_header
     from covtool.studies.resources import steps_of
@@ -226,7 +226,7 @@ def _order_estimate(path):
     args = (N, truth, [specs[c].n for c in cases], filter_dynamics(specs, cases))
     kw = dict(records=rec, intervals=K, shared=shared, distinct=[k.n for k in keys],
               updates=zupt_update_count(zo, hdr["duration"]), reports=len(rtimes))
-    return order_memory(True, False)(*args, **kw), order_memory(True, True)(*args, **kw)
+    return order_memory(True, False)(*args, **kw), order_memory(True, impact)(*args, **kw)
 
 
 def test_long_studies_fit_the_memory_check(monkeypatch):
@@ -286,24 +286,6 @@ def test_streamed_impact_estimate_bounds_the_traced_peak(monkeypatch):
 def test_the_estimate_counts_the_listed_impact_filters():
     """[impact] filters = ["B1", "C", "D"] of the 24-h study's 19 reduced cases: the estimate lies between no
     impact table and one for every reduced case, and grows with the count."""
-    from covtool.studies.zupt_setup import setup, order_memory
-
     path = ROOT / "benchmarks" / "long" / "zupt_filter_order_24h.toml"
-    decl = tomllib.loads(path.read_text())
-    none, one, three, every = (setup(copy.deepcopy(decl), path=path, memory=order_memory(True, k)).resources["bytes"]
-                               for k in (0, 1, 3, True))
+    none, one, three, every = (_order_estimate(path, k)[1]["bytes"] for k in (0, 1, 3, True))
     assert none < one < three < every
-
-
-def test_the_layout_fits_the_memory_limit():
-    """A 47-min flagship holds its whole grid (about 0.98 GB estimated) unless [study] max_memory leaves room for
-    the streamed layout only (about 0.8 GB): then it streams instead of being refused (found in review)."""
-    from covtool.studies.zupt_setup import setup, order_memory
-
-    d = _decl("47 min", ("A", "B1", "B2", "B3", "C", "D"), impact=("B1", "C", "D"))
-    d["trajectory"] = {"builtin": "land_vehicle", "cycles": 10, "distance": "25 km"}
-    roomy = setup(copy.deepcopy(d), path=FLAGSHIP, memory=order_memory(True, 3)).resources
-    d["study"]["max_memory"] = "0.95 GB"
-    tight = setup(copy.deepcopy(d), path=FLAGSHIP, memory=order_memory(True, 3)).resources
-    assert roomy["layout"] == "whole grid" and roomy["bytes"] > 0.95e9
-    assert tight["layout"] == "streamed" and tight["bytes"] < 0.95e9
