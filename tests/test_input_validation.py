@@ -584,8 +584,8 @@ def test_memory_limit_from_the_environment(monkeypatch):
     d = order_decl(("B1", "D"), duration="24 h")
     d["trajectory"] = {"builtin": "land_vehicle", "cycles": 288}   # 288 x 5 min = 24 h
     with pytest.raises(StudyFileError, match=r"needs about [\d.]+ GB .* more than the 2 GB COVTOOL_MAX_MEMORY; "
-                                             r"shrink it with a larger \[study\] dt, a shorter duration or fewer "
-                                             r"\[filters\] cases") as exc:
+                                             r"shrink it with a larger \[study\] dt, a shorter duration, fewer "
+                                             r"\[filters\] cases or fewer \[impact\] filters") as exc:
         covtool.run_study(d)
     # streamed in time, the dropped-state impact table too: B1's couplings F_kept,· gathered over the grid for
     # eq (11)-(13) (N · 22 · 58 doubles) must be held; the whole grid's truth F, Q_c, Φ, Q_d, the truth's F
@@ -624,9 +624,9 @@ def _peak(decl):
 @pytest.mark.parametrize("make", [lambda: pure_decl("12 min"), lambda: order_decl(("A", "B3", "D"), "6 min")])
 def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
     """The estimate (reported in provenance) bounds the traced peak, and not by more than 30 % (pure INS) or a
-    factor 2.6 (the filter-order study with its dropped-state impact table: the estimate counts the impact's
-    two processes at once, each with its per-source series workspace at its cap, where under tracemalloc the
-    forked share runs in this process after this one's)."""
+    factor 2.5 (a 6-min filter-order study with its dropped-state impact table, whose fixed terms dominate: the
+    estimate counts the impact's two processes at once, each with its per-source series workspace at its cap,
+    where under tracemalloc the forked share runs in this process after this one's)."""
     from covtool.studies.resources import memory_estimate, noise_columns
     from covtool.studies.zupt_setup import filter_dynamics, history_records, order_memory, truth_copy
     d = make()
@@ -642,7 +642,9 @@ def test_memory_estimate_is_an_upper_bound_of_the_measured_peak(make):
         est = order_memory(False)(N, truth, [s.n for s in specs.values()], filter_dynamics(specs, specs),
                                   records=rec, intervals=K, shared=shared, updates=len(r.update_times),
                                   reports=len(r.report_times))["bytes"]
-    assert peak <= est <= (1.3 if r.kind == "pure_ins" else 2.6) * peak, (peak, est)
+    # the flagship's impact table: its two processes' chunks and per-source workspaces at their cap (64 MB) are
+    # counted at once, where under tracemalloc the forked share runs in this process after this one's
+    assert peak <= est <= (1.3 if r.kind == "pure_ins" else 2.5) * peak, (peak, est)
     assert r.provenance["steps"] == N and r.provenance["estimated_peak_memory"].endswith("MB")
 
 
@@ -785,4 +787,4 @@ def test_memory_estimate_counts_the_filters_own_model_under_a_truth_override():
     r, peak = _peak(d)
     est = float(r.provenance["estimated_peak_memory"].split()[0]) * 1e6
     # (the impact's two processes counted at once: test_memory_estimate_is_an_upper_bound_of_the_measured_peak)
-    assert peak <= est <= 2.8 * peak, (peak, est)
+    assert peak <= est <= 2.2 * peak, (peak, est)

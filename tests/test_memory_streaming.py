@@ -289,3 +289,23 @@ def test_the_estimate_counts_the_listed_impact_filters():
     path = ROOT / "benchmarks" / "long" / "zupt_filter_order_24h.toml"
     none, one, three, every = (_order_estimate(path, k)[1]["bytes"] for k in (0, 1, 3, True))
     assert none < one < three < every
+
+
+def test_the_layout_fits_the_memory_limit():
+    """A 47-min flagship holds its whole grid (about 0.98 GB estimated) under a roomy limit, but streams (about
+    0.8 GB) when [study] max_memory leaves room for the streamed layout only, instead of being refused (found in
+    review); the layout is recorded in the provenance."""
+    import covtool.studies.zupt_setup as zs
+    from covtool.studies.resources import resource_provenance
+    from covtool.studies.zupt_setup import setup, order_memory
+
+    d = _decl("47 min", ("A", "B1", "B2", "B3", "C", "D"), impact=("B1", "C", "D"))
+    d["trajectory"] = {"builtin": "land_vehicle", "cycles": 10, "distance": "25 km"}
+    d["study"]["max_memory"] = "4 GB"
+    roomy = setup(copy.deepcopy(d), path=FLAGSHIP, memory=order_memory(True, 3)).resources
+    assert roomy["layout"] == "whole grid" and roomy["bytes"] < zs.WHOLE_GRID_BYTES
+    d["study"]["max_memory"] = f"{(roomy['bytes'] - 1e6) / 1e9:.3f} GB"
+    tight = setup(copy.deepcopy(d), path=FLAGSHIP, memory=order_memory(True, 3)).resources
+    assert tight["layout"] == "streamed" and tight["bytes"] < roomy["bytes"] - 1e6
+    assert resource_provenance(tight)["memory_layout"] == "streamed"
+    assert resource_provenance(roomy)["memory_layout"] == "whole grid"

@@ -331,8 +331,9 @@ def impact_runs(S, names, record_steps, *, own_systems: bool = True) -> list[Imp
     own_systems : bool
         Each filter's own Φ_f, Q_f for its noise check are sliced from the
         whole grid where ``S`` holds them, else made chunk by chunk; False:
-        not made, the check is left to :func:`check_filter_noise` (a
-        forked share whose parent holds them, ``noise_check`` NaN until then).
+        those ``S`` does not hold are not made, and their check is left to
+        :func:`check_filter_noise` (a forked share whose parent holds them:
+        ``noise_check`` NaN until then).
 
     Returns
     -------
@@ -342,9 +343,13 @@ def impact_runs(S, names, record_steps, *, own_systems: bool = True) -> list[Imp
     Raises
     ------
     covtool.errors.NumericalError
-        A chunk's Φ or Q_d is not finite (Q_d: symmetric, PSD), or a
-        member's recorded covariance is not (naming the filter, the member
-        and the time).
+        A chunk's truth or filter Φ or Q_d is not finite (Q_d: symmetric,
+        PSD; :meth:`~covtool.studies.zupt_setup.ZuptSetup.truth_chunk`,
+        :meth:`~covtool.studies.zupt_setup.ZuptSetup.filter_chunk`); the
+        truth's Φ under a filter's navigation options is not (naming the
+        study, the first filter of those options, the grid step and its
+        time); or a member's recorded covariance is not (naming the filter,
+        the member and the time).
 
     Notes
     -----

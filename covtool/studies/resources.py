@@ -454,10 +454,13 @@ def check_memory(estimate: dict, where: str, max_memory: float | None, shrink: s
 
 
 def resource_provenance(est: dict) -> dict:
-    """Provenance rows of a resource estimate."""
-    return {"steps": est["steps"], "estimated_peak_memory": _size(est["bytes"]),
+    """Provenance rows of a resource estimate (with its ``layout``, where the study chose one)."""
+    rows = {"steps": est["steps"], "estimated_peak_memory": _size(est["bytes"]),
             "memory_limit": f"{_size(est['limit'])} ({est['limit_source']})" if math.isfinite(est["limit"])
             else "unknown"}
+    if "layout" in est:
+        rows["memory_layout"] = est["layout"]
+    return rows
 
 
 def store_checks(rs, stats: dict) -> str:

@@ -63,7 +63,8 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> ZuptFi
     imp = decl.get("impact")
     listed = imp.get("filters") if isinstance(imp, dict) else None          # validated below (impact_filters)
     S = setup(decl if config is None else config, path=path, progress=progress, extra_sections=("impact",),
-              memory=order_memory(pure is not False, len(listed) if isinstance(listed, list) else True))
+              memory=order_memory(pure is not False, len(listed) if isinstance(listed, list) else True),
+              shrink="a larger [study] dt, a shorter duration, fewer [filters] cases or fewer [impact] filters")
     imp_filters = impact_filters(decl, S)
     hdr, t, nodes, truth = S.hdr, S.t, S.nodes, S.truth
     P0, H, R, upd = S.P0, S.H, S.R, S.update_steps

@@ -507,12 +507,12 @@ class ZuptSetup:
         Raises
         ------
         NumericalError
-            A step's Φ or Q_d is not finite (Q_d: symmetric, PSD), naming the grid step and its time.
+            A step's F, Φ or Q_d is not finite (Q_d: symmetric, PSD), naming the truth model and the step's
+            time (and the state, or the grid step where it was discretised).
         """
         if self._Phi is not None:
             return self._Phi[a:b], self._Qd[a:b]
         return self._discretise_truth(dyn_of(None), a, b)
-
 
     def filter_chunk(self, name: str, a: int, b: int, dyn_of, *, make: bool = True):
         """Filter ``name``'s own Φ_f, Q_f of the steps ``a … b−1``, shape (b − a, n_f, n_f), or None.
@@ -524,7 +524,8 @@ class ZuptSetup:
         Raises
         ------
         NumericalError
-            A step's Φ_f or Q_f is not finite (Q_f: symmetric, PSD), naming the filter, the grid step and its time.
+            A step's F_f, Φ_f or Q_f is not finite (Q_f: symmetric, PSD), naming the filter (and its file
+            where it was discretised) and the step's time (and the state, or the grid step).
         """
         whole = self._filters.get((name, None))
         if whole is not None:
@@ -894,6 +895,7 @@ def setup(decl, *, path=None, progress: bool = False, extra_sections=(), memory=
                 kw["updates"], kw["reports"] = zupt_update_count(zo, hdr["duration"]), len(rtimes)
             if getattr(memory, "limit", False):
                 kw["max_memory"] = hdr["max_memory"]
+                kw["option_sets"] = len({dyn_key(None)} | {dyn_key(specs[c].options) for c in cases})
         est = check_memory(memory(steps, truth, [specs[c].n for c in cases],
                                   filter_dynamics(specs, cases, ftruth is not truth), **kw),
                            where, hdr["max_memory"], shrink)
@@ -960,17 +962,31 @@ class StreamedTransitions:
 
 #: bytes up to which a filter-order study with the dropped-state impact table holds its systems over the whole
 #: grid (its estimate, :func:`order_memory`, also within the memory limit): made once, before the impact's
-#: process is forked, and read by both (up to about an hour of the flagship at 1 s; its 30 min are 8 % faster
-#: than streamed, at 0.57 against 0.33 GB peak RSS); beyond, every chunk is made where it is read
-#: (:meth:`ZuptSetup.stream`, :func:`covtool.lincov.impact.impact_runs`), the truth's in both processes
+#: process is forked, and read by both (up to about 85 min of the flagship at 1 s; its 30 min run about 10 %
+#: faster than streamed, at 0.71 against 0.54 GB summed over both processes); beyond, every chunk is made where
+#: it is read (:meth:`ZuptSetup.stream`, :func:`covtool.lincov.impact.impact_runs`), the truth's in both processes
 WHOLE_GRID_BYTES = 1.5 * 2**30
 
 
 def order_memory(pure: bool, impact: bool | int = True):
     """What a filter-order study holds: the system, every filter and every history (pure INS, truth, filter).
 
-    ``impact``: the study has a dropped-state impact table (True: of every reduced case; an integer: of that
-    many, counted as the largest reduced cases; False or 0: none).
+    Parameters
+    ----------
+    pure : bool
+        The study runs the pure INS too.
+    impact : bool or int
+        The study has a dropped-state impact table: True, of every reduced case; an integer, of that many
+        (counted as the largest reduced cases); False or 0, none.
+
+    Returns
+    -------
+    callable
+        ``memory(steps, truth, filters, dynamics, *, records, intervals, shared, distinct, updates, reports,
+        max_memory, option_sets) -> dict`` (:func:`setup` passes the keywords): ``filters`` the cases'
+        state counts, ``dynamics`` the truth-dynamics stacks (:func:`filter_dynamics`), ``option_sets`` the
+        sets of navigation options among the truth and the cases, ``max_memory`` the study's limit [bytes]
+        or None.  The dict is :func:`~covtool.studies.resources.memory_estimate`'s with ``layout``.
 
     The study streams in time (:meth:`ZuptSetup.stream`,
     :func:`~covtool.studies.resources.stream_memory_estimate`), except one
@@ -992,7 +1008,7 @@ def order_memory(pure: bool, impact: bool | int = True):
     """
 
     def memory(steps, truth, filters, dynamics, *, records=None, intervals=None, shared=0, distinct=None,
-               updates=None, reports=None, max_memory=None):
+               updates=None, reports=None, max_memory=None, option_sets=None):
         n = truth.n
         hist = [min(n, 10)] * ((1 if pure else 0) + 2 * len(filters))
         own = sorted(filters)[:len(filters) - shared] if shared else filters
@@ -1000,10 +1016,11 @@ def order_memory(pure: bool, impact: bool | int = True):
         if impact is not True and not isinstance(impact, bool):
             reduced = reduced[:int(impact)]
         K = None if updates is None else int(updates) + int(reports or 0)
+        sets = dynamics if option_sets is None else option_sets
 
-        def impact_parts(whole):
-            return impact_stream_memory(steps, truth, reduced, dynamics, intervals if K is None else K,
-                                        whole=whole) if reduced else {}
+        def impact_parts(whole, beside=0.0):
+            return impact_stream_memory(steps, truth, reduced, sets, intervals if K is None else K, whole=whole,
+                                        beside=beside) if reduced else {}
 
         if reduced:
             # `shared` filters hold the truth's own F, Q_c, Φ, Q_d (ZuptSetup.filter_system): nothing more; the
@@ -1025,7 +1042,7 @@ def order_memory(pure: bool, impact: bool | int = True):
                                      histories=hist, noise=noise_columns(truth), records=records,
                                      intervals=intervals)
         if reduced:
-            est["parts"].update(impact_parts(False))
+            est["parts"].update(impact_parts(False, est["parts"]["one chunk of F, Q_c, G, Phi, Q_d"]))
             est["bytes"] = float(sum(est["parts"].values()))
         return {**est, "layout": "streamed"}
     memory.records = True           # setup() passes the record and interval counts
@@ -1034,8 +1051,8 @@ def order_memory(pure: bool, impact: bool | int = True):
     return memory
 
 
-def impact_stream_memory(steps: int, truth: Model, filters, dynamics: int, events=None, *,
-                         whole: bool = False) -> dict:
+def impact_stream_memory(steps: int, truth: Model, filters, option_sets: int, events=None, *,
+                         whole: bool = False, beside: float = 0.0) -> dict:
     """Parts (label -> bytes) of the dropped-state impact table, streamed in time in its two processes.
 
     Parameters
@@ -1043,27 +1060,30 @@ def impact_stream_memory(steps: int, truth: Model, filters, dynamics: int, event
     steps : int
         Propagation steps N.
     truth : Model
+        The truth model (its states, blocks and noise columns).
     filters : sequence of int
         States of each filter of the table.
-    dynamics : int
-        Sets of navigation options among the truth and the filters (each filter's set is built in the
-        process that runs it).
+    option_sets : int
+        Sets of navigation options among the truth and the filters (a chunk's F, G and transition are built
+        once per set, in the process that runs its filters).
     events : int, optional
         ZUPTs and report times (default every step); the chunk boundaries are added.
     whole : bool
         The study holds the truth's and the filters' systems over the whole grid (sliced, not made).
+    beside : float
+        Bytes of this process's own chunk of the propagation's stream, which its impact share follows
+        and does not overlap (streamed layout): its impact chunk counts only beyond it.
 
     Returns
     -------
     dict
         Per chunk (:data:`~covtool.studies.resources.STREAM_CHUNK` steps): F and G under each set of options
-        and its transition (each in one of the processes), and in each process the gathers of Φ and F on a
-        filter's kept states and on (kept ∪ the largest block) and the per-source series workspace
-        (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`); streamed, also the truth's Φ, Q_d, F, Q_c and G
-        and the filters' own Φ_f, Q_f (the noise check) in each process.  Over the event grid: the truth's
-        composed system and, per filter of ``m`` states, every noise component (one for the kept states
-        and two per dropped block on them, ``m²``; one per dropped block on the kept states and the
-        largest block).
+        and its transition (streamed, also its Q_c), each in one process; in each process the gathers of Φ
+        and F on a filter's kept states and on (kept ∪ the largest block) and, streamed, the truth's Φ, Q_d,
+        F, Q_c and G and the filters' own F_f, Q_c,f, Φ_f, Q_f (the noise check).  In each process, the per-source series workspace
+        (:data:`covtool.lincov.noise.COMPOSE_WORKSPACE`).  Over the event grid: the truth's composed system
+        and, per filter of ``m`` states, every noise component (one for the kept states and two per dropped
+        block on them, ``m²``; one per dropped block on the kept states and the largest block).
     """
     from covtool.lincov.noise import COMPOSE_WORKSPACE
     from covtool.studies.resources import STREAM_CHUNK
@@ -1080,10 +1100,14 @@ def impact_stream_memory(steps: int, truth: Model, filters, dynamics: int, event
     comp = sum((1 + 2 * nb) * m * m + nb * min(n, m + big) ** 2 for m, nb in zip(filters, blocks)) * K
     m = max(filters, default=0)
     u = min(n, m + big)
-    chunk = dynamics * (2 * n * n + n * c) * L + 2 * 2 * L * (m * m + u * u)
-    if not whole:
-        chunk += 2 * (4 * n * n + n * c) * L + dynamics * n * n * L + 2 * 4 * L * m * m
-    return {"impact: one chunk of F, G, transitions and gathers (2 processes)": chunk * 8,
+    sets = max(1, int(option_sets))
+    # each set of options is built in the process that runs its filters: once over both processes
+    per_set = sets * ((2 * n * n + n * c) + (0 if whole else n * n)) * L
+    per_process = 2 * L * (m * m + u * u) + (0 if whole else (4 * n * n + n * c) * L + 4 * L * m * m)
+    return {"impact: one chunk of each set of options": per_set * 8,
+            "impact: one chunk's gathers in the forked process": per_process * 8,
+            "impact: one chunk's gathers in this process (beyond its stream's)":
+                max(0.0, per_process * 8 - float(beside)),
             "impact: per-source series workspace (2 processes)": 2 * COMPOSE_WORKSPACE,
             "impact: composed noise components and truth": (comp + 2 * K * n * n) * 8}
 

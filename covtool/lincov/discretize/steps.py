@@ -9,7 +9,6 @@ check (correlation scaling) of every exact ``Q_d`` of Van Loan's integral
 from __future__ import annotations
 
 import re
-
 from dataclasses import dataclass
 
 import numpy as np
