@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import sys
 
-__all__ = ["progress_bar", "progress_iter", "wanted", "DELAY"]
+__all__ = ["progress_bar", "progress_iter", "wanted", "NoBar", "DELAY"]
 
 #: seconds before a bar appears: work shorter than this shows nothing
 DELAY = 1.0
@@ -62,15 +62,45 @@ def progress_bar(total: int, desc: str, enabled: bool, *, unit: str = "step", in
 
     Returns
     -------
-    tqdm.tqdm
+    tqdm.tqdm or NoBar
+        A tqdm bar, or (``enabled`` false) a :class:`NoBar` that draws nothing.
         Use as a context manager; ``update(n)`` after each piece.
     """
+    if not enabled:
+        # nothing to draw: tqdm's import (60-90 ms, its version lookup through importlib.metadata) is not paid
+        return NoBar(total, initial)
     from tqdm.auto import tqdm
 
     # no monitor thread: a process with a thread alive does not fork (covtool.forked.can_split)
     tqdm.monitor_interval = 0
     return tqdm(total=total, initial=initial, desc=desc, disable=not enabled, delay=DELAY, leave=False,
                 unit=unit, file=sys.stderr, smoothing=0.1, dynamic_ncols=True)
+
+
+class NoBar:
+    """A progress bar that draws nothing (:func:`progress_bar` when bars are not wanted).
+
+    It counts as a tqdm bar does (``n``, ``total``, ``disable`` is True) and
+    is a context manager.
+    """
+
+    disable = True
+
+    def __init__(self, total: int, initial: int = 0):
+        self.total, self.n = total, initial
+
+    def update(self, n: int = 1) -> None:
+        """Count ``n`` more units done."""
+        self.n += n
+
+    def close(self) -> None:
+        """Nothing to close."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
 
 
 def progress_iter(iterable, desc: str, enabled: bool, *, unit: str = "step"):
