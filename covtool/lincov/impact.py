@@ -445,9 +445,12 @@ def check_members(P: np.ndarray, q: np.ndarray, t: np.ndarray, labels) -> None:
         Naming the member and the time.
     """
     from covtool.lincov.dynamics import physical_nav
-    from covtool.lincov.kalman import check_covariance
+    from covtool.lincov.guard import covariance_status
 
-    for b, lab in enumerate(labels):
-        Pp = physical_nav(P[b], q)
-        for k in range(Pp.shape[0]):
-            check_covariance(Pp[k], f"{lab}: t = {t[k]:g} s")
+    # every member and record in one batched test (the test of each matrix on its own, as
+    # check_covariance makes it); the first failure in member order, then time, is reported
+    st = covariance_status(physical_nav(P, q))
+    if st.ok.all():
+        return
+    b, k = np.unravel_index(int(np.flatnonzero(~st.ok.ravel())[0]), st.code.shape)
+    raise NumericalError(f"{labels[b]}: t = {t[k]:g} s: {st.problem((b, k))}")
