@@ -132,6 +132,30 @@ def test_combined_noise_supports_only_member_slices():
         cn[0]
 
 
+def test_combined_noise_is_the_weighted_sum_of_embedded_components():
+    """Components on different state sets, weighed per member: Σ_c coef[b, c] · embed(Q_c[i]), against the
+    embedding written out matrix by matrix; a component no member weighs is left out (its NaN does not
+    reach any member)."""
+    rng = np.random.default_rng(3)
+    n, K = 7, 4
+    sets = [np.array([0, 2, 3]), np.array([1, 2, 5, 6]), np.array([0, 2, 3])]
+    comps = []
+    for ix in sets:
+        A = rng.standard_normal((K, ix.size, ix.size))
+        comps.append((A @ np.swapaxes(A, 1, 2), ix))
+    comps.append((np.full((K, 2, 2), np.nan), np.array([4, 5])))          # weighed by no member
+    coef = rng.standard_normal((3, len(comps)))
+    coef[:, -1] = 0.0
+    coef[1, 0] = 0.0
+    cn = CombinedNoise(comps, coef, n)
+    for i in range(K):
+        want = np.zeros((3, n, n))
+        for b in range(3):
+            for c, (Q, ix) in enumerate(comps[:-1]):
+                want[b][np.ix_(ix, ix)] += coef[b, c] * Q[i]
+        np.testing.assert_allclose(cn[:, i], want, rtol=1e-13, atol=1e-13)
+
+
 def test_equivalent_noise_sheet_reports_navigation_errors(S):
     """Issue 11 item 2: each dropped state's noise in the errors it drives, against an
     independent composition (covtool.lincov.noise.compose_noise, exact per-step Q_d) of that

@@ -249,16 +249,24 @@ class CombinedNoise:
         self.coef = np.asarray(coef, float)
         K = components[0][0].shape[0] if components else 0
         self.shape = (self.coef.shape[0], K, n, n)
+        # the components some member weighs, grouped by the states they live on: each group's weighted
+        # sum is one product (B, c) @ (c, m²) and one scatter into the embedding, not c scatters
+        groups: dict[tuple, list[int]] = {}
+        for c, (_Q, ix) in enumerate(components):
+            if np.any(self.coef[:, c] != 0):
+                groups.setdefault(tuple(np.asarray(ix).tolist()), []).append(c)
+        self._groups = [(np.asarray(components[cs[0]][1]), cs, np.ascontiguousarray(self.coef[:, cs]))
+                        for cs in groups.values()]
 
     def __getitem__(self, key):
         if not (isinstance(key, tuple) and len(key) == 2 and key[0] == slice(None)):
             raise IndexError("CombinedNoise supports Q[:, i] only")
         i = key[1]
         out = np.zeros((self.shape[0],) + self.shape[2:])
-        for c, (Q, ix) in enumerate(self.components):
-            w = self.coef[:, c]
-            if np.any(w != 0):
-                out[:, ix[:, None], ix[None, :]] += w[:, None, None] * Q[i][None]
+        for ix, cs, w in self._groups:
+            m = ix.size
+            Qi = np.stack([self.components[c][0][i] for c in cs]).reshape(len(cs), m * m)
+            out[:, ix[:, None], ix[None, :]] += (w @ Qi).reshape(-1, m, m)
         return out
 
 
