@@ -445,3 +445,9 @@ def test_a_non_finite_transition_under_the_filters_options_names_the_impact_the_
     with pytest.raises(NumericalError, match=r"zupt_filter_order.toml: impact: filter D: truth Φ under its "
                                              r"navigation options: step 640 \(t = 640 s, Δt = 1 s\)"):
         impact_run(fresh, "D", [N])
+    # C and D share that transition (B3's options): the message names both
+    from covtool.lincov.impact import impact_runs
+    both = setup(tomllib.loads(tomli_w_dumps(S)), path=FLAGSHIP)
+    with pytest.raises(NumericalError, match=r"zupt_filter_order.toml: impact: filters C, D: truth Φ under their "
+                                             r"navigation options: step 640 \(t = 640 s, Δt = 1 s\)"):
+        impact_runs(both, ["C", "D"], [N])

@@ -391,9 +391,12 @@ def impact_runs(S, names, record_steps, *, own_systems: bool = True) -> list[Imp
                 Phi_pad, Phi_c = Phi_t, tpart.Phi
             else:
                 if okey not in transitions:
+                    # one transition serves every filter of these options: the message names them all
+                    share = [p.name for p in plans if dyn_key(p.spec.options) == okey]
+                    whose = f"filter {share[0]}: truth Φ under its" if len(share) == 1 else \
+                        f"filters {', '.join(share)}: truth Φ under their"
                     transitions[okey] = _transition(dyn.F, dt[a:b], times=S.t[a:b], first=a,
-                                                    what=f"{S.where}: impact: filter {plan.name}: truth Φ under "
-                                                         f"its navigation options")
+                                                    what=f"{S.where}: impact: {whose} navigation options")
                 Phi_pad, Phi_c = transitions[okey], None
             # the filter's own Φ_f, Q_f for its noise check (twins share them)
             key = system_key(plan.spec)

@@ -224,7 +224,7 @@ def run(decl: dict, *, path=None, progress: bool = False, config=None) -> Magnit
                 fac.append(restricted_noise(f"ewn {src.name}", [src.steps(a, b)], np.arange(len(kidx))))
                 coef_idx.append(ix[src.name])
             seen = []
-            Phi_f, _ = S._discretise_filter(name, dyn, a, b, on_chunk=lambda a_, F_f, Qc_f: seen.append(F_f))
+            Phi_f, _ = S.filter_chunk(name, a, b, dyn_of, on_chunk=lambda a_, F_f, Qc_f: seen.append(F_f))
             acc[name][0].append(coef_idx)
             acc[name][1].append(compose_noise(Phi_f, seen[0], fac, dt[a:b], cev - a))
             acc[name][2].append(compose_transition(Phi_f, cev - a))

@@ -514,12 +514,13 @@ class ZuptSetup:
             return self._Phi[a:b], self._Qd[a:b]
         return self._discretise_truth(dyn_of(None), a, b)
 
-    def filter_chunk(self, name: str, a: int, b: int, dyn_of, *, make: bool = True):
+    def filter_chunk(self, name: str, a: int, b: int, dyn_of, *, make: bool = True, on_chunk=None):
         """Filter ``name``'s own Φ_f, Q_f of the steps ``a … b−1``, shape (b − a, n_f, n_f), or None.
 
         Sliced from the whole-grid system if built (:meth:`filter_system`), else made from the chunk's
         truth dynamics under the filter's options (``dyn_of``, :meth:`chunk_dynamics`) and guarded, or,
-        with ``make`` False, None.
+        with ``make`` False, None.  ``on_chunk(a, F_f, Q_cf)``, if given, sees the chunk's F_f and Q_c,f
+        (seed 002 eq (11)–(13)) the system is made from (the whole grid's slices where it is held).
 
         Raises
         ------
@@ -529,10 +530,13 @@ class ZuptSetup:
         """
         whole = self._filters.get((name, None))
         if whole is not None:
+            if on_chunk is not None:
+                on_chunk(a, whole[0].F[a:b], whole[0].Qc[a:b])
             return whole[1][a:b], whole[2][a:b]
         if not make:
             return None
-        return self._discretise_filter(name, dyn_of(self.filter_stream(name)[0].spec.options), a, b)
+        return self._discretise_filter(name, dyn_of(self.filter_stream(name)[0].spec.options), a, b,
+                                       on_chunk=on_chunk)
 
     def truth_transition_serves(self, options) -> bool:
         """Whether the truth's own Φ is e^{FΔt} of the filters' model under ``options``.
