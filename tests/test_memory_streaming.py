@@ -181,7 +181,7 @@ def test_stream_keeps_the_filters_transitions_for_the_equivalent_noise_table(bud
     made = []
     discretise = zs.ZuptSetup._discretise_filter
     monkeypatch.setattr(zs.ZuptSetup, "_discretise_filter",
-                        lambda self, name, dyn, a, b: made.append((name, a)) or discretise(self, name, dyn, a, b))
+                        lambda self, name, dyn, a, b, **kw: made.append((name, a)) or discretise(self, name, dyn, a, b, **kw))
     streamed = covtool.run_study(_decl("11 min", ("A", "B1", "C")))
     whole = covtool.run_study(_decl("11 min", ("A", "B1", "C"), impact=("C",)))
     a, b = streamed.tables["equivalent_noise"], whole.tables["equivalent_noise"]
