@@ -434,11 +434,6 @@ def make_backend(backend=None, *, workers: int | None = None, scheduler: str | N
     raise InputError("backend", f"unknown backend {backend!r} (one of: serial, processes, dask)")
 
 
-def _normalise(result):
-    """The JSON round trip of ``result`` (floats keep every bit)."""
-    return json.loads(json.dumps(result))
-
-
 class _Timed:
     """Picklable wrapper: ``fn(item)`` and its wall time."""
 
@@ -522,9 +517,10 @@ def run_chunks(fn: Callable[[Any], Any], items: Sequence, keys: Sequence[str], c
             try:
                 for j, (res, secs) in backend.imap_unordered(_Timed(fn), [items[i] for i in todo]):
                     i = todo[j]
-                    res = _normalise(res)
+                    text = json.dumps(res)                   # the JSON round trip (floats keep every bit)
+                    res = json.loads(text)
                     if store is not None:
-                        store.save(keys[i], list(cases[i]), res, seconds=round(secs, 3))
+                        store.save(keys[i], list(cases[i]), res, seconds=round(secs, 3), result_json=text)
                     results[i] = res
                     bar.update(len(cases[i]))
             except BaseException:

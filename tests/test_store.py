@@ -52,6 +52,30 @@ def _resume(path, manifest=PLAN):
     return res, stats, notes, st
 
 
+def _ordered(x):
+    """A result whose member order and non-finite floats must survive the store."""
+    return {"z": [x, float("nan"), float("inf")], "a": {"2": x / 3.0, "10": -x}, "m": 0.1 + x}
+
+
+def test_a_stored_result_reads_back_as_the_fresh_one_key_order_and_every_bit():
+    """The chunk file holds the caller's own JSON of the result (written once, not serialised again): a resume
+    returns what the run returned, member order, NaN, inf and every float bit, and verifies its hash."""
+    import tempfile
+    from pathlib import Path as P
+
+    with tempfile.TemporaryDirectory() as tmp:
+        d = P(tmp) / "st"
+        with ResultStore(d, PLAN, report=lambda m: None) as st:
+            fresh, _ = run_chunks(_ordered, ITEMS, KEYS, CASES, store=st)
+        notes = []
+        with ResultStore(d, PLAN, resume=True, report=notes.append) as st:
+            again, stats = run_chunks(_ordered, ITEMS, KEYS, CASES, store=st)
+        assert stats["computed"] == 0 and stats["reused"] == 3 and stats["rejected"] == 0
+        assert json.dumps(again) == json.dumps(fresh)
+        assert [list(r) for r in again] == [["z", "a", "m"]] * 3 and list(again[1]["a"]) == ["2", "10"]
+        assert again[2]["m"] == 0.1 + 3.0 and again[0]["z"][2] == float("inf")
+
+
 # --------------------------------------------------------------------------
 # damaged chunks: each detected, reported in one line, moved away, recomputed
 # --------------------------------------------------------------------------

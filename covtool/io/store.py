@@ -391,13 +391,24 @@ class ResultStore:
         finally:
             os.close(fd)
 
-    def save(self, key: str, cases: list, result, *, seconds: float | None = None) -> None:
-        """Store a finished chunk atomically, then journal it."""
+    def save(self, key: str, cases: list, result, *, seconds: float | None = None,
+             result_json: str | None = None) -> None:
+        """Store a finished chunk atomically, then journal it.
+
+        ``result_json``, if given, is ``json.dumps(result)`` already made (the
+        caller's JSON round trip): it is written as it is, not serialised again.
+        """
         computed = {"run": self.run_id, "host": socket.gethostname(), "time": utc_now(), "seconds": seconds}
         rec = {"format": CHUNK_FORMAT, "plan": self.fingerprint, "key": key, "cases": list(cases), "result": result,
                "computed": computed}
         rec["sha256"] = _record_hash(rec)
-        _write_durable(self.path(key), json.dumps(rec, allow_nan=True))
+        if result_json is None:
+            text = json.dumps(rec, allow_nan=True)
+        else:
+            # the record without its result, then the result's own text as its last member (the same record read back)
+            head = json.dumps({k: v for k, v in rec.items() if k != "result"}, allow_nan=True)
+            text = f'{head[:-1]}, "result": {result_json}}}'
+        _write_durable(self.path(key), text)
         self._append({"event": "stored", "key": key, "cases": list(cases), "sha256": rec["sha256"],
                       "run": self.run_id, "time": computed["time"], "seconds": seconds})
 
