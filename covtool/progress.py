@@ -73,15 +73,15 @@ def progress_bar(total: int, desc: str, enabled: bool, *, unit: str = "step", in
 
     # no monitor thread: a process with a thread alive does not fork (covtool.forked.can_split)
     tqdm.monitor_interval = 0
-    return tqdm(total=total, initial=initial, desc=desc, disable=not enabled, delay=DELAY, leave=False,
+    return tqdm(total=total, initial=initial, desc=desc, disable=False, delay=DELAY, leave=False,
                 unit=unit, file=sys.stderr, smoothing=0.1, dynamic_ncols=True)
 
 
 class NoBar:
     """A progress bar that draws nothing (:func:`progress_bar` when bars are not wanted).
 
-    It counts as a tqdm bar does (``n``, ``total``, ``disable`` is True) and
-    is a context manager.
+    It counts as a shown tqdm bar does (``n``, ``total``; ``disable`` is
+    True) and is a context manager.
     """
 
     disable = True

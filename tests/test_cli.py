@@ -443,9 +443,12 @@ def test_a_bar_not_shown_counts_and_does_not_import_tqdm():
     # a run without bars (--quiet, or stderr not a terminal) pays no tqdm import (60-90 ms)
     code = ("import sys\nfrom covtool.progress import progress_bar\n"
             "with progress_bar(5, 'x', False, initial=1) as bar:\n    bar.update(3)\n"
-            "print(bar.n, bar.total, bar.disable, 'tqdm' in sys.modules)")
+            "print(bar.n, bar.total, bar.disable, 'tqdm' in sys.modules)\n"
+            "from covtool.parallel import SerialBackend, run_chunks\n"
+            "res, _ = run_chunks(lambda x: {'v': x}, [1, 2], ['a', 'b'], [['a'], ['b']], backend=SerialBackend())\n"
+            "print(res == [{'v': 1}, {'v': 2}], 'tqdm' in sys.modules)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
-    assert out == ["4", "5", "True", "False"]
+    assert out == ["4", "5", "True", "False", "True", "False"]
 
 
 def test_run_prints_a_summary_that_fits(tmp_path, capsys):

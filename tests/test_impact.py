@@ -132,6 +132,12 @@ def test_combined_noise_supports_only_member_slices():
         cn[0]
 
 
+def _embed(Q, ix, n):
+    out = np.zeros((n, n))
+    out[np.ix_(ix, ix)] = Q
+    return out
+
+
 def test_combined_noise_is_the_weighted_sum_of_embedded_components():
     """Components on different state sets, weighed per member: Σ_c coef[b, c] · embed(Q_c[i]), against the
     embedding written out matrix by matrix; a component no member weighs is left out (its NaN does not
@@ -154,6 +160,14 @@ def test_combined_noise_is_the_weighted_sum_of_embedded_components():
             for c, (Q, ix) in enumerate(comps[:-1]):
                 want[b][np.ix_(ix, ix)] += coef[b, c] * Q[i]
         np.testing.assert_allclose(cn[:, i], want, rtol=1e-13, atol=1e-13)
+    # the same states in another order form their own group; a component on no state adds nothing
+    perm = np.array([3, 0, 2])                              # comps[0]'s states (0, 2, 3) in another order
+    Qp = comps[0][0][:, [2, 0, 1]][:, :, [2, 0, 1]]         # its matrix on that order: the same embedding
+    two = CombinedNoise([comps[0], (Qp, perm), (np.zeros((K, 0, 0)), np.zeros(0, int))],
+                        np.array([[1.0, 2.0, 5.0]]), n)
+    for i in range(K):
+        np.testing.assert_allclose(two[:, i][0], 3.0 * _embed(comps[0][0][i], comps[0][1], n), rtol=1e-13,
+                                   atol=1e-13)
 
 
 def test_equivalent_noise_sheet_reports_navigation_errors(S):
@@ -195,6 +209,21 @@ def test_member_covariances_are_checked():
     P[0, 0, 3, 3] = np.nan
     with pytest.raises(NumericalError, match=r"impact: filter X: nominal: t = 60 s: covariance has a non-finite entry"):
         check_members(P, np.array([[1.0, 0, 0, 0]]), np.array([60.0]), ["impact: filter X: nominal"])
+    # several members and records: the first bad matrix in member order, then time, is the one named
+    P = np.broadcast_to(np.eye(10), (3, 5, 10, 10)).copy()
+    P[2, 0, 4, 4] = -1.0                                   # member 2, first record: a negative variance
+    P[1, 3, 0, 1] = 0.5                                    # member 1, fourth record: asymmetric
+    q, t = np.tile([1.0, 0, 0, 0], (5, 1)), 60.0 * np.arange(5)
+    labels = ["impact: filter X: nominal", "impact: filter X: gyro put back", "impact: filter X: acc only"]
+    with pytest.raises(NumericalError, match=r"impact: filter X: gyro put back: t = 180 s: covariance lost "
+                                             r"symmetry"):
+        check_members(P, q, t, labels)
+    P[1, 3] = np.eye(10)
+    with pytest.raises(NumericalError, match=r"impact: filter X: acc only: t = 0 s: covariance has a negative "
+                                             r"variance"):
+        check_members(P, q, t, labels)
+    with pytest.raises(ValueError, match=r"check_members: 2 labels for 3 members"):
+        check_members(P, q, t, labels[:2])
 
 
 def test_filters_of_one_option_set_share_compositions_without_changing_the_table(S):
@@ -424,6 +453,29 @@ def test_impact_table_refuses_runs_of_other_filters(S):
         impact_table(S, ["D", "B1"], {}, runs=runs)
 
 
+def test_filter_chunk_hands_over_the_dynamics_its_system_is_made_from(S):
+    """ZuptSetup.filter_chunk's on_chunk sees the chunk's F_f, Q_c,f: the whole grid's slices where the study
+    holds the filter's system (and its Φ_f is their discretisation), the same arrays where it is made per chunk."""
+    from covtool.lincov.discretize import discretize
+    from covtool.studies.zupt_setup import setup
+
+    a, b = 0, 600
+    fm, Phi_f, _, _ = S.filter_system("B1")
+    seen = []
+    Phi, _ = S.filter_chunk("B1", a, b, S.chunk_dynamics(a, b), on_chunk=lambda *x: seen.append(x))
+    (a_, F, Qc), = seen
+    assert a_ == a and np.array_equal(F, fm.F[a:b]) and np.array_equal(Qc, fm.Qc[a:b])
+    np.testing.assert_array_equal(Phi, Phi_f[a:b])
+    again, _ = discretize(F, Qc, np.diff(S.t)[a:b], fm.spec.discretization, fm.spec.taylor_order)
+    np.testing.assert_allclose(again, Phi, rtol=0, atol=1e-12)
+    fresh = setup(tomllib.loads(tomli_w_dumps(S)), path=FLAGSHIP)          # nothing held: made from the chunk
+    made = []
+    Phi2, _ = fresh.filter_chunk("B1", a, b, fresh.chunk_dynamics(a, b), on_chunk=lambda *x: made.append(x))
+    np.testing.assert_array_equal(made[0][1], F)
+    np.testing.assert_array_equal(made[0][2], Qc)
+    np.testing.assert_allclose(Phi2, Phi, rtol=0, atol=1e-12)
+
+
 def test_a_non_finite_transition_under_the_filters_options_names_the_impact_the_filter_and_the_step(S, monkeypatch):
     """A NaN in the truth's F under D's options at grid step 640 (t = 640 s, in the second chunk): the impact's
     transition refuses it in one line naming the study, the impact, the filter, the grid step and its time."""
@@ -450,4 +502,4 @@ def test_a_non_finite_transition_under_the_filters_options_names_the_impact_the_
     both = setup(tomllib.loads(tomli_w_dumps(S)), path=FLAGSHIP)
     with pytest.raises(NumericalError, match=r"zupt_filter_order.toml: impact: filters C, D: truth Φ under their "
                                              r"navigation options: step 640 \(t = 640 s, Δt = 1 s\)"):
-        impact_runs(both, ["C", "D"], [N])
+        impact_runs(both, ["B1", "C", "D"], [N])          # B1 (the truth's own options) takes the truth's Φ

@@ -347,8 +347,8 @@ def impact_runs(S, names, record_steps, *, own_systems: bool = True) -> list[Imp
         PSD; :meth:`~covtool.studies.zupt_setup.ZuptSetup.truth_chunk`,
         :meth:`~covtool.studies.zupt_setup.ZuptSetup.filter_chunk`); the
         truth's Φ under a filter's navigation options is not (naming the
-        study, the first filter of those options, the grid step and its
-        time); or a member's recorded covariance is not (naming the filter,
+        study, every filter of this process with those options, the grid
+        step and its time); or a member's recorded covariance is not (naming the filter,
         the member and the time).
 
     Notes
@@ -446,13 +446,18 @@ def check_members(P: np.ndarray, q: np.ndarray, t: np.ndarray, labels) -> None:
     ------
     covtool.errors.NumericalError
         Naming the member and the time.
+    ValueError
+        ``labels`` does not name every member.
     """
     from covtool.lincov.dynamics import physical_nav
-    from covtool.lincov.guard import covariance_status
+    from covtool.lincov.guard import covariance_status, scale_groups
 
     # every member and record in one batched test (the test of each matrix on its own, as
     # check_covariance makes it); the first failure in member order, then time, is reported
-    st = covariance_status(physical_nav(P, q))
+    if len(labels) != P.shape[0]:
+        raise ValueError(f"check_members: {len(labels)} labels for {P.shape[0]} members")
+    Pp = physical_nav(P, q)
+    st = covariance_status(Pp, groups=scale_groups(None, Pp.shape[-1]))
     if st.ok.all():
         return
     b, k = np.unravel_index(int(np.flatnonzero(~st.ok.ravel())[0]), st.code.shape)

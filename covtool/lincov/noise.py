@@ -242,6 +242,11 @@ class CombinedNoise:
     coef : ndarray, shape (B, n_components)
     n : int
         Dimension of the embedding space.
+
+    Notes
+    -----
+    ``coef`` is read once, here: the components are grouped by the states
+    they live on and each group's weighted sum is one product.
     """
 
     def __init__(self, components, coef, n):
@@ -266,7 +271,7 @@ class CombinedNoise:
         for ix, cs, w in self._groups:
             m = ix.size
             Qi = np.stack([self.components[c][0][i] for c in cs]).reshape(len(cs), m * m)
-            out[:, ix[:, None], ix[None, :]] += (w @ Qi).reshape(-1, m, m)
+            out[:, ix[:, None], ix[None, :]] += (w @ Qi).reshape(w.shape[0], m, m)
         return out
 
 
