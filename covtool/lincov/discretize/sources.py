@@ -92,40 +92,53 @@ def _per_source(F, G, psd, dt, what, times, groups=None):
     B, _, nu = _balanced(F, Qc0, d)
     s, h = scaling(nu, dt)
     hw = h[:, None, None]
-    Y = G / d[None, :, None]
-    terms = [Y]
+    k = G.shape[2]
+    # The terms Ŷ_a and their Hilbert-weighted sums are written in place into two buffers of
+    # MAX_TERMS rows, the rows never reached never touched: on these small stacks a fresh
+    # (N, n, k) array per term and fresh (m, N, n, k) stacks per pass cost more (in page faults
+    # of new memory) than their arithmetic.  The arithmetic is unchanged.
+    Zbuf = np.empty((MAX_TERMS, N, n, k))
+    ZHbuf = np.empty_like(Zbuf)
+    Y = np.divide(G, d[None, :, None], out=Zbuf[0])
+    m = 1                                                # terms in Zbuf[:m]
     c0 = np.sqrt(np.einsum("kip,kip->kp", Y, Y))       # (N, k) column norms
+    last = c0                                            # column norms of Zbuf[m - 1]
     a = (nu * h)[:, None]
     rch = reach(B, Y != 0)                               # (N, n, k)
     eps = UNIT_ROUNDOFF * c0                             # first pass: relative to ‖Ŷ_0‖
 
     def extend(eps):
-        while len(terms) < MAX_TERMS:
-            i = len(terms) - 1
+        nonlocal m, last
+        while m < MAX_TERMS:
+            i = m - 1
             r = a / (i + 1)
             with np.errstate(divide="ignore", invalid="ignore"):
-                tail = np.sqrt(np.einsum("kip,kip->kp", terms[-1], terms[-1])) * r / (1.0 - r)
+                tail = last * r / (1.0 - r)
             done = np.all((r < 1.0) & (tail <= eps), axis=1)
             if done.all():
                 return done
-            terms.append((B @ terms[-1]) * (hw / (i + 1)))
+            T = np.matmul(B, Zbuf[i], out=Zbuf[m])
+            T *= hw / (i + 1)
+            m += 1
+            last = np.sqrt(np.einsum("kip,kip->kp", T, T))
         return done
 
     def weighted():
-        m = len(terms)
-        Z = np.array(terms)                                 # (m, N, n, k): one GEMM with the Hilbert matrix
-        ZH = (_hilbert(m) @ Z.reshape(m, -1)).reshape(Z.shape)
+        Z, ZH = Zbuf[:m], ZHbuf[:m]                         # (m, N, n, k): one GEMM with the Hilbert matrix
+        np.matmul(_hilbert(m), Z.reshape(m, -1), out=ZH.reshape(m, -1))
         ZH *= (psd * h[:, None])[None, :, None, :]
         return Z, ZH
 
     def assemble(Z, ZH):
         # Q_j = Σ_{p ∈ j} w_p Z_p H Z_pᵀ: one (n, m·|j|) × (m·|j|, n) product per group (column) and step
-        k = G.shape[2]
         bounds = np.r_[np.arange(k) if groups is None else np.asarray(groups, int), k]
         Q = np.empty((N, len(bounds) - 1, n, n))
         m = Z.shape[0]
-        Zt = np.ascontiguousarray(Z.transpose(1, 2, 3, 0))     # (N, n, k, m): a group's columns are one view
-        ZHt = np.ascontiguousarray(ZH.transpose(1, 2, 3, 0))
+        # (N, n, k, m): a group's columns are one view.  Zt is always a copy (ascontiguousarray would
+        # return Z itself when the transpose is contiguous), so that ZHt can take Z's memory
+        Zt = Z.transpose(1, 2, 3, 0).copy()
+        ZHt = Z.reshape(N, n, k, m)                             # Z's memory, free once copied: no new memory
+        np.copyto(ZHt, ZH.transpose(1, 2, 3, 0))
         for j, (a0, b0) in enumerate(zip(bounds[:-1], bounds[1:])):
             A = ZHt[:, :, a0:b0].reshape(N, n, (b0 - a0) * m)
             Bz = Zt[:, :, a0:b0].reshape(N, n, (b0 - a0) * m)
@@ -137,9 +150,9 @@ def _per_source(F, G, psd, dt, what, times, groups=None):
     for _ in range(3):
         done = extend(eps)
         _not_converged(done, what, dt, times, nu, h)
-        if len(terms) == m_done:                            # no new term: the same Q_d, converged
+        if m == m_done:                                     # no new term: the same Q_d, converged
             break
-        m_done = len(terms)
+        m_done = m
         Z, ZH = weighted()
         dg = np.einsum("akip,akip->kpi", ZH, Z)             # diagonal of each column's Q_d
         # correlation scaling: ‖δ(s)‖ ≤ tail on [0, h] gives |ΔQ_ij| ≤ tail √(wh) (√Q_ii + √Q_jj) + …

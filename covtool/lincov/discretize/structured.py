@@ -47,6 +47,14 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
     with ``TA' = A TA``, ``TM' = A TM + M diag(TD)``, ``TD' = d TD`` (times
     ``h/i``) and ``CA' = (A CA + M CXᵀ) + (·)ᵀ``, ``CX' = A CX + M CS + CX D``,
     ``CS' = 2 d CS``.  Same stopping rule, with the norms taken by blocks.
+
+    The rule is evaluated in stages, cheapest bound first: each stage is a
+    maximum over some of the blocks, so it is a lower bound of the full
+    norm and a step that fails it fails the rule.  The later stages are
+    taken only while some step may still pass, which spares the Q_d test
+    (the larger part of the cost) over the first terms, where nothing
+    converges; the decisions, hence the terms and the sums, are the same
+    as with the full test on every term.
     """
     N, k, _ = A.shape
     m = dd.shape[1]
@@ -55,10 +63,10 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
     TM = np.zeros((N, k, m))
     TD = np.ones((N, m))
     CA, CX, CS = QA.copy(), np.zeros((N, k, m)), q.copy()
-    # the sums start from the i = 1 terms: Φ − I (see _square)
-    out = [np.zeros((N, k, k)), TM.copy(), np.zeros((N, m)), np.zeros((N, k, k)), np.zeros((N, k, m)),
-           np.zeros((N, m))]
-    work = [x.copy() for x in out]
+    # the sums start from the i = 1 terms: Φ − I (see _square); every row of `out` is
+    # written, at its step's stopping term or at the end
+    work = [np.zeros(s) for s in ((N, k, k), (N, k, m), (N, m), (N, k, k), (N, k, m), (N, m))]
+    out = [np.empty_like(x) for x in work]
     coef = hw.copy()
     a = nu * h
     phi_floor = UNIT_ROUNDOFF * (2.0 - np.exp(np.minimum(a, 1.0)))
@@ -70,8 +78,12 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
     noise = bool(np.any(QA) or np.any(q))
     for i in range(1, MAX_TERMS):
         f = hw / i
-        TM = (Aw @ TM + Mw * TD[:, None, :]) * f
-        TA = (Aw @ TA) * f
+        # in place on the fresh products: the same operations, fewer temporaries
+        TM = Aw @ TM
+        TM += Mw * TD[:, None, :]
+        TM *= f
+        TA = Aw @ TA
+        TA *= f
         TD = TD * dw * f[:, :, 0]
         for x, y in zip(work[:3], (TA, TM, TD)):
             x += y
@@ -79,29 +91,29 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
             QtA, QtX, QtS = CA * coef, CX * coef, CS * coef[:, :, 0]
             for x, y in zip(work[3:], (QtA, QtX, QtS)):
                 x += y
-            AC = Aw @ CA + Mw @ np.swapaxes(CX, 1, 2)
-            CX = Aw @ CX + Mw * CS[:, None, :] + CX * dw[:, None, :]
+            AC = Aw @ CA
+            AC += Mw @ np.swapaxes(CX, 1, 2)
+            CXn = Aw @ CX
+            CXn += Mw * CS[:, None, :]
+            CXn += CX * dw[:, None, :]
+            CX = CXn
             CA = AC + np.swapaxes(AC, 1, 2)
             CS = 2.0 * dw * CS
         coef = coef * hw / (i + 1)
         ai = a[idx]
         rp, rq = ai / (i + 1), 2.0 * ai / (i + 1)
-        col = np.maximum(np.einsum("kij,kij->kj", TA, TA).max(axis=1),
-                         (np.einsum("kij,kij->kj", TM, TM) + TD**2).max(axis=1, initial=0.0))
         with np.errstate(divide="ignore", invalid="ignore"):
             # the rule on rq < 1 is kept without noise: the same terms, the same Φ
-            ok = (rq < 1.0) & (np.sqrt(col) * rp / (1.0 - rp) <= phi_floor[idx])
-        if noise:
-            dg = np.concatenate([np.einsum("kii->ki", work[3]), work[5]], axis=1)
-            rc = rch[idx]
-            started = np.all(~rc | (dg > 0), axis=1)
-            sd = np.sqrt(np.where(rc, np.maximum(dg, 1e-32 * dg.sum(axis=1, keepdims=True)), 1.0))
-            sa, ss = sd[:, :k], sd[:, k:]
-            X = np.maximum((np.abs(QtA) / sa[:, :, None] / sa[:, None, :]).max(axis=(1, 2)),
-                           (np.abs(QtX) / sa[:, :, None] / ss[:, None, :]).max(axis=(1, 2), initial=0.0))
-            X = np.maximum(X, (np.abs(QtS) / ss**2).max(axis=1, initial=0.0))
-            with np.errstate(divide="ignore", invalid="ignore"):
-                ok &= started & (X * rq / (1.0 - rq) <= UNIT_ROUNDOFF)
+            ok = rq < 1.0
+            floor = phi_floor[idx]
+            # Φ: the columns of [TA; 0] first, then those of [TM; diag(TD)]
+            col = np.einsum("kij,kij->kj", TA, TA).max(axis=1)
+            ok &= np.sqrt(col) * rp / (1.0 - rp) <= floor
+            if ok.any():
+                col = np.maximum(col, (np.einsum("kij,kij->kj", TM, TM) + TD**2).max(axis=1, initial=0.0))
+                ok &= np.sqrt(col) * rp / (1.0 - rp) <= floor
+            if noise and ok.any():
+                ok &= _block_q_tail_ok(work[3], work[5], QtA, QtX, QtS, rch[idx], rq, k)
         if ok.any():
             fin = idx[ok]
             for x, y in zip(out, work):
@@ -122,10 +134,35 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
     Phi = np.zeros((N, n, n))
     Q = np.zeros((N, n, n))
     Phi[:, :k, :k], Phi[:, :k, k:] = PA, PM
-    Phi[:, k:, k:] = PD[:, :, None] * np.eye(m)
     Q[:, :k, :k], Q[:, :k, k:], Q[:, k:, :k] = SA, SX, np.swapaxes(SX, 1, 2)
-    Q[:, k:, k:] = SS[:, :, None] * np.eye(m)
+    # the diagonal sensor blocks through their flat indices (no (N, m, m) temporaries)
+    diag = (k + np.arange(m)) * (n + 1)
+    Phi.reshape(N, n * n)[:, diag] = PD
+    Q.reshape(N, n * n)[:, diag] = SS
     return Phi, Q, terms, done        # Φ − I (the sums start from the i = 1 terms)
+
+
+def _block_q_tail_ok(SA, SS, QtA, QtX, QtS, rc, rq, k):
+    """The Q_d rule of :func:`_series` by blocks: sums ``SA, SS``, last terms ``QtA, QtX, QtS``.
+
+    In stages as the Φ rule: the sensor diagonal ``QtS`` first, then
+    ``QtA``, then ``QtX``, each stage only while some step may still pass.
+    """
+    dg = np.concatenate([np.einsum("kii->ki", SA), SS], axis=1)
+    ok = np.all(~rc | (dg > 0), axis=1)             # started
+    if not ok.any():
+        return ok
+    sd = np.sqrt(np.where(rc, np.maximum(dg, 1e-32 * dg.sum(axis=1, keepdims=True)), 1.0))
+    sa, ss = sd[:, :k], sd[:, k:]
+    X = (np.abs(QtS) / ss**2).max(axis=1, initial=0.0)
+    ok &= X * rq / (1.0 - rq) <= UNIT_ROUNDOFF
+    for Xb in (lambda: (np.abs(QtA) / sa[:, :, None] / sa[:, None, :]).max(axis=(1, 2)),
+               lambda: (np.abs(QtX) / sa[:, :, None] / ss[:, None, :]).max(axis=(1, 2), initial=0.0)):
+        if not ok.any():
+            break
+        X = np.maximum(X, Xb())
+        ok &= X * rq / (1.0 - rq) <= UNIT_ROUNDOFF
+    return ok
 
 
 def is_block_triangular(F, Qc, k: int) -> bool:
