@@ -76,6 +76,42 @@ def test_compose_of_the_dynamic_block_equals_the_dense_composition():
     assert np.max(np.abs(got_Q - want_Q)) <= 1e-12 * np.abs(want_Q).max()
 
 
+
+@pytest.mark.parametrize("block", [None, 1.0])
+def test_compose_of_uneven_intervals_in_any_order_equals_the_dense_composition(block, monkeypatch):
+    """Intervals of 1–13 steps in no order of length, a grid from step 3 to 38, both paths of compose.
+
+    ``compose`` advances the intervals longest first and gathers their steps'
+    operands in blocks of ``_COMPOSE_BLOCK`` bytes (``block = 1.0``: one step
+    position per block); the results come back in interval order, equal to the
+    independent per-interval loop to 1e-13 (Φ) and 1e-12 (Q) of their scale,
+    and equal bit for bit whatever the block size.
+    """
+    import covtool.lincov.batch as batch
+
+    rng = np.random.default_rng(5)
+    n, d = 16, np.array([0, 3, 4, 9, 15])
+    Phi, Qd = _structured(rng, 40, n, d)
+    Phi *= 0.9
+    const = np.setdiff1d(np.arange(n), d)
+    Phi[:, const] = np.eye(n)[const]
+    ev = np.array([3, 4, 17, 19, 20, 26, 38])     # lengths 1, 13, 2, 1, 6, 12
+    ref = {}
+    for dense in (False, True):
+        Q = Qd.copy()
+        if dense:
+            Q[:, 1, 1] = 1.0                     # noise on a constant state: the dense path
+        ref[dense] = compose(Phi, Q, ev)
+        if block is not None:
+            monkeypatch.setattr(batch, "_COMPOSE_BLOCK", block)
+        got_P, got_Q = compose(Phi, Q, ev)
+        monkeypatch.undo()
+        want_P, want_Q = _dense_compose(Phi, Q, ev)
+        assert np.max(np.abs(got_P - want_P)) <= 1e-13 * np.abs(want_P).max()
+        assert np.max(np.abs(got_Q - want_Q)) <= 1e-12 * np.abs(want_Q).max()
+        np.testing.assert_array_equal(got_P, ref[dense][0])
+        np.testing.assert_array_equal(got_Q, ref[dense][1])
+
 def _blowing_up():
     """Two cases on a 3-state system whose Φ grows P by 1e200 per interval; case 1 starts at P = 0."""
     n, K = 3, 6

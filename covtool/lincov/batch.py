@@ -115,7 +115,8 @@ def dynamic_states(Phi: np.ndarray, fraction: float = 0.75):
     eye = np.eye(n)
     const = np.ones(n, bool)
     for a in range(0, Phi.shape[0], 256):          # in chunks: the temporaries stay small
-        const &= np.all(Phi[a:a + 256] == eye, axis=(0, 2))
+        # over the steps first (contiguous planes), then along the rows: 3 times faster than over axes (0, 2)
+        const &= (Phi[a:a + 256] == eye).all(axis=0).all(axis=1)
         if not const.any():
             return None
     d = np.flatnonzero(~const)
@@ -130,6 +131,10 @@ def events(n_steps: int, update_steps, record_steps) -> np.ndarray:
     ev.update(int(k) for k in update_steps)
     ev.update(int(k) for k in record_steps)
     return np.array(sorted(ev))
+
+
+#: bytes of per-step operands :func:`compose` gathers at once (a block of steps)
+_COMPOSE_BLOCK = 1e6
 
 
 def compose(Phi: np.ndarray, Qd: np.ndarray, ev: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -166,38 +171,86 @@ def compose(Phi: np.ndarray, Qd: np.ndarray, ev: np.ndarray) -> tuple[np.ndarray
         d, c = dyn
         mask = np.ones((n, n), bool)
         mask[np.ix_(d, d)] = False
-        if any(np.any(Qd[a:a + 256][:, mask]) for a in range(ev[0], ev[-1], 256)):
+        # a non-zero (or NaN) entry at some step marks its (i, j): reduced over the steps first, contiguous
+        if any(np.any((Qd[a:a + 256] != 0).any(axis=0)[mask]) for a in range(ev[0], ev[-1], 256)):
             dyn = None
-    # the intervals advance together, step j of each at once (batched products over the intervals)
-    start, length = ev[:-1], np.diff(ev)
+    # the intervals advance together, step j of each at once (batched products over the intervals), the
+    # longest first: those still running at step j are a leading slice of the stacks (no gather and
+    # scatter per step), and their steps' operands are gathered once, in blocks, into that order
+    order = np.argsort(-np.diff(ev), kind="stable")
+    start, length = ev[:-1][order], np.diff(ev)[order]
+    run, off, steps = _interval_steps(start, length)
+    block = max(run[0] if run else 0, int(_COMPOSE_BLOCK // (8 * n * n)))
     if dyn is None:
+        nd, d = n, None
         A = np.broadcast_to(eye, (K, n, n)).copy()
-        Q = np.zeros((K, n, n))
-        for j in range(int(length.max(initial=0))):
-            act = np.flatnonzero(length > j)
-            F = Phi[start[act] + j]
-            A[act] = F @ A[act]
-            Q[act] = F @ Q[act] @ np.ascontiguousarray(np.swapaxes(F, 1, 2)) + Qd[start[act] + j]
-        return A, symmetrize(Q)
-    nd = d.size
-    perm = np.r_[d, c]
-    Ad = np.broadcast_to(eye[d][:, perm], (K, nd, n)).copy()    # rows d of Φ_{a→k}, columns (d, c)
+    else:
+        nd = d.size
+        perm = np.r_[d, c]
+        A = np.broadcast_to(eye[d][:, perm], (K, nd, n)).copy()    # rows d of Φ_{a→k}, columns (d, c)
     Q = np.zeros((K, nd, nd))
-    for j in range(int(length.max(initial=0))):
-        act = np.flatnonzero(length > j)
-        k = start[act] + j
-        F = Phi[k[:, None, None], d[None, :, None], perm[None, None, :]]   # (act, n_d, n), columns (d, c)
-        Fdd = np.ascontiguousarray(F[:, :, :nd])             # contiguous: BLAS, not numpy's own loop
-        An = Fdd @ Ad[act]
-        An[:, :, nd:] += F[:, :, nd:]
-        Ad[act] = An
-        Q[act] = Fdd @ Q[act] @ np.ascontiguousarray(np.swapaxes(Fdd, 1, 2)) + \
-            Qd[k[:, None, None], d[None, :, None], d[None, None, :]]
+    for j0, j1 in _blocks(off, block):
+        ks = steps[off[j0]:off[j1]]
+        if dyn is None:
+            F, Qk = Phi[ks], Qd[ks]
+        else:
+            Fk = Phi[ks[:, None], d[None, :]]                                # rows d: (steps, n_d, n)
+            F = np.ascontiguousarray(Fk[:, :, d])            # contiguous: BLAS, not numpy's own loop
+            Fc = Fk[:, :, c]
+            Qk = Qd[ks][:, d[:, None], d[None, :]]
+        FT = np.ascontiguousarray(np.swapaxes(F, 1, 2))
+        for j in range(j0, j1):
+            m, p = run[j], off[j] - off[j0]
+            Fj = F[p:p + m]
+            if dyn is None:
+                A[:m] = Fj @ A[:m]
+            else:
+                An = Fj @ A[:m]
+                An[:, :, nd:] += Fc[p:p + m]
+                A[:m] = An
+            Q[:m] = Fj @ Q[:m] @ FT[p:p + m] + Qk[p:p + m]
+    A[order], Q[order] = A.copy(), Q.copy()                  # back to the order of the intervals
+    if dyn is None:
+        return A, symmetrize(Q)
     Pc = np.broadcast_to(eye, (K, n, n)).copy()
-    Pc[:, d[:, None], perm[None, :]] = Ad
+    Pc[:, d[:, None], perm[None, :]] = A
     Qc = np.zeros((K, n, n))
     Qc[:, d[:, None], d[None, :]] = symmetrize(Q)
     return Pc, Qc
+
+
+def _interval_steps(start, length):
+    """Steps of intervals sorted by decreasing length, grouped by their position in the interval.
+
+    Parameters
+    ----------
+    start, length : ndarray of int, shape (K,)
+        First step and length of each interval, ``length`` non-increasing.
+
+    Returns
+    -------
+    run : list of int
+        ``run[j]``: the intervals at least ``j+1`` steps long (a leading slice).
+    off : list of int
+        ``off[j]``: where the steps ``start[:run[j]] + j`` begin in ``steps``.
+    steps : ndarray of int
+        ``start[i] + j`` for each ``j`` and ``i < run[j]``, in that order.
+    """
+    L = int(length[0]) if length.size else 0
+    run = np.searchsorted(-length, -np.arange(L), side="left")     # count of length > j
+    off = np.r_[0, np.cumsum(run)]
+    i = np.arange(off[-1]) - np.repeat(off[:-1], run)
+    steps = start[i] + np.repeat(np.arange(L), run)
+    return run.tolist(), off.tolist(), steps
+
+
+def _blocks(off, size):
+    """``(j0, j1)`` ranges covering ``0 … len(off)−1``, each at most ``size`` steps of ``off`` (at least one ``j``)."""
+    j0, L = 0, len(off) - 1
+    while j0 < L:
+        j1 = max(j0 + 1, int(np.searchsorted(off, off[j0] + size, side="right")) - 1)
+        yield j0, j1
+        j0 = j1
 
 
 @dataclass

@@ -359,7 +359,8 @@ def _constant_rows(Phi, Qd, ev):
     mask = np.ones(np.shape(Qd)[-2:], bool)
     mask[np.ix_(d, d)] = False
     for a in range(lo, hi, 256):                              # in chunks: the temporaries stay small
-        if np.any(np.asarray(Qd[a:min(hi, a + 256)])[..., mask]):
+        # a non-zero (or NaN) entry at some step marks its (i, j): reduced over the steps first, contiguous
+        if np.any((np.asarray(Qd[a:min(hi, a + 256)]) != 0).any(axis=0)[..., mask]):
             return None
     return dyn
 
@@ -372,30 +373,41 @@ def _reduce(Phi, Q, seg, nd=None):
     """
     while True:
         M = seg.size
-        first = np.r_[True, seg[1:] != seg[:-1]]
-        if first.all():
+        same = seg[1:] == seg[:-1]
+        if not same.any():
             return Phi, Q, seg
+        first = np.r_[True, ~same]
         start = np.maximum.accumulate(np.where(first, np.arange(M), 0))
         even = (np.arange(M) - start) % 2 == 0
-        nxt = np.r_[seg[1:] == seg[:-1], False]            # a later step of the same segment follows
+        nxt = np.r_[same, False]                            # a later step of the same segment follows
         left = np.flatnonzero(even & nxt)
         keep = np.flatnonzero(even)
         paired = nxt[keep]                                  # the kept steps that have a partner (left ⊂ keep)
-        A = Phi[left + 1]                                   # the later step acts on the earlier one
-        Phi = Phi[keep]
+        # the kept steps without a partner (one at most per segment) are copied, the others are the
+        # products: no gather of all the kept steps to overwrite most of them
+        alone = None if paired.all() else keep[~paired]
         if nd is None:
-            Phi[paired] = A @ Phi[paired]
+            A = Phi[left + 1]                               # the later step acts on the earlier one
+            prod = A @ Phi[left]
         else:
-            Ad = np.ascontiguousarray(A[:, :, :nd])
-            prod = Ad @ Phi[paired]
-            prod[:, :, nd:] += A[:, :, nd:]
-            Phi[paired] = prod
-            A = Ad
+            A = Phi[left + 1, :, :nd]                       # contiguous: BLAS, not numpy's own loop
+            prod = A @ Phi[left]
+            prod[:, :, nd:] += Phi[left + 1, :, nd:]
+        Phi = _merge(prod, Phi, paired, alone)
         if Q is not None:
-            Ql, Qr = Q[left], Q[left + 1]
-            Q = Q[keep]
-            Q[paired] = A[:, None] @ Ql @ np.swapaxes(A, 1, 2)[:, None] + Qr
+            Qn = A[:, None] @ Q[left] @ np.swapaxes(A, 1, 2)[:, None] + Q[left + 1]
+            Q = _merge(Qn, Q, paired, alone)
         seg = seg[keep]
+
+
+def _merge(prod, X, paired, alone):
+    """One level of :func:`_reduce`: ``prod`` where ``paired``, the steps ``alone`` of ``X`` elsewhere."""
+    if alone is None:
+        return prod
+    out = np.empty((paired.size,) + prod.shape[1:])
+    out[paired] = prod
+    out[~paired] = X[alone]
+    return out
 
 
 class _Fold:
