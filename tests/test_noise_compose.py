@@ -182,3 +182,29 @@ def test_no_steps_compose_to_the_identity_as_step_by_step():
     np.testing.assert_array_equal(P2, np.eye(3)[None])
     np.testing.assert_array_equal(Q2, Q1)
     np.testing.assert_array_equal(Q2, np.zeros((1, 3, 3)))
+
+
+def test_nonzero_rows_and_cache_keys_tell_every_bit_pattern_apart():
+    """``_nonzero_rows``: rows with an entry ``!= 0`` (NaN, inf, a denormal) and rows not +0.0 bit for bit.
+
+    The composition cache names the all-+0.0 rows of a source's ``G`` in its
+    key instead of digesting them, so its key must still change with any
+    bit of ``G``: a −0.0 row (``!= 0`` false, yet not +0.0), a denormal, a NaN.
+    """
+    from covtool.lincov.noise import ComposedCache, _nonzero_rows
+
+    G = np.zeros((3, 6, 2))
+    G[1, 1, 0] = np.nan
+    G[2, 2, 1] = 5e-324
+    G[0, 3, 1] = -0.0
+    G[2, 4, 0] = -np.inf
+    seed, live = _nonzero_rows(G)
+    assert seed.tolist() == [False, True, True, False, True, False]
+    assert live.tolist() == [False, True, True, True, True, False]
+    psd, ev, dt = np.ones((3, 2)), np.array([0, 3]), np.ones(3)
+    states = np.arange(6)
+    keys = {ComposedCache.key("s", states, X, psd, ev, dt)
+            for X in (G, np.where(np.arange(6)[None, :, None] == 3, 0.0, G), np.zeros((3, 6, 2)),
+                      np.zeros((3, 6, 1)))}
+    assert len(keys) == 4                                  # −0.0 against +0.0, and the shape, change the key
+    assert ComposedCache.key("s", states, G.copy(), psd, ev, dt) == ComposedCache.key("s", states, G, psd, ev, dt)

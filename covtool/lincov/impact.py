@@ -235,8 +235,14 @@ class _FilterImpact:
         # then each source's composed noise on the union is its noise on (kept ∪ its block) bordered by
         # zeros; else one pass per block
         noisy = self.noisy
-        apart = all(not np.any(gather(dyn.F, bs[c], bs[b])) and not np.any(gather(Phi_pad, bs[c], bs[b]))
-                    for b in noisy for c in noisy if c != b)
+        apart = True
+        if len(noisy) > 1:
+            # one pass over the noisy blocks' states, then each pair's block of that pattern
+            u = np.concatenate([bs[b] for b in noisy])
+            at = np.cumsum([0] + [len(bs[b]) for b in noisy])
+            drives = (gather(dyn.F, u) != 0).any(axis=0) | (gather(Phi_pad, u) != 0).any(axis=0)
+            apart = all(not drives[at[i]:at[i + 1], at[k]:at[k + 1]].any()
+                        for i in range(len(noisy)) for k in range(len(noisy)) if k != i)
         for group in ([noisy] if apart else [[b] for b in noisy]) if noisy else []:
             urows = np.array(sorted(kset.union(*(bs[b] for b in group))))
             Qu = compose_noise(gather(Phi_pad, urows), gather(dyn.F, urows),
@@ -395,9 +401,10 @@ def impact_runs(S, names, record_steps, *, own_systems: bool = True) -> list[Imp
                     share = [p.name for p in plans if dyn_key(p.spec.options) == okey]
                     whose = f"filter {share[0]}: truth Φ under its" if len(share) == 1 else \
                         f"filters {', '.join(share)}: truth Φ under their"
-                    transitions[okey] = _transition(dyn.F, dt[a:b], times=S.t[a:b], first=a,
-                                                    what=f"{S.where}: impact: {whose} navigation options")
-                Phi_pad, Phi_c = transitions[okey], None
+                    Phi = _transition(dyn.F, dt[a:b], times=S.t[a:b], first=a,
+                                      what=f"{S.where}: impact: {whose} navigation options")
+                    transitions[okey] = Phi, compose_transition(Phi, cev - a)     # and over the intervals
+                Phi_pad, Phi_c = transitions[okey]
             # the filter's own Φ_f, Q_f for its noise check (twins share them)
             key = system_key(plan.spec)
             found = [v for k, v in refs if k == key]

@@ -81,15 +81,47 @@ class ComposedCache:
 
     @staticmethod
     def key(system, states: np.ndarray, G: np.ndarray, psd: np.ndarray, ev, dt) -> tuple:
-        """Key of one source composed on ``states`` (full-system indices) over the grid ``ev``, ``dt``."""
+        """Key of one source composed on ``states`` (full-system indices) over the grid ``ev``, ``dt``.
+
+        ``G`` is the source's rows on ``states``, shape (N, len(states), w).
+        """
+        G = np.ascontiguousarray(G, float)
+        live = np.flatnonzero(_nonzero_rows(G)[1])
+        return ComposedCache._key(system, states, G.shape, live, G[:, live, :], psd, ev, dt)
+
+    @staticmethod
+    def _key(system, states, shape: tuple, live: np.ndarray, G_live: np.ndarray, psd, ev, dt) -> tuple:
+        """:meth:`key` of a ``G`` of shape ``shape`` whose rows ``live`` are ``G_live``, the others zero bit for bit.
+
+        The zero rows (+0.0 at every step and column) are named, not
+        digested: the key still determines ``G`` exactly, and a sensor
+        source, zero on the navigation states it reaches, digests a
+        fraction of the bytes.
+        """
         import hashlib
 
         h = hashlib.blake2b(digest_size=20)
-        for X in (np.asarray(G, float), np.asarray(psd, float), np.asarray(ev, int), np.asarray(dt, float)):
+        h.update(repr(tuple(shape)).encode())
+        h.update(np.ascontiguousarray(G_live, float))
+        for X in (np.asarray(psd, float), np.asarray(ev, int), np.asarray(dt, float)):
             X = np.ascontiguousarray(X)
             h.update(repr(X.shape).encode())
-            h.update(X.tobytes())
-        return system, tuple(int(i) for i in states), h.hexdigest()
+            h.update(X)
+        return system, tuple(int(i) for i in states), tuple(int(i) for i in live), h.hexdigest()
+
+
+def _nonzero_rows(G: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows of a stack ``G`` (shape (N, n, w), float, C-contiguous) with a non-zero entry, and not zero bit for bit.
+
+    Returns ``(seed, live)``, boolean of shape (n,): ``seed`` where some
+    entry ``!= 0``, ``live`` where some entry is not +0.0 (``seed`` and the
+    rows holding −0.0).  One OR over the steps of the bit patterns gives
+    both (an entry ``!= 0`` iff its bits without the sign bit are not all
+    zero, NaN included): a fraction of a reduction over the (0, 2) axes.
+    """
+    N, n, w = G.shape
+    bits = np.bitwise_or.reduce(G.view(np.uint64).reshape(N, n * w), axis=0).reshape(n, w)
+    return (bits & np.uint64(0x7FFF_FFFF_FFFF_FFFF)).any(axis=1), bits.any(axis=1)
 
 
 #: bytes the per-source series of :func:`compose_noise` may hold at once
@@ -148,12 +180,19 @@ def _compose_noise(Phi, F, factors, dt, ev, chunk, shared=None):
     sets: dict = {}
     keys = {}
     for j, f in enumerate(factors):
-        seed = (np.asarray(f.G) != 0).any(axis=(0, 2)) if np.size(f.G) else np.zeros(n, bool)
+        if np.size(f.G):
+            G = np.ascontiguousarray(f.G, float)
+            seed, live = _nonzero_rows(G)
+        else:
+            G, seed = None, np.zeros(n, bool)
         R = reached_states(pattern, seed)
         if shared is not None and R.any():
             cache, system, rows = shared
             idx = np.flatnonzero(R)
-            keys[j] = cache.key(system, rows[idx], np.asarray(f.G)[:, idx, :], f.psd, ev, dt)
+            # the key of G's rows on R (ComposedCache.key), its live rows taken from G itself: no copy of the rest
+            on = np.flatnonzero(live[idx])
+            keys[j] = cache._key(system, rows[idx], (G.shape[0], idx.size, G.shape[2]), on, G[:, idx[on], :],
+                                 f.psd, ev, dt)
             if keys[j] in cache.store:
                 out[j][:, idx[:, None], idx[None, :]] = cache.store[keys[j]]
                 cache.hits += 1
