@@ -614,3 +614,32 @@ def test_block_series_stops_where_the_dense_series_stops(dyn, dt):
         s = np.sqrt(np.clip(np.einsum("kii->ki", Q_d), 0.0, None))
         den = np.maximum(s[:, :, None] * s[:, None, :], 1e-300)
         assert float(np.max(np.abs(Q_b - Q_d) / den)) <= 1e-13
+
+
+@pytest.mark.parametrize("k", [2, 9])
+def test_reach_follows_paths_of_any_length_per_step(k):
+    """``reach``: the states a path of couplings leads to from each seed, step by step.
+
+    A chain 0 → 1 → … → 5 at step 0 (``B[i+1, i] ≠ 0``: state i drives i+1)
+    and no couplings at step 1; state 6 drives itself only.  With more seed
+    columns than states (k = 9) ``reach`` takes the closure by squaring, with
+    fewer (k = 2) the path-by-path fixed point: the same sets, written out.
+    """
+    from covtool.lincov.discretize.series import reach
+
+    n = 7
+    B = np.zeros((2, n, n))
+    B[0, np.arange(1, 6), np.arange(0, 5)] = 0.5
+    B[:, 6, 6] = -1.0
+    seed = np.zeros((2, n, k), bool)
+    seed[:, 2, 0] = True                         # column 0 seeds state 2
+    seed[:, 6, 1] = True                         # column 1 seeds state 6
+    R = reach(B, seed)
+    want0 = np.zeros((n, k), bool)
+    want0[2:6, 0] = True
+    want0[6, 1] = True
+    want1 = np.zeros((n, k), bool)
+    want1[2, 0] = want1[6, 1] = True
+    np.testing.assert_array_equal(R[0], want0)
+    np.testing.assert_array_equal(R[1], want1)
+    np.testing.assert_array_equal(reach(B, seed[:, :, 0]), R[:, :, 0])   # a vector seed: the same set

@@ -31,7 +31,9 @@ def balancing(F: np.ndarray) -> np.ndarray:
         and columns of comparable norm (LAPACK ``gebal`` applied to
         ``max_k |F_k|``, so one ``D`` serves every step).
     """
-    E = np.max(np.abs(F), axis=0)
+    # max_k |F_k| = |max(max_k F_k, −min_k F_k)| exactly: two reductions instead of a temporary |F|
+    # of the whole stack (the outer abs makes every zero +0.0, as |F| does)
+    E = np.abs(np.maximum(F.max(axis=0), -F.min(axis=0)))
     if not np.any(E):
         return np.ones(F.shape[1])
     from scipy.linalg import matrix_balance        # imported when used: `covtool models` reaches this module
@@ -42,7 +44,7 @@ def balancing(F: np.ndarray) -> np.ndarray:
 
 def _balanced(F, Qc, d):
     B = F * (d[None, :] / d[:, None])
-    Qb = Qc * (1.0 / (d[:, None] * d[None, :]))
+    Qb = None if Qc is None else Qc * (1.0 / (d[:, None] * d[None, :]))
     absB = np.abs(B)
     nu = np.maximum(absB.sum(axis=-2).max(axis=-1), absB.sum(axis=-1).max(axis=-1))
     return B, Qb, nu
@@ -82,6 +84,16 @@ def reach(B: np.ndarray, seed: np.ndarray) -> np.ndarray:
     vec = R.ndim == 2
     if vec:
         R = R[:, :, None]
+    if R.shape[2] > R.shape[1]:
+        # more seeds than states (a source's columns): the closure of (I | P) by squaring, a few
+        # n × n products, then one product with the seeds, instead of an n × k product per path
+        # length.  The same set: both are the states some path of couplings leads to.
+        C = P | np.eye(P.shape[1], dtype=bool)
+        while True:
+            Cn = C @ C
+            if np.array_equal(Cn, C):
+                return C @ R
+            C = Cn
     while True:
         Rn = R | (P @ R)
         if np.array_equal(Rn, R):

@@ -79,7 +79,7 @@ def per_source(F: np.ndarray, G: np.ndarray, psd: np.ndarray, dt, *, what: str =
 
 
 def _per_source(F, G, psd, dt, what, times, groups=None):
-    F, Qc0, dt, times = _prepare(F, np.zeros(np.shape(F)), dt, what, times)
+    F, _, dt, times = _prepare(F, None, dt, what, times)     # no Q_c: the noise is G, psd
     N, n, _ = F.shape
     G = np.asarray(G, float)
     psd = np.asarray(psd, float)
@@ -89,7 +89,7 @@ def _per_source(F, G, psd, dt, what, times, groups=None):
             k = int(np.argmax(bad))
             raise NumericalError(f"{_step_where(what, k, dt, times)}: {name} has non-finite entries")
     d = balancing(F)
-    B, _, nu = _balanced(F, Qc0, d)
+    B, _, nu = _balanced(F, None, d)
     s, h = scaling(nu, dt)
     hw = h[:, None, None]
     k = G.shape[2]

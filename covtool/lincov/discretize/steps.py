@@ -115,11 +115,13 @@ def _prepare(F, Qc, dt, what, times):
     if F.ndim != 3 or F.shape[1] != F.shape[2]:
         raise ValueError(f"F must have shape (N, n, n), got {F.shape}")
     N, n, _ = F.shape
-    Qc = np.broadcast_to(np.asarray(Qc, float), F.shape)
+    Qc = None if Qc is None else np.broadcast_to(np.asarray(Qc, float), F.shape)
     dt = np.broadcast_to(np.asarray(dt, float), (N,))
     if times is not None:
         times = np.broadcast_to(np.asarray(times, float), (N,))
     for name, X in (("F", F), ("Q_c", Qc)):
+        if X is None:
+            continue
         bad = ~np.isfinite(X).all(axis=(1, 2))
         if bad.any():
             raise NumericalError(f"{_step_where(what, int(np.argmax(bad)), dt, times)}: {name} has non-finite entries")
@@ -127,6 +129,8 @@ def _prepare(F, Qc, dt, what, times):
     if bad.any():
         k = int(np.argmax(bad))
         raise ValueError(f"{_step_where(what, k, dt, times)}: the step must be finite and non-negative")
+    if Qc is None:                                      # a caller without Q_c (per_source)
+        return F, None, dt, times
     Qs = Qc + np.swapaxes(Qc, 1, 2)
     Qs *= 0.5
     return F, Qs, dt, times
@@ -164,11 +168,11 @@ def check_qd(Qd: np.ndarray, what: str = "", *, dt=None, times=None, tol: float 
     """
     N, n, _ = Qd.shape
     dg = np.einsum("kii->ki", Qd)
-    dt = np.broadcast_to(np.nan if dt is None else np.asarray(dt, float), (N,))
     neg = (dg < -tol * np.maximum(np.max(np.abs(dg), axis=1, keepdims=True), np.finfo(float).tiny)).any(axis=1)
     sd = np.sqrt(np.clip(dg, 0.0, None))
     s = np.where(sd > 0, sd, 1.0)
-    R = Qd / s[:, :, None] / s[:, None, :]
+    R = np.divide(Qd, s[:, :, None])
+    R /= s[:, None, :]                                  # (Q_ij / s_i) / s_j, in place: no second stack
     idx = np.arange(n)
     R[:, idx, idx] = np.where(sd > 0, 1.0, 0.0) + tol
     try:
@@ -178,6 +182,7 @@ def check_qd(Qd: np.ndarray, what: str = "", *, dt=None, times=None, tol: float 
         ok = np.array([_chol_ok(R[k]) for k in range(N)]) & ~neg
     if not ok.all():
         k = int(np.argmax(~ok))
+        dt = np.broadcast_to(np.nan if dt is None else np.asarray(dt, float), (N,))
         w = np.linalg.eigvalsh(0.5 * (R[k] + R[k].T)).min() - tol
         raise NumericalError(f"{_step_where(what, k, dt, times)}: Q_d is not positive semi-definite "
                              f"(smallest eigenvalue of its correlation matrix {w:.3g})")
