@@ -139,6 +139,35 @@ def test_deferred_record_guard_flags_the_first_bad_record():
                   keep=slice(0, 3), label="blow-up")
 
 
+
+def test_record_guard_over_several_batches_of_records_flags_the_first_bad_one():
+    """More records than one batch of the deferred guard (``RECORD_CHECKS``): the slots are reused.
+
+    Case 0 grows by 2⁸ per interval in state 0 (P_00 = 2^(16k), exact) and
+    overflows at record 64 (2^1024), in the third batch; case 1 starts at
+    P = 0 and stays at 0.  Every record before the overflow holds its exact
+    value, none after.
+    """
+    from covtool.lincov.batch import RECORD_CHECKS
+
+    n, K = 3, 5 * RECORD_CHECKS + 10
+    Phi = np.broadcast_to(np.eye(n), (K, n, n)).copy()
+    Phi[:, 0, 0] = 2.0 ** 8
+    sys_ = System(np.arange(K + 1), Phi, np.zeros((K, n, n)))
+    P0 = np.zeros((2, n, n))
+    P0[0] = np.eye(n)
+    H = np.zeros((1, n))
+    H[0, 1] = 1.0
+    r = run_batch(sys_, P0, H, np.eye(1), np.zeros((3, 0)), [], np.arange(K + 1), gains=np.zeros((1, 0, 0, 1)),
+                  keep=slice(0, 3), on_invalid="flag", label="blow-up")
+    first = 64
+    assert r.status[1] == "" and np.all(r.P_truth[1] == 0.0)
+    assert r.status[0].startswith(f"blow-up (case 0): truth at step {first} (it passed the guard at step "
+                                  f"{first - 1}): ")
+    np.testing.assert_array_equal(r.P_truth[0, :first, 0, 0], 2.0 ** (16 * np.arange(first)))
+    np.testing.assert_array_equal(r.P_truth[0, :first, 1:, 1:], np.broadcast_to(np.eye(2), (first, 2, 2)))
+    assert np.all(np.isnan(r.P_truth[0, first:]))
+
 def test_batch_on_the_event_grid_equals_the_step_by_step_reference():
     """Dynamic-block engine with records every 10 steps against propagate_with_filter (≤ 1e-10)."""
     from covtool.lincov.reference import propagate_with_filter

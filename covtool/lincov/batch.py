@@ -80,11 +80,14 @@ def sandwich(A: np.ndarray, P: np.ndarray, dynamic=None) -> np.ndarray:
     d, c = dynamic
     Ad = A[d]                                                                      # (n_d, n)
     U = (np.ascontiguousarray(P).reshape(B * n, n) @ Ad.T).reshape(B, n, d.size)   # P_b A_dᵀ, stacked
-    out = np.empty_like(P)
-    out[:, :, d] = U                                          # rows c final: (A P Aᵀ)_cd = U_c
-    out[:, d[:, None], d[None, :]] = np.matmul(Ad, U)
-    out[:, d[:, None], c[None, :]] = np.swapaxes(U[:, c, :], 1, 2)
-    out[:, c[:, None], c[None, :]] = P[:, c[:, None], c[None, :]]
+    # the blocks are placed by whole copies and row scatters (no 2-D fancy index over the stack: those
+    # cost as much as the products): a copy of P (the block cc final), the columns d (rows c final:
+    # (A P Aᵀ)_cd = U_c), then the rows d whole, [U_cᵀ | A_d U] assembled in a (B, n_d, n) buffer
+    out = P.copy()
+    out[:, :, d] = U
+    rows = np.swapaxes(U, 1, 2).copy()                        # (A P Aᵀ)_dc = U_cᵀ
+    rows[:, :, d] = np.matmul(Ad, U)                          # (A P Aᵀ)_dd
+    out[:, d, :] = rows
     return out
 
 
@@ -251,6 +254,13 @@ def _blocks(off, size):
         j1 = max(j0 + 1, int(np.searchsorted(off, off[j0] + size, side="right")) - 1)
         yield j0, j1
         j0 = j1
+
+
+def _symmetrize_into(P: np.ndarray, out: np.ndarray) -> np.ndarray:
+    """:func:`symmetrize` of ``P`` written into ``out`` (the same operations: the same bits); returns ``out``."""
+    np.add(P, np.swapaxes(P, -1, -2), out=out)
+    out *= 0.5
+    return out
 
 
 @dataclass
@@ -575,6 +585,13 @@ def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf,
     B = P0.shape[0] if P0.ndim == 3 else (Pf0.shape[0] if Pf0 is not None else gains.shape[0])
     psd_mask = np.ones(B, bool) if psd_cases is None else np.asarray(psd_cases, bool)
 
+    # the guard's scale groups depend on the names only: formed once, not at every check
+    groups_t = scale_groups(names, n)
+
+    def signed(code):
+        """The codes a signed piece (``psd_cases`` False) may have: ``np.isin`` of the two, without its overhead."""
+        return (code == NOT_PSD) | (code == NEGATIVE_VARIANCE)
+
     def when(k):
         return time_text(float(times[k])) if times is not None else f"step {k}"
 
@@ -589,8 +606,8 @@ def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf,
 
     if check:
         if P0.ndim == 3:
-            st = covariance_status(P0, groups=scale_groups(names, n))
-            bad = ~st.ok & ~(np.isin(st.code, (NOT_PSD, NEGATIVE_VARIANCE)) & ~psd_mask)   # signed pieces
+            st = covariance_status(P0, groups=groups_t)
+            bad = ~st.ok & ~(signed(st.code) & ~psd_mask)                                  # signed pieces
             if bad.any():
                 b = int(np.flatnonzero(bad)[0])
                 raise NumericalError(f"{label} {case_at((b,))}: truth P0: "
@@ -623,20 +640,21 @@ def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf,
     if running:
         fidx = np.arange(nf)[keep] if isinstance(keep, slice) else np.asarray(keep)[np.asarray(keep) < nf]
         out_f = np.empty((B, len(rec), fidx.size, fidx.size))
+        groups_f = scale_groups(filter_names, nf)
     out_g = np.empty((B, len(upd), nf, m))
     status = [""] * B
     dead = np.zeros(B, bool)
     checked = [None]                                    # the last event step that passed the guard
 
-    def guard(M, what, k, nm, psd=None, scaled=False):
-        """Check the B covariances M; raise or flag the bad live cases."""
+    def guard(M, what, k, nm, groups, psd=None, scaled=False):
+        """Check the B covariances M (states ``nm``, scale ``groups``); raise or flag the bad live cases."""
         scale = None
         if scaled and scale_case is not None:
             scale = np.sqrt(np.clip(np.diagonal(M[scale_case], axis1=-2, axis2=-1), 0.0, None))
-        st = covariance_status(M, scale=scale, groups=scale_groups(nm, M.shape[-1]))
+        st = covariance_status(M, scale=scale, groups=groups)
         bad = ~st.ok & ~dead
         if psd is not None:                                            # signed pieces may be indefinite
-            bad &= ~(np.isin(st.code, (NOT_PSD, NEGATIVE_VARIANCE)) & ~psd)
+            bad &= ~(signed(st.code) & ~psd)
         if not bad.any():
             return
         since = f" (it passed the guard at {when(checked[0])})" if checked[0] is not None else ""
@@ -653,24 +671,28 @@ def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf,
             Pf[bad] = np.eye(nf)
 
     # the record-step guard is deferred and batched over up to RECORD_CHECKS records (one call instead of one per
-    # record); it is flushed before every update guard, so the first failure is still the one reported
-    pending = []                                        # (record index, step, truth P, filter P)
+    # record); it is flushed before every update guard, so the first failure is still the one reported.  The
+    # records' symmetrised covariances are written straight into these stacks (none is stacked at the flush)
+    pending = []                                        # (record index, step); the covariances in pend_t, pend_f
+    n_pend = min(RECORD_CHECKS, len(rec)) if check else 0
+    pend_t = np.empty((n_pend, B, n, n))
+    pend_f = np.empty((n_pend, B, nf, nf)) if running else None
 
     def flush():
         if not pending:
             return
-        steps = [k_ for _, k_, _, _ in pending]
-        PT = np.stack([x for _, _, x, _ in pending])
+        steps = [k_ for _, k_ in pending]
+        PT = pend_t[:len(pending)]
         scale = None
         if scale_case is not None:
             scale = np.sqrt(np.clip(np.diagonal(PT[:, scale_case], axis1=-2, axis2=-1), 0.0, None))[:, None, :]
-        stt = covariance_status(PT, scale=scale, groups=scale_groups(names, n))
-        badt = ~stt.ok & ~(np.isin(stt.code, (NOT_PSD, NEGATIVE_VARIANCE)) & ~psd_mask)
+        stt = covariance_status(PT, scale=scale, groups=groups_t)
+        badt = ~stt.ok & ~(signed(stt.code) & ~psd_mask)
         badf = None
         if running:
-            stf = covariance_status(np.stack([x for _, _, _, x in pending]), groups=scale_groups(filter_names, nf))
+            stf = covariance_status(pend_f[:len(pending)], groups=groups_f)
             badf = ~stf.ok
-        for j, (rj, k_, _, _) in enumerate(pending):
+        for j, (rj, k_) in enumerate(pending):
             for b in range(B):
                 if dead[b]:
                     continue
@@ -695,6 +717,12 @@ def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf,
             checked[0] = steps[j]
         pending.clear()
 
+    # the recorded sub-blocks, indexed once: a slice when keep is one (a view, no gather)
+    if isinstance(keep, slice):
+        kt = kf = (slice(None), keep, keep)
+    else:
+        kt = (slice(None), idx[:, None], idx[None, :])
+        kf = (slice(None), fidx[:, None], fidx[None, :]) if running else None
     ui = ri = 0
 
     def event(k):
@@ -727,24 +755,27 @@ def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf,
                 P = _joseph(P, D @ K, H, R, symmetrize=sym, HP=HP)          # eq (16)
             if check and sym:
                 flush()
-                guard(P, "truth after the eq (16) update", k, names, psd_mask, scaled=True)
+                guard(P, "truth after the eq (16) update", k, names, groups_t, psd_mask, scaled=True)
                 if running:
-                    guard(Pf, f"filter after the {form} update", k, filter_names)
+                    guard(Pf, f"filter after the {form} update", k, filter_names, groups_f)
                 checked[0] = k
             ui += 1
         elif check and k in rec_set:
-            P = symmetrize(P)                   # round-off asymmetry of the sandwiches (see above)
+            # round-off asymmetry of the sandwiches (see above); P, P_f are then the slots, guarded by flush()
+            P = _symmetrize_into(P, pend_t[len(pending)])
             if running:
-                Pf = symmetrize(Pf)
-            pending.append((ri, k, P, Pf if running else None))     # guarded by flush()
+                Pf = _symmetrize_into(Pf, pend_f[len(pending)])
+            pending.append((ri, k))
             if len(pending) >= RECORD_CHECKS:
                 flush()
         if k in rec_set:
-            out_t[:, ri] = symmetrize(P[:, idx[:, None], idx[None, :]])
-            out_t[dead, ri] = np.nan
+            out_t[:, ri] = symmetrize(P[kt])
             if running:
-                out_f[:, ri] = symmetrize(Pf[:, fidx[:, None], fidx[None, :]])
-                out_f[dead, ri] = np.nan
+                out_f[:, ri] = symmetrize(Pf[kf])
+            if dead.any():
+                out_t[dead, ri] = np.nan
+                if running:
+                    out_f[dead, ri] = np.nan
             ri += 1
 
     if not running:
@@ -788,7 +819,7 @@ def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf,
                         # per-case noise (a budget's per-source Q_d): relative to the total's, as the covariances
                         scale = (None if scale_case is None else
                                  np.sqrt(np.clip(np.diagonal(Qi[scale_case], axis1=-2, axis2=-1), 0.0, None)))
-                        st = covariance_status(Qi, scale=scale, groups=scale_groups(names, n))
+                        st = covariance_status(Qi, scale=scale, groups=groups_t)
                         if not st.ok.all():
                             b = int(np.flatnonzero(~st.ok)[0])
                             raise NumericalError(f"{label} {case_at((b,))}: truth Q_d of the interval from "
