@@ -716,3 +716,27 @@ def test_states_zero_in_every_matrix_do_not_change_the_psd_verdict(tol):
     full = covariance_status(Y, tol)
     assert full.code.tolist() == st.code.tolist() and full.state[2] == st.state[2]
     assert full.value[2] == pytest.approx(st.value[2], rel=1e-9)
+
+
+@pytest.mark.parametrize("fault", ["nan", "inf", "asymmetric"])
+def test_a_fault_off_the_diagonal_of_a_zero_variance_state_is_found(fault):
+    """The guard screens the block of states with a non-zero entry; a state with zero variance
+    everywhere but a non-zero off-diagonal entry belongs to that block.
+
+    Twelve matrices, states 0–2 with unit variance, states 3–5 zero; matrix 7
+    gets a fault in entry (4, 1) only (NaN, −inf, or 1e-3 against a mirror of
+    0).  Its code and the state reported are those of that entry; every other
+    matrix stays OK.
+    """
+    from covtool.lincov.guard import ASYMMETRIC, NONFINITE, OK
+
+    X = np.zeros((12, 6, 6))
+    X[:, [0, 1, 2], [0, 1, 2]] = 1.0
+    X[7, 4, 1] = {"nan": np.nan, "inf": -np.inf, "asymmetric": 1e-3}[fault]
+    st = covariance_status(X)
+    assert np.all(st.code[np.arange(12) != 7] == OK)
+    assert st.code[7] == (ASYMMETRIC if fault == "asymmetric" else NONFINITE)
+    if fault == "asymmetric":
+        assert {int(st.state[7]), int(st.other[7])} == {1, 4}
+    else:
+        assert int(st.state[7]) == 4                   # the row of the non-finite entry

@@ -301,8 +301,21 @@ def covariance_status(P: np.ndarray, tol: float = PSD_TOL, *, psd: bool = True,
 def _status_chunk(X, tol, psd, sym_tol, code, state, other, value, scale=None, groups=()):
     """Fill ``code``, ``state``, ``other``, ``value`` (views) for matrices ``X``."""
     n = X.shape[-1]
-    diag = np.arange(n)
-    finite = np.isfinite(X).all(axis=(1, 2))
+    d = np.diagonal(X, axis1=1, axis2=2)
+    # A state whose row and column are zero in every matrix of the chunk (a random constant's in Q_d:
+    # 36 of 58) can hold no non-finite entry and no asymmetry: every non-zero entry, NaN and ±inf
+    # included, is in the block of the live states, so the finiteness and exact-symmetry screens run
+    # on that block (a copy a few times smaller), the copy the Cholesky factorises anyway.  A state
+    # with a non-zero variance somewhere is live (every state of a covariance history): the rows and
+    # columns are searched only when some variance is zero throughout.
+    live = (d != 0).any(axis=0)
+    if not live.all():
+        nz = (X != 0).any(axis=0)
+        live = nz.any(axis=0) | nz.any(axis=1)
+    live = np.flatnonzero(live)
+    # a copy (unless only screened): the Cholesky below shifts its diagonal in place
+    Y = X[:, live[:, None], live[None, :]] if live.size < n else X.copy() if psd else X
+    finite = np.isfinite(Y).all(axis=(1, 2))
     if not finite.all():
         for i in np.flatnonzero(~finite):
             bad = ~np.isfinite(X[i])
@@ -310,7 +323,6 @@ def _status_chunk(X, tol, psd, sym_tol, code, state, other, value, scale=None, g
             s = int(np.argmax(dbad)) if dbad.any() else int(np.argmax(bad.sum(axis=1)))
             code[i], state[i] = NONFINITE, s
             value[i] = X[i, s, int(np.argmax(bad[s]))]
-    d = np.diagonal(X, axis1=1, axis2=2)
     with np.errstate(invalid="ignore"):
         s = np.sqrt(np.abs(d)) if scale is None else np.where(np.isfinite(scale), scale, 0.0)
     for g in groups:
@@ -318,8 +330,9 @@ def _status_chunk(X, tol, psd, sym_tol, code, state, other, value, scale=None, g
     s = np.where(s > 0, s, 1.0)
     # own scaling (s² = |P_ii|): any negative variance fails; a group or a given scale allows −tol·s²
     floor = -tol * s * s
-    # symmetry relative to σ_i σ_j, computed only for matrices that are not exactly symmetric
-    for i in np.flatnonzero(finite & ~(X == np.swapaxes(X, 1, 2)).all(axis=(1, 2))):
+    # symmetry relative to σ_i σ_j, computed (on the whole matrix) only for matrices that are not
+    # exactly symmetric
+    for i in np.flatnonzero(finite & ~(Y == np.swapaxes(Y, 1, 2)).all(axis=(1, 2))):
         A = (X[i] - X[i].T) / np.outer(s[i], s[i])
         a = float(A.max())
         if a > sym_tol:
@@ -337,21 +350,15 @@ def _status_chunk(X, tol, psd, sym_tol, code, state, other, value, scale=None, g
         k = int(np.argmin(rel))
         code[i], state[i], value[i] = NEGATIVE_VARIANCE, k, d[i, k]
     cand = np.flatnonzero(code == OK)
-    if not cand.size:
-        return
+    if not cand.size or not live.size:
+        return                                  # (an empty block: every matrix zero, trivially PSD)
     # Cholesky of S (C + tol I) S = P + tol S²: it exists iff λ_min(C) > −tol, and Cholesky's
     # backward error is invariant under the diagonal scaling S, so C itself need not be formed.
-    # A state whose row and column are zero in every matrix (a random constant's in Q_d: 36 of 58)
-    # adds an isolated tol·1 to the diagonal, which changes nothing: factorised without those states
-    # (over every matrix of the chunk: a superset of the candidates' live states, without a gathered copy)
-    nz = (X != 0).any(axis=0)
-    live = np.flatnonzero(nz.any(axis=0) | nz.any(axis=1))
-    if live.size < n:
-        Y = X[cand][:, live[:, None], live[None, :]]
-        Y[:, np.arange(live.size), np.arange(live.size)] += tol * s[cand][:, live] ** 2
-    else:
-        Y = X[cand] if cand.size < X.shape[0] else X.copy()
-        Y[:, diag, diag] += tol * s[cand] ** 2
+    # A dead state adds an isolated tol·1 to the diagonal, which changes nothing: factorised on the
+    # live block (over every matrix of the chunk: a superset of the candidates' live states)
+    if cand.size < X.shape[0]:
+        Y = Y[cand]
+    np.einsum("kii->ki", Y)[...] += tol * (s[cand] if live.size == n else s[cand][:, live]) ** 2
     try:
         np.linalg.cholesky(Y)
         return
