@@ -643,3 +643,4 @@ def test_reach_follows_paths_of_any_length_per_step(k):
     np.testing.assert_array_equal(R[0], want0)
     np.testing.assert_array_equal(R[1], want1)
     np.testing.assert_array_equal(reach(B, seed[:, :, 0]), R[:, :, 0])   # a vector seed: the same set
+    assert reach(np.zeros((2, 0, 0)), np.zeros((2, 0), bool)).shape == (2, 0)   # no states: the seed's shape

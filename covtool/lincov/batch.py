@@ -59,9 +59,14 @@ def sandwich(A: np.ndarray, P: np.ndarray, dynamic=None) -> np.ndarray:
     Notes
     -----
     ``[P_1; P_2; …] Aᵀ`` is one ``(B n × n)·(n × n)`` GEMM on a view of the
-    stack; ``A (P_b Aᵀ)`` is then a batched GEMM over ``b``.  No operand is
-    transposed or copied, which matters for the medium sizes (n ≤ 58) where
-    copies cost as much as the products.
+    stack; ``A (P_b Aᵀ)`` is then a batched GEMM over ``b``.  No GEMM operand
+    is transposed or copied, which matters for the medium sizes (n ≤ 58) where
+    copies cost as much as the products; the dynamic path places its blocks by
+    one copy of ``P`` and whole-row scatters.
+
+    The result is always a new array, never ``P`` or a view of it: the engine
+    relies on that (after a record its ``P`` is a slot of the deferred guard's
+    stack, which the next ``sandwich`` must not write).
 
     With ``A = [[A_dd, A_dc], [0, I]]`` (states reordered, ``d`` dynamic,
     ``c`` constant) and ``U = P A_dᵀ`` (``A_d`` the rows ``d``)::

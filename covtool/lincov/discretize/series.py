@@ -92,13 +92,15 @@ def reach(B: np.ndarray, seed: np.ndarray) -> np.ndarray:
         while True:
             Cn = C @ C
             if np.array_equal(Cn, C):
-                return C @ R
+                break
             C = Cn
-    while True:
-        Rn = R | (P @ R)
-        if np.array_equal(Rn, R):
-            break
-        R = Rn
+        R = C @ R
+    else:
+        while True:
+            Rn = R | (P @ R)
+            if np.array_equal(Rn, R):
+                break
+            R = Rn
     return R[:, :, 0] if vec else R
 
 

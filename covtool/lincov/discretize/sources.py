@@ -166,6 +166,7 @@ def _per_source(F, G, psd, dt, what, times, groups=None):
             break
         eps = np.minimum(eps, need)
     Q = assemble(Z, ZH)
+    del Z, ZH, Y                   # assemble reused Z's memory (Zbuf) for ZHᵀ: no longer the terms
     if s.any():
         sq = s > 0
         Phi, _, _, ok = _series(B[sq], np.zeros_like(B[sq]), h[sq], nu[sq])

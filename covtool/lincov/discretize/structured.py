@@ -135,10 +135,8 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
     Q = np.zeros((N, n, n))
     Phi[:, :k, :k], Phi[:, :k, k:] = PA, PM
     Q[:, :k, :k], Q[:, :k, k:], Q[:, k:, :k] = SA, SX, np.swapaxes(SX, 1, 2)
-    # the diagonal sensor blocks through their flat indices (no (N, m, m) temporaries)
-    diag = (k + np.arange(m)) * (n + 1)
-    Phi.reshape(N, n * n)[:, diag] = PD
-    Q.reshape(N, n * n)[:, diag] = SS
+    Phi[:, k:, k:] = PD[:, :, None] * np.eye(m)      # off the diagonal PD·0: −0.0 where PD < 0, as before
+    Q[:, k:, k:] = SS[:, :, None] * np.eye(m)
     return Phi, Q, terms, done        # Φ − I (the sums start from the i = 1 terms)
 
 
