@@ -740,3 +740,16 @@ def test_a_fault_off_the_diagonal_of_a_zero_variance_state_is_found(fault):
         assert {int(st.state[7]), int(st.other[7])} == {1, 4}
     else:
         assert int(st.state[7]) == 4                   # the row of the non-finite entry
+
+
+def test_symmetrize_into_out_gives_the_same_bits_as_a_new_array():
+    """``symmetrize(P, out=)`` (the engine's record slots) equals ``symmetrize(P)`` bit for bit, in ``out``."""
+    from covtool.lincov.guard import symmetrize
+
+    rng = np.random.default_rng(3)
+    P = rng.normal(size=(4, 7, 7)) * 10.0 ** rng.uniform(-20, 20, (4, 7, 7))
+    out = np.full_like(P, np.nan)
+    got = symmetrize(P, out=out)
+    assert got is out
+    np.testing.assert_array_equal(got, symmetrize(P))
+    np.testing.assert_array_equal(got, np.swapaxes(got, 1, 2))

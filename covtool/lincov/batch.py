@@ -261,13 +261,6 @@ def _blocks(off, size):
         j0 = j1
 
 
-def _symmetrize_into(P: np.ndarray, out: np.ndarray) -> np.ndarray:
-    """:func:`symmetrize` of ``P`` written into ``out`` (the same operations: the same bits); returns ``out``."""
-    np.add(P, np.swapaxes(P, -1, -2), out=out)
-    out *= 0.5
-    return out
-
-
 @dataclass
 class System:
     """A composed linear system on an event grid.
@@ -767,9 +760,9 @@ def _engine(ev, n, running, P0, H, R, D, update_steps, record_steps, *, Pf0, Hf,
             ui += 1
         elif check and k in rec_set:
             # round-off asymmetry of the sandwiches (see above); P, P_f are then the slots, guarded by flush()
-            P = _symmetrize_into(P, pend_t[len(pending)])
+            P = symmetrize(P, out=pend_t[len(pending)])
             if running:
-                Pf = _symmetrize_into(Pf, pend_f[len(pending)])
+                Pf = symmetrize(Pf, out=pend_f[len(pending)])
             pending.append((ri, k))
             if len(pending) >= RECORD_CHECKS:
                 flush()

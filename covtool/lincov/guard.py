@@ -119,18 +119,26 @@ def running_scale(P: np.ndarray) -> np.ndarray:
     return np.sqrt(np.maximum.accumulate(d, axis=0))
 
 
-def symmetrize(P: np.ndarray) -> np.ndarray:
+def symmetrize(P: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
     """``(P + Pᵀ)/2`` over the last two axes.
 
     Parameters
     ----------
     P : ndarray, shape (..., n, n)
+    out : ndarray, shape (..., n, n), optional
+        Written with the result (not ``P`` itself); the same operations, so
+        the same bits, as a new array.
 
     Returns
     -------
     ndarray, shape (..., n, n)
+        ``out`` when given.
     """
-    return 0.5 * (P + np.swapaxes(P, -1, -2))
+    if out is None:
+        return 0.5 * (P + np.swapaxes(P, -1, -2))
+    np.add(P, np.swapaxes(P, -1, -2), out=out)
+    out *= 0.5
+    return out
 
 
 def covariance_root(P: np.ndarray, support=None) -> np.ndarray:
