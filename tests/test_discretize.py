@@ -375,6 +375,64 @@ def test_non_finite_input_is_refused():
         block_triangular(np.array([[[0.0, 1.0], [1.0, 0.0]]]), np.zeros((1, 2, 2)), 1.0, 1)
 
 
+def test_zero_length_steps_are_the_identity_without_noise(dyn, monkeypatch):
+    """Δt = 0 is a valid step: Φ = I and Q_d = 0 exactly, on every exact path; the other steps unchanged.
+
+    Before, a step of Δt = 0 with noise was refused ("did not converge"): its
+    Q_d sums stay zero, so the element-wise tail rule, relative to them,
+    never held.  Checked on the 58-state model through the folded random
+    constants (van_loan), the dense series (taylor on all states), the
+    sensor blocks (block_triangular), per-source noise, fixed-order Taylor
+    and the terms it reports; zero steps alone, among others, and in a run
+    of repeated steps (the de-duplicated path).
+    """
+    from covtool.lincov.discretize import sensor_states, structured
+
+    def _dense(F_, Q_, d):
+        with monkeypatch.context() as mp:                   # no sensor blocks: the dense series of all states
+            mp.setattr(structured, "BLOCK_FRACTION", 2.0)
+            return structured._exact(F_, Q_, d, "", None)[:2]
+
+    F, Qc = dyn
+    Fs, Qs = F[:6], Qc[:6]
+    n = F.shape[1]
+    sens = np.r_[np.flatnonzero(~sensor_states(Fs, Qs)), np.flatnonzero(sensor_states(Fs, Qs))]
+    k = int(np.count_nonzero(~sensor_states(Fs, Qs)))
+    Fb, Qb = Fs[:, sens][:, :, sens], Qs[:, sens][:, :, sens]
+    paths = {
+        "van_loan": lambda F_, Q_, d: van_loan(F_, Q_, d),
+        "taylor": lambda F_, Q_, d: taylor(F_, Q_, d),
+        "taylor(order=8)": lambda F_, Q_, d: taylor(F_, Q_, d, 8),
+        "dense": lambda F_, Q_, d: _dense(F_, Q_, d),
+        "block_triangular": lambda F_, Q_, d: block_triangular(F_, Q_, d, k),
+    }
+    for dts in ([0.0], [0.0, 0.0], [1.0, 0.0, 2.0, 0.0, 0.5, 0.0], [0.0, 1.0, 1.0, 1.0, 1.0, 1.0]):
+        dts = np.array(dts)
+        N = dts.size
+        zero = dts == 0
+        for name, fn in paths.items():
+            FF, QQ = (Fb, Qb) if name == "block_triangular" else (Fs, Qs)
+            if dts[1:].size and (dts[1:] == 1.0).all():     # a run of equal steps after the zero one
+                FF, QQ = np.repeat(FF[1:2], N, axis=0), np.repeat(QQ[1:2], N, axis=0)
+            Phi, Qd = fn(FF[:N], QQ[:N], dts)
+            np.testing.assert_array_equal(Phi[zero], np.broadcast_to(np.eye(n), (zero.sum(), n, n)), err_msg=name)
+            assert not Qd[zero].any(), name
+            if (~zero).any():
+                P1, Q1 = fn(FF[:N][~zero], QQ[:N][~zero], dts[~zero])
+                assert _phi_error(Phi[~zero], P1) <= 1e-14, name
+                assert _q_error(Qd[~zero], Q1) <= 1e-14, name
+        info = taylor_terms(Fs[:N], Qs[:N], dts)
+        assert (info.squarings[zero] == 0).all() and (info.norm_dt[zero] == 0).all()
+        G = np.repeat(np.eye(n)[None, :, 10:14], N, axis=0)
+        psd = np.ones((N, 4))
+        Qp = per_source(Fs[:N], G, psd, dts)
+        assert not Qp[zero].any()
+        if (~zero).any():
+            np.testing.assert_allclose(Qp[~zero], per_source(Fs[:N][~zero], G[~zero], psd[~zero], dts[~zero]),
+                                       rtol=1e-14, atol=0)
+            assert (Qp[~zero].sum(axis=1) != 0).any()
+
+
 def test_every_guard_names_the_step(monkeypatch):
     """Non-PSD Q_d, a series that stops short, bad shapes and non-finite noise: each refused by name."""
     from covtool.lincov import discretize as dz

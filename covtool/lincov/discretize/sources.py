@@ -161,7 +161,8 @@ def _per_source(F, G, psd, dt, what, times, groups=None):
         with np.errstate(invalid="ignore"):
             need = 0.5 * UNIT_ROUNDOFF * np.sqrt(np.maximum(np.where(np.isfinite(qmin), qmin, 0.0) / wh,
                                                             1e-32 * c0**2))
-        need = np.where(psd > 0, need, np.inf)
+        # no noise in a column, or a step of Δt = 0 (its Q_d is exactly zero): nothing to refine
+        need = np.where((psd > 0) & (h[:, None] > 0), need, np.inf)
         if np.all(need >= eps):
             break
         eps = np.minimum(eps, need)
