@@ -503,3 +503,58 @@ def test_a_non_finite_transition_under_the_filters_options_names_the_impact_the_
     with pytest.raises(NumericalError, match=r"zupt_filter_order.toml: impact: filters C, D: truth Φ under their "
                                              r"navigation options: step 640 \(t = 640 s, Δt = 1 s\)"):
         impact_runs(both, ["B1", "C", "D"], [N])          # B1 (the truth's own options) takes the truth's Φ
+
+
+def test_impact_figure_draws_the_tables_values_and_no_bar_for_an_untrusted_one():
+    """Each bar of the impact figure is its table row's value; the lines the nominal and no-noise members.
+
+    A synthetic table (two filters, blocks in a given order, one NaN value):
+    the rectangles' widths and rows are read back from the figure; the NaN
+    has no bar (a bar of zero would read as "no error") but an "n/a".
+    """
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import pandas as pd
+    from types import SimpleNamespace
+    from matplotlib.collections import PolyCollection
+
+    from covtool.plotting.zupt_filter_order import impact_figure
+
+    rng = np.random.default_rng(3)
+    blocks = {"F1": ["b1", "b2", "b3"], "F2": ["x", "y"]}
+    rows = []
+    for f, bl in blocks.items():
+        for variant, block in [(NOMINAL, ""), (NONE, "")] + [(v, b) for b in bl for v in (ONLY, BACK)]:
+            for t in (10.0, 30.0):                        # the last report time is drawn
+                rows.append({"filter": f, "t [min]": t, "variant": variant, "block": block,
+                             "CEP [ft]": rng.uniform(1, 20), "alt PE [ft]": rng.uniform(1, 50)})
+    tab = pd.DataFrame(rows)
+    tab.loc[(tab["filter"] == "F2") & (tab["block"] == "y") & (tab["variant"] == BACK), "alt PE [ft]"] = np.nan
+    fig = impact_figure(SimpleNamespace(tables={"impact": tab}, report_times=[600.0, 1800.0]))
+    try:
+        axes = np.array(fig.axes[:4]).reshape(2, 2)
+        last = tab[tab["t [min]"] == 30.0]
+        for r, (f, bl) in enumerate(blocks.items()):
+            assert [t.get_text() for t in axes[r, 0].get_yticklabels()] == bl
+            for c, col in enumerate(("CEP [ft]", "alt PE [ft]")):
+                ax = axes[r, c]
+                pick = lambda v, b="": last.loc[(last["filter"] == f) & (last["variant"] == v)
+                                                & (last["block"] == b), col].iloc[0]
+                got = [pc.get_paths() for pc in ax.collections if isinstance(pc, PolyCollection)]
+                assert len(got) == 2
+                for (variant, off), paths in zip(((ONLY, -0.2), (BACK, 0.2)), got):
+                    want = {(round(float(i + off), 6), pick(variant, b)) for i, b in enumerate(bl)
+                            if np.isfinite(pick(variant, b))}
+                    seen = {(round(float(p.vertices[:4, 1].mean()), 6), float(p.vertices[:4, 0].max()))
+                            for p in paths}
+                    assert {k: pytest.approx(v, rel=1e-15) for k, v in want} == dict(seen)
+                    assert all(p.vertices[:4, 0].min() == 0.0 for p in paths)
+                lines = sorted(float(ln.get_xdata()[0]) for ln in ax.lines)
+                assert lines == sorted([pick(NOMINAL), pick(NONE)])
+                assert ax.get_xlim()[1] >= np.nanmax(last.loc[last["filter"] == f, col])
+        na = [t for t in axes[1, 1].texts if t.get_text().strip() == "n/a"]
+        assert len(na) == 1 and na[0].get_position()[1] == pytest.approx(1.2)
+        assert not any(t.get_text().strip() == "n/a" for ax in axes.ravel()[:3] for t in ax.texts)
+    finally:
+        plt.close(fig)
