@@ -465,6 +465,42 @@ def test_run_prints_a_summary_that_fits(tmp_path, capsys):
     assert status == 0 and out == "" and err == ""
 
 
+def test_run_writes_with_the_heap_frozen_out_of_the_collector_and_unfreezes_it(tmp_path, capsys, monkeypatch):
+    """The writers run with the heap frozen (gc.freeze); after the command nothing stays frozen.
+
+    An in-process caller (these tests) must collect as before: a frozen heap
+    would keep every cycle of the run alive.  Also after a writer fails.
+    """
+    import gc
+
+    from covtool.io import writers
+
+    d = tomllib.loads(PURE.read_text())
+    d["study"]["duration"] = "3 min"
+    d["output"]["report_times"] = ["3 min"]
+    study = tmp_path / "s.toml"
+    study.write_text(tomli_w.dumps(d))
+    seen = []
+    real = writers.write_outputs
+
+    def counting(*args, **kwargs):
+        seen.append(gc.get_freeze_count())
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(writers, "write_outputs", counting)
+    assert gc.get_freeze_count() == 0
+    status, _, err = _call(["run", str(study), "--out", str(tmp_path / "o"), "--no-figures", "--quiet"], capsys)
+    assert status == 0, err
+    assert len(seen) == 1 and seen[0] > 1000 and gc.get_freeze_count() == 0
+
+    def failing(*args, **kwargs):
+        raise OSError(28, "No space left on device", str(tmp_path / "o2" / "summary.csv"))
+
+    monkeypatch.setattr(writers, "write_outputs", failing)
+    status, _, err = _call(["run", str(study), "--out", str(tmp_path / "o2"), "--no-figures", "--quiet"], capsys)
+    assert status != 0 and "No space left" in err and gc.get_freeze_count() == 0
+
+
 def test_readme_is_self_contained_and_ci_runs_its_test_command():
     """Before: the README pointed at ../shared/BRIEF.md and named the papers only as seed 000/001/002."""
     text = (ROOT / "README.md").read_text(encoding="utf-8")
