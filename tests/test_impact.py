@@ -556,5 +556,17 @@ def test_impact_figure_draws_the_tables_values_and_no_bar_for_an_untrusted_one()
         na = [t for t in axes[1, 1].texts if t.get_text().strip() == "n/a"]
         assert len(na) == 1 and na[0].get_position()[1] == pytest.approx(1.2)
         assert not any(t.get_text().strip() == "n/a" for ax in axes.ravel()[:3] for t in ax.texts)
+        assert axes[0, 1].get_xlabel() == "true alt PE [ft] at 30 min"
+    finally:
+        plt.close(fig)
+    # [output] units = "m": the same bars in metres (the table keeps ft), and the axes say so
+    fig = impact_figure(SimpleNamespace(tables={"impact": tab}, report_times=[600.0, 1800.0], length_unit="m"))
+    try:
+        ax = fig.axes[0]
+        w = max(p.vertices[:4, 0].max() for p in ax.collections[0].get_paths() if p.vertices[:4, 1].mean() < 0)
+        ft = tab.loc[(tab["t [min]"] == 30.0) & (tab["filter"] == "F1") & (tab["block"] == "b1")
+                     & (tab["variant"] == ONLY), "CEP [ft]"].iloc[0]
+        assert w == pytest.approx(ft * 0.3048, rel=1e-15)
+        assert ax.get_xlabel() == "true CEP [m] at 30 min"
     finally:
         plt.close(fig)

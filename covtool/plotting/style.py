@@ -14,8 +14,10 @@ from __future__ import annotations
 
 import numpy as np
 
-#: SI per unit of the length units a study may choose (``[output] units``)
-LENGTH = {"ft": 0.3048, "m": 1.0}
+from covtool.units import OUTPUT_LENGTHS
+
+#: SI per unit of the length units a study may choose (``[output] units``; one home: covtool.units)
+LENGTH = OUTPUT_LENGTHS
 
 _COLORS = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#e377c2", "#17becf",
            "#7f7f7f", "#bcbd22")

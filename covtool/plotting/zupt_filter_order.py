@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from covtool.plotting.style import LENGTH
+
 
 def impact_figure(result):
     """Per filter, CEP and altitude PE with each dropped block's noise alone / put back.
@@ -17,7 +19,8 @@ def impact_figure(result):
     Parameters
     ----------
     result : covtool.results.ZuptFilterOrderResult
-        Its ``impact`` table and last report time.
+        Its ``impact`` table (lengths in ft), last report time and
+        ``length_unit`` (``[output] units``, in which the lengths are drawn).
 
     Returns
     -------
@@ -30,10 +33,13 @@ def impact_figure(result):
     tab = table[np.isclose(table["t [min]"], t_report / 60.0)]
     names = list(dict.fromkeys(tab["filter"]))
     cols = ("CEP [ft]", "alt PE [ft]")
-    # one pass over the table: (filter, block, variant) -> the two values (the first row of each, as .iloc[0])
+    unit = getattr(result, "length_unit", "ft")
+    scale = LENGTH["ft"] / LENGTH[unit]
+    # one pass over the table: (filter, block, variant) -> the two values (the first row of each, as .iloc[0]),
+    # in the study's length unit
     value = {}
     for key, v in zip(zip(tab["filter"], tab["block"], tab["variant"]), zip(*(tab[c] for c in cols))):
-        value.setdefault(key, v)
+        value.setdefault(key, tuple(x * scale for x in v))
     bars = (("noise from block only", -0.2, "(a) eq (11)-(13) noise of this block only"),
             ("block put back", 0.2, "(b) this block put back into the filter"))
     colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
@@ -64,8 +70,9 @@ def impact_figure(result):
             ax.set_ylim(len(blocks) - 0.4, -0.6)              # the first block on top
             # the blocks are named once, on the left panel; the right one has the same rows, unlabelled
             ax.set_yticks(y, blocks, fontsize=8) if c == 0 else ax.set_yticks([])
-            ax.set_xlabel(f"true {col} at {t_report / 60:g} min")
-            ax.set_title(f"filter {name}: {col.split(' [')[0]}")
+            quantity = col.split(" [")[0]
+            ax.set_xlabel(f"true {quantity} [{unit}] at {t_report / 60:g} min")
+            ax.set_title(f"filter {name}: {quantity}")
             ax.grid(True, axis="x", alpha=0.3)
     h, lab = axes[0, 0].get_legend_handles_labels()
     fig.legend(h, lab, loc="lower center", ncol=4, fontsize=8)

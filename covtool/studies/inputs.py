@@ -11,6 +11,7 @@ from covtool.io.config import check_keys, file_sha256, quantity, resolve_input, 
 from covtool.io.library import load_model_by_name
 from covtool.io.names import check_study_name
 from covtool.lincov.model.spec import Model
+from covtool.units import OUTPUT_LENGTHS
 
 __all__ = [
     "study_header", "load_truth",
@@ -311,7 +312,7 @@ def load_trajectory(decl, where, base_dir, dt, duration=None):
 
 
 #: ``[output] units``: the length unit of figures and charts (the paper's feet, or metres)
-LENGTH_UNITS = {"ft": 0.3048, "m": 1.0}
+LENGTH_UNITS = OUTPUT_LENGTHS                        # one home: covtool.units
 
 
 def length_unit(decl, where, default: str = "ft") -> str:

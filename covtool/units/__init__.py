@@ -58,7 +58,7 @@ from functools import lru_cache
 from covtool.errors import UnitError
 from covtool.units.grammar import _parse, _parse_or_raise, _Parser, _tokenize, _Tok  # noqa: F401 - re-exported
 from covtool.units.tables import (  # noqa: F401 - re-exported
-    ARCMIN, ARCSEC, DIMENSIONS, FT, G0, PPM_G, MAX_DEPTH, MAX_EXPONENT, MAX_LENGTH, _ONE, _RADIAN, _Refusal, _resolve, _Unit,
+    ARCMIN, ARCSEC, DIMENSIONS, FT, G0, OUTPUT_LENGTHS, PPM_G, MAX_DEPTH, MAX_EXPONENT, MAX_LENGTH, _ONE, _RADIAN, _Refusal, _resolve, _Unit,
     _unit, registry,
 )
 
@@ -68,7 +68,7 @@ def __getattr__(name):
         return registry()
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
-__all__ = ["ureg", "parse_quantity", "to_si", "from_si", "si_unit", "DIMENSIONS", "is_unit", "G0", "FT", "ARCMIN", "ARCSEC", "PPM_G",
+__all__ = ["ureg", "parse_quantity", "to_si", "from_si", "si_unit", "DIMENSIONS", "is_unit", "G0", "FT", "OUTPUT_LENGTHS", "ARCMIN", "ARCSEC", "PPM_G",
            "MAX_LENGTH", "MAX_DEPTH", "MAX_EXPONENT"]
 
 

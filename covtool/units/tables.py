@@ -36,6 +36,8 @@ def __getattr__(name):
 G0 = 9.80665
 #: international foot [m]
 FT = 0.3048
+#: SI per unit of the output lengths a study may choose (``[output] units``) [m]
+OUTPUT_LENGTHS = {"ft": FT, "m": 1.0}
 #: arc minute and arc second [rad]
 ARCMIN = math.pi / 180 / 60
 ARCSEC = ARCMIN / 60
