@@ -389,20 +389,19 @@ def cli_floor(study: Path, out: Path, repeats: int, pycache: Path) -> float:
     (in which the figure server prepares, as it does beside the computation) are subtracted.  Median of
     ``repeats``.  ``2 s − floor`` is what the flagship's computation may take for the ≤ 2 s target.
     """
-    import pickle
     import shutil
     import subprocess
 
-    import covtool
-
     stored = out.parent / "floor-result.pkl"
-    with open(stored, "wb") as f:
-        pickle.dump(covtool.run_study(study), f, protocol=pickle.HIGHEST_PROTOCOL)
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONPYCACHEPREFIX": str(pycache)}
     env.pop("PYTHONDONTWRITEBYTECODE", None)
     walls = []
     try:
-        for _ in range(repeats + 1):                      # the first untimed (bytecode cache)
+        # the result of this tree's covtool (ROOT), whichever covtool this process imports
+        subprocess.run([sys.executable, "-c", "import pickle, sys, covtool; pickle.dump(covtool.run_study(sys.argv[1]), "
+                        "open(sys.argv[2], 'wb'), protocol=pickle.HIGHEST_PROTOCOL)", str(study), str(stored)],
+                       cwd=ROOT, env=env, check=True)
+        for _ in range(max(repeats, 1) + 1):              # the first untimed (bytecode cache)
             shutil.rmtree(out, ignore_errors=True)
             t0 = time.perf_counter()
             r = subprocess.run([sys.executable, "-c", _FLOOR_CHILD, str(stored), str(FLOOR_WAIT), "run", str(study),
@@ -735,7 +734,7 @@ def main(argv=None) -> int:
     print_cli(cli, trees, args.studies)
     if floor is not None:
         full = cli[("this tree", "zupt_filter_order")][0]
-        print(f"    flagship floor: the same command without its computation (its stored result; interpreter, imports,")
+        print("    flagship floor: the same command without its computation (its stored result; interpreter, imports,")
         print(f"    every output): {floor:.2f} s median, of the full run's {full:.2f} s; the computation's share "
               f"{full - floor:.2f} s ({(full - floor) / full:.0%}); <= 2 s needs it in {2.0 - floor:.2f} s")
     fr = fair_report()

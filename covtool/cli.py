@@ -148,10 +148,13 @@ def _write_outputs(result, out, args, server=None) -> list:
     the collections that the writers' many small objects set off scan those
     objects alone, not the whole heap (0.06-0.12 s each, two or three per
     flagship run).  Unfrozen after, so that an in-process caller (the
-    tests) collects as before.
+    tests) collects as before; a caller that froze objects itself is left
+    as it was (nothing frozen or unfrozen here).
     """
     from covtool.io.writers import write_outputs
 
+    if gc.get_freeze_count():
+        return write_outputs(result, out, figures=not args.no_figures, server=server)
     gc.freeze()
     try:
         return write_outputs(result, out, figures=not args.no_figures, server=server)

@@ -499,6 +499,17 @@ def test_run_writes_with_the_heap_frozen_out_of_the_collector_and_unfreezes_it(t
     monkeypatch.setattr(writers, "write_outputs", failing)
     status, _, err = _call(["run", str(study), "--out", str(tmp_path / "o2"), "--no-figures", "--quiet"], capsys)
     assert status != 0 and "No space left" in err and gc.get_freeze_count() == 0
+    # a caller that froze its own objects keeps them frozen
+    monkeypatch.setattr(writers, "write_outputs", counting)
+    gc.freeze()
+    try:
+        mine = gc.get_freeze_count()
+        status, _, err = _call(["run", str(study), "--out", str(tmp_path / "o3"), "--no-figures", "--quiet"], capsys)
+        assert status == 0, err
+        # nothing added to it (the run's objects) nor taken out (a frozen object freed by its count may leave)
+        assert mine - 100 <= seen[-1] <= mine and mine - 100 <= gc.get_freeze_count() <= mine
+    finally:
+        gc.unfreeze()
 
 
 def test_readme_is_self_contained_and_ci_runs_its_test_command():

@@ -376,7 +376,7 @@ def test_non_finite_input_is_refused():
 
 
 def test_zero_length_steps_are_the_identity_without_noise(dyn, monkeypatch):
-    """Δt = 0 is a valid step: Φ = I and Q_d = 0 exactly, on every exact path; the other steps unchanged.
+    """Δt = 0 is a valid step: Φ = I and Q_d = 0 exactly, on every exact path; the other steps as without it.
 
     Before, a step of Δt = 0 with noise was refused ("did not converge"): its
     Q_d sums stay zero, so the element-wise tail rule, relative to them,
@@ -384,7 +384,9 @@ def test_zero_length_steps_are_the_identity_without_noise(dyn, monkeypatch):
     constants (van_loan), the dense series (taylor on all states), the
     sensor blocks (block_triangular), per-source noise, fixed-order Taylor
     and the terms it reports; zero steps alone, among others, and in a run
-    of repeated steps (the de-duplicated path).
+    of repeated steps (the de-duplicated path).  The other steps are
+    compared with the stack without the zero ones to round-off (1e-14: a
+    stack's balancing depends on its steps).
     """
     from covtool.lincov.discretize import sensor_states, structured
 

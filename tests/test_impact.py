@@ -508,9 +508,11 @@ def test_a_non_finite_transition_under_the_filters_options_names_the_impact_the_
 def test_impact_figure_draws_the_tables_values_and_no_bar_for_an_untrusted_one():
     """Each bar of the impact figure is its table row's value; the lines the nominal and no-noise members.
 
-    A synthetic table (two filters, blocks in a given order, one NaN value):
-    the rectangles' widths and rows are read back from the figure; the NaN
-    has no bar (a bar of zero would read as "no error") but an "n/a".
+    A synthetic table (two filters, blocks in a given order, a NaN and a
+    negative bar value, an infinite reference): the rectangles' widths and
+    rows are read back from the figure; an untrusted value has no bar (a bar
+    of zero would read as "no error") but an "n/a", an untrusted reference
+    line an "n/a" in the title; the legend in its order.
     """
     import matplotlib
     matplotlib.use("Agg")
@@ -531,6 +533,8 @@ def test_impact_figure_draws_the_tables_values_and_no_bar_for_an_untrusted_one()
                              "CEP [ft]": rng.uniform(1, 20), "alt PE [ft]": rng.uniform(1, 50)})
     tab = pd.DataFrame(rows)
     tab.loc[(tab["filter"] == "F2") & (tab["block"] == "y") & (tab["variant"] == BACK), "alt PE [ft]"] = np.nan
+    tab.loc[(tab["filter"] == "F2") & (tab["block"] == "x") & (tab["variant"] == ONLY), "CEP [ft]"] = -1.0
+    tab.loc[(tab["filter"] == "F1") & (tab["variant"] == NONE), "alt PE [ft]"] = np.inf
     fig = impact_figure(SimpleNamespace(tables={"impact": tab}, report_times=[600.0, 1800.0]))
     try:
         axes = np.array(fig.axes[:4]).reshape(2, 2)
@@ -545,18 +549,27 @@ def test_impact_figure_draws_the_tables_values_and_no_bar_for_an_untrusted_one()
                 assert len(got) == 2
                 for (variant, off), paths in zip(((ONLY, -0.2), (BACK, 0.2)), got):
                     want = {(round(float(i + off), 6), pick(variant, b)) for i, b in enumerate(bl)
-                            if np.isfinite(pick(variant, b))}
+                            if np.isfinite(pick(variant, b)) and pick(variant, b) >= 0}
                     seen = {(round(float(p.vertices[:4, 1].mean()), 6), float(p.vertices[:4, 0].max()))
                             for p in paths}
                     assert {k: pytest.approx(v, rel=1e-15) for k, v in want} == dict(seen)
                     assert all(p.vertices[:4, 0].min() == 0.0 for p in paths)
-                lines = sorted(float(ln.get_xdata()[0]) for ln in ax.lines)
-                assert lines == sorted([pick(NOMINAL), pick(NONE)])
-                assert ax.get_xlim()[1] >= np.nanmax(last.loc[last["filter"] == f, col])
-        na = [t for t in axes[1, 1].texts if t.get_text().strip() == "n/a"]
-        assert len(na) == 1 and na[0].get_position()[1] == pytest.approx(1.2)
-        assert not any(t.get_text().strip() == "n/a" for ax in axes.ravel()[:3] for t in ax.texts)
+                refs = [pick(NOMINAL), pick(NONE)]
+                lines = [float(ln.get_xdata()[0]) for ln in ax.lines]
+                assert lines == pytest.approx([x if np.isfinite(x) else np.nan for x in refs], nan_ok=True)
+                vals = last.loc[last["filter"] == f, col]
+                assert ax.get_xlim()[1] >= vals[np.isfinite(vals)].max()
+                lo, hi = ax.get_ylim()
+                assert hi < -0.4 and lo > len(bl) - 0.6            # every bar inside, the first block on top
+        na = {(r, c): [t.get_position()[1] for t in axes[r, c].texts if t.get_text().strip() == "n/a"]
+              for r in range(2) for c in range(2)}
+        assert na == {(0, 0): [], (0, 1): [], (1, 0): [pytest.approx(-0.2)], (1, 1): [pytest.approx(1.2)]}
+        assert axes[0, 1].get_title() == "filter F1: alt PE (no equivalent noise n/a)"
+        assert axes[0, 0].get_title() == "filter F1: CEP"
         assert axes[0, 1].get_xlabel() == "true alt PE [ft] at 30 min"
+        assert [t.get_text() for t in fig.legends[0].get_texts()] == [
+            "nominal (all dropped blocks as noise)", "no equivalent noise",
+            "(a) eq (11)-(13) noise of this block only", "(b) this block put back into the filter"]
     finally:
         plt.close(fig)
     # [output] units = "m": the same bars in metres (the table keeps ft), and the axes say so

@@ -54,6 +54,7 @@ def _prepare() -> None:
     # no cyclic collection while matplotlib is imported (its modules are garbage to none of it: one full
     # collection of the growing heap cost 0.1 s), then the imported objects frozen out of every later one:
     # the drawing children's collections scan their figures, not matplotlib
+    collecting = gc.isenabled()
     gc.disable()
     try:
         import matplotlib
@@ -73,7 +74,8 @@ def _prepare() -> None:
     finally:
         quiet.setLevel(level)
         gc.freeze()
-        gc.enable()
+        if collecting:
+            gc.enable()
 
 
 #: bytes of the job's length, sent before the job (big-endian)

@@ -12,9 +12,11 @@ def impact_figure(result):
 
     Each panel has two bars per dropped block -- (a) the block's eq (11)-(13)
     noise alone, (b) the block put back into the filter -- and the filter's
-    nominal and no-equivalent-noise values as vertical lines.  A value that
-    is not finite (a covariance the guard did not pass) has no bar but an
-    "n/a" at the axis, never a bar of zero.
+    nominal and no-equivalent-noise values as vertical lines.  A bar value
+    that is not a finite non-negative length (a covariance the guard did
+    not pass) has no bar but an "n/a" at the axis, never a bar of zero; a
+    reference line that is not has no line and an "n/a" in its panel's
+    title.
 
     Parameters
     ----------
@@ -51,28 +53,34 @@ def impact_figure(result):
         y = np.arange(len(blocks))
         for c, col in enumerate(cols):
             ax = axes[r, c]
-            top = [nom[c], none[c]]
+            ref = [x if np.isfinite(x) and x >= 0 else np.nan for x in (nom[c], none[c])]
+            top = [x for x in ref if np.isfinite(x)]
+            # the reference lines first (a line of NaN draws nothing but keeps its legend entry): the legend
+            # reads nominal, no noise, (a), (b)
+            ax.axvline(ref[0], color="k", lw=1.2, label="nominal (all dropped blocks as noise)")
+            ax.axvline(ref[1], color="0.5", lw=1.0, ls="--", label="no equivalent noise")
             # each variant's bars as one collection of rectangles (0, y ± 0.2) – (w, y ± 0.2): one artist,
             # not one patch per bar (the same rectangles, drawn in a fraction of the time)
             for j, (variant, off, label) in enumerate(bars):
                 w = np.array([value[(name, b, variant)][c] for b in blocks], float)
-                ok = np.isfinite(w)
+                ok = np.isfinite(w) & (w >= 0)
                 y0, y1, z = y[ok] + off - 0.2, y[ok] + off + 0.2, np.zeros(int(ok.sum()))
                 verts = np.stack([np.c_[z, y0], np.c_[z, y1], np.c_[w[ok], y1], np.c_[w[ok], y0]], axis=1)
                 ax.add_collection(PolyCollection(verts, facecolors=colors[j], edgecolors="none", label=label))
                 for yb in y[~ok] + off:
                     ax.text(0.0, yb, " n/a", va="center", ha="left", fontsize=7, color="0.3")
                 top.extend(w[ok])
-            ax.axvline(nom[c], color="k", lw=1.2, label="nominal (all dropped blocks as noise)")
-            ax.axvline(none[c], color="0.5", lw=1.0, ls="--", label="no equivalent noise")
-            hi = max((x for x in top if np.isfinite(x)), default=0.0)
+            hi = max(top, default=0.0)
             ax.set_xlim(0.0, 1.05 * hi if hi > 0 else 1.0)
-            ax.set_ylim(len(blocks) - 0.4, -0.6)              # the first block on top
+            # the bars span y − 0.4 … y + 0.4; 5 % of that span beyond, the first block on top
+            pad = 0.05 * max(len(blocks) - 0.2, 1.0)
+            ax.set_ylim(len(blocks) - 0.6 + pad, -0.4 - pad)
             # the blocks are named once, on the left panel; the right one has the same rows, unlabelled
             ax.set_yticks(y, blocks, fontsize=8) if c == 0 else ax.set_yticks([])
             quantity = col.split(" [")[0]
             ax.set_xlabel(f"true {quantity} [{unit}] at {t_report / 60:g} min")
-            ax.set_title(f"filter {name}: {quantity}")
+            missing = [lab for lab, x in zip(("nominal", "no equivalent noise"), ref) if not np.isfinite(x)]
+            ax.set_title(f"filter {name}: {quantity}" + "".join(f" ({lab} n/a)" for lab in missing))
             ax.grid(True, axis="x", alpha=0.3)
     h, lab = axes[0, 0].get_legend_handles_labels()
     fig.legend(h, lab, loc="lower center", ncol=4, fontsize=8)

@@ -173,7 +173,7 @@ def _series(B, Qb, h, nu, order=None, minus_identity=False):
                 ok = ((rq < 1.0) & (_colmax(T) * rp / (1.0 - rp) <= phi_floor[idx]))
                 if noise:
                     ok &= _q_tail_ok(Qt, Qw, rch[idx], rq)
-            ok |= ai == 0.0                             # h = 0 (Δt = 0): every term past i = 0 is zero
+            ok |= hw[:, 0, 0] == 0.0                    # h = 0 (Δt = 0): every term past i = 0 is zero
             if ok.any():
                 fin = idx[ok]
                 Phi[fin], Q[fin], terms[fin], done[fin] = Pw[ok], Qw[ok], i + 1, True

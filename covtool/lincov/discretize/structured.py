@@ -114,7 +114,7 @@ def _block_series(A, M, dd, QA, q, h, nu, rch):
                 ok &= np.sqrt(col) * rp / (1.0 - rp) <= floor
             if noise and ok.any():
                 ok &= _block_q_tail_ok(work[3], work[5], QtA, QtX, QtS, rch[idx], rq, k)
-            ok |= ai == 0.0                                 # h = 0 (Δt = 0): every term past i = 0 is zero
+            ok |= hw[:, 0, 0] == 0.0                        # h = 0 (Δt = 0): every term past i = 0 is zero
         if ok.any():
             fin = idx[ok]
             for x, y in zip(out, work):
