@@ -153,13 +153,14 @@ def _write_outputs(result, out, args, server=None) -> list:
     """
     from covtool.io.writers import write_outputs
 
-    if gc.get_freeze_count():
-        return write_outputs(result, out, figures=not args.no_figures, server=server)
-    gc.freeze()
+    freeze = gc.get_freeze_count() == 0
+    if freeze:
+        gc.freeze()
     try:
         return write_outputs(result, out, figures=not args.no_figures, server=server)
     finally:
-        gc.unfreeze()
+        if freeze:
+            gc.unfreeze()
 
 
 def _cmd_models(args) -> int:
