@@ -254,3 +254,65 @@ def test_shipped_setup_rejects_a_30_percent_accelerometer_bias_error(capsys):
     # the null of T is centred on 1: the conditional σ is the exact expectation of the mean square
     for v in right[0].values():
         assert abs(v["T_null_mean"] - 1.0) < 4 * v["T_null_std"] / np.sqrt(40)
+
+
+def test_conditional_null_is_the_direct_recursion_with_the_same_draws():
+    # The conditional null (fixed initial states, float32, rows permuted into coupled / diagonal / quiet
+    # blocks) against the direct float64 recursion x ← x − G(Hx + L_r z), x ← Φx + L_k w with the same
+    # normal draws in the documented order (per step: the measurement noise at an update step, then the
+    # driving noise), on a system with every kind of row: coupled rows, a noisy and a quiet Markov row,
+    # constants a gain reaches and one it does not, and an H that reads a constant.  Float32: 1e-4.
+    rng = np.random.default_rng(11)
+    N, n, M, R_ = 40, 8, 6, 4
+    Phi = np.zeros((N, n, n))
+    Phi[:, :3, :] = rng.standard_normal((N, 3, n)) * 0.2          # coupled rows, fed by every state
+    Phi[:, :3, :3] += np.eye(3)
+    Phi[:, 3, 3] = 0.9                                               # Markov row with noise
+    Phi[:, 4, 4] = 0.8                                               # Markov row without noise
+    Phi[:, 5, 5] = Phi[:, 6, 6] = Phi[:, 7, 7] = 1.0                 # three random constants
+    Lq = np.zeros((N, n, 2))
+    Lq[:, [0, 3], :] = rng.standard_normal((N, 2, 2)) * 0.3
+    Qd = Lq @ Lq.transpose(0, 2, 1)
+    C = rng.standard_normal((N + 1, 4, 3))
+    H = np.zeros((2, n))
+    H[:, [1, 2, 7]] = rng.standard_normal((2, 3))                   # row 7: a constant no gain reaches
+    Rm = np.array([[0.2, 0.05], [0.05, 0.1]])
+    steps = list(range(5, N, 7))
+    gains = {}
+    for k in steps:
+        g = np.zeros((n, 2))
+        g[[0, 1, 2, 5]] = rng.standard_normal((4, 2)) * 0.2          # reaches constant 5, not 6 or 7
+        gains[k] = g
+    cases = {"pure": None, "f": gains}
+    x0 = rng.standard_normal((M, n))
+    out = linear_mean_squares(Phi, Qd, cases, C, runs=M, replicas=R_, rng=21, x0=x0, H=H, R=Rm)
+
+    # the direct recursion, float64, every replica's columns at once
+    draw = np.random.default_rng(21)
+    B = M * R_
+    Lf = noise_factors(Qd)
+    Lr = np.linalg.cholesky(Rm)
+
+    def normals(rows):
+        Z = np.empty((rows, B), np.float32)
+        for row in Z:
+            draw.standard_normal(dtype=np.float32, out=row)
+        return Z.astype(float)
+
+    X = {c: np.tile(x0.T, (1, R_)) for c in cases}
+    ref = {c: np.empty((R_, N + 1, 3)) for c in cases}
+    for k in range(N + 1):
+        v = Lr @ normals(2) if k in gains else None
+        for c in cases:
+            if cases[c] and k in cases[c]:
+                X[c] = X[c] - cases[c][k] @ (H @ X[c] + v)
+            y = (C[k] @ X[c][:3]) ** 2
+            ms = y.reshape(4, R_, M).mean(axis=2)
+            ref[c][:, k] = np.column_stack([ms[0] + ms[1], ms[2], ms[3]])
+        if k == N:
+            break
+        W = Lf[k] @ normals(Lf[k].shape[1])
+        for c in cases:
+            X[c] = Phi[k] @ X[c] + W
+    for c in cases:
+        np.testing.assert_allclose(out[c], ref[c], rtol=1e-4, atol=1e-7 * np.max(ref[c]))
