@@ -262,6 +262,7 @@ def test_a_grade_frees_its_chunks_before_the_next_grade_makes_any(monkeypatch):
     class Pool(streamed.ChunkPool):
         def __init__(self, budget):
             super().__init__(budget)
+            gc.collect()                                    # not the unreachable stores of earlier tests
             live.append(sum(isinstance(o, streamed._Store) for o in gc.get_objects()))
 
     monkeypatch.setattr(aided, "ChunkPool", Pool)

@@ -200,3 +200,40 @@ class CovarianceHistory:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=8)
         return fig
+
+
+class AtSteps:
+    """Covariances kept at some grid steps only, read as ``obj[k]`` by grid index ``k``.
+
+    What a recorded run keeps (:func:`covtool.lincov.reference.propagate`,
+    :func:`~covtool.lincov.reference.propagate_with_filter` with ``record``):
+    the consumers that read a history at its steps only
+    (:func:`covtool.analysis.consistency.nees_whitening`, ``expected_nees``)
+    take it in place of the ``(N+1, n, n)`` history.
+
+    Parameters
+    ----------
+    steps : array_like of int, shape (J,)
+        Grid indices, increasing.
+    P : ndarray, shape (J, n, n)
+        The covariance at each.
+
+    Raises
+    ------
+    KeyError
+        On reading a step that was not kept.
+    """
+
+    def __init__(self, steps, P):
+        self.steps = np.asarray(steps, int)
+        self.P = np.asarray(P)
+        if self.P.shape[0] != self.steps.size:
+            raise ValueError(f"{self.steps.size} steps for {self.P.shape[0]} covariances")
+        self._slot = {int(k): i for i, k in enumerate(self.steps)}
+
+    def __getitem__(self, k):
+        try:
+            return self.P[self._slot[int(k)]]
+        except KeyError:
+            raise KeyError(f"grid step {int(k)} was not kept (kept: {self.steps.size} steps)") from None
+

@@ -152,11 +152,17 @@ class FilterRun:
     Attributes
     ----------
     P_truth : ndarray, shape (N+1, n, n)
-        Truth covariance (posterior at update times), eq (15)–(16).
+        Truth covariance (posterior at update times), eq (15)–(16); with
+        ``record_steps``, shape (J, n, n) at those steps.
     P_filter : ndarray, shape (N+1, n_f, n_f)
-        The filter's own covariance, eq (6a)–(8).
+        The filter's own covariance, eq (6a)–(8); (J, n_f, n_f) with
+        ``record_steps``.
     prior_truth, prior_filter : dict of int to ndarray
-        Priors at the update steps.
+        Priors at the update steps (empty for a recorded run: checked, not kept).
+    record_steps : ndarray of int, shape (J,), or None
+        Grid indices of the recorded rows (None: every step).
+    every_truth, every_filter : ndarray, shape (N+1, a, a), or None
+        The leading ``a`` states (the navigation block) of every step.
     gains : dict of int to ndarray, shape (n_f, m)
         Filter gains at the update steps, eq (7).
     times : ndarray, shape (N+1,) or None
@@ -173,6 +179,12 @@ class FilterRun:
     times: np.ndarray | None = None
     names: tuple | None = None
     filter_names: tuple | None = None
+    #: grid indices of the rows of ``P_truth``, ``P_filter`` (None: every step); with
+    #: :func:`propagate_with_filter`'s ``record``
+    record_steps: np.ndarray | None = None
+    #: the leading ``all_steps`` states of every step, shape (N+1, a, a) (``all_steps``), else None
+    every_truth: np.ndarray | None = None
+    every_filter: np.ndarray | None = None
 
     def _times(self):
         return np.arange(self.P_truth.shape[0], dtype=float) if self.times is None else np.asarray(self.times)
@@ -210,7 +222,8 @@ class FilterRun:
 
 def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_steps,
                           *, Rf=None, form: str = "joseph", check: bool = True, label: str = "filter",
-                          times=None, names=None, filter_names=None, system_checked: bool = False) -> FilterRun:
+                          times=None, names=None, filter_names=None, system_checked: bool = False,
+                          record=None, all_steps: int | None = None) -> FilterRun:
     """Truth covariance under a (reduced) filter's gains with feedback.
 
     Parameters
@@ -249,6 +262,19 @@ def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_ste
         Φ, Q_d, Φ_f and Q_f were already guarded by the caller
         (:func:`check_system`, e.g. once for a truth shared by several
         filters); P0, P_f(0), R, R_f and every covariance are still checked.
+        Required with streamed systems (:class:`covtool.lincov.streamed.StreamedSystem`,
+        guarded as they are made).
+    record : array_like of int, optional
+        Grid indices whose full truth and filter covariances are returned
+        (``P_truth``, ``P_filter`` of shape (J, ·, ·)); every covariance,
+        prior and posterior, is still guarded, in blocks of
+        :data:`GUARD_STEPS`, and the priors are not kept: the memory does
+        not grow with N × n² (``Phi``, ``Qd``, ``Phi_f``, ``Qd_f`` may be
+        streamed).
+    all_steps : int, optional
+        Also keep the leading ``all_steps`` states of every step
+        (``every_truth``, ``every_filter``: the navigation block,
+        ``all_steps = 10``).  Implies ``record`` (default: none).
 
     Returns
     -------
@@ -279,6 +305,9 @@ def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_ste
         sys_ = {} if system_checked else {"truth": (Phi, Qd), "filter": (Phi_f, Qd_f)}
         check_system(f"{label} (truth)", *sys_.get("truth", ()), P0=P0, R=R, names=names, times=times)
         check_system(f"{label} (filter)", *sys_.get("filter", ()), P0=Pf0, R=Rf, names=filter_names, times=times)
+    if record is not None or all_steps is not None:
+        return _filter_recorded(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, Rf, update_steps, form, check, label,
+                                times, names, filter_names, record, all_steps)
     PT = np.full((N + 1, n, n), np.nan)
     PF = np.full((N + 1, nf, nf), np.nan)
     prior_t, prior_f, gains = {}, {}, {}
@@ -305,6 +334,70 @@ def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_ste
     return FilterRun(PT, PF, prior_t, prior_f, gains, None if times is None else np.asarray(times, float),
                      None if names is None else tuple(names),
                      None if filter_names is None else tuple(filter_names))
+
+
+def _filter_recorded(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, Rf, update_steps, form, check, label, times,
+                     names, filter_names, record, all_steps) -> FilterRun:
+    """:func:`propagate_with_filter` keeping the covariances of the steps ``record`` (and the leading
+    ``all_steps`` states of every step), every covariance guarded a block of :data:`GUARD_STEPS` at a time."""
+    N, n, _ = Phi.shape
+    nf = Phi_f.shape[1]
+    rec = np.zeros(0, int) if record is None else np.unique(np.asarray(record, int))
+    if rec.size and (rec[0] < 0 or rec[-1] > N):
+        raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
+    if all_steps is not None and int(all_steps) < 1:
+        raise ValueError(f"{label}: all_steps must be a positive number of states, got {all_steps}")
+    slot = {int(k): i for i, k in enumerate(rec)}
+    out_t, out_f = np.empty((rec.size, n, n)), np.empty((rec.size, nf, nf))
+    a_t = a_f = None
+    every_t = every_f = None
+    if all_steps is not None:
+        a_t, a_f = min(int(all_steps), n), min(int(all_steps), nf)
+        every_t, every_f = np.empty((N + 1, a_t, a_t)), np.empty((N + 1, a_f, a_f))
+    m = min(GUARD_STEPS, N + 1)
+    BT, BF = np.full((m, n, n), np.nan), np.full((m, nf, nf), np.nan)
+    prior_t, prior_f, gains = {}, {}, {}
+    block = {"k0": 0, "j": 0}
+
+    def flush():
+        j, k0 = block["j"], block["k0"]
+        if check and j:
+            _check_run(label, BT[:j], BF[:j], prior_t, prior_f, form, names, filter_names, times, first=k0)
+        prior_t.clear()
+        prior_f.clear()
+        block["k0"], block["j"] = k0 + j, 0
+
+    def keep(k, stage, P, Pf, K):
+        if stage == "prior":
+            prior_t[k - block["k0"]], prior_f[k - block["k0"]] = P, Pf
+            return
+        j = block["j"]
+        BT[j], BF[j] = P, Pf
+        if K is not None:
+            gains[k] = K
+        if k in slot:
+            out_t[slot[k]], out_f[slot[k]] = P, Pf
+        if every_t is not None:
+            every_t[k], every_f[k] = P[:a_t, :a_t], Pf[:a_f, :a_f]
+        block["j"] = j + 1
+        if block["j"] == m:
+            flush()
+
+    def fail(k, exc):
+        flush_to = k - block["k0"]
+        if check:
+            _check_run(label, BT[:flush_to], BF[:flush_to], prior_t, prior_f, form, names, filter_names, times,
+                       first=block["k0"])
+        raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
+
+    part = ((H, R, Hf, Rf),)
+    filter_loop(N, P0, Pf0, lambda k, P: Phi[k] @ P @ Phi[k].T + Qd[k],
+                lambda k, Pf: Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k],
+                {int(k): part for k in update_steps}, D, form, keep, fail)
+    flush()
+    return FilterRun(out_t, out_f, {}, {}, gains, None if times is None else np.asarray(times, float),
+                     None if names is None else tuple(names),
+                     None if filter_names is None else tuple(filter_names), rec, every_t, every_f)
 
 
 def filter_loop(N: int, P0, Pf0, step_truth, step_filter, updates: dict, D, form: str, on_state, on_fail) -> None:
@@ -385,8 +478,11 @@ def _when(k, times):
     return time_text(float(times[k])) if times is not None else f"step {k}"
 
 
-def _check_run(label, PT, PF, prior_t, prior_f, form, names, filter_names, times):
-    """Check a reference run's histories and priors; raise for the earliest bad one."""
+def _check_run(label, PT, PF, prior_t, prior_f, form, names, filter_names, times, first: int = 0):
+    """Check a reference run's histories and priors; raise for the earliest bad one.
+
+    ``PT[i]``, ``PF[i]`` and ``prior_*[i]`` are those of grid step ``first + i`` (a block of a recorded run).
+    """
     stages = []
     steps = np.array(sorted(prior_t), int)
     for hist, priors, what, nm in ((PT, prior_t, "truth", names),
@@ -397,13 +493,13 @@ def _check_run(label, PT, PF, prior_t, prior_f, form, names, filter_names, times
             k = int(bad[0])
             step = (f"after the {'eq (16)' if nm is names else form} update" if k in prior_t
                     else "after the propagation")
-            stages.append((k, 1, f"{label}: {what} {step} at {_when(k, times)}: {st.problem(k, nm)}"))
+            stages.append((k, 1, f"{label}: {what} {step} at {_when(first + k, times)}: {st.problem(k, nm)}"))
         if steps.size:
             sp = covariance_status(np.stack([priors[int(s)] for s in steps]), groups=scale_groups(nm, hist.shape[-1]))
             bad = np.flatnonzero(~sp.ok)
             if bad.size:
                 k = int(steps[bad[0]])
-                stages.append((k, 0, f"{label}: {what} before the update (prior) at {_when(k, times)}: "
+                stages.append((k, 0, f"{label}: {what} before the update (prior) at {_when(first + k, times)}: "
                                      f"{sp.problem(int(bad[0]), nm)}"))
     if stages:
         raise NumericalError(min(stages)[2])

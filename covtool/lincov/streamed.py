@@ -20,6 +20,8 @@ Pure numeric core: no I/O.
 
 from __future__ import annotations
 
+import threading
+
 import numpy as np
 
 from covtool.errors import NumericalError, SystemCheckError
@@ -78,12 +80,22 @@ class _Store:
         self.held: dict = {}
         self.last = (None, None)
         self.made = 0
+        # runs in threads of one process read the same system (the Monte Carlo's analyses beside its null):
+        # a chunk is made by one of them, and the others wait for it rather than make it again
+        self.lock = threading.Lock()
 
     def bounds(self, m: int) -> tuple[int, int]:
         a = m * self.chunk
         return a, min(self.n_steps, a + self.chunk)
 
     def part(self, m: int) -> tuple[np.ndarray, np.ndarray]:
+        held = self.held.get(m)
+        if held is not None:
+            return held
+        with self.lock:
+            return self._part(m)
+
+    def _part(self, m: int) -> tuple[np.ndarray, np.ndarray]:
         if m in self.held:
             return self.held[m]
         if self.last[0] == m:

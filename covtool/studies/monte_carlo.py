@@ -90,6 +90,7 @@ from covtool.analysis.metrics import nav_metrics, ned_position_covariance, valid
 from covtool.errors import StudyFileError
 from covtool.forked import can_split, Forked
 from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
+from covtool.lincov.history import AtSteps
 from covtool.lincov.kalman import symmetrize
 from covtool.lincov.reduced import zupt_matrices
 from covtool.lincov.reference import propagate, propagate_with_filter
@@ -183,12 +184,46 @@ def mc_options(decl: dict, where: str) -> dict:
     return o
 
 
-def _memory(steps, truth, filters, dynamics):
-    """The setup, and one case at a time: truth and filter histories and the feedback filter's own P."""
-    n = truth.n
-    worst = max(filters, default=n)
-    return memory_estimate(steps, n, filters=filters, dynamics=dynamics, histories=[n, worst, worst],
-                           noise=noise_columns(truth))
+def _memory(opt: dict, dt: float):
+    """``memory(steps, truth, filters, dynamics)`` of a Monte Carlo study with options ``opt`` (an upper estimate).
+
+    The linear analyses read the truth's and the filters' systems a chunk at
+    a time (:meth:`~covtool.studies.zupt_setup.ZuptSetup.streamed_system`,
+    chunks held up to :data:`~covtool.studies.resources.HELD_CHUNKS` bytes)
+    and keep the navigation block of every step and the whole covariance at
+    the NEES steps only; the null (:func:`covtool.validation.linear_mc.linear_mean_squares`)
+    holds the dense rows of Φ and the noise roots of every step in single
+    precision and the mean squares of every replica.  Nothing grows with
+    duration × n².
+    """
+    from covtool.studies.resources import HELD_CHUNKS, stream_memory_estimate
+
+    def memory(steps, truth, filters, dynamics):
+        N, n = int(steps), truth.n
+        cases = len(filters) + 1                                       # and the pure INS
+        est = stream_memory_estimate(N, n, filters=list(filters), dropped=[n - m for m in filters],
+                                     dynamics=dynamics, noise=noise_columns(truth))
+        parts = dict(est["parts"])
+        systems = 2 * N * (n * n + sum(m * m for m in filters)) * 8
+        parts["held chunks of the systems"] = min(HELD_CHUNKS, systems)
+        J = int(N * dt / opt["nees_every"]) + 2                       # NEES steps (and the last)
+        worst = max([n] + list(filters))
+        # per case: the σ of its runs at every step; three runs alive at once, each with its every-step
+        # navigation blocks and its NEES-step covariances (truth and filter), and the NEES whitening
+        parts["recorded covariances"] = (3 * (2 * (N + 1) * 100 + J * (n * n + worst * worst))
+                                         + 3 * cases * J * worst * worst) * 8
+        parts["linear sigma histories"] = 3 * cases * 12 * (N + 1) * 8
+        cols = min(20000, opt["runs"] * max(opt["null_replicas"], 1))
+        if opt["null_replicas"]:
+            # Φ's dense rows (the navigation block's at most n) and diagonal, the noise roots (n × n, their
+            # array headers) in float32, every case's state of the replicas and the draws ahead
+            parts["null: systems"] = N * (10 * n * 4 + n * 4 + n * n * 4 + 112)
+            parts["null: mean squares"] = cases * opt["null_replicas"] * (N + 1) * 3 * 8
+            parts["null: states"] = (cases + 8) * n * cols * 4
+        total = sum(parts.values())
+        return {"bytes": float(total), "steps": N, "parts": parts, "parallel": 1}
+
+    return memory
 
 
 def _chunks(runs: int, per: int) -> list[int]:
@@ -307,7 +342,8 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     t_start = time.perf_counter()
     where = str(path) if path else "<study>"
     opt = mc_options(decl, where)
-    S = setup(decl, path=path, progress=progress, extra_sections=("monte_carlo",), memory=_memory,
+    S = setup(decl, path=path, progress=progress, extra_sections=("monte_carlo",),
+              memory=_memory(opt, study_header(decl, where)["dt"]),
               shrink="a larger [study] dt, a shorter duration or fewer [filters] cases")
     t, nodes, truth = S.t, S.nodes, S.truth
     dt = float(t[1] - t[0])
@@ -337,69 +373,80 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     # the update steps and the filters' states: a forked process samples it while this one runs the
     # linear analyses below (the same calls, the same numbers)
     ref_inputs = (gain_steps(S.update_steps, t.size - 1) if S.cases else [],
-                  [list(S.filter_model(c)[0].names) for c in S.cases])
+                  [list(S.filter_stream(c)[0].names) for c in S.cases])
     ref_args = dict(imu_rate=opt["imu_rate"], samples_per_step=opt["samples_per_step"], model=truth,
                     process_dt=opt["process_dt"])
-    S.Phi                                    # the truth's Φ, Q_d first (split in two processes of their own)
+    # the truth's and the filters' Φ, Q_d are made a chunk at a time on first read and held while the
+    # setup's pool has room (ZuptSetup.streamed_system): every run below reads them step by step, and
+    # keeps the navigation block of every step and the whole covariance at the NEES steps only, so the
+    # memory does not grow with duration × n² (the same numbers as whole-grid stacks and histories)
+    T = S.streamed_system()
     try:
         ref_job = Forked(reference_along, traj, t, *ref_inputs, **ref_args) if can_split() else None
     except OSError:                          # no fork here: sampled in this process, after the gains
         ref_job = None
+    rec = dict(record=nees_steps, all_steps=10)
     try:
         if pure:
-            P = propagate(S.Phi, S.Qd, S.P0, label=f"{where}: pure INS", names=truth.names, times=t,
-                          system_checked=True)
-            lin["pure_ins"] = _linear(P, nodes, "pure_ins")
-            spec = nees_whitening(P, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)
+            P, P_nav = propagate(T.Phi, T.Qd, S.P0, label=f"{where}: pure INS", names=truth.names, times=t,
+                                 system_checked=True, **rec)
+            lin["pure_ins"] = _linear(P_nav, nodes, "pure_ins")
+            spec = nees_whitening(AtSteps(nees_steps, P), truth.names, REDUCED_NAV, nees_steps, nodes.q_nb)
             cases.append(EnsembleCase("pure_ins", None, {"truth": spec}))
             null_cases["pure_ins"] = None
             states["pure_ins"] = truth.n
-            del P
+            del P, P_nav
 
             def conditional_pure(spec=spec):
-                P = propagate(S.Phi, S.Qd, P0_cond, label=f"{where}: pure INS (conditional)", names=truth.names,
-                              times=t, system_checked=True)
-                lin_c["pure_ins"] = _linear(P, nodes)
-                predicted_c[("pure_ins", "truth")] = expected_nees(spec, P, truth.names, nodes.q_nb)
-                P = propagate(S.Phi, S.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t,
-                              system_checked=True)
+                P, P_nav = propagate(T.Phi, T.Qd, P0_cond, label=f"{where}: pure INS (conditional)",
+                                     names=truth.names, times=t, system_checked=True, **rec)
+                lin_c["pure_ins"] = _linear(P_nav, nodes)
+                predicted_c[("pure_ins", "truth")] = expected_nees(spec, AtSteps(nees_steps, P), truth.names,
+                                                                   nodes.q_nb)
+                P = propagate(T.Phi, T.Qd, Z0, label=f"{where}: pure INS (driven part)", names=truth.names, times=t,
+                              system_checked=True, keep=10)
                 lin_d["pure_ins"] = _linear(P, nodes)
             later.append(conditional_pure)
         for c in S.cases:
             spec = S.specs[c]
-            fm, Phi_f, Qd_f = S.filter_model(c)
+            fm = S.filter_stream(c)[0]
+            fsys = S.streamed_system(c)
+            Phi_f, Qd_f = fsys.Phi, fsys.Qd
             Rf = S.filter_R(c)
-            ff = FeedbackFilter.design(c, fm.names, Phi_f, Qd_f, fm.P0, Rf, S.update_steps, form=spec.update, times=t)
-            res = propagate_with_filter(S.Phi, S.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
+            ff = FeedbackFilter.design(c, fm.names, Phi_f, Qd_f, fm.P0, Rf, S.update_steps, form=spec.update, times=t,
+                                       system_checked=True, **rec)
+            res = propagate_with_filter(T.Phi, T.Qd, S.P0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D, S.R,
                                         S.update_steps, Rf=Rf, form=spec.update, label=f"{where}: filter {c}", times=t,
-                                        names=truth.names, filter_names=fm.names, system_checked=True)
-            pf_check[c] = float(np.max(np.abs(ff.P - res.P_filter)))
-            lin[c] = _linear(res.P_truth, nodes, c)
-            claimed[c] = _linear(ff.P[:, :10, :10], nodes) if tuple(fm.names[:10]) == NAV_STATES else None
+                                        names=truth.names, filter_names=fm.names, system_checked=True, **rec)
+            pf_check[c] = float(max(np.max(np.abs(ff.P - res.P_filter)), np.max(np.abs(ff.every - res.every_filter))))
+            lin[c] = _linear(res.every_truth, nodes, c)
+            claimed[c] = _linear(ff.every, nodes) if tuple(fm.names[:10]) == NAV_STATES else None
             const = [nm for nm in fm.names[10:] if truth.states[truth.index[nm]].process == "constant"]
-            nees = {"truth": nees_whitening(res.P_truth, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb),
-                    "filter": nees_whitening(ff.P, ff.names, REDUCED_NAV + tuple(const), nees_steps, nodes.q_nb),
-                    "filter_nav": nees_whitening(ff.P, ff.names, REDUCED_NAV, nees_steps, nodes.q_nb)}
+            Pt, Pf = AtSteps(nees_steps, res.P_truth), AtSteps(nees_steps, ff.P)
+            nees = {"truth": nees_whitening(Pt, truth.names, REDUCED_NAV, nees_steps, nodes.q_nb),
+                    "filter": nees_whitening(Pf, ff.names, REDUCED_NAV + tuple(const), nees_steps, nodes.q_nb),
+                    "filter_nav": nees_whitening(Pf, ff.names, REDUCED_NAV, nees_steps, nodes.q_nb)}
             # what the linear analysis predicts for the NEES of the filter's claim: the actual errors of the
             # filter states have the truth covariance under its gains (labels are truth state names)
             for key in ("filter", "filter_nav"):
-                predicted[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
-            del res
+                predicted[(c, key)] = expected_nees(nees[key], Pt, truth.names, nodes.q_nb)
+            del res, Pt, Pf
 
             def conditional_case(c=c, fm=fm, Phi_f=Phi_f, Qd_f=Qd_f, Rf=Rf, spec=spec, nees=nees):
-                res = propagate_with_filter(S.Phi, S.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names),
+                res = propagate_with_filter(T.Phi, T.Qd, P0_cond, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names),
                                             fm.D, S.R, S.update_steps, Rf=Rf, form=spec.update,
                                             label=f"{where}: filter {c} (conditional)", times=t, names=truth.names,
-                                            filter_names=fm.names, system_checked=True)
-                lin_c[c] = _linear(res.P_truth, nodes)
+                                            filter_names=fm.names, system_checked=True, **rec)
+                lin_c[c] = _linear(res.every_truth, nodes)
                 for key in nees:
-                    predicted_c[(c, key)] = expected_nees(nees[key], res.P_truth, truth.names, nodes.q_nb)
+                    predicted_c[(c, key)] = expected_nees(nees[key], AtSteps(nees_steps, res.P_truth), truth.names,
+                                                          nodes.q_nb)
                 del res
-                res = propagate_with_filter(S.Phi, S.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
+                res = propagate_with_filter(T.Phi, T.Qd, Z0, Phi_f, Qd_f, fm.P0, S.H, zupt_matrices(fm.names), fm.D,
                                             S.R, S.update_steps, Rf=Rf, form=spec.update,
                                             label=f"{where}: filter {c} (driven part)", times=t, names=truth.names,
-                                            filter_names=fm.names, system_checked=True)
-                lin_d[c] = _linear(res.P_truth, nodes)
+                                            filter_names=fm.names, system_checked=True, all_steps=10)
+                lin_d[c] = _linear(res.every_truth, nodes)
             later.append(conditional_case)
             cases.append(EnsembleCase(c, FeedbackFilter(c, ff.names, ff.gains, np.empty((0,) + ff.P.shape[1:])), nees))
             states[c] = len(fm.names)
@@ -439,7 +486,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             t0 = time.perf_counter()
             if opt["null_replicas"]:
                 side["null"] = linear_mean_squares(
-                    S.Phi, S.Qd, null_cases, output_rows(nodes.lat, nodes.h, nodes.q_nb), runs=N,
+                    T.Phi, T.Qd, null_cases, output_rows(nodes.lat, nodes.h, nodes.q_nb), runs=N,
                     replicas=opt["null_replicas"], x0=x0_all, H=S.H, R=S.R,
                     rng=np.random.default_rng(np.random.SeedSequence(opt["seed"], spawn_key=(NULL_STREAM,))))
             side["null_seconds"] = time.perf_counter() - t0
@@ -486,6 +533,9 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     t_wait = time.perf_counter() - t_wait
     if side["errors"]:
         raise side["errors"][0]
+    S.release()                              # the held chunks of the systems: every analysis has read them
+    T = None
+    later.clear()
     null_ms, t_null = side["null"], side["null_seconds"]
     t_lin += side["seconds"]
     elapsed = time.perf_counter() - t_start

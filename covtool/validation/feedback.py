@@ -103,17 +103,25 @@ class FeedbackFilter:
         ``K`` at each update grid index (eq (7)).
     P : ndarray, shape (N+1, n_f, n_f)
         The filter's own (claimed) covariance at every grid time, posterior
-        at update times.
+        at update times; with ``record_steps``, shape (J, n_f, n_f) at those
+        grid indices.
+    record_steps : ndarray of int, shape (J,), or None
+        Grid indices of the rows of ``P`` (None: every step).
+    every : ndarray, shape (N+1, a, a), or None
+        The leading ``a`` states (the navigation block) at every grid time.
     """
 
     name: str
     names: tuple
     gains: dict
     P: np.ndarray
+    record_steps: np.ndarray | None = None
+    every: np.ndarray | None = None
 
     @classmethod
     def design(cls, name, names, Phi_f, Qd_f, P0, Rf, update_steps, *, form: str = "joseph",
-               times=None) -> "FeedbackFilter":
+               times=None, record=None, all_steps: int | None = None,
+               system_checked: bool = False) -> "FeedbackFilter":
         """Run the filter's covariance recursion (seed 002, eq (6)–(8)).
 
         Parameters
@@ -132,6 +140,19 @@ class FeedbackFilter:
         form : {"joseph", "standard"}
         times : ndarray, shape (N+1,), optional
             Grid times, for error messages. [s]
+        record : array_like of int, optional
+            Grid indices whose covariance ``P`` keeps (shape (J, n_f, n_f));
+            every covariance is still guarded, a block of
+            :data:`covtool.lincov.reference.GUARD_STEPS` at a time, so the
+            memory does not grow with N × n_f² (``Phi_f``, ``Qd_f`` may be
+            streamed).
+        all_steps : int, optional
+            Also keep the leading ``all_steps`` states of every step
+            (``every``; the navigation block: 10).  Implies ``record``.
+        system_checked : bool
+            Φ_f and Q_f were guarded by the caller (required for a streamed
+            system, :class:`covtool.lincov.streamed.StreamedSystem`); P0 and
+            R_f are still checked.
 
         Returns
         -------
@@ -157,10 +178,30 @@ class FeedbackFilter:
         N, nf, _ = Phi_f.shape
         if nf != len(names):
             raise ValueError(f"filter {name!r}: Phi_f has {nf} states, names has {len(names)}")
+        from covtool.lincov.reference import GUARD_STEPS
+
         label = f"Monte Carlo filter {name}"
-        check_system(label, Phi=Phi_f, Qd=Qd_f, P0=P0, R=Rf, names=names, times=times)
+        check_system(label, Phi=None if system_checked else Phi_f, Qd=None if system_checked else Qd_f, P0=P0,
+                     R=Rf, names=names, times=times)
         upd = set(gain_steps(update_steps, N))
-        P = np.full((N + 1, nf, nf), np.nan)
+        recorded = record is not None or all_steps is not None
+        rec = np.unique(np.asarray([] if record is None else record, int))
+        if rec.size and (rec[0] < 0 or rec[-1] > N):
+            raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
+        slot = {int(k): i for i, k in enumerate(rec)}
+        out = np.empty((rec.size, nf, nf))
+        a = None if all_steps is None else min(int(all_steps), nf)
+        every = None if a is None else np.empty((N + 1, a, a))
+        # the history (every step), or one guard block of it at a time (recorded)
+        m = min(GUARD_STEPS, N + 1) if recorded else N + 1
+        P = np.full((m, nf, nf), np.nan)
+        first = 0
+
+        def check(j):
+            if j == 0:
+                return
+            check_covariance(P[:j], label, names=names, times=None if times is None else times[first:first + j])
+
         gains = {}
         Pf = symmetrize(np.asarray(P0, float))
         k = 0
@@ -171,14 +212,24 @@ class FeedbackFilter:
                         K = kalman_gain(Pf, Hf, Rf)
                         gains[k] = K
                         Pf = filter_update(Pf, K, Hf, Rf, form)
-                    P[k] = Pf
+                    P[k - first] = Pf
+                    if recorded:
+                        if k in slot:
+                            out[slot[k]] = Pf
+                        if every is not None:
+                            every[k] = Pf[:a, :a]
+                        if k - first + 1 == m:
+                            check(m)
+                            first += m
                     if k < N:
                         Pf = symmetrize(Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k])
         except NumericalError as exc:
-            check_covariance(P[:k], label, names=names, times=times)
+            check(k - first)
             when = time_text(float(times[k])) if times is not None else f"step {k}"
             raise NumericalError(f"{label}: gain at {when}: {exc}") from None
-        check_covariance(P, label, names=names, times=times)
+        check(N + 1 - first)
+        if recorded:
+            return cls(name, names, gains, out, rec, every)
         return cls(name, names, gains, P)
 
 

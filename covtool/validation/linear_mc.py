@@ -104,13 +104,32 @@ def noise_factors(Qd) -> list:
     return [np.ascontiguousarray(x) for x in S]
 
 
-def _split(Phi):
-    """Rows of Φ with off-diagonal entries (at any step) and the diagonal of the rest."""
+def _split_mask(Phi) -> np.ndarray:
+    """Off-diagonal entries of a stack of Φ that are non-zero at some step, shape (n, n) of bool."""
     n = Phi.shape[1]
-    off = np.abs(Phi).max(axis=0) * (1.0 - np.eye(n)) > 0
+    return np.abs(Phi).max(axis=0) * (1.0 - np.eye(n)) > 0
+
+
+def _split_rows(off):
+    """Rows with off-diagonal entries (:func:`_split_mask`) and the diagonal rest."""
     dense = np.flatnonzero(off.any(axis=1))
-    diag = np.setdiff1d(np.arange(n), dense)
+    diag = np.setdiff1d(np.arange(off.shape[0]), dense)
     return dense, diag
+
+
+#: steps of Φ and Q_d read at once by :func:`linear_mean_squares`
+READ_CHUNK = 600
+
+
+def _chunks(Phi, Qd, N: int, size: int = READ_CHUNK):
+    """``(a, b, Φ[a:b], Q_d[a:b])`` over the steps: slices of whole-grid stacks, or a streamed system's steps
+    (:class:`covtool.lincov.streamed.StreamedSystem`, read one step at a time) stacked a chunk at a time."""
+    for a in range(0, N, size):
+        b = min(N, a + size)
+        if isinstance(Phi, np.ndarray) and isinstance(Qd, np.ndarray):
+            yield a, b, Phi[a:b], np.asarray(Qd[a:b], float)
+        else:
+            yield a, b, np.stack([Phi[k] for k in range(a, b)]), np.stack([Qd[k] for k in range(a, b)])
 
 
 def _per_step(H, R, upd, n):
@@ -151,8 +170,11 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
 
     Parameters
     ----------
-    Phi, Qd : ndarray, shape (N, n, n)
-        Truth transition and noise (seed 002, eq (15)).
+    Phi, Qd : ndarray, shape (N, n, n), or streamed stacks
+        Truth transition and noise (seed 002, eq (15)): whole-grid stacks,
+        or a :class:`covtool.lincov.streamed.StreamedSystem`'s ``Phi``,
+        ``Qd`` (read a chunk of :data:`READ_CHUNK` steps at a time; nothing of
+        size N × n² is made).
     cases : dict of str to dict of int to ndarray or None
         For each case the correction gain at each update step ``k``:
         ``G_k = D K_k`` (n × m; eq (10), (16)); ``None`` or ``{}``: pure INS.
@@ -200,7 +222,8 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
         updates without ``H`` and ``R`` (or without them at one of the
         update steps).
     """
-    Phi = np.asarray(Phi, float)
+    if isinstance(Phi, np.ndarray) or not hasattr(Phi, "shape"):
+        Phi = np.asarray(Phi, float)
     N, n, _ = Phi.shape
     if (x0 is None) == (P0 is None):
         raise ValueError("linear_mean_squares: give exactly one of x0 (conditional) and P0 (unconditional)")
@@ -217,26 +240,45 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
     groups = dict(GROUPS if groups is None else groups)
     if not groups or any(not rows or any(int(i) not in range(4) for i in rows) for rows in groups.values()):
         raise ValueError(f"linear_mean_squares: groups {groups} must name rows 0..3 of C")
-    L = factors if factors is not None else noise_factors(Qd)
+    # Φ and Q_d are read a chunk of steps at a time (whole-grid stacks or streamed systems, read step by
+    # step): nothing of size N × n² is made here.  First the structure over every step ...
+    off = np.zeros((n, n), bool)
+    noisy = np.zeros(n, bool)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for _, _, Ph, Q in _chunks(Phi, Qd, N):
+            off |= _split_mask(Ph)
+            noisy |= np.any(np.diagonal(Q, axis1=1, axis2=2) > 0, axis=0)
     # states ordered dense rows first, so both parts are contiguous slices (exact: a permutation)
-    dense, diag = _split(Phi)
+    dense, diag = _split_rows(off)
     # then the diagonal rows that receive noise, so the noise is added to one leading block of rows
     # (a state with a zero Q_d diagonal at every step gets no noise: its row of Q_d, and of L, is zero)
-    noisy = np.any(np.diagonal(np.asarray(Qd, float), axis1=1, axis2=2) > 0, axis=0)
     diag = np.concatenate([diag[noisy[diag]], diag[~noisy[diag]]])
     perm = np.concatenate([dense, diag])
     nw = int(np.flatnonzero(noisy[perm])[-1]) + 1 if noisy.any() else 0
     nd = dense.size
-    # single precision: the statistics need ~1e-3, float32 keeps 1e-7 per step and halves the cost
+    # ... then per step, in single precision: the statistics need ~1e-3, float32 keeps 1e-7 per step and
+    # halves the cost
     f4 = np.float32
-    Pd = np.ascontiguousarray(Phi[:, dense][:, :, perm], dtype=f4)          # (N, n_dense, n)
-    dd = np.ascontiguousarray(Phi[:, diag, diag], dtype=f4)                 # (N, n_diag)
+    Pd = np.empty((N, nd, n), f4)                                   # the dense rows, permuted columns
+    dd = np.empty((N, diag.size), f4)                               # the diagonal of the other rows
+    Lp = []
+    support = np.flatnonzero(noisy)
+    with threadpool_limits(limits=1, user_api="blas"):
+        for a, b, Ph, Q in _chunks(Phi, Qd, N):
+            Pd[a:b] = Ph[:, dense][:, :, perm]
+            dd[a:b] = Ph[:, diag, diag]
+            if factors is not None:
+                Lc = factors[a:b]
+            elif support.size:
+                Lc = covariance_root(Q, support)                    # noise_factors, a chunk at a time
+            else:
+                Lc = np.zeros((b - a, n, 0))
+            Lp.extend(np.ascontiguousarray(f[perm][:nw], dtype=f4) for f in Lc)
     # the trailing diagonal rows with φ = 1 at every step (random constants, 36 of 58 for sdins58) are
     # left alone: multiplying by 1 is exact, and skipping it saves most of the elementwise traffic
     moving = np.flatnonzero(np.any(dd != 1, axis=0))
     ne = nd + (int(moving[-1]) + 1 if moving.size else 0)
     dd = np.ascontiguousarray(dd[:, :ne - nd])
-    Lp = [np.ascontiguousarray(f[perm][:nw], dtype=f4) for f in L]
     G = {c: ({k: np.asarray(g, f4)[perm] for k, g in cases[c].items()} if cases[c] else {}) for c in cases}
     # one converted pair per distinct (H, R) object: the ZUPT case converts its single pair once
     conv = {}
