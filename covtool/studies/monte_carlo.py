@@ -77,6 +77,7 @@ With ``[[measurement]]`` tables (the aided kind's declaration) instead of
 from __future__ import annotations
 
 import math
+import os
 import threading
 import time
 from functools import partial
@@ -99,7 +100,7 @@ from covtool.nav.strapdown import NAV_STATES
 from covtool.plotting.monte_carlo import case_figure, nees_figure, ratio_figure
 from covtool.results import MonteCarloResult
 from covtool.studies.inputs import length_unit, study_header, study_inputs
-from covtool.studies.resources import memory_estimate, noise_columns, resource_provenance, run_in_chunks
+from covtool.studies.resources import HELD_CHUNKS, noise_columns, resource_provenance, run_in_chunks
 from covtool.studies.tables import case_validity
 from covtool.studies.zupt_setup import setup
 from covtool.units import ARCMIN
@@ -196,33 +197,48 @@ def _memory(opt: dict, dt: float):
     precision and the mean squares of every replica.  Nothing grows with
     duration × n².
     """
-    from covtool.studies.resources import HELD_CHUNKS, stream_memory_estimate
+    from covtool.studies.resources import HELD_CHUNKS, memory_limit, stream_memory_estimate
 
-    def memory(steps, truth, filters, dynamics):
+    def memory(steps, truth, filters, dynamics, *, max_memory=None, **_):
         N, n = int(steps), truth.n
         cases = len(filters) + 1                                       # and the pure INS
         est = stream_memory_estimate(N, n, filters=list(filters), dropped=[n - m for m in filters],
                                      dynamics=dynamics, noise=noise_columns(truth))
         parts = dict(est["parts"])
         systems = 2 * N * (n * n + sum(m * m for m in filters)) * 8
-        parts["held chunks of the systems"] = min(HELD_CHUNKS, systems)
+        parts["held chunks of the systems"] = systems
         J = int(N * dt / opt["nees_every"]) + 2                       # NEES steps (and the last)
         worst = max([n] + list(filters))
-        # per case: the σ of its runs at every step; three runs alive at once, each with its every-step
-        # navigation blocks and its NEES-step covariances (truth and filter), and the NEES whitening
-        parts["recorded covariances"] = (3 * (2 * (N + 1) * 100 + J * (n * n + worst * worst))
-                                         + 3 * cases * J * worst * worst) * 8
+        # three runs alive at once (a filter's design and its truth run here, a conditional run beside),
+        # each with its every-step navigation blocks and its NEES-step covariances (truth and filter)
+        parts["recorded covariances"] = 3 * (2 * (N + 1) * 100 + J * (n * n + worst * worst)) * 8
+        # per case the NEES whitening of the truth's and the filter's navigation errors (9 states) and of
+        # the filter's navigation and constant states (at most 9 + n_f)
+        parts["NEES whitening"] = sum(J * (2 * 81 + (9 + m) ** 2 + 3 * (9 + m)) * 8 for m in [9] + list(filters))
         parts["linear sigma histories"] = 3 * cases * 12 * (N + 1) * 8
         cols = min(20000, opt["runs"] * max(opt["null_replicas"], 1))
         if opt["null_replicas"]:
-            # Φ's dense rows (the navigation block's at most n) and diagonal, the noise roots (n × n, their
+            # Φ's dense rows (the navigation block's) and diagonal, the noise roots (n × noise columns, their
             # array headers) in float32, every case's state of the replicas and the draws ahead
-            parts["null: systems"] = N * (10 * n * 4 + n * 4 + n * n * 4 + 112)
+            parts["null: systems"] = N * (10 * n * 4 + n * 4 + n * noise_columns(truth) * 4 + 112)
             parts["null: mean squares"] = cases * opt["null_replicas"] * (N + 1) * 3 * 8
             parts["null: states"] = (cases + 8) * n * cols * 4
+        # the ensemble's reference (the trajectory at the IMU rate, reference_along: about 180 bytes a sample,
+        # measured) in this process, pickled into the chunks in flight and unpickled by every worker
+        samples = N * dt * opt["imu_rate"]
+        chunks = math.ceil(opt["runs"] / opt["runs_per_chunk"])
+        parts["ensemble reference"] = 180 * samples * (3 + min(chunks, os.cpu_count() or 1))
+        # every chunk held (each made once, as the whole-grid stacks were) where that fits the limit, else
+        # HELD_CHUNKS of them, the others made again by every analysis that reads them
+        layout = "held"
+        if sum(parts.values()) > memory_limit(max_memory)[0] and systems > HELD_CHUNKS:
+            parts["held chunks of the systems"] = HELD_CHUNKS
+            layout = "streamed"
         total = sum(parts.values())
-        return {"bytes": float(total), "steps": N, "parts": parts, "parallel": 1}
+        return {"bytes": float(total), "steps": N, "parts": parts, "parallel": 1, "layout": layout,
+                "held": parts["held chunks of the systems"]}
 
+    memory.records = memory.limit = True          # setup passes [study] max_memory (the layout must fit it)
     return memory
 
 
@@ -380,6 +396,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     # setup's pool has room (ZuptSetup.streamed_system): every run below reads them step by step, and
     # keeps the navigation block of every step and the whole covariance at the NEES steps only, so the
     # memory does not grow with duration × n² (the same numbers as whole-grid stacks and histories)
+    S.hold_chunks(S.resources.get("held", HELD_CHUNKS) * 1.01)   # (a chunk's array headers beside its data)
     T = S.streamed_system()
     try:
         ref_job = Forked(reference_along, traj, t, *ref_inputs, **ref_args) if can_split() else None

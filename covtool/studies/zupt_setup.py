@@ -473,6 +473,24 @@ class ZuptSetup:
         made.append((key, StreamedSystem(make, self.t.size - 1, n, pool=pool)))
         return made[-1][1]
 
+    def hold_chunks(self, budget: float) -> None:
+        """Set the bytes of chunks :meth:`streamed_system` holds for later reads (default
+        :data:`~covtool.studies.resources.HELD_CHUNKS`); before the first streamed system is made.
+
+        A study that reads its systems many times and whose memory check allows
+        them all (the Monte Carlo's analyses) holds every chunk: each is made once.
+
+        Raises
+        ------
+        RuntimeError
+            A streamed system already exists (its pool is set).
+        """
+        from covtool.lincov.streamed import ChunkPool
+
+        if ("streamed pool",) in self._dyn_cache:
+            raise RuntimeError("hold_chunks: the streamed systems' pool is already in use")
+        self._dyn_cache[("streamed pool",)] = ChunkPool(budget)
+
     def _streamed_dynamics(self, a: int, b: int):
         """:meth:`chunk_dynamics` of the steps ``a … b−1``, kept for the next system made over the same chunk."""
         last = self._dyn_cache.get(("streamed dynamics",))
