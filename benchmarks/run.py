@@ -641,9 +641,11 @@ def rel_diff(a, b) -> float:
 # --------------------------------------------------------------------------
 
 #: the long variants, declared as study files (benchmarks/long/): 6 h x 6 cases and 24 h x 20 cases of the
-#: flagship, and the aided PADS-like survey over 24 h (4 filters and the pure INS)
+#: flagship, the aided PADS-like survey over 24 h (4 filters and the pure INS), the sensitivity sweep over
+#: 24 h, and the Monte Carlo validation over 6 h and 24 h (20 runs, 20 null replicas)
 LONG = [ROOT / "benchmarks" / "long" / f"zupt_filter_order_{h}.toml" for h in ("6h", "24h")] + \
-    [ROOT / "benchmarks" / "long" / "aided_pads_survey_24h.toml", ROOT / "benchmarks" / "long" / "zupt_sensitivity_24h.toml"]
+    [ROOT / "benchmarks" / "long" / "aided_pads_survey_24h.toml", ROOT / "benchmarks" / "long" / "zupt_sensitivity_24h.toml"] + \
+    [ROOT / "benchmarks" / "long" / f"monte_carlo_{h}.toml" for h in ("6h", "24h")]
 
 
 def memory_estimate_of(tree: Path, study: Path) -> str:

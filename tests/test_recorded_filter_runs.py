@@ -135,7 +135,7 @@ def test_monte_carlo_memory_does_not_grow_with_duration_times_n_squared():
         mem = _memory(mc_options(decl, "mc"), 1.0)
         a = mem(20000, truth, [58, 22, 16, 10], 2, max_memory=1000.0)
         b = mem(40000, truth, [58, 22, 16, 10], 2, max_memory=1000.0)
-        assert a["layout"] == b["layout"] == "streamed"
+        assert a["layout"].startswith("streamed") and b["layout"].startswith("streamed")
         assert b["parts"]["held chunks of the systems"] == a["parts"]["held chunks of the systems"]
         return {k: (b["parts"][k] - a["parts"][k]) / 20000 for k in a["parts"]}
 

@@ -199,13 +199,14 @@ def _memory(opt: dict, dt: float):
     """
     from covtool.studies.resources import HELD_CHUNKS, memory_limit, stream_memory_estimate
 
-    def memory(steps, truth, filters, dynamics, *, max_memory=None, **_):
+    def memory(steps, truth, filters, dynamics, *, max_memory=None, distinct=None, **_):
         N, n = int(steps), truth.n
         cases = len(filters) + 1                                       # and the pure INS
         est = stream_memory_estimate(N, n, filters=list(filters), dropped=[n - m for m in filters],
                                      dynamics=dynamics, noise=noise_columns(truth))
         parts = dict(est["parts"])
-        systems = 2 * N * (n * n + sum(m * m for m in filters)) * 8
+        # the truth's and each distinct filter system's Φ, Q_d (a filter that is the truth reads the truth's)
+        systems = 2 * N * (n * n + sum(m * m for m in (filters if distinct is None else distinct))) * 8
         parts["held chunks of the systems"] = systems
         J = int(N * dt / opt["nees_every"]) + 2                       # NEES steps (and the last)
         worst = max([n] + list(filters))
@@ -228,12 +229,15 @@ def _memory(opt: dict, dt: float):
         samples = N * dt * opt["imu_rate"]
         chunks = math.ceil(opt["runs"] / opt["runs_per_chunk"])
         parts["ensemble reference"] = 180 * samples * (3 + min(chunks, os.cpu_count() or 1))
-        # every chunk held (each made once, as the whole-grid stacks were) where that fits the limit, else
-        # HELD_CHUNKS of them, the others made again by every analysis that reads them
-        layout = "held"
+        # every chunk held (each made once, as the whole-grid stacks were) where that fits the limit, else as
+        # many as fit four fifths of what the rest leaves (at least HELD_CHUNKS), the others made again by
+        # every analysis that reads them
+        layout = "every chunk of the systems held"
         if sum(parts.values()) > memory_limit(max_memory)[0] and systems > HELD_CHUNKS:
-            parts["held chunks of the systems"] = HELD_CHUNKS
-            layout = "streamed"
+            rest = sum(parts.values()) - systems
+            parts["held chunks of the systems"] = min(systems, max(HELD_CHUNKS,
+                                                                   0.8 * (memory_limit(max_memory)[0] - rest)))
+            layout = "streamed (some chunks of the systems held, the others made again on each read)"
         total = sum(parts.values())
         return {"bytes": float(total), "steps": N, "parts": parts, "parallel": 1, "layout": layout,
                 "held": parts["held chunks of the systems"]}
