@@ -147,3 +147,86 @@ def test_monte_carlo_memory_does_not_grow_with_duration_times_n_squared():
     share = 3 * 2 * 58 * 58 * 8
     assert every10["recorded covariances"] - every100["recorded covariances"] == pytest.approx((0.1 - 0.01) * share,
                                                                                               rel=0.01)
+
+
+@pytest.mark.parametrize("step", [511, 512, 1023])
+@pytest.mark.parametrize("where", ["truth", "filter"])
+def test_a_bad_covariance_at_a_guard_block_boundary_keeps_the_whole_runs_message(step, where):
+    # the last step of a block (511), the first of the next (512) and the run's last (N + 1 = 1024 steps):
+    # the block's guard runs inside the loop there, and must not be taken for a gain that cannot be formed
+    s = _filter_system(N=1023)
+    key = "Qd" if where == "truth" else "Qd_f"
+    s[key] = s[key].copy()
+    s[key][step - 1, 1, 1] = np.nan
+    with pytest.raises(NumericalError) as whole:
+        _run(s, system_checked=True)
+    with pytest.raises(NumericalError) as rec:
+        _run(s, system_checked=True, record=[0, 1023], all_steps=3)
+    assert str(rec.value) == str(whole.value) and "gain" not in str(rec.value)
+    assert f"at step {step}:" in str(rec.value)
+
+
+@pytest.mark.parametrize("step", [511, 512, 601])
+@pytest.mark.parametrize("times", [True, False])
+def test_recorded_feedback_design_keeps_the_whole_designs_message(step, times):
+    from covtool.nav.strapdown import NAV_STATES
+
+    s = _filter_system(N=1023, n=10, nf=10)
+    s["Qd_f"] = s["Qd_f"].copy()
+    s["Qd_f"][step - 1, 4, 4] = np.nan
+    t = np.arange(1024) * 0.5 if times else None
+
+    def design(**kw):
+        return FeedbackFilter.design("F", NAV_STATES, s["Phi_f"], s["Qd_f"], s["Pf0"], s["R"], s["update_steps"],
+                                     times=t, system_checked=True, **kw)
+
+    with pytest.raises(NumericalError) as whole:
+        design()
+    with pytest.raises(NumericalError) as rec:
+        design(record=[0, 1023], all_steps=3)
+    assert str(rec.value) == str(whole.value) and "gain" not in str(rec.value)
+    assert (f"t = {step * 0.5:.1f} s" if times else f"(matrix ({step},))") in str(rec.value)
+
+
+def test_a_streamed_systems_own_guard_passes_through_the_feedback_design():
+    from covtool.errors import SystemCheckError
+    from covtool.nav.strapdown import NAV_STATES
+
+    s = _filter_system(N=700, n=10, nf=10)
+
+    def make(a, b):
+        if a <= 600 < b:
+            raise NumericalError("filter F: Q_f not finite at step 600")
+        return s["Phi_f"][a:b], s["Qd_f"][a:b]
+
+    F = StreamedSystem(make, 700, 10, chunk=100)
+    with pytest.raises(SystemCheckError, match=r"^filter F: Q_f not finite at step 600$"):
+        FeedbackFilter.design("F", NAV_STATES, F.Phi, F.Qd, s["Pf0"], s["R"], s["update_steps"],
+                              times=np.arange(701.0), system_checked=True, record=[0, 700])
+    with pytest.raises(ValueError, match="a streamed system is guarded as it is made; pass system_checked=True"):
+        FeedbackFilter.design("F", NAV_STATES, F.Phi, F.Qd, s["Pf0"], s["R"], s["update_steps"], record=[0])
+
+
+def test_a_recorded_run_refuses_to_be_read_as_a_history():
+    s = _filter_system()
+    out = _run(s, record=[0, 700], all_steps=4)
+    with pytest.raises(ValueError, match="a recorded run keeps the covariances of record_steps only"):
+        out.truth_history()
+    with pytest.raises(ValueError, match="a recorded run"):
+        out.filter_history()
+    g = out.gain_table()                               # the gains of every update, at the grid's times
+    assert np.array_equal(g["times"], np.asarray(s["update_steps"], float))
+    assert g["K"].shape == (len(s["update_steps"]), 5, 3)
+
+
+def test_two_readers_of_a_streamed_system_make_each_chunk_once_each():
+    # the Monte Carlo's analyses and its null read the truth in two threads; with no chunk held by the
+    # pool, each reader makes each chunk once (the last two read are kept), not once per alternation
+    from covtool.lincov.streamed import ChunkPool
+
+    s = _filter_system(N=700)
+    sysm = StreamedSystem(lambda a, b: (s["Phi"][a:b], s["Qd"][a:b]), 700, 8, chunk=100, pool=ChunkPool(0))
+    for k in range(700):
+        sysm.Phi[k]                                    # one reader, in order
+        sysm.Qd[(k + 350) % 700]                       # the other, three and a half chunks apart
+    assert sysm.made == 7 + 8                          # every chunk for each (the second starts mid-chunk)

@@ -108,8 +108,8 @@ def nees_whitening(P, names, labels, steps, q, *, rtol: float = 1e-10) -> Nees:
 
     Parameters
     ----------
-    P : ndarray, shape (N+1, n, n)
-        Covariance history (filter or truth).
+    P : ndarray, shape (N+1, n, n), or :class:`covtool.lincov.history.AtSteps`
+        Covariance history (filter or truth), read at ``steps`` only (``P[k]``).
     names : sequence of str
         Its state names.
     labels : sequence of str
@@ -153,10 +153,10 @@ def expected_nees(spec: Nees, P, names, q):
     ----------
     spec : Nees
         Whitening of the covariance being tested (e.g. the filter's claim).
-    P : ndarray, shape (N+1, n, n)
+    P : ndarray, shape (N+1, n, n), or :class:`covtool.lincov.history.AtSteps`
         Covariance of the actual errors of the same states (e.g. the truth
         covariance under the filter's gains restricted to the filter's
-        states, ``Dᵀ P D``).
+        states, ``Dᵀ P D``), read at ``spec.steps`` only.
     names : sequence of str
         State names of ``P``.
     q : ndarray, shape (N+1, 4)

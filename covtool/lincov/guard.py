@@ -500,7 +500,15 @@ def check_system(what: str, Phi=None, Qd=None, *, P0=None, R=None, names=None, t
     ------
     NumericalError
         From :func:`check_finite` / :func:`check_covariance`.
+    ValueError
+        ``Phi`` or ``Qd`` is a streamed stack (guarded as it is made, never here).
     """
+    for stack in (Phi, Qd):
+        if stack is not None and not isinstance(stack, np.ndarray) and hasattr(stack, "shape") \
+                and hasattr(stack, "__getitem__"):
+            # a streamed system (covtool.lincov.streamed.StreamedSystem) is guarded chunk by chunk as it is
+            # made; checking it here would build the whole (N, n, n) stack it exists to avoid
+            raise ValueError(f"{what}: a streamed system is guarded as it is made; pass system_checked=True")
     if P0 is not None:
         check_covariance(P0, f"{what}: P0", names=names)
     if Phi is not None:

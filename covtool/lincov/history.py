@@ -220,6 +220,8 @@ class AtSteps:
 
     Raises
     ------
+    ValueError
+        Steps not increasing, or not one per covariance.
     KeyError
         On reading a step that was not kept.
     """
@@ -229,6 +231,8 @@ class AtSteps:
         self.P = np.asarray(P)
         if self.P.shape[0] != self.steps.size:
             raise ValueError(f"{self.steps.size} steps for {self.P.shape[0]} covariances")
+        if np.any(np.diff(self.steps) <= 0):
+            raise ValueError("the steps of the kept covariances must increase")
         self._slot = {int(k): i for i, k in enumerate(self.steps)}
 
     def __getitem__(self, k):

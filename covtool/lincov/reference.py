@@ -198,12 +198,31 @@ class FilterRun:
         prior = np.array([priors[k] for k in steps]) if steps else np.zeros((0,) + P.shape[1:])
         return CovarianceHistory(t, names, P, t[steps] if steps else np.zeros(0), prior, label)
 
+    def _whole(self, what: str) -> None:
+        if self.record_steps is not None:
+            raise ValueError(f"{what}: a recorded run keeps the covariances of record_steps only (and the "
+                             "leading states of every step in every_truth, every_filter), not a history")
+
     def truth_history(self):
-        """The truth covariance as a :class:`~covtool.lincov.history.CovarianceHistory` (priors kept)."""
+        """The truth covariance as a :class:`~covtool.lincov.history.CovarianceHistory` (priors kept).
+
+        Raises
+        ------
+        ValueError
+            A recorded run (``record_steps``): it holds no history.
+        """
+        self._whole("truth_history")
         return self._history(self.P_truth, self.prior_truth, self.names, "truth")
 
     def filter_history(self):
-        """The filter's own covariance as a :class:`~covtool.lincov.history.CovarianceHistory`."""
+        """The filter's own covariance as a :class:`~covtool.lincov.history.CovarianceHistory`.
+
+        Raises
+        ------
+        ValueError
+            A recorded run (``record_steps``): it holds no history.
+        """
+        self._whole("filter_history")
         return self._history(self.P_filter, self.prior_filter, self.filter_names, "filter-claimed")
 
     def gain_table(self):
@@ -284,7 +303,14 @@ def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_ste
     ------
     NumericalError
         The first input or covariance that is not finite, symmetric and
-        PSD, with the time and the state.
+        PSD, with the time and the state (the same message with or without
+        ``record``); a gain that cannot be formed.
+    SystemCheckError
+        A streamed system's chunk failed its own guard as it was made (its
+        message names the step), passed through unchanged.
+    ValueError
+        ``record`` steps outside ``0 … N``, ``all_steps`` below 1, or a
+        streamed system without ``system_checked``.
 
     Notes
     -----
@@ -294,8 +320,9 @@ def propagate_with_filter(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, update_ste
     the truth is corrected by eq (16): only the truth states the filter
     estimates (rows of ``D``) are reset; unmodelled states keep running.
     The histories (every step) and the priors are checked once, batched,
-    after the loop; a blow-up in the loop is reported at the first step where
-    a covariance went bad.  The guard costs about 12 % of the flagship's CPU
+    after the loop (with ``record``, a block of :data:`GUARD_STEPS` steps at a
+    time); a blow-up in the loop is reported at the first step where a
+    covariance went bad.  The guard costs about 12 % of the flagship's CPU
     time (studies/zupt_filter_order.toml).
     """
     N, n, _ = Phi.shape
@@ -359,10 +386,15 @@ def _filter_recorded(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, Rf, update_step
     prior_t, prior_f, gains = {}, {}, {}
     block = {"k0": 0, "j": 0}
 
-    def flush():
+    def flush(inside: bool = False):
         j, k0 = block["j"], block["k0"]
         if check and j:
-            _check_run(label, BT[:j], BF[:j], prior_t, prior_f, form, names, filter_names, times, first=k0)
+            try:
+                _check_run(label, BT[:j], BF[:j], prior_t, prior_f, form, names, filter_names, times, first=k0)
+            except NumericalError as exc:
+                if inside:
+                    raise _BlockFailed(exc) from None
+                raise
         prior_t.clear()
         prior_f.clear()
         block["k0"], block["j"] = k0 + j, 0
@@ -381,7 +413,7 @@ def _filter_recorded(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, Rf, update_step
             every_t[k], every_f[k] = P[:a_t, :a_t], Pf[:a_f, :a_f]
         block["j"] = j + 1
         if block["j"] == m:
-            flush()
+            flush(inside=True)
 
     def fail(k, exc):
         flush_to = k - block["k0"]
@@ -391,13 +423,28 @@ def _filter_recorded(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, Rf, update_step
         raise NumericalError(f"{label}: gain at {_when(k, times)}: {exc}") from None
 
     part = ((H, R, Hf, Rf),)
-    filter_loop(N, P0, Pf0, lambda k, P: Phi[k] @ P @ Phi[k].T + Qd[k],
-                lambda k, Pf: Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k],
-                {int(k): part for k in update_steps}, D, form, keep, fail)
+    try:
+        filter_loop(N, P0, Pf0, lambda k, P: Phi[k] @ P @ Phi[k].T + Qd[k],
+                    lambda k, Pf: Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k],
+                    {int(k): part for k in update_steps}, D, form, keep, fail)
+    except _BlockFailed as failed:       # a block's guard inside the loop: its own message, not a gain's
+        raise failed.error from None
     flush()
-    return FilterRun(out_t, out_f, {}, {}, gains, None if times is None else np.asarray(times, float),
-                     None if names is None else tuple(names),
+    # a recorded run keeps its grid's times (steps of 1 s when none are given): its rows are record_steps
+    tt = np.arange(N + 1, dtype=float) if times is None else np.asarray(times, float)
+    return FilterRun(out_t, out_f, {}, {}, gains, tt, None if names is None else tuple(names),
                      None if filter_names is None else tuple(filter_names), rec, every_t, every_f)
+
+
+class _BlockFailed(Exception):
+    """A recorded run's block guard failed inside :func:`filter_loop` (carries the guard's error).
+
+    Not a :class:`NumericalError`, so the loop does not take it for a gain that cannot be formed.
+    """
+
+    def __init__(self, error: NumericalError):
+        super().__init__(str(error))
+        self.error = error
 
 
 def filter_loop(N: int, P0, Pf0, step_truth, step_filter, updates: dict, D, form: str, on_state, on_fail) -> None:

@@ -31,6 +31,10 @@ from covtool.lincov.dynamics import STREAM_CHUNK
 __all__ = ["ChunkPool", "ScaledSteps", "StreamedSystem"]
 
 
+#: chunks a system keeps beside those its pool holds: the last ones read
+LAST_CHUNKS = 2
+
+
 class ChunkPool:
     """Byte budget for the chunks the streamed systems of one study hold.
 
@@ -43,13 +47,15 @@ class ChunkPool:
     def __init__(self, budget: float):
         self.budget = float(budget)
         self.held = 0.0
+        self._lock = threading.Lock()          # systems read in threads share it
 
     def take(self, nbytes: float) -> bool:
         """Reserve ``nbytes`` if they fit (True), else leave the pool as it is (False)."""
-        if self.held + nbytes > self.budget:
-            return False
-        self.held += float(nbytes)
-        return True
+        with self._lock:
+            if self.held + nbytes > self.budget:
+                return False
+            self.held += float(nbytes)
+            return True
 
 
 class _Steps:
@@ -78,7 +84,9 @@ class _Store:
     def __init__(self, make, n_steps: int, n: int, chunk: int, pool):
         self.make, self.n_steps, self.n, self.chunk, self.pool = make, int(n_steps), int(n), int(chunk), pool
         self.held: dict = {}
-        self.last = (None, None)
+        # the chunks last read that the pool does not hold: two, so that two runs reading the system in
+        # threads (the Monte Carlo's analyses beside its null) do not make each other's chunk again and again
+        self.last: dict = {}
         self.made = 0
         # runs in threads of one process read the same system (the Monte Carlo's analyses beside its null):
         # a chunk is made by one of them, and the others wait for it rather than make it again
@@ -98,10 +106,12 @@ class _Store:
     def _part(self, m: int) -> tuple[np.ndarray, np.ndarray]:
         if m in self.held:
             return self.held[m]
-        if self.last[0] == m:
-            return self.last[1]
+        if m in self.last:                                    # the most recent read last: evicted last
+            self.last[m] = self.last.pop(m)
+            return self.last[m]
         a, b = self.bounds(m)
-        self.last = (None, None)                              # freed before the next is made, not after
+        while len(self.last) >= LAST_CHUNKS:                  # the oldest freed before the next is made
+            self.last.pop(next(iter(self.last)))
         try:
             Phi, Qd = self.make(a, b)
         except SystemCheckError:
@@ -118,7 +128,7 @@ class _Store:
         if self.pool is None or self.pool.take(Phi.nbytes + Qd.nbytes):
             self.held[m] = (Phi, Qd)
         else:
-            self.last = (m, (Phi, Qd))
+            self.last[m] = (Phi, Qd)
         return Phi, Qd
 
     def step(self, k: int) -> tuple[np.ndarray, np.ndarray]:

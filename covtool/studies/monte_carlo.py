@@ -189,10 +189,12 @@ def _memory(opt: dict, dt: float):
     """``memory(steps, truth, filters, dynamics)`` of a Monte Carlo study with options ``opt`` (an upper estimate).
 
     The linear analyses read the truth's and the filters' systems a chunk at
-    a time (:meth:`~covtool.studies.zupt_setup.ZuptSetup.streamed_system`,
-    chunks held up to :data:`~covtool.studies.resources.HELD_CHUNKS` bytes)
-    and keep the navigation block of every step and the whole covariance at
-    the NEES steps only; the null (:func:`covtool.validation.linear_mc.linear_mean_squares`)
+    a time (:meth:`~covtool.studies.zupt_setup.ZuptSetup.streamed_system`:
+    every chunk held where the total fits the memory limit, else as many as
+    four fifths of what the rest leaves, at least
+    :data:`~covtool.studies.resources.HELD_CHUNKS` bytes; the dict's
+    ``layout`` and ``held`` say which) and keep the navigation block of every
+    step and the whole covariance at the NEES steps only; the null (:func:`covtool.validation.linear_mc.linear_mean_squares`)
     holds the dense rows of Φ and the noise roots of every step in single
     precision and the mean squares of every replica.  Nothing grows with
     duration × n².
@@ -217,6 +219,10 @@ def _memory(opt: dict, dt: float):
         # the filter's navigation and constant states (at most 9 + n_f)
         parts["NEES whitening"] = sum(J * (2 * 81 + (9 + m) ** 2 + 3 * (9 + m)) * 8 for m in [9] + list(filters))
         parts["linear sigma histories"] = 3 * cases * 12 * (N + 1) * 8
+        # each of those runs guards a block of 512 steps at a time; each system read keeps the chunks it
+        # reads last (two: the threads), and the null stacks a chunk of 600 steps of Φ and Q_d
+        parts["guard blocks and chunks in use"] = (3 * 512 * (n * n + worst * worst)
+                                                   + 2 * 2 * 600 * (n * n + worst * worst) + 2 * 600 * n * n) * 8
         cols = min(20000, opt["runs"] * max(opt["null_replicas"], 1))
         if opt["null_replicas"]:
             # Φ's dense rows (the navigation block's) and diagonal, the noise roots (n × noise columns, their
@@ -554,8 +560,10 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     t_wait = time.perf_counter() - t_wait
     if side["errors"]:
         raise side["errors"][0]
-    S.release()                              # the held chunks of the systems: every analysis has read them
-    T = None
+    # the held chunks of the systems: every analysis has read them (the last case's system, held by the
+    # loop's names, too)
+    S.release()
+    T = fsys = Phi_f = Qd_f = ff = None
     later.clear()
     null_ms, t_null = side["null"], side["null_seconds"]
     t_lin += side["seconds"]

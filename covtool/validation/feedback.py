@@ -163,7 +163,14 @@ class FeedbackFilter:
         NumericalError
             An input (P0, Φ_f, Q_f, R_f) or a covariance of the history is
             not finite, symmetric and PSD (:func:`covtool.lincov.kalman.check_covariance`);
-            the message names the filter, the time and the state.
+            the message names the filter, the time and the state (the same with
+            or without ``record``); a gain that cannot be formed.
+        SystemCheckError
+            A streamed system's chunk failed its own guard as it was made,
+            passed through unchanged.
+        ValueError
+            ``record`` steps outside ``0 … N``, ``names`` not matching ``Phi_f``,
+            or a streamed system without ``system_checked``.
 
         Notes
         -----
@@ -197,36 +204,40 @@ class FeedbackFilter:
         P = np.full((m, nf, nf), np.nan)
         first = 0
 
+        # the grid's times name a bad covariance; without them, its grid step (as the whole history's index)
+        def at(i):
+            return f"(matrix ({first + i[0]},))"
+
         def check(j):
-            if j == 0:
-                return
-            check_covariance(P[:j], label, names=names, times=None if times is None else times[first:first + j])
+            if j > 0:
+                check_covariance(P[:j], label, names=names, times=None if times is None else times[first:first + j],
+                                 at=None if times is not None else at)
 
         gains = {}
         Pf = symmetrize(np.asarray(P0, float))
-        k = 0
-        try:
-            with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported by the guard
-                for k in range(N + 1):
-                    if k in upd:
+        with np.errstate(over="ignore", invalid="ignore"):   # a blow-up is reported by the guard
+            for k in range(N + 1):
+                if k in upd:
+                    try:
                         K = kalman_gain(Pf, Hf, Rf)
-                        gains[k] = K
-                        Pf = filter_update(Pf, K, Hf, Rf, form)
-                    P[k - first] = Pf
-                    if recorded:
-                        if k in slot:
-                            out[slot[k]] = Pf
-                        if every is not None:
-                            every[k] = Pf[:a, :a]
-                        if k - first + 1 == m:
-                            check(m)
-                            first += m
-                    if k < N:
-                        Pf = symmetrize(Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k])
-        except NumericalError as exc:
-            check(k - first)
-            when = time_text(float(times[k])) if times is not None else f"step {k}"
-            raise NumericalError(f"{label}: gain at {when}: {exc}") from None
+                        Pf_u = filter_update(Pf, K, Hf, Rf, form)
+                    except NumericalError as exc:          # a gain that cannot be formed (not a system's guard)
+                        check(k - first)
+                        when = time_text(float(times[k])) if times is not None else f"step {k}"
+                        raise NumericalError(f"{label}: gain at {when}: {exc}") from None
+                    gains[k] = K
+                    Pf = Pf_u
+                P[k - first] = Pf
+                if recorded:
+                    if k in slot:
+                        out[slot[k]] = Pf
+                    if every is not None:
+                        every[k] = Pf[:a, :a]
+                    if k - first + 1 == m:
+                        check(m)
+                        first += m
+                if k < N:
+                    Pf = symmetrize(Phi_f[k] @ Pf @ Phi_f[k].T + Qd_f[k])
         check(N + 1 - first)
         if recorded:
             return cls(name, names, gains, out, rec, every)

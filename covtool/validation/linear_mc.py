@@ -121,7 +121,7 @@ def _split_rows(off):
 READ_CHUNK = 600
 
 
-def _chunks(Phi, Qd, N: int, size: int = READ_CHUNK):
+def _read_chunks(Phi, Qd, N: int, size: int = READ_CHUNK):
     """``(a, b, Φ[a:b], Q_d[a:b])`` over the steps: slices of whole-grid stacks, or a streamed system's steps
     (:class:`covtool.lincov.streamed.StreamedSystem`, read one step at a time) stacked a chunk at a time."""
     for a in range(0, N, size):
@@ -245,7 +245,7 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
     off = np.zeros((n, n), bool)
     noisy = np.zeros(n, bool)
     with threadpool_limits(limits=1, user_api="blas"):
-        for _, _, Ph, Q in _chunks(Phi, Qd, N):
+        for _, _, Ph, Q in _read_chunks(Phi, Qd, N):
             off |= _split_mask(Ph)
             noisy |= np.any(np.diagonal(Q, axis1=1, axis2=2) > 0, axis=0)
     # states ordered dense rows first, so both parts are contiguous slices (exact: a permutation)
@@ -264,7 +264,7 @@ def linear_mean_squares(Phi, Qd, cases, C, *, runs: int, replicas: int, rng, x0=
     Lp = []
     support = np.flatnonzero(noisy)
     with threadpool_limits(limits=1, user_api="blas"):
-        for a, b, Ph, Q in _chunks(Phi, Qd, N):
+        for a, b, Ph, Q in _read_chunks(Phi, Qd, N):
             Pd[a:b] = Ph[:, dense][:, :, perm]
             dd[a:b] = Ph[:, diag, diag]
             if factors is not None:
