@@ -388,7 +388,9 @@ def test_chunks_are_independent_of_backend_and_resume(files, tmp_path):
     decl["filters"].update(cases=["B"], pure_ins=False)
     r1 = covtool.run_study(decl, backend=SerialBackend())
     with ProcessBackend(2) as be:
+        # with a store, the workers map the reference from one file beside it (SharedReference), removed after
         r2 = covtool.run_study(decl, backend=be, store=tmp_path / "cases")
+    assert not (tmp_path / ".monte_carlo_reference.bin").exists()
     s1, s2 = r1.sums["B"], r2.sums["B"]
     assert s1.n_runs == s2.n_runs == 6
     assert np.array_equal(s1.s2, s2.s2) and np.array_equal(s1.s1, s2.s1)
@@ -755,3 +757,31 @@ def test_a_failed_fork_samples_the_reference_here(files, monkeypatch):
     for c in here.sums:
         assert np.array_equal(here.sums[c].s2, refused.sums[c].s2)
         assert np.array_equal(here.sums[c].s1, refused.sums[c].s1)
+
+
+def test_shared_reference_maps_the_same_arrays_read_only(tmp_path):
+    """The ensemble's reference written once and mapped by the workers: the same values bit for bit, the
+    arrays views of the file (read-only), nested objects and empty arrays kept, the file removed after."""
+    from covtool.validation.monte_carlo import SharedReference
+
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(1000, 3))
+    b = rng.normal(size=(7, 4, 3)).astype(np.float32)
+    ref = {"truth": {(1, 0.01, 3, None, 0.0, 600): (a, a[::2]), (1, "attitude"): b, "empty": np.zeros((0, 3))},
+           "contexts": {(0, 5): {"w": rng.normal(size=(5, 3)), "name": "span"}}}
+    sh = SharedReference(ref, tmp_path / "ref.bin")
+    got = sh.load()
+    x, y = got["truth"][(1, 0.01, 3, None, 0.0, 600)]
+    assert np.array_equal(x, a) and x.dtype == a.dtype and not x.flags.writeable
+    assert np.array_equal(y, a[::2])                                   # a strided view: pickled in-band
+    assert np.array_equal(got["truth"][(1, "attitude")], b) and got["truth"][(1, "attitude")].dtype == np.float32
+    assert got["truth"]["empty"].shape == (0, 3)
+    assert np.array_equal(got["contexts"][(0, 5)]["w"], ref["contexts"][(0, 5)]["w"])
+    assert got["contexts"][(0, 5)]["name"] == "span"
+    with pytest.raises(ValueError, match="read-only"):
+        x[0, 0] = 1.0
+    import pickle
+    assert pickle.loads(pickle.dumps(sh)).load()["truth"]["empty"].shape == (0, 3)   # what a task carries
+    sh.remove()
+    assert not (tmp_path / "ref.bin").exists()
+    sh.remove()                                                         # already gone: fine

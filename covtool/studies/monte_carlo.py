@@ -81,6 +81,7 @@ import os
 import threading
 import time
 from functools import partial
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -90,6 +91,7 @@ from covtool.analysis.consistency import (expected_nees, horizontal_dof, inside_
 from covtool.analysis.metrics import nav_metrics, ned_position_covariance, validity_text
 from covtool.errors import StudyFileError
 from covtool.forked import can_split, Forked
+from covtool.parallel import DaskBackend
 from covtool.io.config import boolean, check_keys, integer, LIMITS, number, quantity
 from covtool.lincov.history import AtSteps
 from covtool.lincov.kalman import symmetrize
@@ -107,7 +109,7 @@ from covtool.units import ARCMIN
 from covtool.validation.feedback import FeedbackFilter, gain_steps
 from covtool.validation.linear_mc import GROUPS, linear_mean_squares, output_rows
 from covtool.validation.monte_carlo import (EnsembleCase, EnsembleSums, initial_states, reference_along,
-                                             reference_inputs, simulate_chunk)
+                                             reference_inputs, SharedReference, simulate_chunk)
 from covtool.version import __version__
 
 __all__ = [
@@ -530,9 +532,17 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             "samples_per_step": opt["samples_per_step"], "R": S.R, "cases": cases, "seed": opt["seed"],
             "sensor_noise": opt["sensor_noise"], "measurement_noise": opt["measurement_noise"],
             "process_dt": opt["process_dt"]}
-    # the trajectory as every chunk samples it (increments, attitude, gravity, span contexts), sampled once
-    base["reference"] = reference if reference is not None else \
+    # the trajectory as every chunk samples it (increments, attitude, gravity, span contexts), sampled once;
+    # with a result store and workers on this machine, written once to a file beside the store that every
+    # worker maps (SharedReference), not pickled into every chunk
+    reference = reference if reference is not None else \
         reference_along(traj, t, *reference_inputs(cases), **ref_args)
+    shared = None
+    if store is not None and not (backend == "dask" or isinstance(backend, DaskBackend)):
+        shared = SharedReference(reference, Path(store).parent / ".monte_carlo_reference.bin")
+        reference = shared
+    base["reference"] = reference
+    del reference
     tasks = [{**base, "chunk": i, "runs": m} for i, m in enumerate(sizes)]
     keys = [f"runs-{i:04d}" for i in range(len(sizes))]
     first = np.cumsum([0] + sizes)
@@ -544,10 +554,15 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
                 "trajectory_csv_sha256": trajectory_csv_sha256(decl, path.parent if path else None),
                 "chunks": keys, "runs": sizes}
 
-    results, stats, rs = run_in_chunks(
-        simulate_chunk, tasks, keys, run_ids, store=store, manifest=manifest, resume=resume, progress=progress,
-        backend=backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"),
-        desc="Monte Carlo runs")
+    try:
+        results, stats, rs = run_in_chunks(
+            simulate_chunk, tasks, keys, run_ids, store=store, manifest=manifest, resume=resume, progress=progress,
+            backend=backend if backend is not None else ("processes" if len(sizes) > 1 else "serial"),
+            desc="Monte Carlo runs")
+    finally:
+        if shared is not None:
+            shared.remove()
+    base = tasks = None
     names = [c.name for c in cases]
     sums = {}
     for res in results:

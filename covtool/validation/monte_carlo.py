@@ -240,6 +240,70 @@ def reference_along(traj, t, update_steps, filter_names, *, imu_rate: float, sam
     return {"truth": cache, "contexts": contexts}
 
 
+class SharedReference:
+    """A :func:`reference_along` written once to a file that every chunk of runs maps, not copies.
+
+    The reference (the trajectory at the IMU rate: about 180 bytes a sample,
+    1.5 GB over 24 h at 100 Hz) would otherwise be pickled into every chunk
+    in flight and unpickled by every worker.  Here it is pickled once
+    (protocol 5) with its arrays' buffers out of band, after the pickle in
+    the same file; a worker maps the file read-only and the arrays are
+    views of the mapping, so the processes of one machine share its pages.
+    The values are those of the reference, bit for bit.
+
+    Parameters
+    ----------
+    reference : dict
+        :func:`reference_along`'s result.
+    path : path
+        The file (inside the study's output directory); :meth:`remove` deletes it.
+    """
+
+    _ALIGN = 64
+
+    def __init__(self, reference: dict, path):
+        import pickle
+        from pathlib import Path
+
+        self.path = Path(path)
+        buffers = []
+        head = pickle.dumps(reference, protocol=5, buffer_callback=buffers.append)
+        raws = [b.raw() for b in buffers]
+        index, off = [], 0
+        for r in raws:
+            off = -(-off // self._ALIGN) * self._ALIGN
+            index.append((off, r.nbytes))
+            off += r.nbytes
+        meta = pickle.dumps((head, index), protocol=5)
+        start = self._start(len(meta))
+        with open(self.path, "wb") as f:
+            f.write(len(meta).to_bytes(8, "little"))
+            f.write(meta)
+            for (o, _), r in zip(index, raws):
+                f.seek(start + o)
+                f.write(r)
+            f.truncate(start + off)
+
+    @classmethod
+    def _start(cls, meta_len: int) -> int:
+        return -(-(8 + meta_len) // cls._ALIGN) * cls._ALIGN
+
+    def load(self) -> dict:
+        """The reference, its arrays read-only views of the mapped file."""
+        import pickle
+
+        with open(self.path, "rb") as f:
+            n = int.from_bytes(f.read(8), "little")
+            head, index = pickle.loads(f.read(n))
+        start = self._start(n)
+        mm = np.memmap(self.path, mode="r", dtype=np.uint8) if index else None
+        return pickle.loads(head, buffers=[mm[start + o:start + o + size] for o, size in index])
+
+    def remove(self) -> None:
+        """Delete the file (a missing one is fine)."""
+        self.path.unlink(missing_ok=True)
+
+
 def reference_inputs(cases) -> tuple[list, list]:
     """``(update_steps, filter_names)`` of :func:`reference_along` for the ensemble ``cases``.
 
@@ -512,6 +576,8 @@ def simulate_chunk(task: dict) -> dict:
     errors = SensorErrors(model, x0, r_sensor, noise=task.get("sensor_noise", True),
                           process_dt=task.get("process_dt", 0.1))
     ref = task.get("reference")
+    if isinstance(ref, SharedReference):
+        ref = ref.load()
     cache = ImuSimulator.adopt_cache(ref["truth"], traj) if ref is not None else None
     sim = ImuSimulator(traj, task["imu_rate"], t0=float(t[0]), duration=float(t[-1] - t[0]), errors=errors,
                        truth_cache=cache)
