@@ -187,7 +187,7 @@ def mc_options(decl: dict, where: str) -> dict:
     return o
 
 
-def _memory(opt: dict, dt: float):
+def _memory(opt: dict, dt: float, shared: bool = False):
     """``memory(steps, truth, filters, dynamics)`` of a Monte Carlo study with options ``opt`` (an upper estimate).
 
     The linear analyses read the truth's and the filters' systems a chunk at
@@ -233,10 +233,11 @@ def _memory(opt: dict, dt: float):
             parts["null: mean squares"] = cases * opt["null_replicas"] * (N + 1) * 3 * 8
             parts["null: states"] = (cases + 8) * n * cols * 4
         # the ensemble's reference (the trajectory at the IMU rate, reference_along: about 180 bytes a sample,
-        # measured) in this process, pickled into the chunks in flight and unpickled by every worker
+        # measured) in this process and, shared, once in the file every worker maps; else pickled into the
+        # chunks in flight and unpickled by every worker
         samples = N * dt * opt["imu_rate"]
         chunks = math.ceil(opt["runs"] / opt["runs_per_chunk"])
-        parts["ensemble reference"] = 180 * samples * (3 + min(chunks, os.cpu_count() or 1))
+        parts["ensemble reference"] = 180 * samples * (2 if shared else 3 + min(chunks, os.cpu_count() or 1))
         # every chunk held (each made once, as the whole-grid stacks were) where that fits the limit, else as
         # many as fit four fifths of what the rest leaves (at least HELD_CHUNKS), the others made again by
         # every analysis that reads them
@@ -252,6 +253,12 @@ def _memory(opt: dict, dt: float):
 
     memory.records = memory.limit = True          # setup passes [study] max_memory (the layout must fit it)
     return memory
+
+
+def _shares_reference(store, backend) -> bool:
+    """Whether the chunks read the ensemble's reference from one file beside the result ``store``
+    (:class:`~covtool.validation.monte_carlo.SharedReference`): with a store, and workers on this machine."""
+    return store is not None and not (backend == "dask" or isinstance(backend, DaskBackend))
 
 
 def _chunks(runs: int, per: int) -> list[int]:
@@ -371,7 +378,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     where = str(path) if path else "<study>"
     opt = mc_options(decl, where)
     S = setup(decl, path=path, progress=progress, extra_sections=("monte_carlo",),
-              memory=_memory(opt, study_header(decl, where)["dt"]),
+              memory=_memory(opt, study_header(decl, where)["dt"], _shares_reference(store, backend)),
               shrink="a larger [study] dt, a shorter duration or fewer [filters] cases")
     t, nodes, truth = S.t, S.nodes, S.truth
     dt = float(t[1] - t[0])
@@ -487,6 +494,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
             ref_job.cancel()
             ref_job = None
         reference = ref_job.result() if ref_job is not None else None
+        ref_job = None                       # (it keeps its pickled result and the value: both go with it)
     except BaseException:                    # the child does not outlive a failed analysis
         if ref_job is not None:
             ref_job.cancel()
@@ -538,7 +546,7 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
     reference = reference if reference is not None else \
         reference_along(traj, t, *reference_inputs(cases), **ref_args)
     shared = None
-    if store is not None and not (backend == "dask" or isinstance(backend, DaskBackend)):
+    if _shares_reference(store, backend):
         shared = SharedReference(reference, Path(store).parent / ".monte_carlo_reference.bin")
         reference = shared
     base["reference"] = reference
