@@ -359,7 +359,11 @@ def run(decl: dict, *, path=None, progress: bool = False, backend=None, store=No
         :mod:`covtool.parallel` backend; default local processes (one per
         CPU) when there is more than one chunk.
     store : path, optional
-        Incremental result store (one JSON file per chunk of runs).
+        Incremental result store (one JSON file per chunk of runs).  With a
+        store and local workers, the ensemble's reference is written to
+        ``.monte_carlo_reference.bin`` beside it (in its parent directory:
+        ``--out``) for the run and removed at its end
+        (:class:`~covtool.validation.monte_carlo.SharedReference`).
     resume : bool
         Reuse the chunks already in ``store``.
     """
