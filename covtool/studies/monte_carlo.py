@@ -201,7 +201,7 @@ def _memory(opt: dict, dt: float, shared: bool = False):
     precision and the mean squares of every replica.  Nothing grows with
     duration × n².
     """
-    from covtool.studies.resources import HELD_CHUNKS, memory_limit, stream_memory_estimate
+    from covtool.studies.resources import memory_limit, stream_memory_estimate
 
     def memory(steps, truth, filters, dynamics, *, max_memory=None, distinct=None, **_):
         N, n = int(steps), truth.n
