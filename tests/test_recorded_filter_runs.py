@@ -108,6 +108,12 @@ def test_recorded_feedback_design_keeps_the_whole_designs_numbers():
     assert np.array_equal(out.P, whole.P[rec])
     assert np.array_equal(out.every, whole.P[:, :6, :6])
     assert all(np.array_equal(out.gains[k], whole.gains[k]) for k in whole.gains) and out.gains.keys() == whole.gains.keys()
+    # the checks of every recorded run (covtool.lincov.reference.record_plan)
+    with pytest.raises(ValueError, match=r"^Monte Carlo filter F: record steps must lie in 0 … 700, got 0 … 701$"):
+        _zupt_design(record=[0, 701])
+    with pytest.raises(ValueError, match=r"^Monte Carlo filter F: all_steps must be a positive number of states, "
+                                         r"got 0$"):
+        _zupt_design(all_steps=0)
 
 
 def test_at_steps_reads_by_grid_step_and_names_a_step_it_lacks():

@@ -81,10 +81,8 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
                      names=names, times=times)
     N, n, _ = Phi.shape
     if record is not None or keep is not None or all_steps is not None:
-        rec = np.arange(N + 1) if record is None else np.unique(np.asarray(record, int))
-        for what, v in (("keep", keep), ("all_steps", all_steps)):
-            if v is not None and int(v) < 1:
-                raise ValueError(f"{label}: {what} must be a positive number of states, got {v}")
+        rec, _ = record_plan(np.arange(N + 1) if record is None else record, N, label, keep=keep,
+                             all_steps=all_steps)
         out, every = _propagate_recorded(Phi, Qd, P0, rec, n if keep is None else min(int(keep), n),
                                          None if all_steps is None else min(int(all_steps), n), check=check,
                                          label=label, names=names, times=times)
@@ -104,12 +102,41 @@ def propagate(Phi: np.ndarray, Qd: np.ndarray, P0: np.ndarray, *, check: bool = 
 GUARD_STEPS = 512
 
 
+def record_plan(record, N: int, label: str, **states) -> tuple[np.ndarray, dict]:
+    """The steps a recorded run keeps, checked: ``(steps, slot)``, ``slot[k]`` the row of grid step ``k``.
+
+    The one check of every recorded run (:func:`propagate`,
+    :func:`propagate_with_filter`, :meth:`covtool.validation.feedback.FeedbackFilter.design`).
+
+    Parameters
+    ----------
+    record : array_like of int
+        Grid indices (any order, repeats allowed).
+    N : int
+        Steps of the grid (indices ``0 … N``).
+    label : str
+        Names the run in the messages.
+    **states : int or None
+        State counts the run keeps (``keep``, ``all_steps``): each at least 1.
+
+    Raises
+    ------
+    ValueError
+        A step outside ``0 … N``, or a state count below 1.
+    """
+    rec = np.unique(np.asarray(record, int))
+    if rec.size and (rec[0] < 0 or rec[-1] > N):
+        raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
+    for what, v in states.items():
+        if v is not None and int(v) < 1:
+            raise ValueError(f"{label}: {what} must be a positive number of states, got {v}")
+    return rec, {int(k): i for i, k in enumerate(rec)}
+
+
 def _propagate_recorded(Phi, Qd, P0, rec, k, k_all, *, check, label, names, times):
     """:func:`propagate` keeping the leading ``k`` states of the steps ``rec`` (and the leading ``k_all`` of
     every step, unless None); every step guarded, in blocks.  Returns ``(out, every)``."""
     N, n, _ = Phi.shape
-    if rec.size and (rec[0] < 0 or rec[-1] > N):
-        raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
     out = np.empty((rec.size, k, k))
     every = None if k_all is None else np.empty((N + 1, k_all, k_all))
     slot = {int(k): i for i, k in enumerate(rec)}
@@ -369,12 +396,7 @@ def _filter_recorded(Phi, Qd, P0, Phi_f, Qd_f, Pf0, H, Hf, D, R, Rf, update_step
     ``all_steps`` states of every step), every covariance guarded a block of :data:`GUARD_STEPS` at a time."""
     N, n, _ = Phi.shape
     nf = Phi_f.shape[1]
-    rec = np.zeros(0, int) if record is None else np.unique(np.asarray(record, int))
-    if rec.size and (rec[0] < 0 or rec[-1] > N):
-        raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
-    if all_steps is not None and int(all_steps) < 1:
-        raise ValueError(f"{label}: all_steps must be a positive number of states, got {all_steps}")
-    slot = {int(k): i for i, k in enumerate(rec)}
+    rec, slot = record_plan([] if record is None else record, N, label, all_steps=all_steps)
     out_t, out_f = np.empty((rec.size, n, n)), np.empty((rec.size, nf, nf))
     a_t = a_f = None
     every_t = every_f = None

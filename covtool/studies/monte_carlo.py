@@ -242,10 +242,10 @@ def _memory(opt: dict, dt: float, shared: bool = False):
         # many as fit four fifths of what the rest leaves (at least HELD_CHUNKS), the others made again by
         # every analysis that reads them
         layout = "every chunk of the systems held"
-        if sum(parts.values()) > memory_limit(max_memory)[0] and systems > HELD_CHUNKS:
+        limit = memory_limit(max_memory)[0]
+        if sum(parts.values()) > limit and systems > HELD_CHUNKS:
             rest = sum(parts.values()) - systems
-            parts["held chunks of the systems"] = min(systems, max(HELD_CHUNKS,
-                                                                   0.8 * (memory_limit(max_memory)[0] - rest)))
+            parts["held chunks of the systems"] = min(systems, max(HELD_CHUNKS, 0.8 * (limit - rest)))
             layout = "streamed (some chunks of the systems held, the others made again on each read)"
         total = sum(parts.values())
         return {"bytes": float(total), "steps": N, "parts": parts, "parallel": 1, "layout": layout,

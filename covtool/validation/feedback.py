@@ -169,8 +169,8 @@ class FeedbackFilter:
             A streamed system's chunk failed its own guard as it was made,
             passed through unchanged.
         ValueError
-            ``record`` steps outside ``0 … N``, ``names`` not matching ``Phi_f``,
-            or a streamed system without ``system_checked``.
+            ``record`` steps outside ``0 … N``, ``all_steps`` below 1, ``names``
+            not matching ``Phi_f``, or a streamed system without ``system_checked``.
 
         Notes
         -----
@@ -185,17 +185,14 @@ class FeedbackFilter:
         N, nf, _ = Phi_f.shape
         if nf != len(names):
             raise ValueError(f"filter {name!r}: Phi_f has {nf} states, names has {len(names)}")
-        from covtool.lincov.reference import GUARD_STEPS
+        from covtool.lincov.reference import GUARD_STEPS, record_plan
 
         label = f"Monte Carlo filter {name}"
         check_system(label, Phi=None if system_checked else Phi_f, Qd=None if system_checked else Qd_f, P0=P0,
                      R=Rf, names=names, times=times)
         upd = set(gain_steps(update_steps, N))
         recorded = record is not None or all_steps is not None
-        rec = np.unique(np.asarray([] if record is None else record, int))
-        if rec.size and (rec[0] < 0 or rec[-1] > N):
-            raise ValueError(f"{label}: record steps must lie in 0 … {N}, got {rec[0]} … {rec[-1]}")
-        slot = {int(k): i for i, k in enumerate(rec)}
+        rec, slot = record_plan([] if record is None else record, N, label, all_steps=all_steps)
         out = np.empty((rec.size, nf, nf))
         a = None if all_steps is None else min(int(all_steps), nf)
         every = None if a is None else np.empty((N + 1, a, a))
