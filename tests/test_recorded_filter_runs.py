@@ -124,6 +124,21 @@ def test_at_steps_reads_by_grid_step_and_names_a_step_it_lacks():
         a[6]
     with pytest.raises(ValueError, match="2 steps for 3 covariances"):
         AtSteps([1, 2], P)
+    with pytest.raises(ValueError, match="the steps of the kept covariances must increase"):
+        AtSteps([5, 5, 40], P)
+
+
+def test_the_chunk_pool_is_set_before_the_first_streamed_system():
+    from covtool.studies.zupt_setup import setup
+
+    path = ROOT / "studies" / "monte_carlo_validation.toml"
+    S = setup(tomllib.loads(path.read_text()), path=path, extra_sections=("monte_carlo",))
+    S.hold_chunks(2**20)
+    T = S.streamed_system()
+    T.Phi[0]
+    assert S._dyn_cache[("streamed pool",)].budget == 2**20
+    with pytest.raises(RuntimeError, match="^hold_chunks: the streamed systems' pool is already in use$"):
+        S.hold_chunks(2**30)
 
 
 def test_monte_carlo_memory_does_not_grow_with_duration_times_n_squared():
